@@ -1,0 +1,453 @@
+"""skinmapd configuration: TOML in, a validated frozen dataclass tree out.
+
+Everything is checked before anything starts; the first problem found raises
+`ConfigError` naming the key, the value and what is allowed. Unknown keys are errors too,
+so a typo never silently falls back to a default.
+"""
+from __future__ import annotations
+
+import ipaddress
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+__all__ = [
+    "ConfigError",
+    "DaemonConfig",
+    "DeviceConfig",
+    "ElementSpec",
+    "ElementsConfig",
+    "LogConfig",
+    "OutputConfig",
+    "ReconstructionConfig",
+    "StateConfig",
+    "ZenohConfig",
+    "load_config",
+    "parse_config",
+    "DEMO_CONFIG",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or out of range."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Sections
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    port: str = "socket://127.0.0.1:7600"
+    name: str = ""  # key-space name; empty = derived from the scanner's serial number
+    baudrate: int = 3_000_000
+    scan_rate_hz: float = 50.0
+    handshake_timeout_s: float = 2.0
+    stall_timeout_s: float = 1.0
+    reconnect_min_s: float = 0.2
+    reconnect_max_s: float = 5.0
+    exclusive: bool = True
+    max_cells: int = 1024
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    pitch_mm: float = 0.0  # 0 = as reported by the scanner
+    h_upper_mm: float = 0.0  # 0 = as reported by the scanner
+    h_lower_mm: float = 0.0
+    strain_sigma: float = 5.7e-5  # strain-noise s.d. used for uncertainty estimates
+    warm_start: bool = True
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    rate_hz: float = 10.0  # 0 = every scan
+    strains_rate_hz: float = 2.0
+    status_rate_hz: float = 1.0
+    surface_rate_hz: float = 10.0
+    points_per_pitch: int = 20
+    console: bool = False  # print a live status line (the demo turns it on)
+
+
+@dataclass(frozen=True)
+class ElementSpec:
+    u_mm: float
+    v_mm: float
+    offset_mm: float = 0.0  # along the upper normal; negative = below the upper surface
+
+
+@dataclass(frozen=True)
+class ElementsConfig:
+    layout: str = "grid"  # "grid" | "explicit" | "none"
+    rows: int = 1
+    cols: int = 16
+    pitch_u_mm: float = 3.0
+    pitch_v_mm: float = 3.0
+    centre_u_mm: float = 0.0
+    centre_v_mm: float = 0.0
+    offset_mm: float = 0.0
+    explicit: tuple[ElementSpec, ...] = ()
+
+    def material_coordinates(self) -> tuple[list[tuple[float, float]], list[float]]:
+        """Element (u, v) in mm and normal offsets, in publication order."""
+        if self.layout == "explicit":
+            return [(e.u_mm, e.v_mm) for e in self.explicit], [e.offset_mm for e in self.explicit]
+        if self.layout == "none":
+            return [], []
+        uv = []
+        for r in range(self.rows):
+            for c in range(self.cols):
+                uv.append(
+                    (
+                        self.centre_u_mm + (c - (self.cols - 1) / 2) * self.pitch_u_mm,
+                        self.centre_v_mm + (r - (self.rows - 1) / 2) * self.pitch_v_mm,
+                    )
+                )
+        return uv, [self.offset_mm] * len(uv)
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    prefix: str = "skinmap"
+    mode: str = "peer"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    allow_non_loopback: bool = False
+    config_file: str = ""  # optional Zenoh JSON5 file (production: TLS, access control)
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    enabled: bool = True
+    directory: str = "logs"
+    basename: str = "skinmap"
+    max_file_mb: float = 256.0
+    max_file_minutes: float = 60.0
+    compression: str = "zstd"
+    chunk_kb: int = 256
+    fsync: bool = True
+    queue_size: int = 4096
+
+
+@dataclass(frozen=True)
+class StateConfig:
+    directory: str = "state"
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    device: DeviceConfig = field(default_factory=DeviceConfig)
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    elements: ElementsConfig = field(default_factory=ElementsConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    state: StateConfig = field(default_factory=StateConfig)
+    source: str = "<defaults>"  # where the config came from
+    text: str = ""  # the raw TOML, logged at start
+
+    def resolve(self, path: str) -> Path:
+        """A relative directory in the config is relative to the config file's folder."""
+        p = Path(path).expanduser()
+        if p.is_absolute() or self.source.startswith("<"):
+            return p
+        return Path(self.source).parent / p
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation helpers
+
+
+def _fail(key: str, value: Any, allowed: str) -> ConfigError:
+    return ConfigError(f"config key '{key}' = {value!r} is invalid: {allowed}")
+
+
+def _number(lo: float, hi: float, *, integer: bool = False, lo_open: bool = False) -> Callable[[str, Any], Any]:
+    def check(key: str, value: Any) -> Any:
+        kind = "an integer" if integer else "a number"
+        bound = f"{'>' if lo_open else '≥'} {lo:g} and ≤ {hi:g}"
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _fail(key, value, f"must be {kind} {bound}")
+        if integer and not isinstance(value, int):
+            raise _fail(key, value, f"must be {kind} {bound}")
+        if not math.isfinite(value) or value > hi or value < lo or (lo_open and value == lo):
+            raise _fail(key, value, f"must be {kind} {bound}")
+        return int(value) if integer else float(value)
+
+    return check
+
+
+def _boolean(key: str, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise _fail(key, value, "must be true or false")
+    return value
+
+
+def _choice(*options: str) -> Callable[[str, Any], str]:
+    def check(key: str, value: Any) -> str:
+        if value not in options:
+            raise _fail(key, value, "must be one of " + ", ".join(repr(o) for o in options))
+        return value
+
+    return check
+
+
+def _string(pattern: str | None = None, what: str = "") -> Callable[[str, Any], str]:
+    def check(key: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise _fail(key, value, "must be a string")
+        if pattern is not None and not re.fullmatch(pattern, value):
+            raise _fail(key, value, what or f"must match {pattern}")
+        return value
+
+    return check
+
+
+_KEY_SEGMENT = r"[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*"
+
+
+def _port(key: str, value: Any) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise _fail(key, value, "must be a serial device path (e.g. /dev/serial/by-id/…) or a pyserial URL")
+    if "://" in value:
+        scheme = value.split("://", 1)[0]
+        if scheme not in ("socket", "loop", "rfc2217", "spy", "alt", "hwgrep"):
+            raise _fail(key, value, "URL scheme must be one pyserial knows: socket://, loop://, rfc2217://, spy://, alt://, hwgrep://")
+        if scheme in ("socket", "rfc2217"):
+            host = value.split("://", 1)[1].split(":", 1)[0]
+            if host not in ("127.0.0.1", "localhost", "[::1]", "::1"):
+                raise _fail(key, value, "network serial ports are only allowed on loopback (127.0.0.1)")
+    elif not value.startswith("/"):
+        raise _fail(key, value, "must be an absolute device path or a pyserial URL")
+    return value
+
+
+def _endpoint(key: str, value: Any) -> str:
+    if not isinstance(value, str) or not re.fullmatch(r"(tcp|udp|tls|quic)/.+:\d{1,5}", value):
+        raise _fail(key, value, "must be a Zenoh endpoint like 'tcp/127.0.0.1:7447'")
+    port = int(value.rsplit(":", 1)[1])
+    if not 1 <= port <= 65535:
+        raise _fail(key, value, "port must be 1..65535")
+    return value
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True when a Zenoh endpoint names a loopback address."""
+    host = endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _string_list(item: Callable[[str, Any], Any]) -> Callable[[str, Any], tuple]:
+    def check(key: str, value: Any) -> tuple:
+        if not isinstance(value, list):
+            raise _fail(key, value, "must be a list")
+        return tuple(item(f"{key}[{i}]", v) for i, v in enumerate(value))
+
+    return check
+
+
+_SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
+    "device": {
+        "port": _port,
+        "name": _string(r"[A-Za-z0-9_\-]{0,64}", "must be 0–64 characters of letters, digits, '_' or '-'"),
+        "baudrate": _number(1200, 20_000_000, integer=True),
+        "scan_rate_hz": _number(0, 2000, lo_open=True),
+        "handshake_timeout_s": _number(0.05, 60, lo_open=True),
+        "stall_timeout_s": _number(0.05, 600),
+        "reconnect_min_s": _number(0.01, 60),
+        "reconnect_max_s": _number(0.01, 3600),
+        "exclusive": _boolean,
+        "max_cells": _number(4, 1024, integer=True),
+    },
+    "reconstruction": {
+        "pitch_mm": _number(0, 100),
+        "h_upper_mm": _number(0, 10),
+        "h_lower_mm": _number(0, 10),
+        "strain_sigma": _number(0, 0.01),
+        "warm_start": _boolean,
+    },
+    "output": {
+        "rate_hz": _number(0, 2000),
+        "strains_rate_hz": _number(0, 2000),
+        "status_rate_hz": _number(0.01, 100, lo_open=True),
+        "surface_rate_hz": _number(0, 2000),
+        "points_per_pitch": _number(1, 100, integer=True),
+        "console": _boolean,
+    },
+    "elements": {
+        "layout": _choice("grid", "explicit", "none"),
+        "rows": _number(1, 1024, integer=True),
+        "cols": _number(1, 1024, integer=True),
+        "pitch_u_mm": _number(0, 1000, lo_open=True),
+        "pitch_v_mm": _number(0, 1000, lo_open=True),
+        "centre_u_mm": _number(-1000, 1000),
+        "centre_v_mm": _number(-1000, 1000),
+        "offset_mm": _number(-50, 50),
+    },
+    "zenoh": {
+        "prefix": _string(_KEY_SEGMENT, "must be a Zenoh key without wildcards, e.g. 'skinmap' or 'lab/skinmap'"),
+        "mode": _choice("peer", "client"),
+        "listen": _string_list(_endpoint),
+        "connect": _string_list(_endpoint),
+        "allow_non_loopback": _boolean,
+        "config_file": _string(),
+        "enabled": _boolean,
+    },
+    "log": {
+        "enabled": _boolean,
+        "directory": _string(r".+", "must be a non-empty path"),
+        "basename": _string(r"[A-Za-z0-9_\-]{1,64}", "must be 1–64 characters of letters, digits, '_' or '-'"),
+        "max_file_mb": _number(0.01, 1_000_000, lo_open=True),
+        "max_file_minutes": _number(0.01, 10_080, lo_open=True),
+        "compression": _choice("zstd", "lz4", "none"),
+        "chunk_kb": _number(1, 65_536, integer=True),
+        "fsync": _boolean,
+        "queue_size": _number(16, 1_000_000, integer=True),
+    },
+    "state": {"directory": _string(r".+", "must be a non-empty path")},
+}
+
+_SECTIONS = {
+    "device": DeviceConfig,
+    "reconstruction": ReconstructionConfig,
+    "output": OutputConfig,
+    "elements": ElementsConfig,
+    "zenoh": ZenohConfig,
+    "log": LogConfig,
+    "state": StateConfig,
+}
+
+
+def _explicit_elements(value: Any, sheet_hint: str = "elements.explicit") -> tuple[ElementSpec, ...]:
+    if not isinstance(value, list) or not value:
+        raise _fail(sheet_hint, value, "must be a non-empty array of tables {u_mm, v_mm, offset_mm}")
+    out = []
+    for i, item in enumerate(value):
+        key = f"{sheet_hint}[{i}]"
+        if not isinstance(item, dict):
+            raise _fail(key, item, "must be a table {u_mm, v_mm, offset_mm}")
+        unknown = set(item) - {"u_mm", "v_mm", "offset_mm"}
+        if unknown:
+            raise _fail(f"{key}.{sorted(unknown)[0]}", item[sorted(unknown)[0]], "unknown key; allowed: u_mm, v_mm, offset_mm")
+        for need in ("u_mm", "v_mm"):
+            if need not in item:
+                raise ConfigError(f"config key '{key}.{need}' is missing: every explicit element needs u_mm and v_mm")
+        coord = _number(-1000, 1000)
+        out.append(
+            ElementSpec(
+                u_mm=coord(f"{key}.u_mm", item["u_mm"]),
+                v_mm=coord(f"{key}.v_mm", item["v_mm"]),
+                offset_mm=_number(-50, 50)(f"{key}.offset_mm", item.get("offset_mm", 0.0)),
+            )
+        )
+    return tuple(out)
+
+
+def parse_config(data: dict[str, Any], *, source: str = "<dict>", text: str = "") -> DaemonConfig:
+    """Validate a parsed TOML document; raise ConfigError on the first problem."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the configuration must be a TOML table")
+    unknown = set(data) - set(_SECTIONS)
+    if unknown:
+        name = sorted(unknown)[0]
+        raise ConfigError(f"config section '[{name}]' is unknown; allowed sections: {', '.join(_SECTIONS)}")
+    sections: dict[str, Any] = {}
+    for name, cls in _SECTIONS.items():
+        raw = data.get(name, {})
+        if not isinstance(raw, dict):
+            raise _fail(name, raw, "must be a table")
+        schema = _SCHEMA[name]
+        values: dict[str, Any] = {}
+        for key, value in raw.items():
+            if name == "elements" and key == "explicit":
+                values["explicit"] = _explicit_elements(value)
+                continue
+            if key not in schema:
+                allowed = sorted(schema) + (["explicit"] if name == "elements" else [])
+                raise ConfigError(f"config key '{name}.{key}' is unknown; allowed keys in [{name}]: {', '.join(allowed)}")
+            values[key] = schema[key](f"{name}.{key}", value)
+        sections[name] = cls(**values)
+
+    cfg = DaemonConfig(**sections, source=source, text=text)
+    _cross_checks(cfg)
+    return cfg
+
+
+def _cross_checks(cfg: DaemonConfig) -> None:
+    d, z, e = cfg.device, cfg.zenoh, cfg.elements
+    if d.reconnect_max_s < d.reconnect_min_s:
+        raise _fail("device.reconnect_max_s", d.reconnect_max_s, f"must be ≥ device.reconnect_min_s ({d.reconnect_min_s:g})")
+    if e.layout == "explicit" and not e.explicit:
+        raise ConfigError("config key 'elements.explicit' is missing: layout = 'explicit' needs [[elements.explicit]] tables")
+    if e.layout != "explicit" and e.explicit:
+        raise _fail("elements.layout", e.layout, "must be 'explicit' when [[elements.explicit]] tables are given")
+    if e.layout == "grid" and e.rows * e.cols > 65_536:
+        raise _fail("elements.rows", e.rows, "rows × cols must be ≤ 65536")
+    if z.enabled and not z.listen and not z.connect and not z.config_file:
+        raise _fail("zenoh.listen", list(z.listen), "give at least one listen or connect endpoint (or zenoh.enabled = false)")
+    if not z.allow_non_loopback:
+        for key, endpoints in (("zenoh.listen", z.listen), ("zenoh.connect", z.connect)):
+            for ep in endpoints:
+                if not is_loopback_endpoint(ep):
+                    raise _fail(
+                        key,
+                        ep,
+                        "non-loopback endpoints are refused unless zenoh.allow_non_loopback = true "
+                        "(use tcp/127.0.0.1:PORT)",
+                    )
+    if z.config_file and not Path(cfg.resolve(z.config_file)).is_file():
+        raise _fail("zenoh.config_file", z.config_file, "file does not exist")
+
+
+def load_config(path: str | Path) -> DaemonConfig:
+    """Read and validate a TOML config file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {str(p)!r}: {exc.strerror or exc}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {str(p)!r} is not valid TOML: {exc}") from exc
+    return parse_config(data, source=str(p), text=text)
+
+
+# The embedded default: the emulator on loopback, logs and state in local folders.
+DEMO_CONFIG = """\
+# skinmapd demo: emulator on loopback TCP, Zenoh on loopback, logs in ./logs
+[device]
+port = "socket://127.0.0.1:7600"
+name = "demo"
+scan_rate_hz = 50
+
+[output]
+rate_hz = 10
+console = true
+
+[elements]
+layout = "grid"
+rows = 1
+cols = 32
+pitch_u_mm = 1.5
+offset_mm = -0.3
+
+[zenoh]
+prefix = "skinmap"
+listen = ["tcp/127.0.0.1:7447"]
+
+[log]
+directory = "logs"
+
+[state]
+directory = "state"
+"""

@@ -1,0 +1,89 @@
+"""Config validation: every bad value is refused with a message naming key, value and rule."""
+from pathlib import Path
+
+import pytest
+
+from skinmap.daemon.config import DEMO_CONFIG, ConfigError, load_config, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_demo_file_matches_embedded_default():
+    assert (ROOT / "config" / "demo.toml").read_text() == DEMO_CONFIG
+    cfg = load_config(ROOT / "config" / "demo.toml")
+    assert cfg.device.port.startswith("socket://127.0.0.1:")
+    assert all(ep.startswith("tcp/127.0.0.1:") for ep in cfg.zenoh.listen)
+
+
+def test_production_example_is_valid():
+    cfg = load_config(ROOT / "config" / "production.toml")
+    assert cfg.zenoh.allow_non_loopback
+    assert cfg.device.port.startswith("/dev/")
+
+
+def test_defaults_are_loopback():
+    cfg = parse_config({})
+    assert cfg.zenoh.listen == ("tcp/127.0.0.1:7447",)
+    assert not cfg.zenoh.allow_non_loopback
+
+
+@pytest.mark.parametrize(
+    "doc, key, fragment",
+    [
+        ({"device": {"scan_rate_hz": -5}}, "device.scan_rate_hz", "> 0"),
+        ({"device": {"scan_rate_hz": "fast"}}, "device.scan_rate_hz", "a number"),
+        ({"device": {"baudrate": 9.5}}, "device.baudrate", "an integer"),
+        ({"device": {"port": "COM3"}}, "device.port", "absolute"),
+        ({"device": {"port": "socket://10.0.0.5:7600"}}, "device.port", "loopback"),
+        ({"device": {"exclusive": "yes"}}, "device.exclusive", "true or false"),
+        ({"device": {"speed": 1}}, "device.speed", "unknown"),
+        ({"device": {"reconnect_min_s": 2.0, "reconnect_max_s": 1.0}}, "device.reconnect_max_s", "≥"),
+        ({"output": {"rate_hz": float("nan")}}, "output.rate_hz", "number"),
+        ({"elements": {"layout": "ring"}}, "elements.layout", "one of"),
+        ({"elements": {"layout": "explicit"}}, "elements.explicit", "missing"),
+        ({"elements": {"layout": "explicit", "explicit": [{"u_mm": 1}]}}, "elements.explicit[0].v_mm", "missing"),
+        ({"elements": {"layout": "explicit", "explicit": [{"u_mm": 1, "v_mm": 2, "w": 3}]}}, "elements.explicit[0].w", "unknown"),
+        ({"zenoh": {"listen": ["tcp/0.0.0.0:7447"]}}, "zenoh.listen", "non-loopback"),
+        ({"zenoh": {"connect": ["tcp/192.168.1.4:7447"]}}, "zenoh.connect", "non-loopback"),
+        ({"zenoh": {"listen": ["http://x"]}}, "zenoh.listen[0]", "endpoint"),
+        ({"zenoh": {"prefix": "a/*"}}, "zenoh.prefix", "wildcards"),
+        ({"zenoh": {"config_file": "/nonexistent/zenoh.json5"}}, "zenoh.config_file", "does not exist"),
+        ({"log": {"compression": "gzip"}}, "log.compression", "one of"),
+        ({"log": {"max_file_mb": 0}}, "log.max_file_mb", "> 0"),
+        ({"bogus": {}}, "[bogus]", "unknown"),
+        ({"log": 5}, "log", "table"),
+    ],
+)
+def test_bad_values_name_key_and_rule(doc, key, fragment):
+    with pytest.raises(ConfigError) as info:
+        parse_config(doc)
+    msg = str(info.value)
+    assert key in msg and fragment in msg, msg
+
+
+def test_non_loopback_needs_explicit_opt_in():
+    cfg = parse_config({"zenoh": {"listen": ["tcp/192.168.1.4:7447"], "allow_non_loopback": True}})
+    assert cfg.zenoh.listen == ("tcp/192.168.1.4:7447",)
+
+
+def test_unreadable_and_invalid_toml(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[device\nport=")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+
+
+def test_grid_layout_coordinates():
+    cfg = parse_config({"elements": {"layout": "grid", "rows": 2, "cols": 3, "pitch_u_mm": 2, "pitch_v_mm": 4, "offset_mm": -0.5}})
+    uv, off = cfg.elements.material_coordinates()
+    assert uv == [(-2.0, -2.0), (0.0, -2.0), (2.0, -2.0), (-2.0, 2.0), (0.0, 2.0), (2.0, 2.0)]
+    assert off == [-0.5] * 6
+
+
+def test_relative_directories_resolve_against_config_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('[log]\ndirectory = "mylogs"\n')
+    cfg = load_config(f)
+    assert cfg.resolve(cfg.log.directory) == tmp_path / "mylogs"
