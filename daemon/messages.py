@@ -1,0 +1,464 @@
+"""Binary and JSON message layouts published by skinmapd (pure encode/decode, no I/O).
+
+Every binary message starts with the same 32-byte little-endian header:
+
+=======  ====  ==============  =====================================================
+offset   size  type            field
+=======  ====  ==============  =====================================================
+0        4     bytes           magic ``b"SKMP"``
+4        1     u8              layout version (``LAYOUT_VERSION``)
+5        1     u8              message kind (``MessageKind``)
+6        2     u16             reserved, 0
+8        4     u32             sequence number (scan counter, wraps at 2**32)
+12       4     u32             total message length in bytes, header included
+16       8     u64             device sample time, microseconds (scanner clock)
+24       8     u64             host receive time, nanoseconds since the Unix epoch
+=======  ====  ==============  =====================================================
+
+A kind-specific block of counts follows, padded so that every float64 array starts on an
+8-byte boundary (``np.frombuffer`` views are then aligned). Arrays are C-ordered and
+little-endian. All lengths are in METRES in the sensor frame (docs/architecture.md).
+The byte tables of every kind are in docs/zenoh.md.
+
+Status and info are UTF-8 JSON objects; their fields are listed in ``STATUS_FIELDS`` and
+``INFO_FIELDS``.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import struct
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+MAGIC = b"SKMP"
+LAYOUT_VERSION = 1
+
+_HEADER = struct.Struct("<4sBBHIIQQ")
+HEADER_SIZE = _HEADER.size  # 32
+_ELEMENTS_COUNTS = struct.Struct("<II")  # K, reserved
+_SURFACE_COUNTS = struct.Struct("<IIIB3x")  # N, M, P, cloud bytes per coordinate
+_STRAINS_COUNTS = struct.Struct("<II")  # N, M
+
+_U32_MAX = 2**32 - 1
+_U64_MAX = 2**64 - 1
+
+
+class MessageKind(enum.IntEnum):
+    ELEMENTS = 1
+    SURFACE = 2
+    STRAINS = 3
+
+
+class ElementFlag(enum.IntFlag):
+    """Per-element validity bits (u8)."""
+
+    VALID = 0x01  # position/normal are a current estimate; NaN allowed only when clear
+    EXTRAPOLATED = 0x02  # element lies outside the hull of the sensing cells
+    DEGRADED = 0x04  # estimate made with missing or rejected gauge data nearby
+    STALE = 0x08  # held over from an earlier scan (no fresh solution this frame)
+
+
+class GaugeFlag(enum.IntFlag):
+    """Per sensing-unit validity bits (u8) in the strains message."""
+
+    UPPER_VALID = 0x01
+    LOWER_VALID = 0x02
+
+
+class MessageError(ValueError):
+    """A buffer is not a well-formed skinmap message (truncated, wrong magic, bad sizes...)."""
+
+
+@dataclass(frozen=True)
+class Header:
+    kind: MessageKind
+    version: int
+    seq: int
+    length: int
+    device_time_us: int
+    host_time_ns: int
+
+
+@dataclass(frozen=True)
+class ElementsMessage:
+    """Per-element pose of the transducer array for one scan (arrays are read-only views)."""
+
+    seq: int
+    device_time_us: int
+    host_time_ns: int
+    positions: np.ndarray  # (K, 3) float64, metres
+    normals: np.ndarray  # (K, 3) float64, unit vectors toward the upper side
+    uncertainty: np.ndarray  # (K,) float64, metres, 1 s.d.
+    flags: np.ndarray  # (K,) uint8, ElementFlag bits
+
+    @property
+    def count(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        return (self.flags & int(ElementFlag.VALID)) != 0
+
+
+@dataclass(frozen=True)
+class SurfaceMessage:
+    """Reconstructed sheet for one scan: node grid plus an optional dense point cloud."""
+
+    seq: int
+    device_time_us: int
+    host_time_ns: int
+    nodes: np.ndarray  # (N, M, 3) float64, metres
+    normals: np.ndarray  # (N, M, 3) float64, unit
+    uncertainty: np.ndarray  # (N, M) float64, metres, 1 s.d.
+    cloud: np.ndarray  # (P, 3) float32 or float64, metres
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.nodes.shape[0]), int(self.nodes.shape[1])
+
+
+@dataclass(frozen=True)
+class StrainsMessage:
+    """Calibrated layer strains for one scan, indexed eps[k, i, j] (k=0 row gauge, 1 column)."""
+
+    seq: int
+    device_time_us: int
+    host_time_ns: int
+    eps_upper: np.ndarray  # (2, N, M) float64, engineering strain
+    eps_lower: np.ndarray  # (2, N, M) float64
+    gauge_flags: np.ndarray  # (2, N, M) uint8, GaugeFlag bits
+
+    @property
+    def valid_upper(self) -> np.ndarray:
+        return (self.gauge_flags & int(GaugeFlag.UPPER_VALID)) != 0
+
+    @property
+    def valid_lower(self) -> np.ndarray:
+        return (self.gauge_flags & int(GaugeFlag.LOWER_VALID)) != 0
+
+
+# ---------------------------------------------------------------------------------------
+# helpers
+
+
+def _check_uint(name: str, value: int, maximum: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
+    value = int(value)
+    if not 0 <= value <= maximum:
+        raise ValueError(f"{name}={value} is outside 0..{maximum}")
+    return value
+
+
+def _as_array(name: str, value: Any, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if np.dtype(dtype).kind == "u":
+        if arr.dtype.kind not in "uib":
+            raise TypeError(f"{name} must be an integer array, got dtype {arr.dtype}")
+        if arr.size and (arr.min() < 0 or arr.max() > np.iinfo(dtype).max):
+            raise ValueError(f"{name} values must fit in {np.dtype(dtype).name}")
+    elif arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
+    return np.ascontiguousarray(arr, dtype=dtype)
+
+
+def _header_bytes(kind: MessageKind, seq: int, length: int, device_time_us: int,
+                  host_time_ns: int) -> bytes:
+    seq = _check_uint("seq", seq, _U32_MAX)
+    device_time_us = _check_uint("device_time_us", device_time_us, _U64_MAX)
+    host_time_ns = _check_uint("host_time_ns", host_time_ns, _U64_MAX)
+    if length > _U32_MAX:
+        raise ValueError(f"message of {length} bytes exceeds the 4 GiB layout limit")
+    return _HEADER.pack(MAGIC, LAYOUT_VERSION, int(kind), 0, seq, length, device_time_us,
+                        host_time_ns)
+
+
+def _as_buffer(buf: Any) -> memoryview:
+    if type(buf).__name__ == "ZBytes":  # zenoh payloads, without importing zenoh here
+        buf = buf.to_bytes()
+    try:
+        view = memoryview(buf)
+    except TypeError:
+        raise TypeError(f"expected a bytes-like message, got {type(buf).__name__}") from None
+    return view.cast("B") if view.format != "B" or view.ndim != 1 else view
+
+
+def decode_header(buf: Any) -> Header:
+    """Parse and check the common header; raises MessageError naming what is wrong."""
+    view = _as_buffer(buf)
+    if len(view) < HEADER_SIZE:
+        raise MessageError(f"truncated message: {len(view)} bytes, header needs {HEADER_SIZE}")
+    magic, version, kind, _reserved, seq, length, dev_us, host_ns = _HEADER.unpack_from(view, 0)
+    if magic != MAGIC:
+        raise MessageError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != LAYOUT_VERSION:
+        raise MessageError(f"unsupported layout version {version} (this decoder reads "
+                           f"{LAYOUT_VERSION})")
+    try:
+        kind = MessageKind(kind)
+    except ValueError:
+        raise MessageError(f"unknown message kind {kind}") from None
+    if length != len(view):
+        what = "truncated" if len(view) < length else "oversized"
+        raise MessageError(f"{what} {kind.name.lower()} message: header says {length} bytes, "
+                           f"buffer has {len(view)}")
+    return Header(kind, version, seq, length, dev_us, host_ns)
+
+
+def _expect(header: Header, kind: MessageKind) -> None:
+    if header.kind != kind:
+        raise MessageError(f"expected a {kind.name.lower()} message, got "
+                           f"{header.kind.name.lower()}")
+
+
+def _read_arrays(view: memoryview, offset: int, specs: list[tuple[str, str, tuple[int, ...]]],
+                 header: Header) -> list[np.ndarray]:
+    total = offset + sum(int(np.prod(s, dtype=np.int64)) * np.dtype(d).itemsize
+                         for _, d, s in specs)
+    if total != header.length:
+        raise MessageError(f"{header.kind.name.lower()} message counts imply {total} bytes, "
+                           f"message has {header.length}")
+    out = []
+    for _name, dtype, shape in specs:
+        count = int(np.prod(shape, dtype=np.int64))
+        arr = np.frombuffer(view, dtype=dtype, count=count, offset=offset).reshape(shape)
+        offset += arr.nbytes
+        out.append(arr)
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# elements
+
+
+def encode_elements(seq: int, device_time_us: int, host_time_ns: int, positions: Any,
+                    normals: Any, uncertainty: Any, flags: Any) -> bytes:
+    """Encode per-element positions (K,3) m, unit normals (K,3), 1-s.d. uncertainty (K,) m
+    and ElementFlag bits (K,) into an elements message."""
+    positions = np.asarray(positions)
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"positions must have shape (K, 3), got {positions.shape}")
+    k = positions.shape[0]
+    _check_uint("element count K", k, _U32_MAX)
+    pos = _as_array("positions", positions, "<f8", (k, 3))
+    nrm = _as_array("normals", normals, "<f8", (k, 3))
+    unc = _as_array("uncertainty", uncertainty, "<f8", (k,))
+    flg = _as_array("flags", flags, "u1", (k,))
+    length = HEADER_SIZE + _ELEMENTS_COUNTS.size + 57 * k
+    return b"".join((_header_bytes(MessageKind.ELEMENTS, seq, length, device_time_us,
+                                   host_time_ns),
+                     _ELEMENTS_COUNTS.pack(k, 0), pos.tobytes(), nrm.tobytes(), unc.tobytes(),
+                     flg.tobytes()))
+
+
+def decode_elements(buf: Any) -> ElementsMessage:
+    """Decode an elements message; arrays are zero-copy read-only views of ``buf``."""
+    view = _as_buffer(buf)
+    header = decode_header(view)
+    _expect(header, MessageKind.ELEMENTS)
+    if len(view) < HEADER_SIZE + _ELEMENTS_COUNTS.size:
+        raise MessageError("truncated elements message: no element count")
+    (k, _reserved) = _ELEMENTS_COUNTS.unpack_from(view, HEADER_SIZE)
+    pos, nrm, unc, flg = _read_arrays(
+        view, HEADER_SIZE + _ELEMENTS_COUNTS.size,
+        [("positions", "<f8", (k, 3)), ("normals", "<f8", (k, 3)),
+         ("uncertainty", "<f8", (k,)), ("flags", "u1", (k,))], header)
+    return ElementsMessage(header.seq, header.device_time_us, header.host_time_ns,
+                           pos, nrm, unc, flg)
+
+
+# ---------------------------------------------------------------------------------------
+# surface
+
+
+def encode_surface(seq: int, device_time_us: int, host_time_ns: int, nodes: Any, normals: Any,
+                   uncertainty: Any, cloud: Any = None, *, cloud_dtype: str = "float32") -> bytes:
+    """Encode the node grid (N,M,3) m, node normals (N,M,3), node uncertainty (N,M) m and a
+    dense point cloud (P,3) m stored as ``cloud_dtype`` ('float32' or 'float64')."""
+    nodes = np.asarray(nodes)
+    if nodes.ndim != 3 or nodes.shape[2] != 3:
+        raise ValueError(f"nodes must have shape (N, M, 3), got {nodes.shape}")
+    n, m = nodes.shape[:2]
+    nd = _as_array("nodes", nodes, "<f8", (n, m, 3))
+    nr = _as_array("normals", normals, "<f8", (n, m, 3))
+    un = _as_array("uncertainty", uncertainty, "<f8", (n, m))
+    if cloud_dtype not in ("float32", "float64"):
+        raise ValueError(f"cloud_dtype must be 'float32' or 'float64', got {cloud_dtype!r}")
+    cloud = np.zeros((0, 3)) if cloud is None else np.asarray(cloud)
+    if cloud.ndim != 2 or cloud.shape[1] != 3:
+        raise ValueError(f"cloud must have shape (P, 3), got {cloud.shape}")
+    p = cloud.shape[0]
+    itemsize = 4 if cloud_dtype == "float32" else 8
+    cl = _as_array("cloud", cloud, f"<f{itemsize}", (p, 3))
+    _check_uint("point count P", p, _U32_MAX)
+    length = HEADER_SIZE + _SURFACE_COUNTS.size + n * m * 56 + p * 3 * itemsize
+    return b"".join((_header_bytes(MessageKind.SURFACE, seq, length, device_time_us,
+                                   host_time_ns),
+                     _SURFACE_COUNTS.pack(n, m, p, itemsize), nd.tobytes(), nr.tobytes(),
+                     un.tobytes(), cl.tobytes()))
+
+
+def decode_surface(buf: Any) -> SurfaceMessage:
+    """Decode a surface message; arrays are zero-copy read-only views of ``buf``."""
+    view = _as_buffer(buf)
+    header = decode_header(view)
+    _expect(header, MessageKind.SURFACE)
+    if len(view) < HEADER_SIZE + _SURFACE_COUNTS.size:
+        raise MessageError("truncated surface message: no grid counts")
+    n, m, p, itemsize = _SURFACE_COUNTS.unpack_from(view, HEADER_SIZE)
+    if itemsize not in (4, 8):
+        raise MessageError(f"surface cloud coordinate size must be 4 or 8 bytes, got {itemsize}")
+    nd, nr, un, cl = _read_arrays(
+        view, HEADER_SIZE + _SURFACE_COUNTS.size,
+        [("nodes", "<f8", (n, m, 3)), ("normals", "<f8", (n, m, 3)),
+         ("uncertainty", "<f8", (n, m)), ("cloud", f"<f{itemsize}", (p, 3))], header)
+    return SurfaceMessage(header.seq, header.device_time_us, header.host_time_ns,
+                          nd, nr, un, cl)
+
+
+# ---------------------------------------------------------------------------------------
+# strains
+
+
+def encode_strains(seq: int, device_time_us: int, host_time_ns: int, eps_upper: Any,
+                   eps_lower: Any, gauge_flags: Any) -> bytes:
+    """Encode upper/lower layer strains (2,N,M) and GaugeFlag bits (2,N,M)."""
+    eps_upper = np.asarray(eps_upper)
+    if eps_upper.ndim != 3 or eps_upper.shape[0] != 2:
+        raise ValueError(f"eps_upper must have shape (2, N, M), got {eps_upper.shape}")
+    shape = eps_upper.shape
+    up = _as_array("eps_upper", eps_upper, "<f8", shape)
+    lo = _as_array("eps_lower", eps_lower, "<f8", shape)
+    fl = _as_array("gauge_flags", gauge_flags, "u1", shape)
+    n, m = shape[1:]
+    length = HEADER_SIZE + _STRAINS_COUNTS.size + 2 * n * m * 17
+    return b"".join((_header_bytes(MessageKind.STRAINS, seq, length, device_time_us,
+                                   host_time_ns),
+                     _STRAINS_COUNTS.pack(n, m), up.tobytes(), lo.tobytes(), fl.tobytes()))
+
+
+def decode_strains(buf: Any) -> StrainsMessage:
+    """Decode a strains message; arrays are zero-copy read-only views of ``buf``."""
+    view = _as_buffer(buf)
+    header = decode_header(view)
+    _expect(header, MessageKind.STRAINS)
+    if len(view) < HEADER_SIZE + _STRAINS_COUNTS.size:
+        raise MessageError("truncated strains message: no grid counts")
+    n, m = _STRAINS_COUNTS.unpack_from(view, HEADER_SIZE)
+    up, lo, fl = _read_arrays(
+        view, HEADER_SIZE + _STRAINS_COUNTS.size,
+        [("eps_upper", "<f8", (2, n, m)), ("eps_lower", "<f8", (2, n, m)),
+         ("gauge_flags", "u1", (2, n, m))], header)
+    return StrainsMessage(header.seq, header.device_time_us, header.host_time_ns, up, lo, fl)
+
+
+_DECODERS = {MessageKind.ELEMENTS: decode_elements, MessageKind.SURFACE: decode_surface,
+             MessageKind.STRAINS: decode_strains}
+
+
+def decode(buf: Any) -> ElementsMessage | SurfaceMessage | StrainsMessage:
+    """Decode any binary message by its header kind."""
+    view = _as_buffer(buf)
+    return _DECODERS[decode_header(view).kind](view)
+
+
+# ---------------------------------------------------------------------------------------
+# JSON status and info
+
+STATUS_SCHEMA = "skinmap.status/1"
+INFO_SCHEMA = "skinmap.info/1"
+
+# field -> (accepted types, meaning). Required fields; extra fields are allowed and kept.
+STATUS_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "device": ((str,), "device name (the <device> key segment)"),
+    "host_time_ns": ((int,), "host time of this report, ns since the Unix epoch"),
+    "connected": ((bool,), "scanner link is up"),
+    "seq": ((int,), "sequence number of the last published scan"),
+    "scan_rate_hz": ((int, float), "scans received per second (recent mean)"),
+    "publish_rate_hz": ((int, float), "shapes published per second (recent mean)"),
+    "frames_dropped": ((int,), "scans skipped since start (sequence gaps + solver overruns)"),
+    "crc_errors": ((int,), "frames rejected by CRC since start"),
+    "reconnects": ((int,), "serial reconnections since start"),
+    "solver_time_ms": ((int, float), "reconstruction time of the last scan, ms"),
+    "log_state": ((str,), "MCAP logger: 'off', 'recording' or 'error'"),
+}
+
+INFO_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "device": ((str,), "device name"),
+    "rows": ((int,), "N, cell rows"),
+    "cols": ((int,), "M, cell columns"),
+    "pitch_m": ((int, float), "cell pitch, metres"),
+    "elements": ((dict,), "element layout: {'count': K, 'width_m', 'height_m', "
+                          "'material_uv_m': K x [u, v] on the flat sheet}"),
+    "calibration": ((dict,), "{'gauge_factor': [...], 'r0_ohm': [...], 'source': ...}"),
+    "versions": ((dict,), "{'skinmap': ..., 'protocol': ..., 'firmware': ...}"),
+}
+
+
+def _check_fields(kind: str, obj: Mapping[str, Any],
+                  fields: dict[str, tuple[tuple[type, ...], str]]) -> None:
+    if not isinstance(obj, Mapping):
+        raise TypeError(f"{kind} must be a mapping, got {type(obj).__name__}")
+    missing = [f for f in fields if f not in obj]
+    if missing:
+        raise ValueError(f"{kind} is missing field(s): {', '.join(missing)}")
+    for name, (types, _doc) in fields.items():
+        value = obj[name]
+        ok = isinstance(value, types) and not (isinstance(value, bool) and bool not in types)
+        if not ok:
+            raise ValueError(f"{kind} field {name!r} must be {'/'.join(t.__name__ for t in types)}"
+                             f", got {type(value).__name__}")
+
+
+def _encode_json(kind: str, schema: str, obj: Mapping[str, Any],
+                 fields: dict[str, tuple[tuple[type, ...], str]]) -> bytes:
+    _check_fields(kind, obj, fields)
+    body = {"schema": schema, **obj}
+    try:
+        return json.dumps(body, allow_nan=False, separators=(",", ":")).encode("utf-8")
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{kind} is not JSON-serialisable: {exc}") from None
+
+
+def _decode_json(kind: str, schema: str, buf: Any,
+                 fields: dict[str, tuple[tuple[type, ...], str]]) -> dict[str, Any]:
+    raw = bytes(_as_buffer(buf))
+    try:
+        obj = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise MessageError(f"{kind} is not UTF-8: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise MessageError(f"{kind} is not valid JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise MessageError(f"{kind} must be a JSON object, got {type(obj).__name__}")
+    if obj.get("schema") != schema:
+        raise MessageError(f"{kind} schema is {obj.get('schema')!r}, expected {schema!r}")
+    try:
+        _check_fields(kind, obj, fields)
+    except ValueError as exc:
+        raise MessageError(str(exc)) from None
+    return obj
+
+
+def encode_status(status: Mapping[str, Any]) -> bytes:
+    """Encode a status report (fields in STATUS_FIELDS) as UTF-8 JSON."""
+    return _encode_json("status", STATUS_SCHEMA, status, STATUS_FIELDS)
+
+
+def decode_status(buf: Any) -> dict[str, Any]:
+    return _decode_json("status", STATUS_SCHEMA, buf, STATUS_FIELDS)
+
+
+def encode_info(info: Mapping[str, Any]) -> bytes:
+    """Encode the device description (fields in INFO_FIELDS) as UTF-8 JSON."""
+    return _encode_json("info", INFO_SCHEMA, info, INFO_FIELDS)
+
+
+def decode_info(buf: Any) -> dict[str, Any]:
+    return _decode_json("info", INFO_SCHEMA, buf, INFO_FIELDS)
