@@ -1,0 +1,148 @@
+"""Incremental stream decoder: bytes in, frames out, every fault counted, never raises."""
+
+from __future__ import annotations
+
+from cobs import cobs
+
+from .codec import Frame, decode_frame
+from .errors import (
+    CobsError,
+    CrcError,
+    FieldError,
+    IncompatibleFlagsError,
+    LengthError,
+    ProtocolError,
+    UnknownMessageTypeError,
+    VersionError,
+)
+from .framing import MAX_ENCODED_BODY, MIN_ENCODED_BODY, PROTOCOL_MAJOR
+
+_COUNTER_OF = {
+    CobsError: "cobs_errors",
+    CrcError: "crc_errors",
+    LengthError: "length_errors",
+    VersionError: "version_errors",
+    IncompatibleFlagsError: "incompat_flag_drops",
+    UnknownMessageTypeError: "unknown_type",
+    FieldError: "field_errors",
+}
+
+COUNTERS = (
+    "frames_ok", "bytes_in", "garbage_bytes", "cobs_errors", "crc_errors", "length_errors",
+    "version_errors", "incompat_flag_drops", "unknown_type", "field_errors", "oversize_frames",
+    "salvaged_frames", "seq_gaps", "seq_lost",
+)
+
+
+class StreamDecoder:
+    """Split a byte stream at 0x00 delimiters and decode each frame.
+
+    Survives garbage, truncation and bit flips: a bad body is counted and skipped. If a bad
+    body ends with an intact frame (garbage without a delimiter in front of it), that frame
+    is recovered (`salvaged_frames`). A body growing beyond the largest legal frame is dropped
+    at once and the rest of it, up to the next 0x00, is skipped unbuffered.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._skipping = False
+        self._last_seq: int | None = None
+        self.last_error: str | None = None
+        for name in COUNTERS:
+            setattr(self, name, 0)
+
+    def counters(self) -> dict[str, int]:
+        return {name: getattr(self, name) for name in COUNTERS}
+
+    def reset(self) -> None:
+        """Forget buffered bytes and sequence state (e.g. after reopening the port)."""
+        self._buf.clear()
+        self._skipping = False
+        self._last_seq = None
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        self.bytes_in += len(data)
+        frames: list[Frame] = []
+        if self._skipping:
+            end = bytes(data).find(0) if not isinstance(data, (bytes, bytearray)) else data.find(0)
+            if end < 0:
+                self.garbage_bytes += len(data)
+                return frames
+            self.garbage_bytes += end
+            data = data[end + 1 :]
+            self._skipping = False
+        buf = self._buf
+        search_from = len(buf)
+        buf += data
+        start = 0
+        while True:
+            end = buf.find(0, search_from)
+            if end < 0:
+                break
+            if end > start:
+                self._body(bytes(buf[start : end + 1]), frames)
+            start = search_from = end + 1
+        if start:
+            del buf[:start]
+        if len(buf) > MAX_ENCODED_BODY:
+            self.oversize_frames += 1
+            self.garbage_bytes += len(buf)
+            self.last_error = f"frame body exceeds {MAX_ENCODED_BODY} bytes without a delimiter"
+            buf.clear()
+            self._skipping = True
+        return frames
+
+    def _body(self, wire: bytes, frames: list[Frame]) -> None:
+        """Decode one body (with its trailing 0x00) and append the frame or count the fault."""
+        if len(wire) - 1 > MAX_ENCODED_BODY:
+            self.oversize_frames += 1
+            self.garbage_bytes += len(wire) - 1
+            self.last_error = f"frame body of {len(wire) - 1} bytes exceeds {MAX_ENCODED_BODY}"
+            return
+        try:
+            frame = decode_frame(wire)
+        except ProtocolError as exc:
+            setattr(self, _COUNTER_OF.get(type(exc), "length_errors"),
+                    getattr(self, _COUNTER_OF.get(type(exc), "length_errors")) + 1)
+            self.last_error = str(exc)
+            if isinstance(exc, (CobsError, CrcError, LengthError)):
+                salvaged = self._salvage(wire)
+                if salvaged is not None:
+                    skipped, frame = salvaged
+                    self.garbage_bytes += skipped
+                    self.salvaged_frames += 1
+                    self._accept(frame, frames)
+                    return
+            self.garbage_bytes += len(wire) - 1
+            return
+        self._accept(frame, frames)
+
+    def _accept(self, frame: Frame, frames: list[Frame]) -> None:
+        if self._last_seq is not None:
+            lost = (frame.seq - self._last_seq - 1) & 0xFFFF
+            if lost:
+                self.seq_gaps += 1
+                self.seq_lost += lost
+        self._last_seq = frame.seq
+        self.frames_ok += 1
+        frames.append(frame)
+
+    @staticmethod
+    def _salvage(wire: bytes) -> tuple[int, Frame] | None:
+        """Find an intact frame that is a proper suffix of a bad body.
+
+        A frame starts with a COBS code byte >= 2 followed by the version byte (the header's
+        first byte is never 0), so only those positions are tried; CRC decides.
+        """
+        last = len(wire) - 1 - MIN_ENCODED_BODY  # last start leaving room for a minimal frame
+        version = PROTOCOL_MAJOR
+        pos = wire.find(version, 2)
+        while 0 <= pos and pos - 1 <= last:
+            start = pos - 1
+            if wire[start] >= 2:
+                try:
+                    return start, decode_frame(wire[start:])
+                except (ProtocolError, cobs.DecodeError):
+                    pass
+            pos = wire.find(version, pos + 1)
+        return None
