@@ -88,10 +88,10 @@ def _endpoint_list(name: str, endpoints: Iterable[str] | str) -> list[str]:
     return list(endpoints)
 
 
-def _file_endpoints(config: zenoh.Config, key: str) -> list[str]:
+def _file_endpoints(config: zenoh.Config, key: str, mode: str) -> list[str]:
     raw = json.loads(config.get_json(key))
     if isinstance(raw, dict):  # per-mode form: {"peer": [...], "router": [...]}
-        return [e for v in raw.values() if v for e in v]
+        raw = raw.get(mode)
     return list(raw or [])
 
 
@@ -138,9 +138,9 @@ def make_session_config(listen: Iterable[str] = (), connect: Iterable[str] = (),
     if connect or config_file is None:
         config.insert_json5("connect/endpoints", json.dumps(connect))
     if not allow_non_loopback:
-        for e in _file_endpoints(config, "listen/endpoints"):
+        for e in _file_endpoints(config, "listen/endpoints", mode):
             check_loopback_endpoint(e, listen=True)
-        for e in _file_endpoints(config, "connect/endpoints"):
+        for e in _file_endpoints(config, "connect/endpoints", mode):
             check_loopback_endpoint(e)
     if not multicast_in_file:
         config.insert_json5("scouting/multicast/enabled", "false")
@@ -212,6 +212,13 @@ class SkinmapPublisher:
     @property
     def keys(self) -> dict[str, str]:
         return dict(self._keys)
+
+    def has_subscribers(self, kind: str) -> bool:
+        """True if some subscriber matches ``kind`` (lets the daemon skip encoding unread data)."""
+        if kind not in self._publishers:
+            raise ValueError(f"unknown published kind {kind!r}; expected one of "
+                             f"{tuple(self._publishers)}")
+        return bool(self._publishers[kind].matching_status.matching)
 
     def _put(self, kind: str, payload: bytes) -> None:
         if not isinstance(payload, (bytes, bytearray, memoryview)):

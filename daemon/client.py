@@ -1,0 +1,261 @@
+"""Python client for skinmapd's Zenoh data: subscribe and query only, numpy arrays out.
+
+    from skinmap.daemon.client import SkinmapClient
+
+    with SkinmapClient(["tcp/127.0.0.1:7447"], prefix="skinmap", device="skin0") as client:
+        print(client.info()["rows"])
+        first = client.latest("elements")          # newest cached scan, at once
+        for msg in client.iter_elements(timeout=2.0):
+            use(msg.positions, msg.normals)        # (K, 3) metres, unit normals
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+import zenoh
+
+from skinmap.daemon import messages
+from skinmap.daemon.zenoh_io import ALL_KINDS, DATA_KINDS, key_for, make_session_config
+
+DECODERS: dict[str, Callable[[bytes], Any]] = {
+    "elements": messages.decode_elements,
+    "surface": messages.decode_surface,
+    "strains": messages.decode_strains,
+    "status": messages.decode_status,
+    "info": messages.decode_info,
+}
+
+_STREAM_KINDS = (*DATA_KINDS, "status")
+
+
+def _check_kind(kind: str, allowed: tuple[str, ...]) -> None:
+    if kind not in allowed:
+        raise ValueError(f"unknown message kind {kind!r}; expected one of {allowed}")
+
+
+class _DropOldestQueue:
+    """Bounded queue fed from a Zenoh callback: never blocks; drops the oldest when full."""
+
+    def __init__(self, maxsize: int) -> None:
+        self.queue: queue.Queue[bytes | None] = queue.Queue(maxsize)
+        self.dropped = 0
+
+    def push(self, item: bytes | None) -> None:
+        while True:
+            try:
+                self.queue.put_nowait(item)
+                return
+            except queue.Full:
+                try:
+                    self.queue.get_nowait()
+                    self.dropped += 1
+                except queue.Empty:
+                    pass
+
+
+class Subscription:
+    """A callback subscription: the user callback runs on a dedicated thread (it may block or
+    use the client); stop it with ``close()``."""
+
+    def __init__(self, session: zenoh.Session, key: str, decode: Callable[[bytes], Any],
+                 callback: Callable[[Any], None], queue_size: int,
+                 on_error: Callable[[Exception], None] | None) -> None:
+        self._buffer = _DropOldestQueue(queue_size)
+        self._decode = decode
+        self._callback = callback
+        self._on_error = on_error
+        self._subscriber = session.declare_subscriber(
+            key, lambda sample: self._buffer.push(sample.payload.to_bytes()))
+        self._thread = threading.Thread(target=self._run, daemon=True,
+                                        name=f"skinmap-client-{key}")
+        self._thread.start()
+
+    @property
+    def dropped(self) -> int:
+        """Messages discarded because the callback fell behind."""
+        return self._buffer.dropped
+
+    def _run(self) -> None:
+        while True:
+            payload = self._buffer.queue.get()
+            if payload is None:
+                return
+            try:
+                self._callback(self._decode(payload))
+            except Exception as exc:  # keep delivering; report through on_error if given
+                if self._on_error is not None:
+                    self._on_error(exc)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self._buffer.push(None)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=2.0)
+
+
+class SkinmapClient:
+    """Subscriber/query helper for one skinmapd device. Use as a context manager.
+
+    Blocking reads (``elements``, ``surface``, ``strains``, iterators) start their subscription
+    on first use and then return messages in arrival order from a bounded queue of
+    ``queue_size`` (oldest dropped when the reader falls behind; see ``dropped``).
+    """
+
+    def __init__(self, connect: Iterable[str] = ("tcp/127.0.0.1:7447",), prefix: str = "skinmap",
+                 device: str = "skin0", *, mode: str = "peer", allow_non_loopback: bool = False,
+                 config_file: str | Path | None = None, queue_size: int = 16) -> None:
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        self._keys = {kind: key_for(prefix, device, kind) for kind in (*ALL_KINDS, "alive")}
+        self._config = make_session_config([], list(connect), mode=mode,
+                                           allow_non_loopback=allow_non_loopback,
+                                           config_file=config_file)
+        self._queue_size = queue_size
+        self._session: zenoh.Session | None = None
+        self._lock = threading.Lock()
+        self._streams: dict[str, tuple[Any, _DropOldestQueue]] = {}
+        self._subscriptions: list[Subscription] = []
+
+    # -- lifecycle --------------------------------------------------------------------------
+
+    def open(self) -> "SkinmapClient":
+        if self._session is None:
+            self._session = zenoh.open(self._config)
+        return self
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (idempotent)."""
+        session, self._session = self._session, None
+        if session is None:
+            return
+        for sub in self._subscriptions:
+            sub.close()
+        self._subscriptions.clear()
+        for subscriber, buffer in self._streams.values():
+            subscriber.undeclare()
+            buffer.push(None)  # wake blocked readers
+        self._streams.clear()
+        session.close()
+
+    def __enter__(self) -> "SkinmapClient":
+        return self.open()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RuntimeError("SkinmapClient is not open (use it in a with-block or call open())")
+        return self._session
+
+    @property
+    def keys(self) -> dict[str, str]:
+        return dict(self._keys)
+
+    def dropped(self, kind: str = "elements") -> int:
+        """Messages of ``kind`` discarded because the reader fell behind."""
+        stream = self._streams.get(kind)
+        return stream[1].dropped if stream else 0
+
+    # -- streams ----------------------------------------------------------------------------
+
+    def _stream(self, kind: str) -> _DropOldestQueue:
+        session = self.session
+        with self._lock:
+            if kind not in self._streams:
+                buffer = _DropOldestQueue(self._queue_size)
+                # The callback only copies the bytes into the queue: no blocking, no Zenoh calls.
+                subscriber = session.declare_subscriber(
+                    self._keys[kind], lambda sample: buffer.push(sample.payload.to_bytes()))
+                self._streams[kind] = (subscriber, buffer)
+            return self._streams[kind][1]
+
+    def subscribe(self, kind: str) -> None:
+        """Start queueing ``kind`` now, so that the next read returns the first message after
+        this call (reads otherwise subscribe on first use)."""
+        _check_kind(kind, _STREAM_KINDS)
+        self._stream(kind)
+
+    def next(self, kind: str, timeout: float | None = 5.0) -> Any:
+        """Block for the next ``kind`` message and return it decoded; TimeoutError if none
+        arrives within ``timeout`` seconds (None waits for ever)."""
+        _check_kind(kind, _STREAM_KINDS)
+        buffer = self._stream(kind)
+        try:
+            payload = buffer.queue.get(timeout=timeout)
+        except queue.Empty:
+            raise TimeoutError(f"no {kind} message on {self._keys[kind]!r} within "
+                               f"{timeout} s") from None
+        if payload is None:
+            raise RuntimeError("SkinmapClient was closed while waiting")
+        return DECODERS[kind](payload)
+
+    def elements(self, timeout: float | None = 5.0) -> messages.ElementsMessage:
+        """Next elements message (per-element positions/normals in metres)."""
+        return self.next("elements", timeout)
+
+    def surface(self, timeout: float | None = 5.0) -> messages.SurfaceMessage:
+        """Next surface message (node grid, normals, uncertainty, point cloud)."""
+        return self.next("surface", timeout)
+
+    def strains(self, timeout: float | None = 5.0) -> messages.StrainsMessage:
+        return self.next("strains", timeout)
+
+    def iter_messages(self, kind: str, timeout: float | None = 5.0) -> Iterator[Any]:
+        """Yield ``kind`` messages as they arrive; stops when the client closes or nothing
+        arrives within ``timeout`` seconds."""
+        while self._session is not None:
+            try:
+                yield self.next(kind, timeout)
+            except (TimeoutError, RuntimeError):
+                return
+
+    def iter_elements(self, timeout: float | None = 5.0) -> Iterator[messages.ElementsMessage]:
+        return self.iter_messages("elements", timeout)
+
+    def on_message(self, kind: str, callback: Callable[[Any], None], *,
+                   on_error: Callable[[Exception], None] | None = None) -> Subscription:
+        """Call ``callback(decoded_message)`` for each ``kind`` message on a client thread."""
+        _check_kind(kind, _STREAM_KINDS)
+        sub = Subscription(self.session, self._keys[kind], DECODERS[kind], callback,
+                           self._queue_size, on_error)
+        self._subscriptions.append(sub)
+        return sub
+
+    def on_elements(self, callback: Callable[[messages.ElementsMessage], None], *,
+                    on_error: Callable[[Exception], None] | None = None) -> Subscription:
+        return self.on_message("elements", callback, on_error=on_error)
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def latest(self, kind: str, timeout: float = 2.0) -> Any:
+        """The daemon's latest cached ``kind`` message, decoded. LookupError if nothing
+        answers within ``timeout`` (daemon absent or nothing published yet)."""
+        _check_kind(kind, ALL_KINDS)
+        key = self._keys[kind]
+        errors = []
+        for reply in self.session.get(key, timeout=timeout):
+            if reply.ok is not None:
+                return DECODERS[kind](reply.ok.payload.to_bytes())
+            errors.append(reply.err.payload.to_string())
+        detail = f": {'; '.join(errors)}" if errors else ""
+        raise LookupError(f"no {kind} available on {key!r} (is skinmapd running and has it "
+                          f"published one yet?){detail}")
+
+    def info(self, timeout: float = 2.0) -> dict[str, Any]:
+        """Device description: array geometry, element layout, calibration, versions."""
+        return self.latest("info", timeout)
+
+    def status(self, timeout: float = 2.0) -> dict[str, Any]:
+        """The latest status report (rates, drops, CRC errors, reconnects, solver time...)."""
+        return self.latest("status", timeout)
+
+    def alive(self, timeout: float = 1.0) -> bool:
+        """True if the device's liveliness token is currently declared."""
+        replies = self.session.liveliness().get(self._keys["alive"], timeout=timeout)
+        return any(reply.ok is not None for reply in replies)
