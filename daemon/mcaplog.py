@@ -174,8 +174,8 @@ NODES_LAYOUT = (
     "normals (C order)."
 )
 ELEMENTS_LAYOUT = (
-    "skinmap.elements.v1: opaque bytes in the daemon's documented element layout "
-    "(docs of skinmap.daemon messages); logged unchanged."
+    "skinmap.elements.v1: an elements message exactly as published by skinmapd "
+    "(skinmap.daemon.messages.encode_elements / decode_elements; byte table in docs/zenoh.md)."
 )
 LAYOUT_SCHEMA_ENCODING = "skinmap.layout-text"
 

@@ -1,0 +1,632 @@
+"""Reading tools for skinmap MCAP logs: file-order reading of cut files, recovery, inspection
+and a PNG snapshot of the logged surface.
+
+All functions take paths and are used by the `skinmap` command-line tool. They read records in
+FILE order with their own framing check, because a file cut by a crash has no summary and
+mcap's time-ordered reader returns nothing for it. Every record is parsed with the classes of
+`mcap.records`; chunks are checked against their CRC before any message in them is used, so
+what is returned is always an exact prefix of what was written.
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import json
+import math
+import os
+import struct
+import zlib
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator, NamedTuple
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    DataEnd,
+    Footer,
+    Header,
+    McapRecord,
+    Message,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from .mcaplog import (
+    ACTIVE_SUFFIX,
+    LOG_LEVELS,
+    decode_pointcloud,
+    decode_surface_nodes,
+    final_name,
+)
+
+__all__ = [
+    "ReadEnd",
+    "LoggedMessage",
+    "FileOrderMessages",
+    "iter_messages_file_order",
+    "RecoverReport",
+    "recover",
+    "TopicStats",
+    "SequenceGap",
+    "LogIssue",
+    "InspectReport",
+    "inspect",
+    "SurfaceSnapshot",
+    "render_surface_png",
+]
+
+MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
+_RECORD_HEAD = struct.Struct("<BQ")
+
+# Records that can appear in a data section and matter for reading; others are skipped.
+_PARSERS: dict[int, Callable[[ReadDataStream, int], McapRecord]] = {
+    Opcode.HEADER: lambda s, n: Header.read(s),
+    Opcode.SCHEMA: lambda s, n: Schema.read(s),
+    Opcode.CHANNEL: lambda s, n: Channel.read(s),
+    Opcode.MESSAGE: lambda s, n: Message.read(s, n),
+    Opcode.CHUNK: lambda s, n: Chunk.read(s),
+    Opcode.ATTACHMENT: lambda s, n: Attachment.read(s),
+    Opcode.METADATA: lambda s, n: Metadata.read(s),
+    Opcode.DATA_END: lambda s, n: DataEnd.read(s),
+    Opcode.FOOTER: lambda s, n: Footer.read(s),
+}
+
+
+class NotMcapError(ValueError):
+    """The file does not start with the MCAP magic bytes."""
+
+
+@dataclass(frozen=True)
+class ReadEnd:
+    """How reading a file ended."""
+
+    complete: bool  # footer and closing magic were read: a finished file
+    reason: str  # human-readable: "finished", "cut inside record at offset 1234", ...
+    valid_bytes: int  # length of the prefix that was used
+    file_bytes: int
+
+
+class LoggedMessage(NamedTuple):
+    topic: str
+    schema_name: str
+    message_encoding: str
+    log_time_ns: int
+    publish_time_ns: int
+    data: bytes
+
+
+@dataclass
+class _Item:
+    """One useful record in file order, with the channel/schema context of messages."""
+
+    record: McapRecord
+    channel: Channel | None = None
+    schema: Schema | None = None
+
+
+class _FileOrderReader:
+    """Generator of `_Item`s; sets `self.end` once the file has been read as far as possible."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = os.fspath(path)
+        self.end: ReadEnd | None = None
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.header: Header | None = None
+
+    def _finish(self, complete: bool, reason: str, valid: int, size: int) -> None:
+        self.end = ReadEnd(complete, reason, valid, size)
+
+    def items(self) -> Iterator[_Item]:
+        with open(self.path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            magic = f.read(len(MAGIC))
+            if magic != MAGIC:
+                if MAGIC.startswith(magic) or not magic.strip(b"\0"):
+                    # Cut inside the magic, or a zero-filled file left by a power loss.
+                    self._finish(False, "no complete MCAP header (file cut at start)", 0, size)
+                    return
+                raise NotMcapError(f"{self.path}: not an MCAP file (magic bytes {magic!r})")
+            pos = len(MAGIC)
+            in_summary = False
+            while True:
+                head = f.read(_RECORD_HEAD.size)
+                if len(head) < _RECORD_HEAD.size:
+                    what = "at a record boundary" if not head else "inside a record header"
+                    self._finish(False, f"file cut {what} at offset {pos}", pos, size)
+                    return
+                opcode, length = _RECORD_HEAD.unpack(head)
+                if opcode == 0:
+                    # Opcode 0 is reserved: a zero-filled tail after a power loss.
+                    self._finish(False, f"zero bytes instead of a record at offset {pos}",
+                                 pos, size)
+                    return
+                if length > size - pos - _RECORD_HEAD.size:
+                    self._finish(False, f"file cut inside a {_opcode_name(opcode)} record "
+                                 f"at offset {pos}", pos, size)
+                    return
+                body = f.read(length)
+                parser = _PARSERS.get(opcode)
+                if in_summary and opcode != Opcode.FOOTER:
+                    parser = None  # the summary only repeats what was read already
+                if parser is None:
+                    pos += _RECORD_HEAD.size + length
+                    continue
+                try:
+                    record = parser(ReadDataStream(io.BytesIO(body)), length)
+                    contained = self._contained(record, body)
+                except Exception as exc:  # any parse failure means corrupt bytes: stop here
+                    self._finish(False, f"corrupt {_opcode_name(opcode)} record at offset "
+                                 f"{pos}: {exc}", pos, size)
+                    return
+                pos += _RECORD_HEAD.size + length
+                for item in contained:
+                    yield item
+                if isinstance(record, DataEnd):
+                    in_summary = True
+                elif isinstance(record, Footer):
+                    tail = f.read(len(MAGIC))
+                    if tail == MAGIC:
+                        self._finish(True, "finished", pos + len(MAGIC), size)
+                    else:
+                        self._finish(False, "closing magic missing after the footer", pos,
+                                     size)
+                    return
+
+    def _contained(self, record: McapRecord, body: bytes) -> list[_Item]:
+        """The items a complete record yields; raises if the record is corrupt."""
+        if isinstance(record, Chunk):
+            # validate_crc: a chunk whose bytes did not all reach the disk is rejected whole.
+            return [item for r in breakup_chunk(record, validate_crc=True)
+                    for item in self._contained(r, b"")]
+        if isinstance(record, Attachment):
+            stored = struct.unpack_from("<I", body, len(body) - 4)[0]
+            if stored and stored != zlib.crc32(body[:-4]):
+                raise ValueError("attachment CRC mismatch")
+        if isinstance(record, Header):
+            self.header = record
+        elif isinstance(record, Schema):
+            self.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self.channels[record.id] = record
+        elif isinstance(record, Message):
+            channel = self.channels.get(record.channel_id)
+            schema = self.schemas.get(channel.schema_id) if channel else None
+            return [_Item(record, channel, schema)]
+        return [_Item(record)]
+
+
+def _opcode_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name.lower()
+    except ValueError:
+        return f"opcode 0x{opcode:02x}"
+
+
+class FileOrderMessages:
+    """Iterator of `LoggedMessage` in file order; `end` (a `ReadEnd`) is set when exhausted."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self._reader = _FileOrderReader(path)
+        self._items = self._reader.items()
+
+    @property
+    def end(self) -> ReadEnd | None:
+        return self._reader.end
+
+    def __iter__(self) -> FileOrderMessages:
+        return self
+
+    def __next__(self) -> LoggedMessage:
+        for item in self._items:
+            if isinstance(item.record, Message):
+                return _logged(item)
+        raise StopIteration
+
+
+def _logged(item: _Item) -> LoggedMessage:
+    msg = item.record
+    assert isinstance(msg, Message)
+    topic = item.channel.topic if item.channel else f"<unknown channel {msg.channel_id}>"
+    encoding = item.channel.message_encoding if item.channel else ""
+    schema_name = item.schema.name if item.schema else ""
+    return LoggedMessage(topic, schema_name, encoding, msg.log_time, msg.publish_time, msg.data)
+
+
+def iter_messages_file_order(path: str | os.PathLike[str]) -> FileOrderMessages:
+    """All messages of a finished or cut MCAP file in file order, never raising on a cut or
+    corrupt tail (only on a file that is not MCAP at all). After the loop, `.end` tells how
+    the file ended."""
+    return FileOrderMessages(path)
+
+
+# --------------------------------------------------------------------------------------------
+# recovery
+
+
+@dataclass(frozen=True)
+class RecoverReport:
+    source: str
+    output: str
+    messages: int
+    topics: dict[str, int]
+    attachments: int
+    metadata: int
+    end: ReadEnd
+
+    def format(self) -> str:
+        state = "finished file" if self.end.complete else f"cut file ({self.end.reason})"
+        lines = [f"recovered {self.messages} messages, {self.attachments} attachments, "
+                 f"{self.metadata} metadata records from {self.source} ({state}; used "
+                 f"{self.end.valid_bytes} of {self.end.file_bytes} bytes)",
+                 f"written to {self.output}"]
+        lines += [f"  {topic}: {count}" for topic, count in sorted(self.topics.items())]
+        return "\n".join(lines)
+
+
+def _default_recovered_path(path: str) -> str:
+    if path.endswith(ACTIVE_SUFFIX) and not os.path.exists(final_name(path)):
+        return final_name(path)
+    stem = path[: -len(ACTIVE_SUFFIX)] if path.endswith(ACTIVE_SUFFIX) else (
+        path[:-5] if path.endswith(".mcap") else path)
+    return stem + ".recovered.mcap"
+
+
+def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str] | None = None,
+            *, compression: str = "zstd") -> RecoverReport:
+    """Write a finished, indexed MCAP holding everything readable from `path` (typically a
+    `.mcap.active` left by a crash). Default output: `x.mcap.active` -> `x.mcap` when that
+    name is free, else `<stem>.recovered.mcap`. The source file is left untouched."""
+    source = os.fspath(path)
+    output = os.fspath(out_path) if out_path is not None else _default_recovered_path(source)
+    if os.path.abspath(output) == os.path.abspath(source):
+        raise ValueError(f"recover output {output!r} would overwrite its source")
+    codecs = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+              "none": CompressionType.NONE}
+    if compression not in codecs:
+        raise ValueError(f"compression must be one of {sorted(codecs)}, got {compression!r}")
+    reader = _FileOrderReader(source)
+    items = reader.items()
+    first = next(items, None)  # parse before creating anything, so a non-MCAP file fails clean
+    tmp = output + ".partial"
+    topics: Counter[str] = Counter()
+    counts: Counter[str] = Counter()
+    try:
+        _write_recovered(tmp, reader, itertools.chain([first] if first else [], items),
+                         codecs[compression], os.path.basename(source), topics, counts)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    os.replace(tmp, output)
+    assert reader.end is not None
+    return RecoverReport(source, output, sum(topics.values()), dict(topics),
+                         counts["attachments"], counts["metadata"], reader.end)
+
+
+def _write_recovered(tmp: str, reader: _FileOrderReader, items: Iterator[_Item],
+                     compression: CompressionType, source_name: str, topics: Counter[str],
+                     counts: Counter[str]) -> None:
+    with open(tmp, "wb") as out:
+        writer = Writer(out, compression=compression)
+        header = reader.header
+        writer.start(profile=header.profile if header else "",
+                     library=f"skinmap recover of {source_name}")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for item in items:
+            rec = item.record
+            if isinstance(rec, Message) and item.channel is not None:
+                channel = item.channel
+                if channel.id not in channel_ids:
+                    schema_id = 0
+                    if item.schema is not None:
+                        if item.schema.id not in schema_ids:
+                            schema_ids[item.schema.id] = writer.register_schema(
+                                item.schema.name, item.schema.encoding, item.schema.data)
+                        schema_id = schema_ids[item.schema.id]
+                    channel_ids[channel.id] = writer.register_channel(
+                        channel.topic, channel.message_encoding, schema_id, channel.metadata)
+                writer.add_message(channel_ids[channel.id], rec.log_time, rec.data,
+                                   rec.publish_time, rec.sequence)
+                topics[channel.topic] += 1
+            elif isinstance(rec, Attachment):
+                writer.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type,
+                                      rec.data)
+                counts["attachments"] += 1
+            elif isinstance(rec, Metadata):
+                writer.add_metadata(rec.name, rec.metadata)
+                counts["metadata"] += 1
+        writer.finish()
+        out.flush()
+        os.fsync(out.fileno())
+
+
+# --------------------------------------------------------------------------------------------
+# inspection
+
+
+@dataclass(frozen=True)
+class SequenceGap:
+    topic: str
+    after_seq: int
+    next_seq: int
+    missing: int  # 0 for a repeat, negative for a jump backwards (restart)
+    t_ns: int
+
+
+@dataclass(frozen=True)
+class LogIssue:
+    t_ns: int
+    source: str  # "/log" or "/status"
+    level: str  # "WARNING", "ERROR", "FATAL"
+    text: str
+
+
+@dataclass
+class TopicStats:
+    topic: str
+    schema_name: str
+    message_encoding: str
+    count: int = 0
+    bytes: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+    time_gaps: list[tuple[int, int]] = field(default_factory=list)  # (from, to) log times
+    out_of_order: int = 0
+
+    @property
+    def rate_hz(self) -> float:
+        span = self.last_ns - self.first_ns
+        return (self.count - 1) / (span * 1e-9) if self.count > 1 and span > 0 else 0.0
+
+
+@dataclass
+class InspectReport:
+    path: str
+    end: ReadEnd
+    library: str
+    topics: dict[str, TopicStats]
+    sequence_gaps: list[SequenceGap]
+    issues: list[LogIssue]
+    metadata: dict[str, dict[str, str]]
+    attachments: list[str]
+    gap_threshold_s: float
+
+    @property
+    def first_ns(self) -> int | None:
+        return min((s.first_ns for s in self.topics.values()), default=None)
+
+    @property
+    def last_ns(self) -> int | None:
+        return max((s.last_ns for s in self.topics.values()), default=None)
+
+    def format(self) -> str:
+        e = self.end
+        state = "finished" if e.complete else f"NOT finished: {e.reason}"
+        out = [f"{self.path}", f"  state: {state} ({e.valid_bytes} of {e.file_bytes} bytes "
+               f"readable)", f"  writer: {self.library or '?'}"]
+        if self.first_ns is not None and self.last_ns is not None:
+            out.append(f"  span: {_utc(self.first_ns)} .. {_utc(self.last_ns)} "
+                       f"({(self.last_ns - self.first_ns) * 1e-9:.3f} s)")
+        if self.metadata:
+            out.append("  metadata: " + ", ".join(sorted(self.metadata)))
+        if self.attachments:
+            out.append("  attachments: " + ", ".join(self.attachments))
+        out.append(f"  {'topic':<18} {'count':>7} {'rate Hz':>9} {'bytes':>11}  schema")
+        for s in sorted(self.topics.values(), key=lambda s: s.topic):
+            out.append(f"  {s.topic:<18} {s.count:>7} {s.rate_hz:>9.2f} {s.bytes:>11}  "
+                       f"{s.schema_name} ({s.message_encoding})")
+        t0 = self.first_ns or 0
+        for s in sorted(self.topics.values(), key=lambda s: s.topic):
+            for a, b in s.time_gaps:
+                out.append(f"  time gap on {s.topic}: {(b - a) * 1e-9:.3f} s after "
+                           f"t+{(a - t0) * 1e-9:.3f} s (threshold {self.gap_threshold_s} s)")
+            if s.out_of_order:
+                out.append(f"  {s.topic}: {s.out_of_order} messages earlier than the one "
+                           "before")
+        for g in self.sequence_gaps:
+            what = (f"{g.missing} missing" if g.missing > 0 else
+                    "repeated" if g.missing == 0 else "jumped back")
+            out.append(f"  seq gap on {g.topic}: {g.after_seq} -> {g.next_seq} ({what}) at "
+                       f"t+{(g.t_ns - t0) * 1e-9:.3f} s")
+        for i in self.issues:
+            out.append(f"  {i.level} in {i.source} at t+{(i.t_ns - t0) * 1e-9:.3f} s: {i.text}")
+        if not (self.sequence_gaps or self.issues or any(s.time_gaps for s in
+                                                        self.topics.values())):
+            out.append("  no gaps, warnings or errors found")
+        return "\n".join(out)
+
+
+def _utc(t_ns: int) -> str:
+    import datetime as dt
+
+    return dt.datetime.fromtimestamp(t_ns / 1e9, dt.timezone.utc).isoformat(
+        timespec="milliseconds").replace("+00:00", "Z")
+
+
+_LEVEL_NAMES = {v: k for k, v in LOG_LEVELS.items()}
+_BAD_STATES = {"error", "fault", "failed", "warning", "degraded", "fatal"}
+
+
+def _status_issues(t_ns: int, status: Any) -> list[LogIssue]:
+    """Warnings/errors a /status object reports: non-empty error/warning fields, a false
+    health flag, or a state/level naming an error."""
+    if not isinstance(status, dict):
+        return []
+    found = []
+    for key, level in (("error", "ERROR"), ("errors", "ERROR"), ("last_error", "ERROR"),
+                       ("warning", "WARNING"), ("warnings", "WARNING")):
+        if status.get(key):
+            found.append(LogIssue(t_ns, "/status", level, f"{key}: {status[key]}"))
+    for key in ("healthy", "ok"):
+        if status.get(key) is False:
+            found.append(LogIssue(t_ns, "/status", "WARNING", f"{key} is false"))
+    for key in ("state", "level"):
+        value = status.get(key)
+        if isinstance(value, str) and value.lower() in _BAD_STATES:
+            level = "WARNING" if value.lower() in ("warning", "degraded") else "ERROR"
+            found.append(LogIssue(t_ns, "/status", level, f"{key}: {value}"))
+    return found
+
+
+def inspect(path: str | os.PathLike[str], *, gap_threshold_s: float = 1.0,
+            max_issues: int = 1000) -> InspectReport:
+    """Summarise a finished or cut log: per-topic counts, rates, first/last times, time gaps
+    longer than `gap_threshold_s`, sequence gaps on topics that carry a frame seq, and
+    warnings/errors from /log and /status (at most `max_issues` listed)."""
+    if not gap_threshold_s > 0:
+        raise ValueError(f"gap_threshold_s must be > 0, got {gap_threshold_s!r}")
+    reader = _FileOrderReader(path)
+    topics: dict[str, TopicStats] = {}
+    last_seq: dict[str, int] = {}
+    seq_gaps: list[SequenceGap] = []
+    issues: list[LogIssue] = []
+    metadata: dict[str, dict[str, str]] = {}
+    attachments: list[str] = []
+    gap_ns = gap_threshold_s * 1e9
+    for item in reader.items():
+        rec = item.record
+        if isinstance(rec, Metadata):
+            metadata[rec.name] = rec.metadata
+            continue
+        if isinstance(rec, Attachment):
+            attachments.append(rec.name)
+            continue
+        if not isinstance(rec, Message):
+            continue
+        m = _logged(item)
+        stats = topics.get(m.topic)
+        if stats is None:
+            stats = topics[m.topic] = TopicStats(m.topic, m.schema_name, m.message_encoding,
+                                                 first_ns=m.log_time_ns, last_ns=m.log_time_ns)
+        elif m.log_time_ns < stats.last_ns:
+            stats.out_of_order += 1
+        elif m.log_time_ns - stats.last_ns > gap_ns:
+            stats.time_gaps.append((stats.last_ns, m.log_time_ns))
+        stats.count += 1
+        stats.bytes += len(m.data)
+        stats.first_ns = min(stats.first_ns, m.log_time_ns)
+        stats.last_ns = max(stats.last_ns, m.log_time_ns)
+        if item.channel is not None and item.channel.metadata.get("sequence") == "frame":
+            seq = rec.sequence
+            prev = last_seq.get(m.topic)
+            if prev is not None:
+                step = (seq - prev) % 2**32
+                if step != 1:
+                    missing = step - 1 if step < 2**31 else step - 2**32 - 1
+                    if step == 0:
+                        missing = 0
+                    seq_gaps.append(SequenceGap(m.topic, prev, seq, missing, m.log_time_ns))
+            last_seq[m.topic] = seq
+        if len(issues) < max_issues:
+            issues.extend(_message_issues(m))
+    assert reader.end is not None
+    return InspectReport(os.fspath(path), reader.end,
+                         reader.header.library if reader.header else "", topics, seq_gaps,
+                         issues[:max_issues], metadata, attachments, gap_threshold_s)
+
+
+def _message_issues(m: LoggedMessage) -> list[LogIssue]:
+    if m.topic not in ("/log", "/status") or m.message_encoding != "json":
+        return []
+    try:
+        obj = json.loads(m.data)
+    except ValueError:
+        return [LogIssue(m.log_time_ns, m.topic, "ERROR", "message is not valid JSON")]
+    if m.topic == "/status":
+        return _status_issues(m.log_time_ns, obj)
+    level = obj.get("level", 0) if isinstance(obj, dict) else 0
+    if isinstance(level, int) and level >= LOG_LEVELS["WARNING"]:
+        name = _LEVEL_NAMES.get(level, str(level))
+        return [LogIssue(m.log_time_ns, "/log", name,
+                         f"[{obj.get('name', '')}] {obj.get('message', '')}")]
+    return []
+
+
+# --------------------------------------------------------------------------------------------
+# surface snapshot
+
+
+@dataclass(frozen=True)
+class SurfaceSnapshot:
+    t_ns: int
+    t_rel_s: float  # seconds after the first message of the file
+    seq: int | None
+    nodes: np.ndarray | None  # (N, M, 3) mm
+    points: np.ndarray | None  # (P, 3) mm
+
+
+def find_surface(path: str | os.PathLike[str], t_s: float | None = None) -> SurfaceSnapshot:
+    """The logged surface nearest `t_s` seconds after the file's first message (the last one
+    when `t_s` is None): nodes from `/surface/nodes`, points from `/surface` at that time."""
+    if t_s is not None and not math.isfinite(t_s):
+        raise ValueError(f"t_s must be a finite number of seconds, got {t_s!r}")
+    first_ns: int | None = None
+    best: dict[str, LoggedMessage] = {}
+    best_err: dict[str, float] = {}
+    for m in iter_messages_file_order(path):
+        if first_ns is None:
+            first_ns = m.log_time_ns
+        if m.topic not in ("/surface/nodes", "/surface"):
+            continue
+        err = 0.0 if t_s is None else abs((m.log_time_ns - first_ns) * 1e-9 - t_s)
+        if t_s is None or err <= best_err.get(m.topic, math.inf):
+            best[m.topic], best_err[m.topic] = m, err
+    key = "/surface/nodes" if "/surface/nodes" in best else "/surface"
+    if key not in best or first_ns is None:
+        raise ValueError(f"{os.fspath(path)}: no /surface or /surface/nodes messages")
+    chosen = best[key]
+    nodes = seq = points = None
+    if key == "/surface/nodes":
+        seq, nodes, _ = decode_surface_nodes(chosen.data)
+    cloud = best.get("/surface")
+    if cloud is not None and cloud.log_time_ns == chosen.log_time_ns:
+        points = decode_pointcloud(cloud.data)
+    return SurfaceSnapshot(chosen.log_time_ns, (chosen.log_time_ns - first_ns) * 1e-9, seq,
+                           nodes, points)
+
+
+def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
+                       out_png: str | os.PathLike[str]) -> SurfaceSnapshot:
+    """Draw the logged surface nearest `t_s` (seconds after the first message; None = last)
+    in 3D to `out_png`. Returns the snapshot drawn."""
+    snap = find_surface(path, t_s)
+    # Figure + Agg canvas directly: no global backend switch, works without a display.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 5.5), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d")
+    every = np.concatenate([a.reshape(-1, 3) for a in (snap.nodes, snap.points)
+                            if a is not None])
+    if snap.nodes is not None:
+        x, y, z = (snap.nodes[..., k] for k in range(3))
+        if min(snap.nodes.shape[:2]) >= 2:
+            ax.plot_surface(x, y, z, cmap="viridis", edgecolor="k", linewidth=0.3, alpha=0.85)
+        else:
+            ax.plot(x.ravel(), y.ravel(), z.ravel(), "o-")
+    if snap.points is not None:
+        p = snap.points[:: max(1, len(snap.points) // 5000)]
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c="tab:red", alpha=0.5)
+    lo, hi = every.min(axis=0), every.max(axis=0)
+    centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-3)
+    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
+        setter(c - half, c + half)  # equal scale so curvature is not distorted
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    seq = "" if snap.seq is None else f", seq {snap.seq}"
+    ax.set_title(f"{os.path.basename(os.fspath(path))}\nt+{snap.t_rel_s:.3f} s{seq}",
+                 fontsize=9)
+    fig.savefig(os.fspath(out_png), format="png")
+    return snap
