@@ -162,6 +162,11 @@ class SkinmapClient:
         stream = self._streams.get(kind)
         return stream[1].dropped if stream else 0
 
+    def pending(self, kind: str = "elements") -> int:
+        """Messages of ``kind`` received and not yet read."""
+        stream = self._streams.get(kind)
+        return stream[1].queue.qsize() if stream else 0
+
     # -- streams ----------------------------------------------------------------------------
 
     def _stream(self, kind: str) -> _DropOldestQueue:
