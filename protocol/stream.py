@@ -54,6 +54,11 @@ class StreamDecoder:
     def counters(self) -> dict[str, int]:
         return {name: getattr(self, name) for name in COUNTERS}
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes held while waiting for a delimiter (never more than one legal frame + a read)."""
+        return len(self._buf)
+
     def reset(self) -> None:
         """Forget buffered bytes and sequence state (e.g. after reopening the port)."""
         self._buf.clear()
