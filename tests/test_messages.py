@@ -220,3 +220,27 @@ def test_status_and_info_errors():
     body = json.loads(msg.encode_info(_info())); del body["rows"]
     with pytest.raises(msg.MessageError, match="rows"):
         msg.decode_info(json.dumps(body).encode())
+
+
+@settings(max_examples=60, deadline=None)
+@given(cut=st.integers(0, 40 + 57 * 3 - 1))
+def test_any_truncation_is_a_message_error(cut):
+    pos, nrm, unc, flags = _elements(3)
+    buf = msg.encode_elements(1, 2, 3, pos, nrm, unc, flags)
+    with pytest.raises(msg.MessageError):
+        msg.decode(buf[:cut])
+
+
+def test_decoders_accept_any_bytes_like_and_zenoh_payloads():
+    import zenoh
+
+    pos, nrm, unc, flags = _elements(3)
+    buf = msg.encode_elements(8, 2, 3, pos, nrm, unc, flags)
+    for wrapped in (bytearray(buf), memoryview(buf), np.frombuffer(buf, np.uint8),
+                    zenoh.ZBytes(buf)):
+        out = msg.decode_elements(wrapped)
+        assert out.seq == 8
+        np.testing.assert_array_equal(out.normals, nrm)
+    info = msg.encode_info({"device": "d", "rows": 1, "cols": 1, "pitch_m": 0.01,
+                            "elements": {"count": 0}, "calibration": {}, "versions": {}})
+    assert msg.decode_info(zenoh.ZBytes(info))["device"] == "d"

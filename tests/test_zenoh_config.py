@@ -103,3 +103,14 @@ def test_config_file_errors(tmp_path):
     bad.write_text("{ this is not json5")
     with pytest.raises(ValueError, match="invalid Zenoh config"):
         make_session_config(config_file=bad)
+
+
+def test_production_style_file_needs_allow_non_loopback(tmp_path):
+    path = tmp_path / "prod.json5"
+    path.write_text('{ mode: "peer", listen: { endpoints: ["tls/192.168.10.5:7447"] },'
+                    ' connect: { endpoints: [] } }')
+    with pytest.raises(ValueError, match="tls/192.168.10.5:7447"):
+        make_session_config(config_file=path)
+    config = make_session_config(config_file=path, allow_non_loopback=True)
+    assert _get(config, "listen/endpoints") == ["tls/192.168.10.5:7447"]
+    assert _get(config, "scouting/multicast/enabled") is False

@@ -237,3 +237,27 @@ def test_publisher_in_another_process():
         child.join(5.0)
         if child.is_alive():
             child.kill()
+
+
+def test_publish_methods_are_thread_safe(daemon):
+    publisher, endpoint = daemon
+    errors = []
+
+    def worker(base):
+        try:
+            for i in range(50):
+                publisher.publish_elements(elements_payload(base + i, k=2)[0])
+                publisher.publish_status({**STATUS, "seq": base + i})
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(1000 * t,)) for t in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10.0)
+    assert errors == []
+    with connect(endpoint) as client:
+        last = client.latest("elements").seq
+        assert last % 1000 == 49  # the cache holds a complete, final message of some thread
+        assert client.status()["seq"] % 1000 == 49
