@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import enum
 import json
+import math
 import struct
 from dataclasses import dataclass
 from typing import Any, Mapping
@@ -180,6 +181,8 @@ def _header_bytes(kind: MessageKind, seq: int, length: int, device_time_us: int,
 
 
 def _as_buffer(buf: Any) -> memoryview:
+    if type(buf) is memoryview and buf.format == "B" and buf.ndim == 1:
+        return buf
     if type(buf).__name__ == "ZBytes":  # zenoh payloads, without importing zenoh here
         buf = buf.to_bytes()
     try:
@@ -219,14 +222,13 @@ def _expect(header: Header, kind: MessageKind) -> None:
 
 def _read_arrays(view: memoryview, offset: int, specs: list[tuple[str, str, tuple[int, ...]]],
                  header: Header) -> list[np.ndarray]:
-    total = offset + sum(int(np.prod(s, dtype=np.int64)) * np.dtype(d).itemsize
-                         for _, d, s in specs)
+    total = offset + sum(math.prod(s) * np.dtype(d).itemsize for _, d, s in specs)
     if total != header.length:
         raise MessageError(f"{header.kind.name.lower()} message counts imply {total} bytes, "
                            f"message has {header.length}")
     out = []
     for _name, dtype, shape in specs:
-        count = int(np.prod(shape, dtype=np.int64))
+        count = math.prod(shape)
         arr = np.frombuffer(view, dtype=dtype, count=count, offset=offset).reshape(shape)
         offset += arr.nbytes
         out.append(arr)
