@@ -48,6 +48,7 @@ from .mcaplog import (
 )
 
 __all__ = [
+    "NotMcapError",
     "ReadEnd",
     "LoggedMessage",
     "FileOrderMessages",
@@ -60,6 +61,7 @@ __all__ = [
     "InspectReport",
     "inspect",
     "SurfaceSnapshot",
+    "find_surface",
     "render_surface_png",
 ]
 

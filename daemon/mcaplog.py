@@ -678,6 +678,18 @@ class McapLogger:
             return
         self._guard("flushing", self._flush_chunk)
 
+    def tick(self) -> None:
+        """Housekeeping for idle periods (call about once a second when nothing is logged):
+        close a chunk older than `max_chunk_age_s` and finish a file whose time is up, so
+        data does not sit in memory while no messages arrive."""
+        if self._writer is None:
+            return
+        if self._rotation_due():
+            self._guard("finishing", self._finish_file)
+        elif self._chunk_opened_mono is not None and \
+                self._monotonic() - self._chunk_opened_mono >= self.max_chunk_age_s * 1e9:
+            self._guard("flushing", self._flush_chunk)
+
     def close(self) -> None:
         """Finish the current file (summary and index, rename to .mcap). Idempotent."""
         if self._closed:

@@ -207,6 +207,16 @@ def test_old_chunk_is_closed_and_synced(tmp_path):
     logger.log_raw_frame(clock.wall, b"\x04\x00")
     logger.flush()
     assert logger.messages_flushed == 4
+    # Idle: tick() closes an old chunk, and finishes a file whose time is up.
+    logger.log_raw_frame(clock.wall, b"\x05\x00")
+    logger.tick()
+    assert logger.messages_flushed == 4
+    clock.advance(0.6)
+    logger.tick()
+    assert logger.messages_flushed == 5 and logger.files_finished == 0
+    clock.advance(3600)
+    logger.tick()
+    assert logger.files_finished == 1 and logger.current_path is None
     logger.close()
 
 
