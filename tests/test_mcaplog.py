@@ -239,7 +239,7 @@ def _write_sample_log(directory, compression="zstd"):
     return path
 
 
-@pytest.mark.parametrize("compression", ["zstd", "none"])
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 def test_cut_at_random_offsets_yields_a_prefix(tmp_path, compression):
     path = _write_sample_log(tmp_path, compression)
     full = list(iter_messages_file_order(path))
@@ -519,3 +519,26 @@ def test_inspect_and_png_on_a_cut_file(tmp_path):
         empty.log_raw_frame(T0, b"\x01\x00")
         empty.close()
         render_surface_png(files(tmp_path / "e", ".mcap")[0], None, tmp_path / "n.png")
+
+
+@pytest.mark.parametrize("policy", ["chunk", "close", "never"])
+def test_fsync_policy(tmp_path, monkeypatch, policy):
+    import skinmap.daemon.mcaplog as mcaplog
+
+    synced = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(mcaplog.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    logger = make_logger(tmp_path, chunk_size=1024, fsync=policy)
+    rng = np.random.default_rng(2)
+    for i in range(40):
+        logger.log_raw_frame(T0 + i, rng.bytes(300))
+    during = len(synced)
+    logger.close()
+    with open(files(tmp_path, ".mcap")[0], "rb") as f:
+        chunks = make_reader(f).get_summary().statistics.chunk_count
+    if policy == "chunk":
+        assert during >= chunks - 1 >= 5  # every emitted chunk, plus the file start
+    elif policy == "close":
+        assert during == 0 and len(synced) >= 1
+    else:
+        assert synced == []
