@@ -478,7 +478,8 @@ class McapLogger:
 
     Crash safety: with `fsync="chunk"` every chunk is flushed and fsynced as soon as it is
     written, and an open chunk is closed once it is `max_chunk_age_s` old (checked on each
-    call and by `flush()`), so a SIGKILL or power loss loses at most the unfinished chunk.
+    call, by `tick()` and by `flush()`), so a SIGKILL or power loss loses at most the
+    unfinished chunk.
 
     Storage errors raise `LogStorageError` from the call that hit them; the logger then drops
     messages (counted in `messages_dropped`) until `retry_interval_s` has passed, when the next
