@@ -48,7 +48,7 @@ class DeviceConfig:
     handshake_timeout_s: float = 2.0
     stall_timeout_s: float = 1.0
     reconnect_min_s: float = 0.2
-    reconnect_max_s: float = 5.0
+    reconnect_max_s: float = 1.0
     exclusive: bool = True
     max_cells: int = 1024
 

@@ -1,0 +1,615 @@
+"""skinmapd: the gateway service.
+
+Threads, each with one job, joined by bounded queues whose drops are counted:
+
+    link thread ──scans──▶ processing thread ──▶ Zenoh publisher (non-blocking puts)
+         │                        │
+         └──raw frames──▶ log thread (MCAP) ◀──strains, surfaces, elements
+    main thread: status, console line, tare reload, systemd notifications, signals
+
+The link thread never waits on reconstruction, Zenoh or the disk.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+import skinmap
+from skinmap.daemon import messages
+from skinmap.daemon.calibration import Calibration, load_tare
+from skinmap.daemon.config import ConfigError, DaemonConfig, load_config
+from skinmap.daemon.link import ScannerLink, open_serial
+from skinmap.daemon.notify import SystemdNotifier
+from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult, OutputDecimator
+from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Frame, Hello, Scan
+
+__all__ = ["Gateway", "GatewayStats", "main", "pipeline_for_hello", "calibration_for_hello"]
+
+log = logging.getLogger("skinmapd")
+
+PROCESS_QUEUE_SIZE = 2  # latest wins: a late scan is worth less than a fresh one
+
+
+def geometry_for_hello(hello: Hello, cfg: DaemonConfig) -> ArrayGeometry:
+    rc = cfg.reconstruction
+    return ArrayGeometry(
+        n=hello.n,
+        m=hello.m,
+        pitch_mm=rc.pitch_mm or hello.pitch_um / 1000.0,
+        h_upper_mm=rc.h_upper_mm or hello.h_upper_um / 1000.0,
+        h_lower_mm=rc.h_lower_mm or hello.h_lower_um / 1000.0,
+        gauge_length_mm=hello.gauge_length_um / 1000.0,
+    )
+
+
+def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
+    """The scanner's factory calibration, with the stored tare applied when there is one."""
+    cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    try:
+        tare = load_tare(cfg.resolve(cfg.state.directory), hello.serial_number, cal.base_resistance.shape)
+    except ValueError as exc:
+        log.warning("ignoring tare: %s", exc)
+        return cal
+    return cal if tare is None else cal.with_tare(*tare)
+
+
+def pipeline_for_hello(hello: Hello, cfg: DaemonConfig) -> FramePipeline:
+    uv, offsets = cfg.elements.material_coordinates()
+    return FramePipeline(
+        geometry_for_hello(hello, cfg),
+        calibration_for_hello(hello, cfg),
+        np.asarray(uv, dtype=np.float64).reshape(-1, 2),
+        np.asarray(offsets, dtype=np.float64),
+        strain_sigma=cfg.reconstruction.strain_sigma,
+        warm_start=cfg.reconstruction.warm_start,
+    )
+
+
+def device_name(hello: Hello, cfg: DaemonConfig) -> str:
+    if cfg.device.name:
+        return cfg.device.name
+    safe = "".join(c if c.isalnum() or c in "-_" else "-" for c in hello.serial_number.strip("\0 "))
+    return safe or "scanner"
+
+
+@dataclass
+class GatewayStats:
+    started_mono: float = field(default_factory=time.monotonic)
+    scans_in: int = 0
+    scans_dropped_queue: int = 0
+    results: int = 0
+    published: int = 0
+    publish_errors: int = 0
+    log_dropped: int = 0
+    log_errors: int = 0
+    last_seq: int = -1
+    last_solver_ms: float = 0.0
+    latencies_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2048))
+    scan_times: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
+    publish_times: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
+
+
+def _rate(times: collections.deque, window_s: float = 2.0) -> float:
+    if not times:
+        return 0.0
+    now = time.monotonic()
+    recent = [t for t in list(times) if now - t <= window_s]
+    return len(recent) / window_s
+
+
+class Gateway:
+    """The running service. `run()` blocks until `stop()` (or a signal in `main`)."""
+
+    def __init__(
+        self,
+        cfg: DaemonConfig,
+        *,
+        zenoh_session: Any = None,
+        opener: Callable[[str, int, bool], Any] = open_serial,
+        logger_factory: Callable[[DaemonConfig], Any] | None = None,
+        console: Callable[[str], None] | None = None,
+        notifier: SystemdNotifier | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self._session = zenoh_session
+        self._console = console
+        self.notifier = notifier or SystemdNotifier()
+        self.stats = GatewayStats()
+        self._stop = threading.Event()
+        self._proc_q: queue.Queue = queue.Queue(maxsize=PROCESS_QUEUE_SIZE)
+        self._log_q: queue.Queue = queue.Queue(maxsize=cfg.log.queue_size)
+        self._decimator = OutputDecimator(cfg.output.rate_hz)
+        self._hello_lock = threading.Lock()
+        self._hello: Hello | None = None
+        self._hello_gen = 0
+        self._publisher: Any = None
+        self._pipeline: FramePipeline | None = None
+        self._device = cfg.device.name or ""
+        self._tare_mtime: float | None = None
+        self._log_state = "off"
+        self._last_log_error = ""
+        self._ready_sent = False
+        self._surface_decimator = OutputDecimator(cfg.output.surface_rate_hz)
+        self._strains_decimator = OutputDecimator(cfg.output.strains_rate_hz)
+        self._logger = None
+        if cfg.log.enabled:
+            factory = logger_factory or _default_logger
+            self._logger = factory(cfg)
+            self._log_state = "recording"
+        self.link = ScannerLink(
+            cfg.device,
+            on_hello=self._on_hello,
+            on_scan=self._on_scan,
+            on_frame=self._on_frame,
+            on_event=self._on_event,
+            on_alive=self.notifier.watchdog,
+            opener=opener,
+        )
+        self.results: collections.deque[FrameResult] = collections.deque(maxlen=4)  # for tests and the console
+        self._threads: list[threading.Thread] = []
+
+    # -- link callbacks (link thread: enqueue only) ----------------------------------------
+
+    def _on_frame(self, frame: Frame, t_rx_ns: int) -> None:
+        self._enqueue_log(("raw", t_rx_ns, frame.raw))
+
+    def _on_hello(self, hello: Hello) -> None:
+        with self._hello_lock:
+            self._hello = hello
+            self._hello_gen += 1
+
+    def _on_scan(self, scan: Scan, frame: Frame, t_rx_ns: int) -> None:
+        self.stats.scans_in += 1
+        self.stats.scan_times.append(time.monotonic())
+        if not self._decimator.due(scan.timestamp_us):
+            return
+        item = (scan, t_rx_ns)
+        try:
+            self._proc_q.put_nowait(item)
+        except queue.Full:
+            try:
+                self._proc_q.get_nowait()
+                self.stats.scans_dropped_queue += 1
+            except queue.Empty:
+                pass
+            self._proc_q.put_nowait(item)
+
+    def _on_event(self, level: str, text: str) -> None:
+        getattr(log, level if level in ("info", "warning", "error") else "info")(text)
+        self._enqueue_log(("event", time.time_ns(), level, text))
+
+    def _enqueue_log(self, item: tuple) -> None:
+        if self._logger is None:
+            return
+        try:
+            self._log_q.put_nowait(item)
+        except queue.Full:
+            self.stats.log_dropped += 1
+
+    # -- processing thread -----------------------------------------------------------------
+
+    def _ensure_pipeline(self) -> FramePipeline | None:
+        with self._hello_lock:
+            hello, gen = self._hello, self._hello_gen
+        if hello is None:
+            return None
+        if self._pipeline is None or getattr(self, "_pipeline_gen", -1) != gen:
+            same_device = self._pipeline is not None and (self._pipeline.geometry.n, self._pipeline.geometry.m) == (hello.n, hello.m)
+            pipeline = pipeline_for_hello(hello, self.cfg)
+            if same_device and self._pipeline is not None:
+                pipeline._previous = self._pipeline._previous  # keep the warm start across a reconnect
+            self._pipeline = pipeline
+            self._pipeline_gen = gen
+            self._tare_mtime = self._tare_file_mtime(hello)
+            self._open_publisher(hello)
+            if self._logger is not None:
+                self._enqueue_log(("config", time.time_ns(), self.cfg.text, self._calibration_doc(pipeline.calibration)))
+        return self._pipeline
+
+    def _open_publisher(self, hello: Hello) -> None:
+        name = device_name(hello, self.cfg)
+        if self._session is not None and (self._publisher is None or name != self._device):
+            from skinmap.daemon.zenoh_io import SkinmapPublisher
+
+            if self._publisher is not None:
+                self._publisher.close()
+            self._publisher = SkinmapPublisher(self._session, self.cfg.zenoh.prefix, name)
+        self._device = name
+        if self._publisher is not None:
+            self._publisher.set_info(self.info())
+
+    def info(self) -> dict[str, Any]:
+        hello = self._hello
+        assert hello is not None and self._pipeline is not None
+        g = self._pipeline.geometry
+        uv = self._pipeline.element_uv
+        return {
+            "device": self._device,
+            "rows": g.n,
+            "cols": g.m,
+            "pitch_m": g.pitch_mm / 1000.0,
+            "h_upper_m": g.h_upper_mm / 1000.0,
+            "h_lower_m": g.h_lower_mm / 1000.0,
+            "gauge_length_m": g.gauge_length_mm / 1000.0,
+            "serial_number": hello.serial_number,
+            "elements": {
+                "count": int(uv.shape[0]),
+                "layout": self.cfg.elements.layout,
+                "width_m": self.cfg.elements.pitch_u_mm / 1000.0,
+                "height_m": self.cfg.elements.pitch_v_mm / 1000.0,
+                "material_uv_m": (uv / 1000.0).tolist(),
+                "offset_m": (self._pipeline.element_offset / 1000.0).tolist(),
+            },
+            "calibration": self._calibration_doc(self._pipeline.calibration),
+            "versions": {
+                "skinmap": skinmap.__version__,
+                "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",
+                "device_protocol": f"{hello.protocol_major}.{hello.protocol_minor}",
+                "firmware": ".".join(str(x) for x in hello.fw_version),
+            },
+            "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
+        }
+
+    @staticmethod
+    def _calibration_doc(cal: Calibration) -> dict[str, Any]:
+        return {
+            "gauge_factor": np.round(cal.gauge_factor, 6).ravel().tolist(),
+            "r0_ohm": np.round(cal.base_resistance, 7).ravel().tolist(),
+            "shape": list(cal.gauge_factor.shape),
+            "source": cal.source,
+        }
+
+    def _process_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                scan, t_rx = self._proc_q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self._process(scan, t_rx)
+            except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
+                log.exception("processing scan %s failed", getattr(scan, "sample_index", "?"))
+                self._enqueue_log(("event", time.time_ns(), "error", f"processing failed: {exc}"))
+
+    def _process(self, scan: Scan, t_rx: int) -> None:
+        pipeline = self._ensure_pipeline()
+        if pipeline is None or (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):
+            return
+        result = pipeline.process(scan.resistances_ohm(), scan.sample_index, scan.timestamp_us, t_rx)
+        self.stats.results += 1
+        self.stats.last_seq = result.seq
+        self.stats.last_solver_ms = result.solve_time_s * 1e3
+        self.results.append(result)
+        self._publish(result)
+        self.notifier.watchdog()
+        if not self._ready_sent:
+            self._ready_sent = True
+            self.notifier.ready(f"streaming from {self.cfg.device.port}")
+
+    def _publish(self, r: FrameResult) -> None:
+        elements = messages.encode_elements(
+            r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
+            r.element_positions_mm / 1000.0, r.element_normals, r.element_sigma_mm / 1000.0, r.element_flags)
+        want_surface = self._surface_decimator.due(r.device_time_us)
+        want_strains = self._strains_decimator.due(r.device_time_us)
+        gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
+            r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
+        pub = self._publisher
+        if pub is not None:
+            try:
+                pub.publish_elements(elements)
+                if want_surface:
+                    points = self._points(r)
+                    pub.publish_surface(messages.encode_surface(
+                        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
+                        r.node_sigma_mm / 1000.0, points / 1000.0))
+                if want_strains:
+                    pub.publish_strains(messages.encode_strains(
+                        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
+                        np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower), gauge_flags))
+                self.stats.published += 1
+            except Exception as exc:  # noqa: BLE001
+                self.stats.publish_errors += 1
+                log.warning("publish failed: %s", exc)
+        t_done = time.time_ns()
+        self.stats.latencies_ms.append((t_done - r.host_time_ns) / 1e6)
+        self.stats.publish_times.append(time.monotonic())
+        # Everything processed is logged (strains of every processed scan, so replay can pick
+        # the same scans); surfaces at the surface rate.
+        self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
+        self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
+        if want_surface:
+            self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, self._points(r)))
+
+    def _points(self, r: FrameResult) -> np.ndarray:
+        cache = getattr(r, "_points_cache", None)
+        if cache is None:
+            cache = np.asarray(r.surface.points(per_pitch=self.cfg.output.points_per_pitch)).reshape(-1, 3) if r.surface is not None else r.nodes_mm.reshape(-1, 3)
+            r._points_cache = cache  # type: ignore[attr-defined]
+        return cache
+
+    # -- log thread ------------------------------------------------------------------------
+
+    def _log_loop(self) -> None:
+        from skinmap.daemon.mcaplog import LogStorageError
+
+        lg = self._logger
+        last_tick = time.monotonic()
+        while True:
+            try:
+                item = self._log_q.get(timeout=0.5)
+            except queue.Empty:
+                item = None
+                if self._stop.is_set():
+                    break
+            try:
+                if item is not None:
+                    self._write_log_item(lg, item)
+                if time.monotonic() - last_tick >= 1.0:
+                    last_tick = time.monotonic()
+                    lg.tick()
+                if lg.healthy and self._log_state == "error":
+                    self._log_state = "recording"
+                    log.info("logging resumed: %s", lg.current_path)
+            except LogStorageError as exc:
+                self.stats.log_errors += 1
+                if self._log_state != "error":
+                    log.error("logging failed, publishing continues: %s", exc)
+                self._log_state = "error"
+                self._last_log_error = str(exc)
+            except Exception as exc:  # noqa: BLE001
+                self.stats.log_errors += 1
+                log.warning("log write failed: %s", exc)
+        try:
+            lg.close()
+        except LogStorageError as exc:
+            log.error("closing the log failed: %s", exc)
+
+    @staticmethod
+    def _write_log_item(lg: Any, item: tuple) -> None:
+        kind = item[0]
+        if kind == "raw":
+            lg.log_raw_frame(item[1], item[2])
+        elif kind == "strains":
+            lg.log_strains(item[1], item[2], item[3], item[4])
+        elif kind == "elements":
+            lg.log_elements(item[1], item[2], item[3])
+        elif kind == "surface":
+            lg.log_surface(item[1], item[2], item[3], item[4], item[5])
+        elif kind == "status":
+            lg.log_status(item[1], item[2])
+        elif kind == "event":
+            lg.log_event(item[1], item[2], item[3])
+        elif kind == "config":
+            lg.log_config(item[1], item[2], item[3])
+
+    # -- status ----------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        s, ls = self.stats, self.link.stats
+        lat = np.array(s.latencies_ms, dtype=np.float64) if s.latencies_ms else np.zeros(1)
+        dec = ls.decoder
+        lg = self._logger
+        return {
+            "device": self._device or "unknown",
+            "host_time_ns": time.time_ns(),
+            "connected": self.link.streaming.is_set(),
+            "link_state": ls.state,
+            "seq": max(s.last_seq, 0),
+            "scan_rate_hz": round(_rate(s.scan_times), 2),
+            "publish_rate_hz": round(_rate(s.publish_times), 2),
+            "frames_dropped": int(ls.scans_lost + s.scans_dropped_queue),
+            "scans_lost": int(ls.scans_lost),
+            "scans_dropped_queue": int(s.scans_dropped_queue),
+            "scans_in": int(s.scans_in),
+            "results": int(s.results),
+            "crc_errors": int(dec.get("crc_errors", 0)),
+            "decoder": dict(dec),
+            "reconnects": int(ls.reconnects),
+            "stalls": int(ls.stalls),
+            "reboots": int(ls.reboots),
+            "handshake_failures": int(ls.handshake_failures),
+            "last_link_error": ls.last_error,
+            "solver_time_ms": round(s.last_solver_ms, 3),
+            "latency_ms_median": round(float(np.median(lat)), 3),
+            "latency_ms_p99": round(float(np.percentile(lat, 99)), 3),
+            "log_state": self._log_state,
+            "log_error": self._last_log_error,
+            "log_dropped": int(s.log_dropped),
+            "log_file": (lg.current_path or "") if lg is not None else "",
+            "log_bytes": int(lg.bytes_written) if lg is not None else 0,
+            "publish_errors": int(s.publish_errors),
+            "calibration": self._pipeline.calibration.source if self._pipeline else "",
+            "uptime_s": round(time.monotonic() - s.started_mono, 1),
+        }
+
+    def _status_tick(self) -> None:
+        st = self.status()
+        if self._publisher is not None:
+            try:
+                self._publisher.publish_status(st)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("status publish failed: %s", exc)
+        self._enqueue_log(("status", st["host_time_ns"], st))
+        self.notifier.status(f"{st['link_state']}, {st['publish_rate_hz']:.1f} Hz, seq {st['seq']}")
+        if self._console is not None:
+            self._console(self._console_line(st))
+        self._check_tare()
+
+    def _console_line(self, st: dict[str, Any]) -> str:
+        r = self.results[-1] if self.results else None
+        shape = ""
+        if r is not None:
+            z = r.nodes_mm[..., 2]
+            shape = f" | z {z.min():+6.2f}…{z.max():+6.2f} mm"
+            if r.element_positions_mm.shape[0]:
+                p = r.element_positions_mm[r.element_positions_mm.shape[0] // 2]
+                shape += f" | mid element ({p[0]:+6.2f}, {p[1]:+6.2f}, {p[2]:+6.2f}) mm"
+        return (f"[{st['link_state']:>10}] scans {st['scan_rate_hz']:6.1f}/s  published {st['publish_rate_hz']:5.1f}/s  "
+                f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
+                f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
+
+    def _tare_file_mtime(self, hello: Hello) -> float | None:
+        from skinmap.daemon.calibration import tare_path
+
+        try:
+            return tare_path(self.cfg.resolve(self.cfg.state.directory), hello.serial_number).stat().st_mtime
+        except OSError:
+            return None
+
+    def _check_tare(self) -> None:
+        """A new tare written by `skinmap tare` is picked up without a restart."""
+        hello, pipeline = self._hello, self._pipeline
+        if hello is None or pipeline is None:
+            return
+        mtime = self._tare_file_mtime(hello)
+        if mtime is not None and mtime != self._tare_mtime:
+            self._tare_mtime = mtime
+            pipeline.set_calibration(calibration_for_hello(hello, self.cfg))
+            log.info("loaded new tare (%s)", pipeline.calibration.source)
+            if self._publisher is not None:
+                self._publisher.set_info(self.info())
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._logger is not None:
+            t = threading.Thread(target=self._log_loop, name="skinmap-log", daemon=True)
+            t.start()
+            self._threads.append(t)
+        t = threading.Thread(target=self._process_loop, name="skinmap-process", daemon=True)
+        t.start()
+        self._threads.append(t)
+        self.link.start()
+
+    def run(self) -> None:
+        """Start, report status until stop() is called, then shut down cleanly."""
+        self.start()
+        period = 1.0 / self.cfg.output.status_rate_hz
+        try:
+            while not self._stop.wait(period):
+                self._status_tick()
+        finally:
+            self.shutdown()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def shutdown(self) -> None:
+        self._stop.set()
+        self.notifier.stopping()
+        self.link.stop()
+        for t in self._threads:
+            t.join(timeout=10.0)
+        if self._publisher is not None:
+            try:
+                self._publisher.close()
+            except Exception:  # noqa: BLE001
+                pass
+        self.notifier.close()
+
+
+def _default_logger(cfg: DaemonConfig) -> Any:
+    from skinmap.daemon.mcaplog import McapLogger
+
+    lc = cfg.log
+    directory = cfg.resolve(lc.directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    return McapLogger(
+        directory,
+        basename=lc.basename,
+        max_bytes=max(4096, int(lc.max_file_mb * 1024 * 1024)),
+        max_seconds=lc.max_file_minutes * 60.0,
+        chunk_size=lc.chunk_kb * 1024,
+        compression=lc.compression,
+        fsync="chunk" if lc.fsync else "none",
+        metadata={"skinmap_version": skinmap.__version__, "config_source": cfg.source},
+        create_directory=True,
+    )
+
+
+def open_zenoh(cfg: DaemonConfig):
+    """A context manager yielding the Zenoh session (or None when Zenoh is disabled)."""
+    import contextlib
+
+    if not cfg.zenoh.enabled:
+        return contextlib.nullcontext(None)
+    from skinmap.daemon.zenoh_io import make_session_config, open_session
+
+    zc = cfg.zenoh
+    zconf = make_session_config(
+        zc.listen, zc.connect, allow_non_loopback=zc.allow_non_loopback, mode=zc.mode,
+        config_file=str(cfg.resolve(zc.config_file)) if zc.config_file else None,
+    )
+    return open_session(zconf)
+
+
+def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
+    """Run skinmapd until SIGINT/SIGTERM (or `stop_event`); returns an exit code."""
+    show = cfg.output.console if console is None else console
+    with open_zenoh(cfg) as session:
+        gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
+
+        def _on_signal(signum: int, _frame: Any) -> None:
+            log.info("received %s, stopping", signal.Signals(signum).name)
+            gw.stop()
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, _on_signal)
+            signal.signal(signal.SIGINT, _on_signal)
+        if stop_event is not None:
+            threading.Thread(target=lambda: (stop_event.wait(), gw.stop()), daemon=True).start()
+        log.info("skinmapd %s starting: scanner %s, Zenoh %s, logs %s", skinmap.__version__, cfg.device.port,
+                 ",".join(cfg.zenoh.listen + cfg.zenoh.connect) if cfg.zenoh.enabled else "off",
+                 cfg.resolve(cfg.log.directory) if cfg.log.enabled else "off")
+        gw.run()
+    log.info("skinmapd stopped")
+    return 0
+
+
+def setup_logging(verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s" if sys.stderr.isatty() or "INVOCATION_ID" not in os.environ
+        else "%(levelname)s %(name)s: %(message)s",  # journald adds its own time stamps
+        stream=sys.stderr,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="skinmapd", description="skinmap gateway: scanner → reconstruction → Zenoh + MCAP")
+    parser.add_argument("--config", "-c", required=True, help="TOML config file (see config/demo.toml)")
+    parser.add_argument("--check", action="store_true", help="validate the config and exit")
+    parser.add_argument("--console", action="store_true", help="print a live status line every status period")
+    parser.add_argument("--verbose", "-v", action="store_true")
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(f"skinmapd: {exc}", file=sys.stderr)
+        return 2
+    if args.check:
+        print(f"{args.config}: OK")
+        return 0
+    try:
+        return run_gateway(cfg, console=True if args.console else None)
+    except (ValueError, OSError) as exc:
+        print(f"skinmapd: cannot start: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
