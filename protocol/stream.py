@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from cobs import cobs
-
 from .codec import Frame, decode_frame
 from .errors import (
     CobsError,
@@ -15,7 +13,15 @@ from .errors import (
     UnknownMessageTypeError,
     VersionError,
 )
-from .framing import MAX_ENCODED_BODY, MIN_ENCODED_BODY, PROTOCOL_MAJOR
+from .framing import (
+    CRC_SIZE,
+    HEADER_SIZE,
+    KNOWN_INCOMPAT_FLAGS,
+    MAX_ENCODED_BODY,
+    MIN_ENCODED_BODY,
+    PROTOCOL_MAJOR,
+)
+from .messages import MsgType
 
 _COUNTER_OF = {
     CobsError: "cobs_errors",
@@ -137,17 +143,40 @@ class StreamDecoder:
         """Find an intact frame that is a proper suffix of a bad body.
 
         A frame starts with a COBS code byte >= 2 followed by the version byte (the header's
-        first byte is never 0), so only those positions are tried; CRC decides.
+        first byte is never 0), so only those positions are tried; each candidate's header is
+        un-stuffed and checked (known type, no unknown incompatible flag, payload_len fitting
+        the rest of the body) before the full decode, and CRC decides.
         """
-        last = len(wire) - 1 - MIN_ENCODED_BODY  # last start leaving room for a minimal frame
-        version = PROTOCOL_MAJOR
-        pos = wire.find(version, 2)
+        end = len(wire) - 1  # the delimiter
+        last = end - MIN_ENCODED_BODY  # last start leaving room for a minimal frame
+        pos = wire.find(PROTOCOL_MAJOR, 2)
         while 0 <= pos and pos - 1 <= last:
             start = pos - 1
-            if wire[start] >= 2:
+            if wire[start] >= 2 and _plausible_header(wire, start, end):
                 try:
                     return start, decode_frame(wire[start:])
-                except (ProtocolError, cobs.DecodeError):
+                except ProtocolError:
                     pass
-            pos = wire.find(version, pos + 1)
+            pos = wire.find(PROTOCOL_MAJOR, pos + 1)
         return None
+
+
+_KNOWN_TYPES = frozenset(int(t) for t in MsgType)
+
+
+def _plausible_header(wire: bytes, start: int, end: int) -> bool:
+    """Un-stuff the 8 header bytes of a COBS body starting at `start` and sanity-check them."""
+    head = bytearray()
+    i = start
+    while len(head) < HEADER_SIZE:
+        code = wire[i] if i < end else 0
+        if code == 0 or i + code > end:
+            return False
+        head += wire[i + 1 : i + code]
+        i += code
+        if code < 0xFF:
+            head.append(0)
+    if head[1] & ~KNOWN_INCOMPAT_FLAGS or head[3] not in _KNOWN_TYPES:
+        return False
+    raw_len = HEADER_SIZE + CRC_SIZE + head[6] + (head[7] << 8)
+    return raw_len + 1 <= end - start <= raw_len + raw_len // 254 + 1
