@@ -35,6 +35,7 @@ from .messages import (
     RES_SATURATED,
     SCHEMA_HASH,
     Ack,
+    Compatibility,
     DeviceState,
     ErrorCode,
     FaultFlag,
@@ -51,18 +52,19 @@ from .messages import (
     Start,
     Status,
     Stop,
+    hello_compatibility,
     schema_text,
 )
 from .stream import StreamDecoder
 from .tdm import default_channel_map, step_period_ns, tdm_steps, unit_sample_times_us
 
 __all__ = [
-    "Ack", "COMMANDS", "COMPAT_EXTENDED_PAYLOAD", "CobsError", "CrcError", "DeviceState",
+    "Ack", "COMMANDS", "Compatibility", "COMPAT_EXTENDED_PAYLOAD", "CobsError", "CrcError", "DeviceState",
     "ErrorCode", "FaultFlag", "FieldError", "Frame", "HEADER_SIZE", "Hello",
     "IncompatibleFlagsError", "LengthError", "MAX_DIM", "MAX_ENCODED_BODY", "MAX_PAYLOAD",
     "MAX_PING_ECHO", "MIN_DIM", "Message", "MsgType", "Nak", "PROTOCOL_MAJOR", "PROTOCOL_MINOR",
     "Ping", "ProtocolError", "QueryInfo", "RES_MAX_VALID", "RES_OPEN", "RES_SATURATED", "Reset",
     "SCHEMA_HASH", "Scan", "ScanFlag", "SetScanRate", "Start", "Status", "Stop", "StreamDecoder",
     "UnknownMessageTypeError", "VersionError", "crc32", "decode_frame", "default_channel_map",
-    "encode_frame", "schema_text", "step_period_ns", "tdm_steps", "unit_sample_times_us",
+    "encode_frame", "hello_compatibility", "schema_text", "step_period_ns", "tdm_steps", "unit_sample_times_us",
 ]

@@ -702,3 +702,29 @@ COMMANDS = (Start, Stop, SetScanRate, QueryInfo, Ping, Reset)
 MESSAGE_CLASSES: dict[MsgType, type] = {
     cls.TYPE: cls for cls in (Hello, Scan, Status, Ack, Nak, *COMMANDS)
 }
+
+
+@dataclass(frozen=True)
+class Compatibility:
+    """Outcome of comparing a device's HELLO with this codec (PROTOCOL.md, "Versioning")."""
+
+    usable: bool  # False: the host must not START the device
+    note: str  # why not, or what differs although usable; "" when identical
+
+
+def hello_compatibility(hello: Hello) -> Compatibility:
+    """Apply the host-side versioning rules to a device's HELLO."""
+    device = f"{hello.protocol_major}.{hello.protocol_minor}"
+    host = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
+    if hello.protocol_major != PROTOCOL_MAJOR:
+        return Compatibility(False, f"device speaks protocol {device}, host speaks {host}: major versions differ")
+    if hello.protocol_minor == PROTOCOL_MINOR and hello.schema_hash != SCHEMA_HASH:
+        return Compatibility(False, (
+            f"device and host both claim protocol {device} but schema hashes differ "
+            f"(device 0x{hello.schema_hash:08X}, host 0x{SCHEMA_HASH:08X}): message layouts disagree"
+        ))
+    if hello.protocol_minor > PROTOCOL_MINOR:
+        return Compatibility(True, f"device protocol {device} is newer than host {host}: unknown additions are ignored")
+    if hello.protocol_minor < PROTOCOL_MINOR:
+        return Compatibility(True, f"device protocol {device} is older than host {host}: only its commands are used")
+    return Compatibility(True, "")

@@ -279,3 +279,16 @@ def test_max_sizes_fit_the_limits() -> None:
     rng = np.random.default_rng(3)
     hello = _random_messages(rng, 32, 32)[0]
     assert len(p.encode_frame(hello, 0)) - 1 <= p.MAX_ENCODED_BODY
+
+
+def test_hello_compatibility_rules() -> None:
+    hello = specgen.example_messages()[0][2]
+    assert p.hello_compatibility(hello) == p.Compatibility(True, "")
+    for major, minor, schema, usable, words in [
+        (2, 0, p.SCHEMA_HASH, False, "major versions differ"),
+        (1, p.PROTOCOL_MINOR, p.SCHEMA_HASH ^ 1, False, "schema hashes differ"),
+        (1, p.PROTOCOL_MINOR + 1, 0x12345678, True, "newer"),
+    ]:
+        hello.protocol_major, hello.protocol_minor, hello.schema_hash = major, minor, schema
+        verdict = p.hello_compatibility(hello)
+        assert verdict.usable is usable and words in verdict.note
