@@ -33,7 +33,7 @@ from skinmap.daemon.config import ConfigError, DaemonConfig, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult, OutputDecimator
-from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Frame, Hello, Scan
+from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Frame, Hello, Scan, encode_frame
 
 __all__ = ["Gateway", "GatewayStats", "main", "pipeline_for_hello", "calibration_for_hello"]
 
@@ -214,9 +214,15 @@ class Gateway:
             self._pipeline_gen = gen
             self._tare_mtime = self._tare_file_mtime(hello)
             self._open_publisher(hello)
-            if self._logger is not None:
-                self._enqueue_log(("config", time.time_ns(), self.cfg.text, self._calibration_doc(pipeline.calibration)))
+            self._log_config()
         return self._pipeline
+
+    def _log_config(self) -> None:
+        # The HELLO goes along so a log file that starts mid-stream (rotation) replays alone.
+        if self._logger is not None and self._pipeline is not None and self._hello is not None:
+            doc = self._calibration_doc(self._pipeline.calibration)
+            doc["hello_frame_hex"] = encode_frame(self._hello, 0).hex()
+            self._enqueue_log(("config", time.time_ns(), self.cfg.text, doc))
 
     def _open_publisher(self, hello: Hello) -> None:
         name = device_name(hello, self.cfg)
@@ -265,8 +271,9 @@ class Gateway:
     @staticmethod
     def _calibration_doc(cal: Calibration) -> dict[str, Any]:
         return {
-            "gauge_factor": np.round(cal.gauge_factor, 6).ravel().tolist(),
-            "r0_ohm": np.round(cal.base_resistance, 7).ravel().tolist(),
+            # Full precision: replay must reproduce the live strains bit for bit.
+            "gauge_factor": cal.gauge_factor.ravel().tolist(),
+            "r0_ohm": cal.base_resistance.ravel().tolist(),
             "shape": list(cal.gauge_factor.shape),
             "source": cal.source,
         }
@@ -479,6 +486,7 @@ class Gateway:
             self._tare_mtime = mtime
             pipeline.set_calibration(calibration_for_hello(hello, self.cfg))
             log.info("loaded new tare (%s)", pipeline.calibration.source)
+            self._log_config()
             if self._publisher is not None:
                 self._publisher.set_info(self.info())
 

@@ -1,0 +1,333 @@
+"""`skinmap`: the user's tool.
+
+    skinmap demo                      emulator + skinmapd on loopback, live status, Ctrl-C stops
+    skinmap echo [--device D]         live element positions and rates from a running daemon
+    skinmap info [--device D]         the daemon's device description (geometry, elements, calibration)
+    skinmap replay LOG.mcap           re-run the pipeline from logged raw frames; compare; republish
+    skinmap inspect LOG.mcap          topics, rates, gaps, errors; --png T for a surface snapshot
+    skinmap recover LOG.mcap.active   rewrite a cut log as a finished file
+    skinmap tare --config FILE        record the flat sheet's resting resistances
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["main"]
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+# ------------------------------------------------------------------------------------------
+# demo
+
+
+def _wait_for_tcp(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"the emulator exited early with code {proc.returncode}")
+        try:
+            with socket.create_connection((host, port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError(f"nothing listens on {host}:{port} after {timeout:g} s")
+
+
+def start_emulator(port: int, *, size: str = "5x5", shape: str = "gesture", rate: float = 50.0,
+                   extra: list[str] | None = None) -> subprocess.Popen:
+    """The emulator as a child process serving socket://127.0.0.1:PORT (a fresh interpreter,
+    never a fork of one that may hold a Zenoh session)."""
+    cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
+           "--shape", shape, "--rate", str(rate), *(extra or [])]
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
+    try:
+        _wait_for_tcp("127.0.0.1", port, 15.0, proc)
+    except Exception:
+        stop_process(proc)
+        raise
+    return proc
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 5.0) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from skinmap.daemon.config import DEMO_CONFIG, ConfigError, load_config, parse_config
+    from skinmap.daemon.service import run_gateway, setup_logging
+    import tomllib
+
+    setup_logging(args.verbose)
+    try:
+        if args.config:
+            cfg = load_config(args.config)
+        else:
+            cfg = parse_config(tomllib.loads(DEMO_CONFIG), source=str(Path.cwd() / "skinmap-demo.toml"), text=DEMO_CONFIG)
+    except ConfigError as exc:
+        print(f"skinmap demo: {exc}", file=sys.stderr)
+        return 2
+    port = int(cfg.device.port.rsplit(":", 1)[1]) if cfg.device.port.startswith("socket://") else 7600
+    print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}') on socket://127.0.0.1:{port}", flush=True)
+    emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz)
+    try:
+        print(f"skinmap demo: skinmapd publishing on {', '.join(cfg.zenoh.listen)} under '{cfg.zenoh.prefix}/{cfg.device.name or '<serial>'}', "
+              f"logging to {cfg.resolve(cfg.log.directory)}; Ctrl-C stops", flush=True)
+        stop = threading.Event()
+        if args.duration:
+            threading.Timer(args.duration, stop.set).start()
+        return run_gateway(cfg, console=True, stop_event=stop)
+    finally:
+        stop_process(emulator)
+        print("skinmap demo: stopped", flush=True)
+
+
+# ------------------------------------------------------------------------------------------
+# echo / info
+
+
+def _client(args: argparse.Namespace):
+    from skinmap.daemon.client import SkinmapClient
+
+    return SkinmapClient([args.connect], prefix=args.prefix, device=args.device)
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        t_last = time.monotonic()
+        count = 0
+        rate = 0.0
+        end = time.monotonic() + args.duration if args.duration else None
+        try:
+            while end is None or time.monotonic() < end:
+                try:
+                    msg = client.elements(timeout=args.timeout)
+                except TimeoutError:
+                    print(f"no element message within {args.timeout:g} s (is skinmapd running under '{args.prefix}/{args.device}'?)",
+                          file=sys.stderr)
+                    return 1
+                count += 1
+                now = time.monotonic()
+                if now - t_last >= 1.0:
+                    rate = count / (now - t_last)
+                    count, t_last = 0, now
+                latency_ms = (time.time_ns() - msg.host_time_ns) / 1e6
+                pos = msg.positions * 1000.0
+                k = pos.shape[0]
+                pick = sorted({0, k // 2, k - 1}) if k else []
+                shown = "  ".join(f"#{i}({pos[i, 0]:+7.2f},{pos[i, 1]:+7.2f},{pos[i, 2]:+7.2f})" for i in pick)
+                valid = int(np.count_nonzero(msg.flags & 1))
+                print(f"seq {msg.seq:>7}  {rate:5.1f} Hz  latency {latency_ms:6.2f} ms  valid {valid}/{k}  mm: {shown}", flush=True)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        try:
+            info = client.info()
+        except (TimeoutError, LookupError) as exc:
+            print(f"no info from '{args.prefix}/{args.device}': {exc}", file=sys.stderr)
+            return 1
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        cal = info.get("calibration", {})
+        print(f"device     {info['device']}  (serial {info.get('serial_number', '?')})")
+        print(f"array      {info['rows']}×{info['cols']} cells, pitch {info['pitch_m'] * 1000:g} mm")
+        print(f"elements   {info['elements'].get('count')} ({info['elements'].get('layout', '?')})")
+        print(f"calibration {cal.get('source', '?')}")
+        print(f"versions   {info.get('versions')}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
+# replay
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from skinmap.daemon.replay import replay_log
+
+    publisher_ctx = None
+    if args.publish:
+        from skinmap.daemon.zenoh_io import make_session_config, open_session
+
+        publisher_ctx = open_session(make_session_config([args.listen], []))
+    try:
+        session = publisher_ctx.__enter__() if publisher_ctx else None
+        report = replay_log(args.log, session=session, prefix=args.prefix, speed=args.speed,
+                            progress=not args.quiet)
+    finally:
+        if publisher_ctx:
+            publisher_ctx.__exit__(None, None, None)
+    print(report.format())
+    return 0 if report.identical or args.publish else 1
+
+
+# ------------------------------------------------------------------------------------------
+# inspect / recover
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from skinmap.daemon.mcapinspect import inspect, render_surface_png
+
+    report = inspect(args.log, gap_threshold_s=args.gap)
+    print(report.format())
+    if args.png:
+        snap = render_surface_png(args.log, args.at, args.png)
+        print(f"surface at seq {getattr(snap, 'seq', '?')} written to {args.png}")
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from skinmap.daemon.mcapinspect import recover
+
+    report = recover(args.log, args.output)
+    print(report.format())
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
+# tare
+
+
+def cmd_tare(args: argparse.Namespace) -> int:
+    from skinmap.daemon.calibration import compute_tare, save_tare
+    from skinmap.daemon.config import ConfigError, load_config
+    from skinmap.daemon.replay import resistances_from_log
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(f"skinmap tare: {exc}", file=sys.stderr)
+        return 2
+    if args.from_log:
+        serial, scans = resistances_from_log(args.from_log, start_s=args.at, count=args.scans)
+    else:
+        serial, scans = _tare_from_scanner(cfg, args.scans)
+    if len(scans) == 0:
+        print("skinmap tare: no scans received; nothing written", file=sys.stderr)
+        return 1
+    base = compute_tare(np.stack(scans))
+    path = save_tare(cfg.resolve(cfg.state.directory), serial, base, len(scans))
+    finite = base[np.isfinite(base)]
+    print(f"tare of {len(scans)} scans from scanner {serial} written to {path} "
+          f"(R0 {finite.min():.4f}…{finite.max():.4f} Ω; {np.count_nonzero(~np.isfinite(base))} gauges without data)")
+    return 0
+
+
+def _tare_from_scanner(cfg: Any, count: int) -> tuple[str, list[np.ndarray]]:
+    """Open the scanner directly (skinmapd must be stopped: the port is exclusive)."""
+    from skinmap.daemon.link import ScannerLink
+
+    scans: list[np.ndarray] = []
+    done = threading.Event()
+
+    def on_scan(scan, _frame, _t):
+        if len(scans) < count:
+            scans.append(scan.resistances_ohm())
+        if len(scans) >= count:
+            done.set()
+
+    link = ScannerLink(cfg.device, on_hello=lambda h: None, on_scan=on_scan,
+                       on_event=lambda level, text: print(f"{level}: {text}", file=sys.stderr))
+    link.start()
+    try:
+        done.wait(timeout=max(10.0, 3 * count / cfg.device.scan_rate_hz))
+    finally:
+        link.stop()
+    serial = link.hello.serial_number if link.hello else "unknown"
+    return serial, scans
+
+
+# ------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="skinmap", description="skinmap shape-sensor tools")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="run the emulator and skinmapd on loopback with live output")
+    d.add_argument("--config", help="use this config instead of the embedded demo config")
+    d.add_argument("--size", default="5x5", help="emulated array, e.g. 5x5 or 16x16")
+    d.add_argument("--shape", default="gesture", help="emulated shape spec (see skinmap-emulator --help)")
+    d.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
+    d.add_argument("--verbose", "-v", action="store_true")
+    d.set_defaults(func=cmd_demo)
+
+    for name, func, helptext in (("echo", cmd_echo, "print live element positions and rates"),
+                                 ("info", cmd_info, "print the daemon's device description")):
+        e = sub.add_parser(name, help=helptext)
+        e.add_argument("--connect", default=DEFAULT_CONNECT, help="Zenoh endpoint of skinmapd")
+        e.add_argument("--prefix", default="skinmap")
+        e.add_argument("--device", default="demo")
+        e.add_argument("--timeout", type=float, default=5.0)
+        if name == "echo":
+            e.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+        else:
+            e.add_argument("--json", action="store_true")
+        e.set_defaults(func=func)
+
+    r = sub.add_parser("replay", help="re-run the pipeline from a log's raw frames")
+    r.add_argument("log")
+    r.add_argument("--publish", action="store_true", help="republish the results over Zenoh")
+    r.add_argument("--listen", default="tcp/127.0.0.1:7448", help="Zenoh listen endpoint when publishing")
+    r.add_argument("--prefix", default="skinmap-replay")
+    r.add_argument("--speed", type=float, default=0.0, help="1 = recorded speed, 0 = as fast as possible")
+    r.add_argument("--quiet", "-q", action="store_true")
+    r.set_defaults(func=cmd_replay)
+
+    i = sub.add_parser("inspect", help="summarise a log; optionally draw the surface")
+    i.add_argument("log")
+    i.add_argument("--gap", type=float, default=1.0, help="report time gaps longer than this (s)")
+    i.add_argument("--png", help="write a PNG of the surface to this path")
+    i.add_argument("--at", type=float, default=None, help="seconds after the log's start (default: last)")
+    i.set_defaults(func=cmd_inspect)
+
+    rc = sub.add_parser("recover", help="rewrite a cut (.mcap.active) log as a finished file")
+    rc.add_argument("log")
+    rc.add_argument("--output", "-o")
+    rc.set_defaults(func=cmd_recover)
+
+    t = sub.add_parser("tare", help="record the flat sheet's resting resistances")
+    t.add_argument("--config", "-c", required=True)
+    t.add_argument("--scans", type=int, default=50)
+    t.add_argument("--from-log", help="take the scans from a log instead of the scanner")
+    t.add_argument("--at", type=float, default=0.0, help="with --from-log: seconds after the log's start")
+    t.set_defaults(func=cmd_tare)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except (OSError, ValueError, RuntimeError) as exc:
+        print(f"skinmap {args.command}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""Replay: re-run the live pipeline from a log's raw frames and compare with what was published.
+
+The live daemon logs every received frame (`/raw`, bytes as received, stamped with the host
+receive time), the config and calibration it used (`/config`), and the strains of every scan it
+processed (`/strains`, carrying the scan's sample index). Replay feeds the raw frames through
+the same decoder and `FramePipeline`, processes exactly the scans the live run processed, with
+the calibration in force at the time, and compares the element messages byte for byte.
+Cut (`.mcap.active`) files are read in file order up to the cut.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from skinmap.daemon import messages
+from skinmap.daemon.calibration import Calibration
+from skinmap.daemon.config import DaemonConfig, parse_config
+from skinmap.daemon.mcapinspect import iter_messages_file_order
+from skinmap.daemon.mcaplog import decode_strains
+from skinmap.daemon.pipeline import FramePipeline
+from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
+
+__all__ = ["ReplayReport", "replay_log", "resistances_from_log"]
+
+
+@dataclass
+class ReplayReport:
+    path: str
+    raw_frames: int = 0
+    scans: int = 0
+    processed: int = 0
+    compared: int = 0
+    identical_count: int = 0
+    mismatched: list[int] = field(default_factory=list)
+    max_position_diff_m: float = 0.0
+    published: int = 0
+    seconds: float = 0.0
+    end: str = ""
+    results: list[messages.ElementsMessage] = field(default_factory=list)
+
+    @property
+    def identical(self) -> bool:
+        return self.compared > 0 and not self.mismatched
+
+    def format(self) -> str:
+        verdict = "IDENTICAL" if self.identical else ("NOTHING TO COMPARE" if self.compared == 0 else "DIFFERENT")
+        lines = [
+            f"replay of {self.path}: {verdict}",
+            f"  raw frames {self.raw_frames}, scans {self.scans}, processed {self.processed}, "
+            f"compared {self.compared}, identical {self.identical_count}, mismatched {len(self.mismatched)}",
+            f"  max element position difference {self.max_position_diff_m * 1e3:.3g} mm; "
+            f"{self.processed / self.seconds if self.seconds > 0 else 0:.1f} scans/s replayed",
+        ]
+        if self.published:
+            lines.append(f"  republished {self.published} element messages")
+        if self.mismatched:
+            lines.append(f"  first mismatched seqs: {self.mismatched[:10]}")
+        if self.end:
+            lines.append(f"  log end: {self.end}")
+        return "\n".join(lines)
+
+
+def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
+    shape = tuple(doc["shape"])
+    return Calibration(np.asarray(doc["gauge_factor"], dtype=np.float64).reshape(shape),
+                       np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"))
+
+
+def _first_pass(path: str) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]], int]:
+    """Logged elements by seq, the config in force for each processed seq, raw frame count."""
+    elements: dict[int, bytes] = {}
+    config_for_seq: dict[int, tuple[str, dict]] = {}
+    current: tuple[str, dict] | None = None
+    raw = 0
+    for m in iter_messages_file_order(path):
+        if m.topic == "/raw":
+            raw += 1
+        elif m.topic == "/config":
+            doc = json.loads(m.data)
+            current = (doc.get("config_text", doc.get("config", "")), doc.get("calibration", {}))
+        elif m.topic == "/strains" and current is not None:
+            seq = decode_strains(m.data)[0]
+            config_for_seq[seq] = current
+        elif m.topic == "/elements":
+            elements[messages.decode_header(m.data).seq] = bytes(m.data)
+    return elements, config_for_seq, raw
+
+
+def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
+               progress: bool = False, keep_results: bool = False) -> ReplayReport:
+    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max)."""
+    path = str(path)
+    report = ReplayReport(path)
+    logged, config_for_seq, n_raw = _first_pass(path)
+    decoder = StreamDecoder()
+    pipeline: FramePipeline | None = None
+    previous_surface = None
+    hello: Hello | None = None
+    active_config: tuple[str, dict] | None = None
+    publisher = None
+    t_start = time.perf_counter()
+    first_log_ns: int | None = None
+    try:
+        reader = iter_messages_file_order(path)
+        for m in reader:
+            if m.topic == "/config" and hello is None:
+                hex_hello = json.loads(m.data).get("calibration", {}).get("hello_frame_hex")
+                if hex_hello:
+                    hello = decode_frame(bytes.fromhex(hex_hello)).msg  # file starts mid-stream
+                continue
+            if m.topic != "/raw":
+                continue
+            report.raw_frames += 1
+            if progress and (report.raw_frames % 200 == 0 or report.raw_frames == n_raw):
+                _progress(report.raw_frames, n_raw)
+            for frame in decoder.feed(m.data):
+                if isinstance(frame.msg, Hello):
+                    hello = frame.msg
+                    if pipeline is not None:
+                        previous_surface = pipeline._previous
+                    pipeline = None
+                    continue
+                if not isinstance(frame.msg, Scan) or hello is None:
+                    continue
+                scan = frame.msg
+                report.scans += 1
+                seq = scan.sample_index & 0xFFFFFFFF
+                cfg_entry = config_for_seq.get(seq)
+                if cfg_entry is None:
+                    continue  # the live run did not process this scan
+                if pipeline is None or cfg_entry is not active_config:
+                    cfg = _config_from_text(cfg_entry[0])
+                    if pipeline is None:
+                        from skinmap.daemon.service import pipeline_for_hello
+
+                        pipeline = pipeline_for_hello(hello, cfg)
+                        if previous_surface is not None and (pipeline.geometry.n, pipeline.geometry.m) == (hello.n, hello.m):
+                            pipeline._previous = previous_surface
+                    pipeline.set_calibration(_calibration_from_doc(cfg_entry[1]))
+                    active_config = cfg_entry
+                result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)
+                report.processed += 1
+                payload = messages.encode_elements(
+                    seq, result.device_time_us, result.host_time_ns, result.element_positions_mm / 1000.0,
+                    result.element_normals, result.element_sigma_mm / 1000.0, result.element_flags)
+                if keep_results:
+                    report.results.append(messages.decode_elements(payload))
+                live = logged.get(seq)
+                if live is not None:
+                    report.compared += 1
+                    if live == payload:
+                        report.identical_count += 1
+                    else:
+                        report.mismatched.append(seq)
+                        a, b = messages.decode_elements(live), messages.decode_elements(payload)
+                        if a.positions.shape == b.positions.shape:
+                            report.max_position_diff_m = max(report.max_position_diff_m,
+                                                             float(np.nanmax(np.abs(a.positions - b.positions), initial=0.0)))
+                if session is not None:
+                    if publisher is None:
+                        from skinmap.daemon.service import device_name
+                        from skinmap.daemon.zenoh_io import SkinmapPublisher
+
+                        publisher = SkinmapPublisher(session, prefix, device_name(hello, _config_from_text(cfg_entry[0])))
+                    if speed > 0:
+                        if first_log_ns is None:
+                            first_log_ns, t_wall0 = m.log_time_ns, time.perf_counter()
+                        due = t_wall0 + (m.log_time_ns - first_log_ns) / 1e9 / speed
+                        delay = due - time.perf_counter()
+                        if delay > 0:
+                            time.sleep(delay)
+                    publisher.publish_elements(payload)
+                    report.published += 1
+        end = reader.end
+        if end is not None and not end.complete:
+            report.end = f"cut file: {end.reason} (read {end.valid_bytes} of {end.file_bytes} bytes)"
+    finally:
+        if publisher is not None:
+            publisher.close()
+        if progress:
+            print(file=sys.stderr)
+    report.seconds = time.perf_counter() - t_start
+    return report
+
+
+_config_cache: dict[str, DaemonConfig] = {}
+
+
+def _config_from_text(text: str) -> DaemonConfig:
+    cfg = _config_cache.get(text)
+    if cfg is None:
+        cfg = parse_config(tomllib.loads(text) if text else {}, source="<log>", text=text)
+        _config_cache[text] = cfg
+    return cfg
+
+
+def _progress(done: int, total: int) -> None:
+    total = max(total, 1)
+    width = 40
+    filled = int(width * done / total)
+    sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {100 * done / total:5.1f}% {done}/{total} frames")
+    sys.stderr.flush()
+
+
+def resistances_from_log(path: str | Path, *, start_s: float = 0.0, count: int = 50) -> tuple[str, list[np.ndarray]]:
+    """Resistance scans from a log's raw frames, starting `start_s` after its first frame."""
+    decoder = StreamDecoder()
+    serial = "unknown"
+    scans: list[np.ndarray] = []
+    t0: int | None = None
+    for m in iter_messages_file_order(str(path)):
+        if m.topic != "/raw":
+            continue
+        t0 = m.log_time_ns if t0 is None else t0
+        for frame in decoder.feed(m.data):
+            if isinstance(frame.msg, Hello):
+                serial = frame.msg.serial_number
+            elif isinstance(frame.msg, Scan) and (m.log_time_ns - t0) / 1e9 >= start_s:
+                scans.append(frame.msg.resistances_ohm())
+                if len(scans) >= count:
+                    return serial, scans
+    return serial, scans
