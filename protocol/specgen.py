@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from cobs import cobs
 
-from .codec import decode_frame, encode_frame
-from .framing import HEADER, HEADER_SIZE, MAX_ENCODED_BODY, MAX_PAYLOAD, crc32, encode_body
-from .errors import ProtocolError
+from .codec import encode_frame
+from .framing import HEADER, HEADER_SIZE, MAX_ENCODED_BODY, MAX_PAYLOAD, crc32
 from .messages import (
     LAYOUTS,
     MESSAGE_CLASSES,
@@ -42,7 +42,6 @@ from .messages import (
 )
 from .stream import StreamDecoder
 from .tdm import default_channel_map, step_period_ns
-from cobs import cobs
 
 VECTORS_PATH = Path(__file__).with_name("test_vectors.json")
 
