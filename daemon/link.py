@@ -29,7 +29,7 @@ from skinmap.protocol import (
     StreamDecoder,
     encode_frame,
 )
-from skinmap.protocol import ErrorCode, MsgType
+from skinmap.protocol import ErrorCode, hello_compatibility
 
 __all__ = ["LinkError", "LinkStats", "ScannerLink", "open_serial", "validate_hello"]
 
@@ -51,6 +51,9 @@ def open_serial(port: str, baudrate: int, exclusive: bool) -> serial.SerialBase:
 
 def validate_hello(hello: Hello, cfg: DeviceConfig) -> None:
     """Refuse a device description the daemon cannot or should not serve."""
+    compat = hello_compatibility(hello)
+    if not compat.usable:
+        raise LinkError(f"incompatible scanner: {compat.note}")
     n, m = hello.n, hello.m
     if n * m > cfg.max_cells:
         raise LinkError(f"scanner reports {n}×{m} = {n * m} cells, more than device.max_cells = {cfg.max_cells}")

@@ -1,0 +1,124 @@
+"""End-to-end figures of skinmapd against the emulator, all on loopback.
+
+For each array size and output mode it starts the emulator and skinmapd as separate processes,
+subscribes to the element messages over Zenoh, and prints:
+
+- latency from the host receiving a scan's last byte on the serial port (the element message's
+  host time stamp) to this subscriber holding the decoded element coordinates: median, p99;
+- the daemon's CPU use (share of one core) and resident memory, from /proc;
+- MCAP bytes per hour, from the log folder's growth.
+
+    .venv/bin/python bench/latency.py [--seconds 20] [--sizes 5x5,16x16]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skinmap.daemon.cli import start_emulator, stop_process
+from skinmap.daemon.client import SkinmapClient
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def proc_cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def proc_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def dir_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.glob("*") if p.is_file())
+
+
+def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path) -> dict:
+    serial_port, zenoh_port = free_port(), free_port()
+    logs = workdir / f"logs-{size}-{output_rate:g}"
+    cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
+    cfg.write_text(f"""
+[device]
+port = "socket://127.0.0.1:{serial_port}"
+name = "bench"
+scan_rate_hz = {scan_rate}
+[output]
+rate_hz = {output_rate}
+[elements]
+layout = "grid"
+rows = 1
+cols = 64
+pitch_u_mm = 0.6
+[zenoh]
+listen = ["tcp/127.0.0.1:{zenoh_port}"]
+[log]
+directory = "{logs}"
+[state]
+directory = "{workdir / 'state'}"
+""")
+    emulator = start_emulator(serial_port, size=size, shape="gesture", rate=scan_rate)
+    daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
+                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    latencies: list[float] = []
+    try:
+        with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap", device="bench") as client:
+            client.elements(timeout=30.0)  # wait until the daemon streams
+            cpu0, t0, bytes0 = proc_cpu_seconds(daemon.pid), time.monotonic(), dir_bytes(logs)
+            end = t0 + seconds
+            while time.monotonic() < end:
+                msg = client.elements(timeout=5.0)
+                latencies.append((time.time_ns() - msg.host_time_ns) / 1e6)
+            elapsed = time.monotonic() - t0
+            cpu = (proc_cpu_seconds(daemon.pid) - cpu0) / elapsed
+            rss = proc_rss_mb(daemon.pid)
+            mcap_rate = (dir_bytes(logs) - bytes0) / elapsed * 3600
+    finally:
+        stop_process(daemon, timeout=15)
+        stop_process(emulator)
+    lat = np.array(latencies)
+    return {"size": size, "scan_rate": scan_rate, "output": "every scan" if output_rate == 0 else f"{output_rate:g} Hz",
+            "n": lat.size, "rate": lat.size / elapsed, "median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+            "cpu": cpu * 100, "rss": rss, "mcap_gb_h": mcap_rate / 1e9}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--sizes", default="5x5,16x16")
+    ap.add_argument("--scan-rate", type=float, default=50.0, help="emulated scans per second")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes.split(","):
+            for output_rate in (10.0, 0.0):
+                rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp)))
+                r = rows[-1]
+                print(f"{r['size']:>6} scan {r['scan_rate']:g}/s output {r['output']:>10}: {r['n']} msgs "
+                      f"({r['rate']:.1f}/s)  latency median {r['median']:.2f} ms  p99 {r['p99']:.2f} ms  "
+                      f"CPU {r['cpu']:.1f} %  RSS {r['rss']:.0f} MB  MCAP {r['mcap_gb_h']:.2f} GB/h", flush=True)
+    print()
+    print("| array | scans/s | output | messages | latency median ms | latency p99 ms | daemon CPU % | RSS MB | MCAP GB/h |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['size']} | {r['scan_rate']:g} | {r['output']} | {r['n']} | {r['median']:.2f} | {r['p99']:.2f} | "
+              f"{r['cpu']:.1f} | {r['rss']:.0f} | {r['mcap_gb_h']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
