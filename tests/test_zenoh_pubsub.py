@@ -261,3 +261,30 @@ def test_publish_methods_are_thread_safe(daemon):
         last = client.latest("elements").seq
         assert last % 1000 == 49  # the cache holds a complete, final message of some thread
         assert client.status()["seq"] % 1000 == 49
+
+
+def test_samples_carry_the_documented_qos_and_encoding(daemon):
+    import zenoh
+
+    publisher, endpoint = daemon
+    with connect(endpoint) as client:
+        sub = client.session.declare_subscriber(f"skinmap/{DEVICE}/*",
+                                                zenoh.handlers.FifoChannel(8))
+        try:
+            assert wait_until(lambda: publisher.has_subscribers("elements")
+                              and publisher.has_subscribers("status"))
+            publisher.publish_elements(elements_payload(1)[0])
+            publisher.publish_status(STATUS)
+            received = []
+            # try_recv with a deadline: a lost sample fails the test instead of hanging it
+            assert wait_until(lambda: received.append(sub.try_recv()) or
+                              sum(x is not None for x in received) == 2)
+            samples = {str(s.key_expr).rsplit("/", 1)[1]: s for s in received if s is not None}
+        finally:
+            sub.undeclare()
+    elements, status = samples["elements"], samples["status"]
+    assert elements.congestion_control == zenoh.CongestionControl.DROP and elements.express
+    assert elements.priority == zenoh.Priority.DATA_HIGH
+    assert str(elements.encoding) == "application/octet-stream;skinmap.elements/1"
+    assert status.congestion_control == zenoh.CongestionControl.DROP and not status.express
+    assert str(status.encoding) == "application/json;skinmap.status/1"
