@@ -1,0 +1,559 @@
+"""The scanner firmware as a pure state machine: bytes and time in, bytes out, no I/O.
+
+    dev = Device(DeviceConfig(n=5, m=5), shape, now_s=0.0)
+    out = dev.poll(0.0)            # HELLO at boot
+    out = dev.on_bytes(data, now)  # answers to host commands (ACK/NAK, HELLO for QUERY_INFO)
+    out = dev.poll(now)            # SCANs that are due, periodic STATUS
+
+Time is whatever monotonic clock the caller passes (seconds); the device clock in SCAN/STATUS
+timestamps counts from the last boot, the shape's clock (``shape_time``) from the device's
+creation, so the world keeps moving through reboots.
+
+Acquisition follows the row-column time-division multiplexing of the hardware: a scan is
+2·min(N, M) TDM steps at F_scan = 2·min(N, M)·scan_rate; step s samples the units on drive line
+s at ``timestamp + s·step_period`` and a time-varying shape is evaluated at exactly that instant.
+A scan is sent once its last step has completed.
+"""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from skinmap.emulator.electrical import Calibration, ElectricalConfig, GaugeReadout, draw_calibration
+from skinmap.emulator.physics import GroundTruth, Shape, gauge_strains, ground_truth
+from skinmap.protocol import (
+    MAX_DIM,
+    MIN_DIM,
+    RES_OPEN,
+    RES_SATURATED,
+    Ack,
+    DeviceState,
+    ErrorCode,
+    FaultFlag,
+    FieldError,
+    Hello,
+    LengthError,
+    MsgType,
+    Nak,
+    Ping,
+    ProtocolError,
+    QueryInfo,
+    Reset,
+    Scan,
+    ScanFlag,
+    SetScanRate,
+    Start,
+    Status,
+    Stop,
+    UnknownMessageTypeError,
+    decode_frame,
+    default_channel_map,
+    encode_frame,
+    step_period_ns,
+    tdm_steps,
+)
+from skinmap.protocol.framing import HEADER, decode_body
+
+__all__ = ["DeviceConfig", "Device", "ScanRecord"]
+
+FW_VERSION = (0, 1, 0)
+STATUS_PERIOD_S = 1.0
+RETRY_MEMORY = 8  # answered commands remembered for idempotent retries (PROTOCOL.md §8)
+# Scans the emulator still sends late when its own loop fell behind; older ones count as dropped.
+MAX_BACKLOG_SCANS = 8
+# fault bits that describe "since the previous STATUS" rather than a present condition
+_TRANSIENT_FAULTS = int(FaultFlag.SCAN_BUFFER_OVERRUN | FaultFlag.HOST_FRAME_ERRORS)
+_HOST_FRAME_LIMIT = 4096  # a host command is tiny; longer garbage is discarded unbuffered
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """Geometry, rates and identity of an emulated scanner."""
+
+    n: int = 5
+    m: int = 5
+    pitch_mm: float = 12.0
+    gauge_length_mm: float = 10.0
+    h_upper_mm: float = 0.2
+    h_lower_mm: float = 0.2
+    scan_rate_hz: float = 10.0
+    max_step_rate_hz: float = 4000.0  # the DAQ's TDM step rate limit
+    seed: int = 0
+    electrical: ElectricalConfig = field(default_factory=ElectricalConfig)
+    serial_number: str | None = None
+    quadrature_panels: int = 2  # per gauge, 8 Gauss points each (see physics.gauge_strains)
+
+    def __post_init__(self):
+        for name in ("n", "m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or not MIN_DIM <= v <= MAX_DIM:
+                raise ValueError(f"DeviceConfig.{name} must be an integer in {MIN_DIM}..{MAX_DIM}, got {v!r}")
+        for name in ("pitch_mm", "gauge_length_mm", "scan_rate_hz", "max_step_rate_hz"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"DeviceConfig.{name} must be a positive number, got {v!r}")
+        for name in ("h_upper_mm", "h_lower_mm"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v < 65.535):
+                raise ValueError(f"DeviceConfig.{name} must be in 0..65 mm, got {v!r}")
+        if self.scan_rate_hz > self.max_scan_rate_hz:
+            raise ValueError(
+                f"DeviceConfig.scan_rate_hz {self.scan_rate_hz} exceeds the maximum "
+                f"{self.max_scan_rate_hz:g} scans/s of a {self.n}x{self.m} array"
+            )
+        if self.serial_number is not None and (len(self.serial_number) > 16 or not self.serial_number.isascii()):
+            raise ValueError(f"DeviceConfig.serial_number must be <= 16 ASCII characters, got {self.serial_number!r}")
+
+    @property
+    def steps(self) -> int:
+        return tdm_steps(self.n, self.m)
+
+    @property
+    def max_scan_rate_hz(self) -> float:
+        return self.max_step_rate_hz / self.steps
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """What the device knows about a scan it sent (for ground truth; never on the wire)."""
+
+    sample_index: int
+    boot: int  # boot counter: sample indices restart at every boot
+    timestamp_us: int
+    step_period_ns: int
+    shape_time_s: float  # shape clock at TDM step 0
+
+    def unit_times_s(self, drive_line: np.ndarray) -> np.ndarray:
+        """Shape-clock sampling instant of every unit, shaped like ``drive_line`` (2, N, M)."""
+        return self.shape_time_s + np.asarray(drive_line, dtype=float) * self.step_period_ns * 1e-9
+
+
+class Device:
+    """Emulated scanner firmware.  Faults are injected through :meth:`set_open`,
+    :meth:`set_saturated`, :meth:`stall`, :meth:`reboot` (byte-level faults live in the link)."""
+
+    def __init__(self, config: DeviceConfig, shape: Shape, now_s: float = 0.0):
+        self.config = config
+        self.shape = shape
+        self._epoch = float(now_s)
+        rng = np.random.default_rng(config.seed)
+        self.calibration: Calibration = draw_calibration(rng, config.n, config.m)
+        self._noise_rng = np.random.default_rng([config.seed, 1])
+        self.drive_line, self.sense_channel = default_channel_map(config.n, config.m)
+        self.open_gauges = np.zeros((2, 2, config.n, config.m), dtype=bool)
+        self.saturated_gauges = np.zeros((2, 2, config.n, config.m), dtype=bool)
+        self.readout = GaugeReadout(
+            self.calibration, config.electrical, self._noise_rng, self.open_gauges, self.saturated_gauges
+        )
+        self.serial_number = config.serial_number or f"EMU-{config.seed & 0xFFFFFFFF:08X}"
+        self.boot_count = 0
+        self.history: OrderedDict[tuple[int, int], ScanRecord] = OrderedDict()
+        self.history_limit = 4096
+        self._static_strain: np.ndarray | None = None
+        self.last_strain: np.ndarray | None = None
+        #: called with the ScanRecord of every scan sent (ground-truth logging)
+        self.on_scan: Callable[[ScanRecord], None] | None = None
+        self._boot(now_s, watchdog=False)
+
+    # ------------------------------------------------------------------ state and clocks
+
+    def _boot(self, now_s: float, watchdog: bool) -> None:
+        self.boot_count += 1
+        self._boot_time = float(now_s)
+        self._seq = 0
+        self.state = DeviceState.IDLE
+        self.scan_rate_mhz = self._apply_rate_mhz(round(self.config.scan_rate_hz * 1000))
+        self.sample_index = 0
+        self._next_t0: float | None = None
+        self.scans_sent = 0
+        self.scans_dropped = 0
+        self.frames_rejected = 0
+        self._dropped_since_last = False
+        self._answers: OrderedDict[tuple[int, int], list] = OrderedDict()
+        self._rx = bytearray()
+        self._rx_skipping = False
+        self._stall_until = -math.inf
+        self._watchdog = watchdog
+        self._adc_fault = False
+        self._hello_due = True  # boot: 0x00, HELLO (seq 0), then STATUS
+        self._status_due = True
+        self._next_status = float(now_s) + STATUS_PERIOD_S
+        self._reported = (self.state, 0, 0, 0)  # state, faults, scans_dropped, frames_rejected
+        self._last_open = np.zeros_like(self.open_gauges)
+        self._last_saturated = np.zeros_like(self.saturated_gauges)
+        self.readout.reset_state()
+
+    def device_time_us(self, now_s: float) -> int:
+        return max(0, int(round((now_s - self._boot_time) * 1e6)))
+
+    def shape_time(self, now_s: float) -> float:
+        return now_s - self._epoch
+
+    @property
+    def step_period_ns(self) -> int:
+        return step_period_ns(self.scan_rate_mhz, self.config.n, self.config.m)
+
+    @property
+    def scan_period_s(self) -> float:
+        return self.config.steps * self.step_period_ns * 1e-9
+
+    @property
+    def max_scan_rate_mhz(self) -> int:
+        return int(self.config.max_scan_rate_hz * 1000)
+
+    def _apply_rate_mhz(self, requested_mhz: int) -> int:
+        """The rate actually run: the TDM step period is a whole number of ns."""
+        period = step_period_ns(requested_mhz, self.config.n, self.config.m)
+        return int(round(1e12 / (period * self.config.steps)))
+
+    def fault_flags(self) -> int:
+        """Present fault bits; the two "since the previous STATUS" bits compare the counters
+        with the values the last STATUS reported."""
+        flags = 0
+        if self._last_open.any() or (self.state != DeviceState.SCANNING and self.open_gauges.any()):
+            flags |= FaultFlag.GAUGE_OPEN
+        if self._last_saturated.any() or (
+            self.state != DeviceState.SCANNING and self.saturated_gauges.any()
+        ):
+            flags |= FaultFlag.GAUGE_SATURATED
+        if self.scans_dropped != self._reported[2]:
+            flags |= FaultFlag.SCAN_BUFFER_OVERRUN
+        if self._watchdog:
+            flags |= FaultFlag.WATCHDOG_RESET
+        if self._adc_fault:
+            flags |= FaultFlag.ADC_FAULT
+        if self.frames_rejected != self._reported[3]:
+            flags |= FaultFlag.HOST_FRAME_ERRORS
+        return int(flags)
+
+    # ------------------------------------------------------------------ output
+
+    def _frame(self, msg) -> bytes:
+        data = encode_frame(msg, self._seq)
+        self._seq = (self._seq + 1) & 0xFFFF
+        return data
+
+    def hello(self) -> Hello:
+        gf, r0 = self.calibration.micro_units()
+        c = self.config
+        return Hello(
+            fw_version=FW_VERSION,
+            serial_number=self.serial_number,
+            pitch_um=int(round(c.pitch_mm * 1000)),
+            gauge_length_um=int(round(c.gauge_length_mm * 1000)),
+            h_upper_um=int(round(c.h_upper_mm * 1000)),
+            h_lower_um=int(round(c.h_lower_mm * 1000)),
+            scan_rate_mhz=self.scan_rate_mhz,
+            max_scan_rate_mhz=self.max_scan_rate_mhz,
+            resistance_lsb_uohm=c.electrical.wire_lsb_uohm,
+            gauge_factor_micro=gf,
+            base_resistance_uohm=r0,
+            drive_line=self.drive_line,
+            sense_channel=self.sense_channel,
+        )
+
+    def status(self, now_s: float) -> Status:
+        """The STATUS message now; bitmaps: gauges open/saturated in the latest scan (while
+        not scanning, as the self-test sees them: the injected faults)."""
+        scanning = self.state == DeviceState.SCANNING
+        opened = self._last_open | (self.open_gauges if not scanning else False)
+        saturated = self._last_saturated | (self.saturated_gauges if not scanning else False)
+        return Status(
+            timestamp_us=self.device_time_us(now_s),
+            fault_flags=self.fault_flags(),
+            scans_sent=self.scans_sent & 0xFFFFFFFF,
+            scans_dropped=self.scans_dropped & 0xFFFFFFFF,
+            frames_rejected=self.frames_rejected & 0xFFFFFFFF,
+            supply_mv=5000,
+            temperature_cdeg=3100,
+            state=int(self.state),
+            open_gauges=opened,
+            saturated_gauges=saturated,
+            buffer_fill_pct=0,
+        )
+
+    # ------------------------------------------------------------------ host input
+
+    def on_bytes(self, data: bytes, now_s: float) -> bytes:
+        """Feed bytes from the host; return the device's answers (already framed)."""
+        if now_s < self._stall_until:
+            return b""  # a stalled firmware does not service its UART
+        # what fell due before these bytes arrived goes out first (scans completed before STOP)
+        out = [self.poll(now_s)]
+        if self._rx_skipping:
+            end = data.find(0)
+            if end < 0:
+                return b"".join(out)
+            data = data[end + 1 :]
+            self._rx_skipping = False
+            self.frames_rejected += 1
+        self._rx += data
+        while True:
+            end = self._rx.find(0)
+            if end < 0:
+                break
+            body = bytes(self._rx[: end + 1])
+            del self._rx[: end + 1]
+            if len(body) > 1:
+                out.append(self._handle_body(body, now_s))
+        if len(self._rx) > _HOST_FRAME_LIMIT:
+            self._rx.clear()
+            self._rx_skipping = True
+        return b"".join(out)
+
+    def _handle_body(self, body: bytes, now_s: float) -> bytes:
+        try:
+            frame = decode_frame(body)
+        except ProtocolError as exc:
+            return self._reject(body, exc)
+        msg = frame.msg
+        if not isinstance(msg, (Start, Stop, SetScanRate, QueryInfo, Ping, Reset)):
+            # a device -> host message type sent to the device
+            return self._nak_unattributed(body, ErrorCode.UNKNOWN_COMMAND)
+        key = (int(msg.TYPE), msg.request_id)
+        if key in self._answers:  # a retry: answer again, do not act twice
+            self._answers.move_to_end(key)
+            return b"".join(self._frame(m) for m in self._answers[key])
+        answers, after = self._execute(msg, now_s)
+        self._answers[key] = answers
+        while len(self._answers) > RETRY_MEMORY:
+            self._answers.popitem(last=False)
+        out = b"".join(self._frame(m) for m in answers)
+        if after is not None:
+            out += after()
+        return out
+
+    def _reject(self, body: bytes, exc: ProtocolError) -> bytes:
+        """A frame that fails the checks: NAK it if it passed the framing checks (its header
+        and CRC are intact), otherwise drop it silently; either way count it, except an
+        unknown command, which is answered rather than discarded."""
+        if isinstance(exc, UnknownMessageTypeError):
+            return self._nak_unattributed(body, ErrorCode.UNKNOWN_COMMAND)
+        self.frames_rejected += 1
+        if isinstance(exc, LengthError):
+            return self._nak_unattributed(body, ErrorCode.BAD_LENGTH)
+        if isinstance(exc, FieldError):
+            return self._nak_unattributed(body, ErrorCode.BAD_ARGUMENT)
+        return b""
+
+    def _nak_unattributed(self, body: bytes, code: ErrorCode) -> bytes:
+        """NAK echoing the first two payload bytes as request_id (0 if shorter), §7.4."""
+        try:
+            header, raw = decode_body(body)
+        except ProtocolError:
+            return b""  # COBS, CRC or length damage: nothing trustworthy to answer
+        payload = raw[HEADER.size : HEADER.size + header.payload_len]
+        request_id = int.from_bytes(payload[:2], "little") if len(payload) >= 2 else 0
+        return self._frame(Nak(request_id, header.msg_type, int(code), 0))
+
+    def _execute(self, msg, now_s: float):
+        """Run a new command; returns (answer messages, optional action after sending them)."""
+        cmd = int(msg.TYPE)
+        rid = msg.request_id
+        if isinstance(msg, Start):
+            if self.state == DeviceState.FAULT:
+                return [Nak(rid, cmd, int(ErrorCode.NOT_ALLOWED_IN_STATE), 0)], None
+            if self.state != DeviceState.SCANNING:
+                self.state = DeviceState.SCANNING
+                self.sample_index = 0
+                self._next_t0 = now_s
+                self._dropped_since_last = False
+            return [Ack(rid, cmd)], None
+        if isinstance(msg, Stop):
+            if self.state == DeviceState.SCANNING:
+                self.state = DeviceState.IDLE
+            self._next_t0 = None
+            return [Ack(rid, cmd)], None
+        if isinstance(msg, SetScanRate):
+            if self.state == DeviceState.SCANNING:
+                return [Nak(rid, cmd, int(ErrorCode.NOT_ALLOWED_IN_STATE), 0)], None
+            if not 0 < msg.scan_rate_mhz <= self.max_scan_rate_mhz:
+                return [Nak(rid, cmd, int(ErrorCode.BAD_ARGUMENT), 1)], None
+            self.scan_rate_mhz = self._apply_rate_mhz(msg.scan_rate_mhz)
+            return [Ack(rid, cmd, self.scan_rate_mhz.to_bytes(4, "little"))], None
+        if isinstance(msg, QueryInfo):
+            return [Ack(rid, cmd), self.hello()], None
+        if isinstance(msg, Ping):
+            return [Ack(rid, cmd, msg.echo)], None
+        if isinstance(msg, Reset):
+            return [Ack(rid, cmd)], lambda: self._reboot_now(now_s, watchdog=False)
+        return [Nak(rid, cmd, int(ErrorCode.UNKNOWN_COMMAND), 0)], None
+
+    # ------------------------------------------------------------------ scheduled output
+
+    def _pending(self, now_s: float) -> bytes:
+        if self._hello_due:
+            self._hello_due = False
+            return b"\x00" + self._frame(self.hello())
+        return b""
+
+    def poll(self, now_s: float, tx_ready: bool = True) -> bytes:
+        """Everything the device sends by ``now_s``: HELLO after boot, due SCANs, STATUS.
+
+        ``tx_ready=False`` says the link cannot take a scan now (the host is not reading):
+        scans completing meanwhile are dropped whole, as the firmware's transmit path does.
+        """
+        if now_s < self._stall_until:
+            return b""
+        out = [self._pending(now_s)]
+        if self.state == DeviceState.SCANNING and self._next_t0 is not None:
+            period = self.scan_period_s
+            due = int(math.floor((now_s - self._next_t0) / period + 1e-9))  # scans completed
+            if not tx_ready:
+                self._drop(max(due, 0), period)
+                due = 0
+            elif due > MAX_BACKLOG_SCANS:
+                self._drop(due - MAX_BACKLOG_SCANS, period)
+                due = MAX_BACKLOG_SCANS
+            for _ in range(max(due, 0)):
+                out.append(self._scan(self._next_t0))
+                self._next_t0 += period
+        out.append(self._maybe_status(now_s))
+        return b"".join(out)
+
+    def _maybe_status(self, now_s: float) -> bytes:
+        faults = self.fault_flags()
+        state, last_faults = self._reported[:2]
+        persistent = ~_TRANSIENT_FAULTS
+        changed = (
+            self.state != state
+            or (faults & persistent) != (last_faults & persistent)
+            or (faults & ~last_faults & _TRANSIENT_FAULTS)
+        )
+        if not (self._status_due or changed or now_s >= self._next_status):
+            return b""
+        self._status_due = False
+        frame = self._frame(self.status(now_s))
+        self._reported = (self.state, faults, self.scans_dropped, self.frames_rejected)
+        if now_s >= self._next_status:
+            self._next_status = max(self._next_status + STATUS_PERIOD_S, now_s)
+        return frame
+
+    def next_event_s(self) -> float:
+        """When :meth:`poll` next has something to send (for the transport's select timeout)."""
+        t = self._next_status
+        if self.state == DeviceState.SCANNING and self._next_t0 is not None:
+            t = min(t, self._next_t0 + self.scan_period_s)
+        if self._hello_due or self._status_due:
+            t = -math.inf
+        return max(t, self._stall_until)
+
+    def _drop(self, count: int, period: float) -> None:
+        self.scans_dropped += count
+        self.sample_index = (self.sample_index + count) & 0xFFFFFFFF
+        self._next_t0 += count * period
+        self._dropped_since_last = True
+
+    def strains(self, shape_times: np.ndarray | float) -> np.ndarray:
+        """True layer strains (2 layers, 2 directions, N, M) at per-unit times (2, N, M)."""
+        if not self.shape.time_varying:
+            if self._static_strain is None:
+                self._static_strain = self._strains(0.0)
+            return self._static_strain
+        return self._strains(shape_times)
+
+    def _strains(self, t) -> np.ndarray:
+        c = self.config
+        eu, el = gauge_strains(
+            self.shape, c.n, c.m, c.pitch_mm, c.h_upper_mm, c.h_lower_mm, c.gauge_length_mm,
+            t=t, samples=8, panels=c.quadrature_panels,
+        )
+        return np.stack([eu, el])
+
+    def _scan(self, t0: float) -> bytes:
+        record = ScanRecord(
+            sample_index=self.sample_index,
+            boot=self.boot_count,
+            timestamp_us=self.device_time_us(t0),
+            step_period_ns=self.step_period_ns,
+            shape_time_s=self.shape_time(t0),
+        )
+        strain = self.strains(record.unit_times_s(self.drive_line))
+        wire = self.readout.read(strain, t0 - self._boot_time)
+        flags = 0
+        self._last_open = wire == RES_OPEN
+        self._last_saturated = wire == RES_SATURATED
+        if self._last_open.any():
+            flags |= ScanFlag.OPEN_GAUGE
+        if self._last_saturated.any():
+            flags |= ScanFlag.SATURATED_GAUGE
+        if self._dropped_since_last:
+            flags |= ScanFlag.DROPPED_BEFORE
+            self._dropped_since_last = False
+        if self.sample_index == 0:
+            flags |= ScanFlag.FIRST_AFTER_START
+        msg = Scan(record.sample_index, record.timestamp_us, record.step_period_ns, wire, int(flags))
+        self.history[(record.boot, record.sample_index)] = record
+        while len(self.history) > self.history_limit:
+            self.history.popitem(last=False)
+        self.sample_index = (self.sample_index + 1) & 0xFFFFFFFF
+        self.scans_sent += 1
+        self.last_strain = strain
+        frame = self._frame(msg)
+        if self.on_scan is not None:
+            self.on_scan(record)
+        return frame
+
+    # ------------------------------------------------------------------ faults and truth
+
+    def set_open(self, mask: np.ndarray) -> None:
+        """Open-circuit (dead) gauges: bool (2 layers, 2 directions, N, M)."""
+        self.open_gauges[...] = self._mask(mask, "open")
+
+    def set_saturated(self, mask: np.ndarray) -> None:
+        """Gauges stuck at the top of the ADC range: bool (2 layers, 2 directions, N, M)."""
+        self.saturated_gauges[...] = self._mask(mask, "saturated")
+
+    def _mask(self, mask, what: str) -> np.ndarray:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != self.open_gauges.shape:
+            raise ValueError(f"{what} gauge mask must have shape {self.open_gauges.shape}, got {mask.shape}")
+        return mask
+
+    def set_adc_fault(self, failed: bool) -> None:
+        """The measurement front end fails (state FAULT, scanning stops) or recovers (IDLE)."""
+        self._adc_fault = bool(failed)
+        if failed:
+            self.state = DeviceState.FAULT
+            self._next_t0 = None
+        elif self.state == DeviceState.FAULT:
+            self.state = DeviceState.IDLE
+
+    def stall(self, now_s: float, duration_s: float) -> None:
+        """Firmware hangs for ``duration_s``: nothing is sent or answered; scans due during the
+        stall are lost (counted as dropped, flagged DROPPED_BEFORE on the next one)."""
+        if not duration_s >= 0:
+            raise ValueError(f"stall duration must be >= 0 s, got {duration_s!r}")
+        self._stall_until = max(self._stall_until, now_s + duration_s)
+
+    @property
+    def stalled_until(self) -> float:
+        return self._stall_until
+
+    def reboot(self, now_s: float, watchdog: bool = True) -> None:
+        """Unexpected reboot (watchdog / brown-out): sequence numbers and sample index restart,
+        scanning stops, HELLO is sent again; STATUS reports WATCHDOG_RESET when ``watchdog``."""
+        self._reboot_now(now_s, watchdog)
+
+    def _reboot_now(self, now_s: float, watchdog: bool) -> bytes:
+        self._boot(now_s, watchdog)
+        return self._pending(now_s)
+
+    def record(self, sample_index: int, boot: int | None = None) -> ScanRecord:
+        key = (self.boot_count if boot is None else boot, sample_index)
+        try:
+            return self.history[key]
+        except KeyError:
+            raise KeyError(f"no record of scan {sample_index} (boot {key[0]}): not sent or too old") from None
+
+    def ground_truth(
+        self, sample_index: int, boot: int | None = None, element_uv: np.ndarray | None = None
+    ) -> GroundTruth:
+        """True geometry of a sent scan, at the shape time of its TDM step 0."""
+        rec = self.record(sample_index, boot)
+        c = self.config
+        return ground_truth(self.shape, c.n, c.m, c.pitch_mm, rec.shape_time_s, element_uv)
