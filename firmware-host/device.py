@@ -537,7 +537,7 @@ class Device:
     def reboot(self, now_s: float, watchdog: bool = True) -> None:
         """Unexpected reboot (watchdog / brown-out): sequence numbers and sample index restart,
         scanning stops, HELLO is sent again; STATUS reports WATCHDOG_RESET when ``watchdog``."""
-        self._reboot_now(now_s, watchdog)
+        self._boot(now_s, watchdog)
 
     def _reboot_now(self, now_s: float, watchdog: bool) -> bytes:
         self._boot(now_s, watchdog)
