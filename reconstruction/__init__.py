@@ -1,1 +1,221 @@
-"""placeholder"""
+"""Shape reconstruction: gauge strains → the sheet's 3D surface (see docs/reconstruction.md).
+
+    from skinmap import reconstruct
+    surf = reconstruct(eps_upper, eps_lower, pitch=12.0, h_upper=0.2, h_lower=0.2)
+    surf.nodes, surf.normals, surf.node_sigma        # (N, M, 3), (N, M, 3), (N, M)
+    pos, nrm = surf.locate(uv)                       # any material points (K, 2) mm
+    cloud = surf.points(per_pitch=20)
+
+Per-geometry precomputation (operators and their factorisations) lives in a
+:class:`Reconstructor`; :func:`reconstruct` keeps a small cache of them keyed by the geometry.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+
+import numpy as np
+
+from .decouple import decouple
+from .engine import (
+    integrate_frames,
+    integrate_positions,
+    refine_positions,
+    rotation_rates,
+    solve_fields,
+    solve_twist,
+    unit_data,
+)
+from .grid import FineGrid
+from .surface import Diagnostics, Surface
+from .uncertainty import fine_sigma
+
+__all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA"]
+
+#: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
+#: of 1.24 gives 0.0057 % strain.
+DEFAULT_STRAIN_SIGMA = 0.0057e-2
+
+
+def _positive(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+    return value
+
+
+def default_subdivision(n: int, m: int) -> int:
+    """Fine-grid intervals per pitch: 4 (3 mm at 12 mm pitch) resolves features down to the
+    gauge length; large arrays use 2 to keep the frame time within budget."""
+    return 4 if n * m <= 144 else 2
+
+
+class Reconstructor:
+    """Reconstruction for one sensor geometry; holds the fine grid, its operators and their
+    factorisations, so that each call only does per-frame work.
+
+    Parameters
+    ----------
+    n, m : rows and columns of cells.
+    pitch : cell pitch (mm).
+    h_upper, h_lower : gauge offsets from the neutral plane (mm).
+    gauge_length : gauge length (mm), at most the pitch.
+    subdivision : fine-grid intervals per pitch (even, >= 2); default :func:`default_subdivision`.
+    refine_iterations : Gauss–Newton passes of the position solve that estimate the in-plane
+        shear from the normals and lengths (0 keeps orthogonal material lines).
+    """
+
+    def __init__(
+        self,
+        n: int,
+        m: int,
+        pitch: float = 12.0,
+        h_upper: float = 0.2,
+        h_lower: float = 0.2,
+        gauge_length: float = 10.0,
+        subdivision: int | None = None,
+        refine_iterations: int = 3,
+    ):
+        for name, val in (("n (rows)", n), ("m (columns)", m)):
+            if isinstance(val, bool) or int(val) != val or int(val) < 2:
+                raise ValueError(f"{name} must be an integer >= 2, got {val!r}")
+        self.n, self.m = int(n), int(m)
+        self.pitch = _positive("pitch", pitch)
+        self.h_upper, self.h_lower = float(h_upper), float(h_lower)
+        decouple(0.0, 0.0, self.h_upper, self.h_lower)  # validates the offsets
+        self.gauge_length = _positive("gauge_length", gauge_length)
+        sub = default_subdivision(self.n, self.m) if subdivision is None else subdivision
+        if isinstance(sub, bool) or int(sub) != sub:
+            raise ValueError(f"subdivision must be an even integer >= 2, got {subdivision!r}")
+        self.grid = FineGrid(self.n, self.m, self.pitch, self.gauge_length, sub=int(sub))
+        if int(refine_iterations) != refine_iterations or refine_iterations < 0:
+            raise ValueError(f"refine_iterations must be an integer >= 0, got {refine_iterations!r}")
+        self.refine_iterations = int(refine_iterations)
+
+    def _check_strains(self, name: str, eps) -> np.ndarray:
+        eps = np.asarray(eps, dtype=float)
+        if eps.shape != (2, self.n, self.m):
+            raise ValueError(f"{name} must have shape (2, {self.n}, {self.m}) for this sensor, got {eps.shape}")
+        if np.any(np.isinf(eps)):
+            raise ValueError(f"{name} contains infinite strain; give NaN for a missing gauge")
+        if np.any(eps <= -1.0):
+            raise ValueError(f"{name} contains strain <= -1 (a gauge compressed to zero length)")
+        return eps
+
+    def __call__(
+        self,
+        eps_upper,
+        eps_lower,
+        *,
+        strain_sigma: float = DEFAULT_STRAIN_SIGMA,
+        previous: Surface | None = None,
+    ) -> Surface:
+        """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
+        the smoothness prior).  ``previous`` (the last frame's surface) chooses the sign of an
+        otherwise unobservable constant twist consistently from frame to frame."""
+        t0 = time.perf_counter()
+        eu = self._check_strains("eps_upper", eps_upper)
+        el = self._check_strains("eps_lower", eps_lower)
+        strain_sigma = float(strain_sigma)
+        if not math.isfinite(strain_sigma) or strain_sigma < 0:
+            raise ValueError(f"strain_sigma must be a finite number >= 0, got {strain_sigma!r}")
+        if previous is not None and not isinstance(previous, Surface):
+            raise ValueError(f"previous must be a Surface from an earlier call, got {type(previous).__name__}")
+        grid = self.grid
+        turning, stretch, valid = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
+        n_valid = int(valid.sum())
+        status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
+        if n_valid == 0:
+            status = "no valid gauge: flat sheet assumed"
+        k_u, k_v, lam_u, lam_v = solve_fields(grid, turning, stretch, valid)
+        sign = 1.0
+        if previous is not None and previous.diagnostics.twist_constant != 0.0:
+            sign = math.copysign(1.0, previous.diagnostics.twist_constant)
+        tau, twist_c = solve_twist(grid, k_u, k_v, lam_u, lam_v, sign)
+        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau)
+        frames = integrate_frames(grid, rot_u, rot_v)
+        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v)
+        pos, iterations = refine_positions(grid, pos, frames, rot_u, rot_v, lam_u, lam_v, self.refine_iterations)
+        pos, frames = _to_sensor_frame(grid, pos, frames)
+        # misfit of the fitted fields to the data, as turning angle per gauge (rad)
+        fit = np.concatenate(
+            [(grid.average[d] @ f.ravel() - turning[d].ravel())[valid[d].ravel()] for d, f in ((0, k_u), (1, k_v))]
+        )
+        residual = float(np.sqrt(np.mean(fit**2)) * self.gauge_length) if fit.size else 0.0
+        h_u, h_l = self.h_upper, self.h_lower
+        diag = Diagnostics(
+            iterations=iterations,
+            residual=residual,
+            solve_time=0.0,
+            status=status,
+            twist_constant=twist_c,
+            valid_units=n_valid,
+        )
+        surf = Surface(
+            pitch=self.pitch,
+            fine_u=grid.u,
+            fine_v=grid.v,
+            fine_positions=pos,
+            node_index=(grid.node_rows, grid.node_cols),
+            fine_sigma=lambda: fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l),
+            diagnostics=diag,
+        )
+        diag.solve_time = time.perf_counter() - t0
+        return surf
+
+
+def _to_sensor_frame(grid: FineGrid, pos: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x)."""
+    a0, b0 = grid.centre
+    h = grid.spacing
+    x_u = pos[a0, b0 + 1] - pos[a0, b0 - 1]
+    x_v = pos[a0 + 1, b0] - pos[a0 - 1, b0]
+    nz = np.cross(x_u, x_v)
+    nz /= np.linalg.norm(nz)
+    ex = x_u - nz * (x_u @ nz)
+    ex /= np.linalg.norm(ex)
+    rot = np.stack([ex, np.cross(nz, ex), nz])  # rows: new axes in the old frame
+    del h
+    return (pos - pos[a0, b0]) @ rot.T, np.einsum("ij,abjk->abik", rot, frames)
+
+
+_CACHE: "OrderedDict[tuple, Reconstructor]" = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def reconstruct(
+    eps_upper,
+    eps_lower,
+    pitch: float = 12.0,
+    h_upper: float = 0.2,
+    h_lower: float = 0.2,
+    *,
+    gauge_length: float = 10.0,
+    strain_sigma: float = DEFAULT_STRAIN_SIGMA,
+    previous: Surface | None = None,
+) -> Surface:
+    """Reconstruct the sheet's surface from one frame of strains.
+
+    ``eps_upper``, ``eps_lower``: (2, N, M) engineering strain; ``[0]`` row-direction (u) gauges,
+    ``[1]`` column-direction (v) gauges; NaN for a missing gauge.  ``strain_sigma``: strain-noise
+    s.d. of one gauge for the uncertainty estimate.  ``previous``: the last frame's surface (keeps
+    the sign of an unobservable constant twist).  Geometry-dependent work is cached by
+    (N, M, pitch, h_upper, h_lower, gauge_length).
+    """
+    eu = np.asarray(eps_upper, dtype=float)
+    if eu.ndim != 3 or eu.shape[0] != 2:
+        raise ValueError(f"eps_upper must have shape (2, N, M), got {eu.shape}")
+    key = (eu.shape[1], eu.shape[2], float(pitch), float(h_upper), float(h_lower), float(gauge_length))
+    rec = _CACHE.get(key)
+    if rec is None:
+        rec = Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length)
+        _CACHE[key] = rec
+        if len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(key)
+    return rec(eu, eps_lower, strain_sigma=strain_sigma, previous=previous)

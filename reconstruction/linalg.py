@@ -1,0 +1,77 @@
+"""Small numerical helpers: rotations and cached solvers for fixed sparse SPD systems."""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = ["exp_so3", "log_so3", "FixedSolver"]
+
+# Below this size a dense Cholesky factor is faster to apply than SuperLU's triangular solves
+# (Python overhead dominates); above it the sparse factor wins on memory and time.
+_DENSE_LIMIT = 1500
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from rotation vectors (..., 3) (Rodrigues)."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.einsum("...i,...i->...", w, w)
+    th = np.sqrt(th2)
+    small = th2 < 1e-12
+    safe = np.where(small, 1.0, th)
+    # Taylor series below 1e-6 rad keeps full precision where sin(x)/x loses it
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    out = np.empty(w.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1.0 - b * (y * y + z * z)
+    out[..., 1, 1] = 1.0 - b * (x * x + z * z)
+    out[..., 2, 2] = 1.0 - b * (x * x + y * y)
+    out[..., 0, 1] = b * x * y - a * z
+    out[..., 1, 0] = b * x * y + a * z
+    out[..., 0, 2] = b * x * z + a * y
+    out[..., 2, 0] = b * x * z - a * y
+    out[..., 1, 2] = b * y * z - a * x
+    out[..., 2, 1] = b * y * z + a * x
+    return out
+
+
+def log_so3(r: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), for angles below π."""
+    r = np.asarray(r, dtype=float)
+    v = np.stack(
+        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1
+    )
+    cos = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(cos)
+    s = np.sin(th)
+    small = s < 1e-9
+    scale = np.where(small, 0.5 + th * th / 12.0, th / (2.0 * np.where(small, 1.0, s)))
+    return v * scale[..., None]
+
+
+class FixedSolver:
+    """Solves A x = b for one fixed symmetric positive definite sparse A, many right-hand sides.
+
+    The factorisation is done once; small systems keep a dense Cholesky factor, large ones
+    SuperLU with a symmetric fill-reducing ordering.
+    """
+
+    def __init__(self, a: sp.spmatrix):
+        a = sp.csc_matrix(a)
+        if a.shape[0] != a.shape[1]:
+            raise ValueError(f"matrix must be square, got {a.shape}")
+        self.size = a.shape[0]
+        if self.size <= _DENSE_LIMIT:
+            self._chol = scipy.linalg.cho_factor(a.toarray(), lower=True, check_finite=False)
+            self._lu = None
+        else:
+            self._chol = None
+            self._lu = spla.splu(a, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, dtype=float)
+        if self._chol is not None:
+            return scipy.linalg.cho_solve(self._chol, b, check_finite=False)
+        return self._lu.solve(b)

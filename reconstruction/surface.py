@@ -1,0 +1,188 @@
+"""The reconstructed surface: nodes, normals, dense points and fast location of any material point."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["Surface", "Diagnostics", "hermite_patch_eval"]
+
+
+@dataclass
+class Diagnostics:
+    """How the solve went."""
+
+    iterations: int  # outer refinement iterations of the position solve
+    residual: float  # RMS misfit of the fitted fields to the decoupled gauge data (rad per gauge)
+    solve_time: float  # seconds, strains in to surface out
+    status: str  # "solved", or a note such as "no valid gauge"
+    twist_constant: float = 0.0  # constant twist chosen from the Gauss equation (1/mm)
+    valid_units: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+def _hermite_basis(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic Hermite basis (h00, h10, h01, h11) and derivatives, each (4, K)."""
+    t2, t3 = t * t, t * t * t
+    h = np.stack([2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2])
+    dh = np.stack([6 * t2 - 6 * t, 3 * t2 - 4 * t + 1, -6 * t2 + 6 * t, 3 * t2 - 2 * t])
+    return h, dh
+
+
+def hermite_patch_eval(
+    pos: np.ndarray, d_u: np.ndarray, d_v: np.ndarray, d_uv: np.ndarray, u0: float, v0: float, spacing: float, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bicubic Hermite interpolation on a uniform grid (values and u, v, uv derivatives at the
+    nodes, arrays (nf, mf, 3)); returns positions, ∂/∂u and ∂/∂v at ``uv`` (K, 2)."""
+    nf, mf = pos.shape[:2]
+    x = (uv[:, 0] - u0) / spacing
+    y = (uv[:, 1] - v0) / spacing
+    b = np.clip(np.floor(x).astype(int), 0, mf - 2)
+    a = np.clip(np.floor(y).astype(int), 0, nf - 2)
+    s, t = x - b, y - a
+    hs, dhs = _hermite_basis(s)
+    ht, dht = _hermite_basis(t)
+    out = np.zeros((3, uv.shape[0], 3))
+    for ci, (da, db) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        ia, ib = a + da, b + db
+        # corner (da, db): value weight h(s)_db0 h(t)_da0 etc.
+        su, sv = 2 * db, 2 * da  # index into basis: 0 = value at 0, 2 = value at 1
+        f, fu, fv, fuv = pos[ia, ib], d_u[ia, ib] * spacing, d_v[ia, ib] * spacing, d_uv[ia, ib] * spacing**2
+        for (wu, dwu), (wv, dwv), val in (
+            ((hs[su], dhs[su]), (ht[sv], dht[sv]), f),
+            ((hs[su + 1], dhs[su + 1]), (ht[sv], dht[sv]), fu),
+            ((hs[su], dhs[su]), (ht[sv + 1], dht[sv + 1]), fv),
+            ((hs[su + 1], dhs[su + 1]), (ht[sv + 1], dht[sv + 1]), fuv),
+        ):
+            out[0] += (wu * wv)[:, None] * val
+            out[1] += (dwu * wv)[:, None] * val
+            out[2] += (wu * dwv)[:, None] * val
+    return out[0], out[1] / spacing, out[2] / spacing
+
+
+class Surface:
+    """A reconstructed sheet in the sensor frame (centre of the sheet at the origin, its normal
+    +z, the row direction +u along +x; mm).
+
+    Attributes
+    ----------
+    nodes : (N, M, 3) cell-centre positions.
+    normals : (N, M, 3) unit normals towards the upper side.
+    node_sigma : (N, M) one-s.d. position uncertainty (mm) from the strain noise level, raised
+        where gauges are missing.
+    diagnostics : :class:`Diagnostics`.
+    pitch, shape : grid pitch (mm) and (N, M).
+    """
+
+    def __init__(
+        self,
+        *,
+        pitch: float,
+        fine_u: np.ndarray,
+        fine_v: np.ndarray,
+        fine_positions: np.ndarray,
+        node_index: tuple[np.ndarray, np.ndarray],
+        fine_sigma: Callable[[], np.ndarray],
+        diagnostics: Diagnostics,
+        state: object = None,
+    ):
+        self.pitch = float(pitch)
+        self._u, self._v = fine_u, fine_v
+        self._spacing = float(fine_u[1] - fine_u[0])
+        self._pos = fine_positions
+        h = self._spacing
+        self._du = np.gradient(fine_positions, h, axis=1)
+        self._dv = np.gradient(fine_positions, h, axis=0)
+        self._duv = np.gradient(self._du, h, axis=0)
+        rows, cols = node_index
+        self.shape = (rows.size, cols.size)
+        self.nodes = fine_positions[np.ix_(rows, cols)].copy()
+        nrm = np.cross(self._du, self._dv)
+        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+        self._fine_normals = nrm
+        self.normals = nrm[np.ix_(rows, cols)].copy()
+        self._node_index = node_index
+        self._fine_sigma_fn = fine_sigma
+        self._fine_sigma: np.ndarray | None = None
+        self.diagnostics = diagnostics
+        self.state = state  # fine-grid fields, used to warm-start the next frame
+
+    # ------------------------------------------------------------------ uncertainty (lazy)
+    @property
+    def fine_sigma(self) -> np.ndarray:
+        if self._fine_sigma is None:
+            self._fine_sigma = self._fine_sigma_fn()
+        return self._fine_sigma
+
+    @property
+    def node_sigma(self) -> np.ndarray:
+        """(N, M) one-s.d. position uncertainty of the nodes (mm)."""
+        rows, cols = self._node_index
+        return self.fine_sigma[np.ix_(rows, cols)].copy()
+
+    # ----------------------------------------------------------------------------- queries
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """Material coordinate bounds (u_min, u_max, v_min, v_max) that :meth:`locate` accepts."""
+        return float(self._u[0]), float(self._u[-1]), float(self._v[0]), float(self._v[-1])
+
+    def _check_uv(self, uv) -> np.ndarray:
+        uv = np.asarray(uv, dtype=float)
+        if uv.ndim == 1 and uv.shape == (2,):
+            uv = uv[None]
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"uv must be material coordinates of shape (K, 2), got {uv.shape}")
+        if not np.all(np.isfinite(uv)):
+            raise ValueError("uv contains NaN or infinite coordinates")
+        u0, u1, v0, v1 = self.extent
+        tol = 1e-9 * max(1.0, self.pitch)
+        bad = (uv[:, 0] < u0 - tol) | (uv[:, 0] > u1 + tol) | (uv[:, 1] < v0 - tol) | (uv[:, 1] > v1 + tol)
+        if np.any(bad):
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"uv[{k}] = {uv[k].tolist()} is off the sheet: material coordinates must lie in "
+                f"u ∈ [{u0:g}, {u1:g}], v ∈ [{v0:g}, {v1:g}] mm (half a pitch beyond the outer cells)"
+            )
+        return uv
+
+    def locate(self, uv) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (K, 3) and unit normals (K, 3) of material points ``uv`` (K, 2) mm.
+
+        Bicubic Hermite patches over the fine grid (positions and their derivatives), so
+        positions are C¹ and normals continuous across patches.
+        """
+        uv = self._check_uv(uv)
+        p, pu, pv = hermite_patch_eval(self._pos, self._du, self._dv, self._duv, self._u[0], self._v[0], self._spacing, uv)
+        n = np.cross(pu, pv)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        return p, n
+
+    def locate_sigma(self, uv) -> np.ndarray:
+        """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine grid)."""
+        uv = self._check_uv(uv)
+        sig = self.fine_sigma
+        x = (uv[:, 0] - self._u[0]) / self._spacing
+        y = (uv[:, 1] - self._v[0]) / self._spacing
+        b = np.clip(np.floor(x).astype(int), 0, sig.shape[1] - 2)
+        a = np.clip(np.floor(y).astype(int), 0, sig.shape[0] - 2)
+        s, t = x - b, y - a
+        return (
+            (1 - s) * (1 - t) * sig[a, b] + s * (1 - t) * sig[a, b + 1] + (1 - s) * t * sig[a + 1, b] + s * t * sig[a + 1, b + 1]
+        )
+
+    def points(self, per_pitch: int = 20) -> np.ndarray:
+        """Dense point cloud over the whole sheet, ``per_pitch`` points per pitch in each
+        direction (400 per pitch² by default), as (K, 3)."""
+        if int(per_pitch) != per_pitch or per_pitch < 1:
+            raise ValueError(f"per_pitch must be a positive integer, got {per_pitch!r}")
+        u0, u1, v0, v1 = self.extent
+        step = self.pitch / int(per_pitch)
+        us = u0 + step * (np.arange(int(round((u1 - u0) / step))) + 0.5)
+        vs = v0 + step * (np.arange(int(round((v1 - v0) / step))) + 0.5)
+        uu, vv = np.meshgrid(us, vs)
+        return self.locate(np.stack([uu.ravel(), vv.ravel()], axis=1))[0]
+
+    def __repr__(self) -> str:
+        d = self.diagnostics
+        return f"Surface({self.shape[0]}x{self.shape[1]}, pitch={self.pitch:g} mm, status={d.status!r}, {1e3 * d.solve_time:.2f} ms)"
