@@ -72,7 +72,7 @@ directory = "{logs}"
 [state]
 directory = "{workdir / 'state'}"
 """)
-    emulator = start_emulator(serial_port, size=size, shape="gesture", rate=scan_rate)
+    emulator = start_emulator(serial_port, size=size, shape="palm", rate=scan_rate)
     daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     latencies: list[float] = []

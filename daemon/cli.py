@@ -47,7 +47,7 @@ def _wait_for_tcp(host: str, port: int, timeout: float, proc: subprocess.Popen |
     raise RuntimeError(f"nothing listens on {host}:{port} after {timeout:g} s")
 
 
-def start_emulator(port: int, *, size: str = "5x5", shape: str = "gesture", rate: float = 50.0,
+def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: float = 50.0,
                    extra: list[str] | None = None) -> subprocess.Popen:
     """The emulator as a child process serving socket://127.0.0.1:PORT (a fresh interpreter,
     never a fork of one that may hold a Zenoh session)."""
@@ -270,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run the emulator and skinmapd on loopback with live output")
     d.add_argument("--config", help="use this config instead of the embedded demo config")
     d.add_argument("--size", default="5x5", help="emulated array, e.g. 5x5 or 16x16")
-    d.add_argument("--shape", default="gesture", help="emulated shape spec (see skinmap-emulator --help)")
+    d.add_argument("--shape", default="palm", help="emulated shape spec (see skinmap-emulator --help)")
     d.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
     d.add_argument("--verbose", "-v", action="store_true")
     d.set_defaults(func=cmd_demo)
