@@ -451,3 +451,35 @@ directory = "logs"
 [state]
 directory = "state"
 """
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def config_to_toml(cfg: DaemonConfig) -> str:
+    """The complete effective configuration as TOML (every key, defaults included).
+
+    Logged at start so a log file carries exactly what produced it; parsing it back gives an
+    equal configuration.
+    """
+    lines = [f"# effective skinmapd configuration (from {cfg.source})"]
+    explicit: tuple[ElementSpec, ...] = ()
+    for name in _SECTIONS:
+        section = getattr(cfg, name)
+        lines.append(f"\n[{name}]")
+        for key in _SCHEMA[name]:
+            lines.append(f"{key} = {_toml_value(getattr(section, key))}")
+        if name == "elements":
+            explicit = section.explicit
+    for e in explicit:
+        lines.append(f"\n[[elements.explicit]]\nu_mm = {e.u_mm!r}\nv_mm = {e.v_mm!r}\noffset_mm = {e.offset_mm!r}")
+    return "\n".join(lines) + "\n"

@@ -29,7 +29,7 @@ import numpy as np
 import skinmap
 from skinmap.daemon import messages
 from skinmap.daemon.calibration import Calibration, load_tare
-from skinmap.daemon.config import ConfigError, DaemonConfig, load_config
+from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult, OutputDecimator
@@ -222,7 +222,7 @@ class Gateway:
         if self._logger is not None and self._pipeline is not None and self._hello is not None:
             doc = self._calibration_doc(self._pipeline.calibration)
             doc["hello_frame_hex"] = encode_frame(self._hello, 0).hex()
-            self._enqueue_log(("config", time.time_ns(), self.cfg.text, doc))
+            self._enqueue_log(("config", time.time_ns(), config_to_toml(self.cfg), doc))
 
     def _open_publisher(self, hello: Hello) -> None:
         name = device_name(hello, self.cfg)

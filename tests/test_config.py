@@ -87,3 +87,19 @@ def test_relative_directories_resolve_against_config_file(tmp_path):
     f.write_text('[log]\ndirectory = "mylogs"\n')
     cfg = load_config(f)
     assert cfg.resolve(cfg.log.directory) == tmp_path / "mylogs"
+
+
+def test_effective_config_round_trips_through_toml():
+    import tomllib
+
+    from skinmap.daemon.config import config_to_toml
+
+    cfg = parse_config({
+        "device": {"port": "/dev/skinmap0", "scan_rate_hz": 25},
+        "elements": {"layout": "explicit", "explicit": [{"u_mm": 1.5, "v_mm": -2, "offset_mm": -0.3}, {"u_mm": 0, "v_mm": 0}]},
+        "zenoh": {"listen": ["tcp/127.0.0.1:7555"], "prefix": "lab/skin"},
+        "log": {"directory": "/tmp/x y \"z\""},
+    })
+    again = parse_config(tomllib.loads(config_to_toml(cfg)))
+    for section in ("device", "reconstruction", "output", "elements", "zenoh", "log", "state"):
+        assert getattr(again, section) == getattr(cfg, section), section
