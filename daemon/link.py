@@ -7,6 +7,7 @@ behind the same symlink (udev, /dev/serial/by-id, the emulator's link) is found 
 """
 from __future__ import annotations
 
+import select
 import threading
 import time
 from dataclasses import dataclass, field
@@ -43,7 +44,10 @@ class LinkError(RuntimeError):
 
 def open_serial(port: str, baudrate: int, exclusive: bool) -> serial.SerialBase:
     """Open a device path or a pyserial URL; exclusive access on real ttys (flock)."""
-    kwargs: dict[str, Any] = {"baudrate": baudrate, "timeout": READ_TIMEOUT_S, "write_timeout": 1.0}
+    # Non-blocking reads: the link waits with select() itself, then takes everything available
+    # at once (a blocking read(n) would sit out its timeout, and `in_waiting` of socket://
+    # ports only says 0 or 1).
+    kwargs: dict[str, Any] = {"baudrate": baudrate, "timeout": 0, "write_timeout": 1.0}
     if exclusive and "://" not in port:
         kwargs["exclusive"] = True
     return serial.serial_for_url(port, **kwargs)
@@ -210,8 +214,13 @@ class ScannerLink:
 
     def _read_frames(self) -> list[Frame]:
         port = self._port
-        waiting = port.in_waiting
-        data = port.read(min(max(waiting, 1), READ_CHUNK))
+        fileno = getattr(port, "fileno", None)
+        if fileno is not None:
+            readable, _, _ = select.select([fileno()], [], [], READ_TIMEOUT_S)
+            # pyserial raises SerialException when a readable port yields nothing (unplugged).
+            data = port.read(READ_CHUNK) if readable else b""
+        else:
+            data = port.read(min(max(port.in_waiting, 1), READ_CHUNK))
         if not data:
             return []
         self.stats.bytes_in += len(data)
