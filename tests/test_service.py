@@ -128,3 +128,73 @@ def test_daemon_survives_unplug_and_replug_behind_the_same_link(emulator, tmp_pa
             gw.stop()
             runner.join(timeout=20)
     assert gw.link.stats.disconnects >= 1
+
+
+def _notify_socket(path: Path) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(0.1)
+    return sock
+
+
+def _drain(sock: socket.socket) -> list[str]:
+    out = []
+    while True:
+        try:
+            out.append(sock.recv(4096).decode())
+        except (socket.timeout, BlockingIOError):
+            return out
+
+
+def test_skinmapd_process_notifies_systemd_and_stops_cleanly_on_sigterm(emulator, tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    zport = free_port()
+    cfg_file = tmp_path / "skinmapd.toml"
+    cfg_file.write_text(f"""
+[device]
+port = "{tmp_path / 'ttySKIN0'}"
+name = "proc"
+scan_rate_hz = 40
+[zenoh]
+listen = ["tcp/127.0.0.1:{zport}"]
+[log]
+directory = "logs"
+[state]
+directory = "state"
+""")
+    sock = _notify_socket(tmp_path / "notify.sock")
+    env = {**__import__("os").environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "1000000"}
+    proc = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg_file)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    messages_seen: list[str] = []
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (
+            any(m.startswith("READY=1") for m in messages_seen) and any("WATCHDOG=1" in m for m in messages_seen)
+        ):
+            messages_seen += _drain(sock)
+        assert any(m.startswith("READY=1") for m in messages_seen), messages_seen
+        assert any("WATCHDOG=1" in m for m in messages_seen)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+        sock.close()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    logs = tmp_path / "logs"
+    assert list(logs.glob("*.mcap")) and not list(logs.glob("*.mcap.active")), err.decode()[-2000:]
+
+
+def test_skinmapd_refuses_a_bad_config_without_starting(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[device]\nscan_rate_hz = -3\n[log]\ndirectory = "logs"\n')
+    proc = subprocess.run([sys.executable, "-m", "skinmap.daemon.service", "--config", str(bad)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "device.scan_rate_hz" in proc.stderr and "-3" in proc.stderr
+    assert not (tmp_path / "logs").exists()
