@@ -112,6 +112,10 @@ class Shape:
     def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
         raise NotImplementedError
 
+    def position_and_normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Both at once; subclasses override it when sharing the work is cheaper."""
+        return self.position(uv, t), self.normal(uv, t)
+
     def normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
         uv = _as_uv(uv)
         t = _as_t(t, uv)
@@ -215,6 +219,9 @@ class GraphShape(Shape):
     def height_gradient(self, uv: np.ndarray, t: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
+    def height_and_gradient(self, uv: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.height(uv, t), self.height_gradient(uv, t)
+
     def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
         uv = _as_uv(uv)
         t = _as_t(t, uv)
@@ -223,7 +230,16 @@ class GraphShape(Shape):
     def normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
         uv = _as_uv(uv)
         t = _as_t(t, uv)
-        g = self.height_gradient(uv, t)
+        return self._normal_from_gradient(self.height_gradient(uv, t))
+
+    def position_and_normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        uv = _as_uv(uv)
+        t = _as_t(t, uv)
+        z, g = self.height_and_gradient(uv, t)
+        return np.concatenate([uv, z[..., None]], axis=-1), self._normal_from_gradient(g)
+
+    @staticmethod
+    def _normal_from_gradient(g: np.ndarray) -> np.ndarray:
         n = np.concatenate([-g, np.ones(g.shape[:-1] + (1,))], axis=-1)
         return _normalise(n)
 
@@ -252,6 +268,10 @@ class GraphSum(GraphShape):
 
     def height_gradient(self, uv, t):
         return sum(p.height_gradient(uv, t) for p in self.parts)
+
+    def height_and_gradient(self, uv, t):
+        parts = [p.height_and_gradient(uv, t) for p in self.parts]
+        return sum(z for z, _ in parts), sum(g for _, g in parts)
 
 
 class Saddle(GraphShape):
@@ -309,17 +329,20 @@ class GaussianBumps(GraphShape):
         if not self.bumps:
             raise ValueError("GaussianBumps needs at least one bump")
 
-    def height(self, uv, t):
+    def height_and_gradient(self, uv, t):
         z = np.zeros(uv.shape[:-1])
-        for h, fwhm, c in self.bumps:
-            z = z + h * _bump(uv, np.asarray(c), fwhm / _FWHM_PER_SIGMA)[0]
-        return z
-
-    def height_gradient(self, uv, t):
         grad = np.zeros(uv.shape)
         for h, fwhm, c in self.bumps:
-            grad = grad + h * _bump(uv, np.asarray(c), fwhm / _FWHM_PER_SIGMA)[1]
-        return grad
+            g, dg = _bump(uv, np.asarray(c), fwhm / _FWHM_PER_SIGMA)
+            z = z + h * g
+            grad = grad + h * dg
+        return z, grad
+
+    def height(self, uv, t):
+        return self.height_and_gradient(uv, t)[0]
+
+    def height_gradient(self, uv, t):
+        return self.height_and_gradient(uv, t)[1]
 
 
 class FingertipMembrane(GraphShape):
@@ -382,22 +405,22 @@ class FingertipMembrane(GraphShape):
         )
         return win, grad
 
-    def height(self, uv, t):
-        win, _ = self._window(uv)
-        sigma = self.fwhm / _FWHM_PER_SIGMA
-        z = np.zeros(uv.shape[:-1])
-        for d, c in self._fingers(t):
-            z = z - d * _bump(uv, c, sigma)[0] * win
-        return z
-
-    def height_gradient(self, uv, t):
+    def height_and_gradient(self, uv, t):
         win, dwin = self._window(uv)
         sigma = self.fwhm / _FWHM_PER_SIGMA
+        z = np.zeros(uv.shape[:-1])
         grad = np.zeros(uv.shape)
         for d, c in self._fingers(t):
             g, dg = _bump(uv, c, sigma)
+            z = z - d * g * win
             grad = grad - d[..., None] * (dg * win[..., None] + g[..., None] * dwin)
-        return grad
+        return z, grad
+
+    def height(self, uv, t):
+        return self.height_and_gradient(uv, t)[0]
+
+    def height_gradient(self, uv, t):
+        return self.height_and_gradient(uv, t)[1]
 
 
 class PalmGesture(Shape):
@@ -657,8 +680,7 @@ def gauge_layer_strains(
     coef = np.array([1.0, -8.0, 8.0, -1.0]) / (12.0 * d)
     sp = pts[None] + stencil[:, None, None, None] * directions[None, :, None, :]  # (4, K, Q, 2)
     ts = np.broadcast_to(tq, sp.shape[:-1])
-    x = shape.position(sp, ts)
-    nrm = shape.normal(sp, ts)
+    x, nrm = shape.position_and_normal(sp, ts)
     dx = np.tensordot(coef, x, axes=1)  # (K, Q, 3)
     dn = np.tensordot(coef, nrm, axes=1)
     speed = np.linalg.norm(dx[None] + offsets[:, None, None, None] * dn[None], axis=-1)  # (L, K, Q)
