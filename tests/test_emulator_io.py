@@ -62,6 +62,16 @@ def _has(kind):
     return lambda frames: any(f.msg_type == kind for f in frames)
 
 
+def _answer(frames, request_id):
+    """The ACK/NAK of a request among frames, or None."""
+    return next((f.msg for f in frames if f.msg_type in (p.MsgType.ACK, p.MsgType.NAK)
+                 and f.msg.request_id == request_id), None)
+
+
+def _answered(request_id):
+    return lambda frames: _answer(frames, request_id) is not None
+
+
 def _check_strains(hello: p.Hello, scans, shape, n, m, tol):
     """Host-side conversion with HELLO's calibration reproduces the forward model."""
     truth = np.stack(gauge_strains(shape, n, m))
@@ -82,10 +92,14 @@ def test_pty_round_trip_through_pyserial(tmp_path):
         with serial.Serial(str(link), timeout=0.05) as port:
             host = Client(port)
             host.send(p.QueryInfo(1))
-            frames = host.read_until(_has(p.MsgType.HELLO))
-            acks = [f.msg for f in frames if f.msg_type == p.MsgType.ACK]
-            assert p.Ack(1, int(p.MsgType.QUERY_INFO)) in acks
-            hello = next(f.msg for f in frames if f.msg_type == p.MsgType.HELLO)
+
+            def ack_then_hello(frames):
+                kinds = [f.msg_type for f in frames]
+                return _answer(frames, 1) is not None and p.MsgType.HELLO in kinds[kinds.index(p.MsgType.ACK):]
+
+            frames = host.read_until(ack_then_hello)
+            assert _answer(frames, 1) == p.Ack(1, int(p.MsgType.QUERY_INFO))
+            hello = [f.msg for f in frames if f.msg_type == p.MsgType.HELLO][-1]
             assert (hello.n, hello.m, hello.serial_number) == (5, 5, emu.device.serial_number)
             host.send(p.Start(2))
             frames = host.read_until(_n_scans(12))
@@ -98,7 +112,7 @@ def test_pty_round_trip_through_pyserial(tmp_path):
             gt = emu.ground_truth(scans[-1].sample_index)
             np.testing.assert_allclose(gt.nodes, shape.position(gt.nodes[..., :2]), atol=1e-12)
             host.send(p.Stop(3))
-            host.read_until(lambda fr: any(f.msg_type == p.MsgType.ACK and f.msg.request_id == 3 for f in fr))
+            assert _answer(host.read_until(_answered(3)), 3) == p.Ack(3, int(p.MsgType.STOP))
     assert not link.exists()  # the symlink goes with the emulator
 
 
@@ -112,10 +126,11 @@ def test_tcp_round_trip_through_serial_for_url():
         try:
             host = Client(port)
             host.send(p.QueryInfo(1))
+            # the boot HELLO (sent when the client connected) may arrive before or after ours
             hello = next(f.msg for f in host.read_until(_has(p.MsgType.HELLO)) if f.msg_type == p.MsgType.HELLO)
             host.send(p.SetScanRate(2, 80_000))
-            ack = host.read_until(_has(p.MsgType.ACK))
-            assert any(f.msg_type == p.MsgType.ACK and f.msg.applied_scan_rate_mhz == 80_000 for f in ack)
+            ack = _answer(host.read_until(_answered(2)), 2)
+            assert ack == p.Ack(2, int(p.MsgType.SET_SCAN_RATE), (80_000).to_bytes(4, "little"))
             host.send(p.Start(3))
             scans = host.scans(host.read_until(_n_scans(8)))
             assert scans[0].step_period_ns == p.step_period_ns(80_000, 4, 6)
