@@ -1,10 +1,22 @@
 """skinmap.emulator: the scanner-firmware emulator and the physics forward model.
 
-- :mod:`skinmap.emulator.physics` — shapes and the Kirchhoff–Love gauge forward model (pure numpy).
+- :mod:`~skinmap.emulator.physics` — shapes and the Kirchhoff–Love gauge forward model (pure numpy)
+- :mod:`~skinmap.emulator.electrical` — calibration, hysteresis, drift, noise, ADC (pure numpy)
+- :mod:`~skinmap.emulator.device` — the firmware as a pure state machine (bytes and time in, bytes out)
+- :mod:`~skinmap.emulator.link` — byte-level link faults
+- :mod:`~skinmap.emulator.transport`, :mod:`~skinmap.emulator.emulator` — pty / TCP edges and the loop
+- :mod:`~skinmap.emulator.cli` — the ``skinmap-emulator`` command
+
+See firmware-host/README.md.
 """
 from __future__ import annotations
 
-from skinmap.emulator.physics import (  # noqa: F401  (re-exported)
+from skinmap.emulator.device import Device, DeviceConfig, ScanRecord
+from skinmap.emulator.electrical import Calibration, ElectricalConfig
+from skinmap.emulator.emulator import Emulator, FaultSchedule
+from skinmap.emulator.link import LinkFaults
+from skinmap.emulator.physics import (
+    GroundTruth,
     Shape,
     cell_centres,
     gauge_strains,
@@ -12,5 +24,10 @@ from skinmap.emulator.physics import (  # noqa: F401  (re-exported)
     make_shape,
     parse_shape_spec,
 )
+from skinmap.emulator.transport import PtyTransport, TcpTransport
 
-__all__ = ["Shape", "cell_centres", "gauge_strains", "ground_truth", "make_shape", "parse_shape_spec"]
+__all__ = [
+    "Calibration", "Device", "DeviceConfig", "ElectricalConfig", "Emulator", "FaultSchedule",
+    "GroundTruth", "LinkFaults", "PtyTransport", "ScanRecord", "Shape", "TcpTransport",
+    "cell_centres", "gauge_strains", "ground_truth", "make_shape", "parse_shape_spec",
+]
