@@ -423,11 +423,40 @@ class FingertipMembrane(GraphShape):
         return self.height_and_gradient(uv, t)[1]
 
 
+def _scaled(shape: Shape, amplitude: float) -> Shape:
+    """The same kind of deformation with its amplitude scaled (curvatures or heights × a);
+    amplitude 0 is the flat sheet.  Isometric and geodesic mappings stay so at every amplitude."""
+    a = float(amplitude)
+    if a == 0.0 or isinstance(shape, Flat):
+        return Flat()
+    if a == 1.0:
+        return shape
+    if isinstance(shape, Cylinder):
+        return Cylinder(shape.radius / a, shape.axis_angle)
+    if isinstance(shape, SphereCap):
+        return SphereCap(shape.radius / a)
+    if isinstance(shape, Saddle):
+        return Saddle(shape.radius / a)
+    if isinstance(shape, GaussianBumps):
+        return GaussianBumps(bumps=[dict(height=h * a, fwhm=f, centre=c) for h, f, c in shape.bumps])
+    if isinstance(shape, GraphSum):
+        return GraphSum([_scaled(p, a) for p in shape.parts])
+    raise ValueError(
+        f"gesture key shapes must be flat, cylinder, sphere, saddle, gaussian or their sums; "
+        f"got {type(shape).__name__}"
+    )
+
+
 class PalmGesture(Shape):
-    """A smooth sequence of key shapes, as a palm moving through gestures: each key shape is held
-    for ``hold`` s, then positions blend to the next one over ``transition`` s with a C2
-    smoothstep; the sequence repeats.  Default keys: flat → cylinder (R 40) → bump → saddle.
-    Normals come from finite differences of the blended positions."""
+    """A smooth sequence of key shapes, as a palm moving through gestures: each key is held for
+    ``hold`` s, then the sheet morphs to the next key over ``transition`` s (C² smoothstep); the
+    sequence repeats.  Default keys: flat → cylinder (R 40) → bump → saddle (R 60).
+
+    Morphs keep every intermediate a member of a physical family: between two graph shapes
+    (bump, saddle) the heights blend (a graph mapping); to or from a cylinder or sphere the
+    deformation's amplitude is scaled (curvature × a, still isometric / geodesic), passing
+    through the flat sheet when neither end is flat.  Normals are the keys' analytic ones.
+    """
 
     time_varying = True
 
@@ -453,6 +482,7 @@ class PalmGesture(Shape):
         for k in self.keys:
             if not isinstance(k, Shape):
                 raise ValueError(f"gesture keys must be Shape instances, got {type(k).__name__}")
+            _scaled(k, 0.5)  # rejects keys that cannot be morphed
         self.hold = float(hold)
         if not math.isfinite(self.hold) or self.hold < 0:
             raise ValueError(f"gesture hold must be >= 0 s, got {hold!r}")
@@ -462,20 +492,55 @@ class PalmGesture(Shape):
     def cycle(self) -> float:
         return len(self.keys) * (self.hold + self.transition)
 
-    def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
-        uv = _as_uv(uv)
-        t = _as_t(t, uv)
+    def shape_at(self, t: float) -> Shape:
+        """The instantaneous shape at time ``t`` (s)."""
         seg_len = self.hold + self.transition
-        phase = np.mod(t, self.cycle)
-        seg = np.floor(phase / seg_len).astype(int) % len(self.keys)
-        blend = _smoothstep((phase - seg * seg_len - self.hold) / self.transition)
-        out = np.zeros(uv.shape[:-1] + (3,))
-        for k, key in enumerate(self.keys):
-            # key k is current (weight 1 - blend) or the next one (weight blend)
-            w = np.where(seg == k, 1.0 - blend, 0.0) + np.where((seg + 1) % len(self.keys) == k, blend, 0.0)
-            if np.any(w):
-                out = out + w[..., None] * key.position(uv, t)
-        return out
+        phase = float(np.mod(t, self.cycle))
+        seg = int(phase // seg_len) % len(self.keys)
+        src, dst = self.keys[seg], self.keys[(seg + 1) % len(self.keys)]
+        x = (phase - seg * seg_len - self.hold) / self.transition
+        if x <= 0.0:
+            return src
+        w = float(_smoothstep(np.asarray(x)))
+        if isinstance(src, Flat):
+            return _scaled(dst, w)
+        if isinstance(dst, Flat):
+            return _scaled(src, 1.0 - w)
+        if isinstance(src, GraphShape) and isinstance(dst, GraphShape):
+            return GraphSum([_scaled(src, 1.0 - w), _scaled(dst, w)])
+        # through the flat sheet: the first half unbends the old key, the second bends the new one
+        if x < 0.5:
+            return _scaled(src, 1.0 - float(_smoothstep(np.asarray(2.0 * x))))
+        return _scaled(dst, float(_smoothstep(np.asarray(2.0 * x - 1.0))))
+
+    def _per_instant(self, uv: ArrayLike, t: ArrayLike, method: str):
+        uv = _as_uv(uv)
+        t = np.asarray(t, dtype=float)
+        if t.ndim == 0:
+            return getattr(self.shape_at(float(t)), method)(uv)
+        t = _as_t(t, uv)
+        # the emulator asks for a handful of instants (one per TDM step): evaluate each once
+        times, inverse = np.unique(t, return_inverse=True)
+        inverse = inverse.reshape(t.shape)
+        outs = None
+        for k, tk in enumerate(times):
+            sel = inverse == k
+            res = getattr(self.shape_at(float(tk)), method)(uv[sel])
+            res = res if isinstance(res, tuple) else (res,)
+            if outs is None:
+                outs = tuple(np.empty(uv.shape[:-1] + (3,)) for _ in res)
+            for o, r in zip(outs, res):
+                o[sel] = r
+        return outs if method == "position_and_normal" else outs[0]
+
+    def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
+        return self._per_instant(uv, t, "position")
+
+    def normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
+        return self._per_instant(uv, t, "normal")
+
+    def position_and_normal(self, uv: ArrayLike, t: ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return self._per_instant(uv, t, "position_and_normal")
 
 
 class BalloonDome(Shape):

@@ -213,6 +213,24 @@ def test_per_gauge_times_match_scalar_times():
     np.testing.assert_allclose(eu[1], eu8[1], atol=1e-12)
 
 
+@pytest.mark.parametrize("t", [1.3, 1.5, 1.8, 3.2, 3.4])
+def test_palm_morphs_to_and_from_the_cylinder_without_stretch(t):
+    palm = PalmGesture(hold=1.0, transition=1.0, radius=40.0)
+    eu, el = gauge_strains(palm, 5, 5, t=t)
+    r, stretch = decouple_pair(eu, el)
+    np.testing.assert_allclose(stretch, 0.0, atol=1e-9)  # isometric all the way
+    assert np.all(np.isinf(r[1]) | (np.abs(r[1]) > 1e6))  # still a cylinder along v
+    assert np.all(r[0] >= 40.0 - 1e-6)  # bending grows or relaxes toward R = 40
+
+
+def test_palm_per_gauge_times_equal_scalar_times():
+    palm = PalmGesture()
+    t = np.where(np.arange(2)[:, None, None] == 0, 1.4, 4.6) * np.ones((2, 4, 4))
+    eu, el = gauge_strains(palm, 4, 4, t=t)
+    np.testing.assert_allclose(eu[0], gauge_strains(palm, 4, 4, t=1.4)[0][0], atol=1e-12)
+    np.testing.assert_allclose(el[1], gauge_strains(palm, 4, 4, t=4.6)[1][1], atol=1e-12)
+
+
 def test_palm_gesture_holds_its_key_shapes():
     palm = PalmGesture(hold=1.0, transition=1.0, radius=40.0)
     eu, el = gauge_strains(palm, 5, 5, t=2.5)  # holding the cylinder
