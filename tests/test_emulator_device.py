@@ -369,3 +369,17 @@ def test_config_errors_are_named():
         DeviceConfig(n=32, m=32, scan_rate_hz=100.0)
     with pytest.raises(ValueError, match="serial_number"):
         DeviceConfig(serial_number="x" * 17)
+
+
+@pytest.mark.parametrize("n, m", [(2, 2), (7, 3), (3, 7), (32, 32)])
+def test_any_size_from_2x2_to_32x32(n, m):
+    shape = make_shape("cylinder", radius=60.0, axis_angle=30.0)
+    dev, host, boot = make(n=n, m=m, shape=shape, rate=5.0)
+    hello = only(boot, p.MsgType.HELLO)[0]
+    assert (hello.n, hello.m) == (n, m)
+    host.send(p.Start(1), 100.0)
+    scan = only(host.poll(100.2), p.MsgType.SCAN)[0]
+    assert scan.resistance_uohm.shape == (2, 2, n, m)
+    assert scan.step_period_ns == round(1e12 / (5000 * 2 * min(n, m)))
+    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    np.testing.assert_allclose(eps, np.stack(gauge_strains(shape, n, m)), atol=3e-7)
