@@ -85,6 +85,7 @@ class Emulator:
         self.reboots = 0
         self.stalls = 0
         self.on_scan: Callable[[ScanRecord], None] | None = None
+        self.error: BaseException | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -121,11 +122,14 @@ class Emulator:
         return self
 
     def stop(self) -> None:
+        """Stop the background loop and close; re-raises an error that ended the loop."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
         self.close()
+        if self.error is not None:
+            raise RuntimeError("the emulator loop failed") from self.error
 
     def run(self, duration_s: float | None = None, on_tick: Callable[["Emulator"], None] | None = None,
             tick_s: float = 1.0) -> None:
@@ -150,8 +154,12 @@ class Emulator:
         self._stop.set()
 
     def _loop(self) -> None:
-        while not self._stop.is_set():
-            self.step(0.05)
+        try:
+            while not self._stop.is_set():
+                self.step(0.05)
+        except BaseException as exc:  # surfaced by stop(); a silent dead thread would hide it
+            self.error = exc
+            raise
 
     def __enter__(self):
         return self.start()
