@@ -131,6 +131,8 @@ class LogConfig:
     chunk_kb: int = 256
     fsync: bool = True
     queue_size: int = 4096
+    surface_rate_hz: float = 1.0  # point clouds in the log (nodes replay from /raw)
+    points_per_pitch: int = 8
 
 
 @dataclass(frozen=True)
@@ -312,6 +314,8 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "chunk_kb": _number(1, 65_536, integer=True),
         "fsync": _boolean,
         "queue_size": _number(16, 1_000_000, integer=True),
+        "surface_rate_hz": _number(0, 2000),
+        "points_per_pitch": _number(1, 100, integer=True),
     },
     "state": {"directory": _string(r".+", "must be a non-empty path")},
 }
