@@ -404,6 +404,10 @@ class Device:
         out = [self._pending(now_s)]
         if self.state == DeviceState.SCANNING and self._next_t0 is not None:
             period = self.scan_period_s
+            if self._stall_until > self._next_t0:  # scans completed while hung are lost
+                lost = int(math.floor((self._stall_until - self._next_t0) / period + 1e-9))
+                self._drop(max(lost, 0), period)
+            self._stall_until = -math.inf
             due = int(math.floor((now_s - self._next_t0) / period + 1e-9))  # scans completed
             if not tx_ready:
                 self._drop(max(due, 0), period)

@@ -261,3 +261,29 @@ def test_cli_bad_arguments_are_named(args, words):
                           capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
     assert words in proc.stderr, proc.stderr
+
+
+def test_scheduled_stall_silences_the_device_then_flags_lost_scans(tmp_path):
+    cfg = DeviceConfig(n=3, m=3, scan_rate_hz=50.0)
+    sched = FaultSchedule(stall_every_s=0.6, stall_for_s=0.3)
+    with Emulator(cfg, make_shape("flat"), PtyTransport(tmp_path / "tty"), schedule=sched) as emu:
+        with serial.Serial(str(tmp_path / "tty"), timeout=0.05) as port:
+            host = Client(port)
+            host.send(p.Start(1))
+            scans = host.scans(host.read_until(
+                lambda fr: any(f.msg_type == p.MsgType.SCAN and f.msg.flags & p.ScanFlag.DROPPED_BEFORE
+                               for f in fr), timeout=3.0))
+    assert emu.stalls >= 1
+    flagged = next(s for s in scans if s.flags & p.ScanFlag.DROPPED_BEFORE)
+    before = scans[scans.index(flagged) - 1]
+    assert flagged.sample_index - before.sample_index > 1  # the gap shows in sample_index
+
+
+@pytest.mark.parametrize("kw, words", [
+    (dict(stall_every_s=1.0), "stall_for_s"),
+    (dict(disconnect_every_s=1.0), "disconnect_for_s"),
+    (dict(reboot_every_s=-1.0), "reboot_every_s"),
+])
+def test_bad_schedules_are_named(kw, words):
+    with pytest.raises(ValueError, match=words):
+        FaultSchedule(**kw)
