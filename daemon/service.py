@@ -33,7 +33,7 @@ from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, loa
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult, OutputDecimator
-from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Frame, Hello, Scan, encode_frame
+from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, FaultFlag, Frame, Hello, Scan, encode_frame
 
 __all__ = ["Gateway", "GatewayStats", "main", "pipeline_for_hello", "calibration_for_hello"]
 
@@ -442,7 +442,29 @@ class Gateway:
             "publish_errors": int(s.publish_errors),
             "calibration": self._pipeline.calibration.source if self._pipeline else "",
             "uptime_s": round(time.monotonic() - s.started_mono, 1),
+            **self._conditions(),
         }
+
+    def _conditions(self) -> dict[str, Any]:
+        """Current abnormal conditions, named, so dashboards and `skinmap inspect` see them."""
+        warnings: list[str] = []
+        ls = self.link.stats
+        if not self.link.streaming.is_set():
+            warnings.append(f"scanner not streaming ({ls.state}): {ls.last_error}".rstrip(": "))
+        elif ls.state == "stalled":
+            warnings.append(f"scanner stalled: {ls.last_error}")
+        if self._log_state == "error":
+            warnings.append(f"logging failed (publishing continues): {self._last_log_error}")
+        faults: list[str] = []
+        dev = self.link.device_status
+        if dev is not None and dev.fault_flags:
+            faults = [f.name for f in FaultFlag if f.value and dev.fault_flags & f.value]
+            warnings.append("scanner reports " + ", ".join(faults))
+        if self.results:
+            bad = int((~self.results[-1].gauge_valid).sum())
+            if bad:
+                warnings.append(f"{bad} gauge(s) unusable in the last scan (open, saturated or implausible)")
+        return {"healthy": not warnings, "warnings": warnings, "device_faults": faults}
 
     def _status_tick(self) -> None:
         st = self.status()

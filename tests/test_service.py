@@ -198,3 +198,29 @@ def test_skinmapd_refuses_a_bad_config_without_starting(tmp_path):
     assert proc.returncode == 2
     assert "device.scan_rate_hz" in proc.stderr and "-3" in proc.stderr
     assert not (tmp_path / "logs").exists()
+
+
+def test_dead_gauge_degrades_nearby_elements_and_is_reported(emulator, tmp_path):
+    mask = np.zeros((2, 2, 5, 5), dtype=bool)
+    mask[0, 0, 2, 2] = True  # upper row-direction gauge of the centre cell
+    emulator.set_open(mask)
+    zport = free_port()
+    cfg = make_config(tmp_path / "ttySKIN0", tmp_path, zport)
+    with open_zenoh(cfg) as session:
+        gw = Gateway(cfg, zenoh_session=session)
+        runner = threading.Thread(target=gw.run, daemon=True)
+        runner.start()
+        try:
+            with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
+                client.elements(timeout=30.0)
+                msg = client.elements(timeout=5.0)
+                status = client.status(timeout=5.0)
+        finally:
+            gw.stop()
+            runner.join(timeout=20)
+    assert np.isfinite(msg.positions).all() and np.isfinite(msg.uncertainty).all()
+    degraded = (msg.flags & 0x04) != 0
+    near = np.abs(ELEMENT_UV).max(axis=1) <= 18.0  # within 1.5 pitch of the centre cell
+    assert degraded[near].all() and not degraded[~near].any()
+    assert status["healthy"] is False
+    assert any("unusable" in w for w in status["warnings"]) or "GAUGE_OPEN" in status["device_faults"]
