@@ -21,9 +21,9 @@ from .decouple import decouple
 from .engine import (
     integrate_frames,
     integrate_positions,
-    refine_positions,
     rotation_rates,
     solve_fields,
+    solve_shear,
     solve_twist,
     unit_data,
 )
@@ -51,7 +51,7 @@ def _positive(name: str, value: float) -> float:
 def default_subdivision(n: int, m: int) -> int:
     """Fine-grid intervals per pitch: 4 (3 mm at 12 mm pitch) resolves features down to the
     gauge length; large arrays use 2 to keep the frame time within budget."""
-    return 4 if n * m <= 144 else 2
+    return 2
 
 
 class Reconstructor:
@@ -65,8 +65,9 @@ class Reconstructor:
     h_upper, h_lower : gauge offsets from the neutral plane (mm).
     gauge_length : gauge length (mm), at most the pitch.
     subdivision : fine-grid intervals per pitch (even, >= 2); default :func:`default_subdivision`.
-    refine_iterations : Gauss–Newton passes of the position solve that estimate the in-plane
-        shear from the normals and lengths (0 keeps orthogonal material lines).
+    shear_passes : fixed-point passes of the shear estimate (0 keeps the material lines
+        orthogonal, F = 0).
+    frame_corrections : least-squares rotation corrections after the tree integration.
     """
 
     def __init__(
@@ -78,7 +79,8 @@ class Reconstructor:
         h_lower: float = 0.2,
         gauge_length: float = 10.0,
         subdivision: int | None = None,
-        refine_iterations: int = 3,
+        shear_passes: int = 2,
+        frame_corrections: int = 1,
     ):
         for name, val in (("n (rows)", n), ("m (columns)", m)):
             if isinstance(val, bool) or int(val) != val or int(val) < 2:
@@ -92,9 +94,10 @@ class Reconstructor:
         if isinstance(sub, bool) or int(sub) != sub:
             raise ValueError(f"subdivision must be an even integer >= 2, got {subdivision!r}")
         self.grid = FineGrid(self.n, self.m, self.pitch, self.gauge_length, sub=int(sub))
-        if int(refine_iterations) != refine_iterations or refine_iterations < 0:
-            raise ValueError(f"refine_iterations must be an integer >= 0, got {refine_iterations!r}")
-        self.refine_iterations = int(refine_iterations)
+        for name, val in (("shear_passes", shear_passes), ("frame_corrections", frame_corrections)):
+            if isinstance(val, bool) or int(val) != val or val < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {val!r}")
+        self.shear_passes, self.frame_corrections = int(shear_passes), int(frame_corrections)
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -131,15 +134,19 @@ class Reconstructor:
         status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
         if n_valid == 0:
             status = "no valid gauge: flat sheet assumed"
-        k_u, k_v, lam_u, lam_v = solve_fields(grid, turning, stretch, valid)
+        k_u, k_v, tau0, lam_u, lam_v = solve_fields(grid, turning, stretch, valid)
         sign = 1.0
         if previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
-        tau, twist_c = solve_twist(grid, k_u, k_v, lam_u, lam_v, sign)
-        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau)
-        frames = integrate_frames(grid, rot_u, rot_v)
-        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v)
-        pos, iterations = refine_positions(grid, pos, frames, rot_u, rot_v, lam_u, lam_v, self.refine_iterations)
+        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign)
+        if self.shear_passes:
+            gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes)
+        else:
+            gamma = np.zeros_like(k_u)
+        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, gamma)
+        frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
+        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, gamma)
+        iterations = self.shear_passes + self.frame_corrections
         pos, frames = _to_sensor_frame(grid, pos, frames)
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         fit = np.concatenate(

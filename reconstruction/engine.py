@@ -1,18 +1,18 @@
 """Strains → surface: the reconstruction pipeline (see docs/reconstruction.md).
 
-1. decouple every unit into the normal turning angle Θ over its gauge and the stretch ε̂_s;
-2. estimate smooth fields on a fine material grid whose gauge averages match the data:
-   k_u, k_v (normal curvature per unit material length) and λ_u, λ_v (stretch ratios);
-3. the twist τ that the gauges do not measure, from the Codazzi equations (∂_u τ = −∂_v k_u,
-   ∂_v τ = −∂_u k_v) plus, for its constant part, the Gauss equation;
-4. the orthonormal frame field (t_u, t_v, n) integrated from the rotation rates
-   ω_u = (τ, k_u, g_u), ω_v = (−k_v, −τ, g_v) along a tree, then made consistent by a linearised
-   least-squares correction on the whole grid;
+1. decouple every unit into its turning per material length Θ/g and stretch L/g;
+2. a bending potential z on a fine material grid, whose curvatures k_u = −z_uu, k_v = −z_vv
+   have gauge averages matching the turning data (least squares + a smoothness prior); its
+   mixed derivative gives the twist τ = z_uv that the gauges do not measure, consistent with
+   the linearised Codazzi equations.  The stretch fields λ_u, λ_v are smoothed likewise;
+3. the constant part of the twist (left free by the data) from the Gauss equation, and the
+   shear angle γ between the material lines (unmeasured) from Brioschi's formula;
+4. the orthonormal frame field (x̂_u, n × x̂_u, n) integrated from its rotation rates along a
+   tree, then made consistent by linearised least-squares rotation corrections;
 5. positions from the chords of every fine edge by least squares (a fixed graph Laplacian).
 
-Steps 2, 3 and 5 are linear least-squares problems whose matrices depend only on the geometry:
-their factorisations are cached, so a frame costs a few triangular solves and vectorised
-rotation algebra.
+Every linear system's matrix depends only on the geometry, so its factorisation is cached and
+a frame costs a few matrix-vector products and vectorised rotation algebra.
 """
 from __future__ import annotations
 
@@ -25,12 +25,11 @@ from .linalg import exp_so3, log_so3
 __all__ = [
     "unit_data",
     "solve_fields",
-    "codazzi_twist",
     "solve_twist",
+    "solve_shear",
     "rotation_rates",
     "integrate_frames",
     "integrate_positions",
-    "refine_positions",
 ]
 
 
@@ -46,86 +45,141 @@ def unit_data(
 
 
 def solve_fields(grid: FineGrid, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray):
-    """Smooth fine-grid fields k_u, k_v, λ_u, λ_v whose gauge averages fit the data."""
-    out = []
-    for d in (0, 1):
-        solver, at_w = grid.field_solver(d, valid[d])
-        rhs = at_w @ np.stack([turning[d].ravel(), stretch[d].ravel() - 1.0], axis=1)
-        f = solver.solve(rhs)
-        out.append((f[:, 0].reshape(grid.nf, grid.mf), 1.0 + f[:, 1].reshape(grid.nf, grid.mf)))
-    (k_u, lam_u), (k_v, lam_v) = out
-    return k_u, k_v, lam_u, lam_v
+    """Fine-grid fields k_u, k_v, τ (from one bending potential, so that they satisfy the
+    linearised Codazzi equations) and λ_u, λ_v (smoothed stretch) fitting the unit data."""
+    return grid.field_maps(valid)(turning, stretch)
+
+
+def _d_u(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂u by central differences (one-sided at the edges), like np.gradient but cheaper."""
+    out = np.empty_like(f)
+    out[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2.0 * h)
+    out[:, 0] = (f[:, 1] - f[:, 0]) / h
+    out[:, -1] = (f[:, -1] - f[:, -2]) / h
+    return out
+
+
+def _d_v(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂v by central differences (one-sided at the edges)."""
+    out = np.empty_like(f)
+    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
+    out[0] = (f[1] - f[0]) / h
+    out[-1] = (f[-1] - f[-2]) / h
+    return out
 
 
 def _edge_mean(f: np.ndarray, axis: int) -> np.ndarray:
     return 0.5 * (f[:-1] + f[1:]) if axis == 0 else 0.5 * (f[:, :-1] + f[:, 1:])
 
 
-def geodesic_rates(grid: FineGrid, lam_u: np.ndarray, lam_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Geodesic curvature per material length of the u- and v-lines of an orthogonal net
-    (Liouville): g_u = −∂_v λ_u / λ_v, g_v = ∂_u λ_v / λ_u."""
-    h = grid.spacing
-    g_u = -np.gradient(lam_u, h, axis=0) / lam_v if grid.nf > 1 else np.zeros_like(lam_u)
-    g_v = np.gradient(lam_v, h, axis=1) / lam_u if grid.mf > 1 else np.zeros_like(lam_v)
-    return g_u, g_v
-
-
-def gaussian_curvature_of_metric(grid: FineGrid, lam_u: np.ndarray, lam_v: np.ndarray) -> np.ndarray:
-    """K of the orthogonal metric diag(λ_u², λ_v²) (Brioschi, to first order in λ − 1)."""
-    h = grid.spacing
-    return -(np.gradient(np.gradient(lam_v, h, axis=1), h, axis=1) + np.gradient(np.gradient(lam_u, h, axis=0), h, axis=0))
-
-
-def codazzi_twist(grid: FineGrid, k_u: np.ndarray, k_v: np.ndarray) -> np.ndarray:
-    """Zero-mean twist field τ (per material length) from the Codazzi equations
-    ∂_u τ = −∂_v k_u and ∂_v τ = −∂_u k_v, least squares on the fine edges.  Fields are
-    (nf, mf) or (nf, mf, B) for B right-hand sides at once."""
-    h = grid.spacing
-    dkudv = np.gradient(k_u, h, axis=0) if grid.nf > 1 else np.zeros_like(k_u)
-    dkvdu = np.gradient(k_v, h, axis=1) if grid.mf > 1 else np.zeros_like(k_v)
-    batch = k_u.shape[2:]
-    # targets for (τ_head − τ_tail) on u-edges and v-edges
-    t_u = -h * _edge_mean(dkudv, 1).reshape((-1,) + batch)
-    t_v = -h * _edge_mean(dkvdu, 0).reshape((-1,) + batch)
-    rhs = grid.du.T @ t_u + grid.dv.T @ t_v
-    tau = grid.twist_solver.solve(rhs).reshape(k_u.shape)
-    return tau - tau.mean(axis=(0, 1))
-
-
 def solve_twist(
     grid: FineGrid,
     k_u: np.ndarray,
     k_v: np.ndarray,
+    tau0: np.ndarray,
     lam_u: np.ndarray,
     lam_v: np.ndarray,
     twist_sign: float = 1.0,
 ) -> tuple[np.ndarray, float]:
-    """Twist field τ: the Codazzi solution plus a constant from the Gauss equation
-    K = k_u k_v − τ².
+    """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
+    equation K = k_u k_v − τ².
 
     The constant is set only where the product of the normal curvatures is mostly unexplained by
     the metric (an oblique cylinder, a twisted sheet); its sign is not observable (mirror-image
     twists give identical strains), so ``twist_sign`` chooses it.
     """
-    tau0 = codazzi_twist(grid, k_u, k_v)
+    tau0 = tau0 - tau0.mean()
     # Only the region spanned by the cell centres: one-sided differences at the border would
-    # bias the metric's curvature.
+    # bias the estimates.
     inner = (slice(grid.node_rows[0], grid.node_rows[-1] + 1), slice(grid.node_cols[0], grid.node_cols[-1] + 1))
-    prod = (k_u * k_v)[inner]
-    c2 = np.mean(prod - gaussian_curvature_of_metric(grid, lam_u, lam_v)[inner] - (tau0 * tau0)[inner])
-    scale = np.mean(np.abs(prod))
-    c2 = max(0.0, 2.0 * c2 - scale)  # 0 unless more than half of k_u k_v is unexplained
-    c = float(np.copysign(np.sqrt(c2), twist_sign))
+    prod = np.mean((k_u * k_v - tau0 * tau0)[inner])
+    # A doubly curved sheet (K ≠ 0) cannot be laid flat without stretching by about K ρ²/12
+    # over a half-size ρ; a developable one needs none.  Attribute positive k_u k_v to a constant
+    # twist only in proportion to how little the stretch varies.
+    rho2 = 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
+    need = abs(prod) * rho2 / 12.0
+    dev = np.sqrt(0.5 * (np.var(lam_u[inner]) + np.var(lam_v[inner])))
+    ratio = dev / need if need > 0 else np.inf
+    weight = float(np.clip(1.5 - 3.0 * ratio, 0.0, 1.0))
+    c = float(np.copysign(np.sqrt(max(prod, 0.0) * weight), twist_sign))
     return tau0 + c, c
 
 
-def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation vectors (in the tail frame) of every u-edge and v-edge, (E, 3) each."""
+def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
+    """Least-norm node field F (nf, mf) whose mixed difference over every cell equals ``cell``
+    (nf−1, mf−1): a double cumulative sum solves it exactly; removing the row and column means
+    (double centring) projects out the free part f(u) + g(v)."""
+    f = np.zeros((cell.shape[0] + 1, cell.shape[1] + 1))
+    f[1:, 1:] = np.cumsum(np.cumsum(cell, axis=0), axis=1)
+    return f - f.mean(axis=0, keepdims=True) - f.mean(axis=1, keepdims=True) + f.mean()
+
+
+def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3) -> np.ndarray:
+    """Shear angle γ (nf, mf) between x_v and the normal to x_u, from the Gauss equation.
+
+    The gauges measure E = λ_u² and G = λ_v² but not F = x_u·x_v.  Brioschi's formula is linear
+    in F_uv:  F_uv = E_vv/2 + G_uu/2 + K (EG − F²) + Q(E, F, G, first derivatives)/(EG − F²),
+    with K = det S from the curvature fields.  Fixed-point passes re-evaluate the right-hand side
+    with the current F; the least-norm solution fixes the part f(u) + g(v) that ∂_uv leaves free.
+    """
     h = grid.spacing
-    g_u, g_v = geodesic_rates(grid, lam_u, lam_v)
-    w_u = np.stack([tau, k_u, g_u], axis=-1)
-    w_v = np.stack([-k_v, -tau, g_v], axis=-1)
+    def d_u(a):
+        return _d_u(a, h)
+
+    def d_v(a):
+        return _d_v(a, h)
+
+    e, g = lam_u * lam_u, lam_v * lam_v
+    e_u, e_v, g_u, g_v = d_u(e), d_v(e), d_u(g), d_v(g)
+    base = 0.5 * (d_v(e_v) + d_u(g_u))
+    s11 = k_u / lam_u
+    f = np.zeros_like(e)
+    for _ in range(max(1, iterations)):
+        sg = np.clip(f / (lam_u * lam_v), -0.9, 0.9)
+        cg2 = 1.0 - sg * sg
+        s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * np.sqrt(cg2)) / cg2
+        k_gauss = s11 * s22 - tau * tau
+        det = e * g - f * f
+        f_u, f_v = d_u(f), d_v(f)
+        a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
+        a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
+        det_b = -0.5 * e_v * (0.5 * e_v * g - 0.5 * f * g_u) + 0.5 * g_u * (0.5 * e_v * f - 0.5 * e * g_u)
+        q = a12 * (a21 * g - f * a31) - a13 * (a21 * f - e * a31) + det_b
+        src = base + k_gauss * det + q / det
+        cell = 0.25 * (src[:-1, :-1] + src[1:, :-1] + src[:-1, 1:] + src[1:, 1:])
+        f = _mixed_antiderivative(h * h * cell)
+    return np.arcsin(np.clip(f / (lam_u * lam_v), -0.9, 0.9))
+
+
+def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, gamma) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation vectors (in the tail frame) of every u-edge and v-edge, (E, 3) each.
+
+    The frame is e1 = x_u/|x_u|, e2 = n × e1, e3 = n; x_v = λ_v (sin γ e1 + cos γ e2).  With the
+    shape operator S (convex positive) in (e1, e2): S11 = k_u/λ_u, S12 = −τ and S22 from the
+    normal curvature along x_v; the in-plane rates are the Christoffel terms of the metric
+    (E, F, G) = (λ_u², λ_u λ_v sin γ, λ_v²).
+    """
+    h = grid.spacing
+    sg, cg = np.sin(gamma), np.cos(gamma)
+    s11 = k_u / lam_u
+    s12 = -tau
+    s22 = (k_v / lam_v - s11 * sg * sg - 2.0 * s12 * sg * cg) / (cg * cg)
+    lu_u, lu_v, lv_u, f_u = _d_u(lam_u, h), _d_v(lam_u, h), _d_u(lam_v, h), _d_u(lam_u * lam_v * sg, h)
+    w_u3 = ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) / (lam_u * cg)
+    w_v3 = (lv_u - sg * lu_v) / (lam_u * cg)
+    w_u = np.stack([-lam_u * s12, lam_u * s11, w_u3], axis=-1)
+    w_v = np.stack([-lam_v * (s12 * sg + s22 * cg), lam_v * (s11 * sg + s12 * cg), w_v3], axis=-1)
     return h * _edge_mean(w_u, 1).reshape(-1, 3), h * _edge_mean(w_v, 0).reshape(-1, 3)
+
+
+def _prefix_products(mats: np.ndarray) -> np.ndarray:
+    """Cumulative matrix products along axis 0 (P_k = M_0 M_1 … M_k), in log₂(K) batched steps."""
+    out = mats.copy()
+    step = 1
+    while step < out.shape[0]:
+        out[step:] = out[:-step] @ out[step:]
+        step *= 2
+    return out
 
 
 def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corrections: int = 2) -> np.ndarray:
@@ -138,14 +192,10 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     rv = exp_so3(rot_v).reshape(nf - 1, mf, 3, 3)
     frames = np.empty((nf, mf, 3, 3))
     frames[a0, b0] = np.eye(3)
-    for b in range(b0, mf - 1):
-        frames[a0, b + 1] = frames[a0, b] @ ru[a0, b]
-    for b in range(b0, 0, -1):
-        frames[a0, b - 1] = frames[a0, b] @ ru[a0, b - 1].T
-    for a in range(a0, nf - 1):
-        frames[a + 1] = frames[a] @ rv[a]
-    for a in range(a0, 0, -1):
-        frames[a - 1] = frames[a] @ np.swapaxes(rv[a - 1], -1, -2)
+    frames[a0, b0 + 1 :] = _prefix_products(ru[a0, b0:])
+    frames[a0, :b0] = _prefix_products(np.swapaxes(ru[a0, :b0], -1, -2)[::-1])[::-1]
+    frames[a0 + 1 :] = frames[a0] @ _prefix_products(rv[a0:])
+    frames[:a0] = (frames[a0] @ _prefix_products(np.swapaxes(rv[:a0], -1, -2)[::-1]))[::-1]
     flat = frames.reshape(-1, 3, 3)
     edge_rot = np.concatenate([ru.reshape(-1, 3, 3), rv.reshape(-1, 3, 3)])
     for _ in range(corrections):
@@ -156,96 +206,20 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     return flat.reshape(nf, mf, 3, 3)
 
 
-def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v) -> np.ndarray:
+def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamma) -> np.ndarray:
     """Positions (nf, mf, 3) whose edge vectors best match the chords of the arcs implied by the
-    frames: length λ·spacing·sinc(bend/2) along the mid-edge tangent."""
+    frames: length λ·spacing·sinc(bend/2) along the mid-edge tangent (x_u, or x_v sheared by γ)."""
     h = grid.spacing
-    nf, mf = grid.nf, grid.mf
     flat = frames.reshape(-1, 3, 3)
-    chords = []
-    for rot, lam, axis, col in ((rot_u, lam_u, 1, 0), (rot_v, lam_v, 0, 1)):
-        tails = flat[grid.edge_tails[: grid.n_uedges]] if col == 0 else flat[grid.edge_tails[grid.n_uedges :]]
-        mid = tails @ exp_so3(0.5 * rot)
-        bend = np.hypot(rot[:, 1 - col], rot[:, 2]) if col == 0 else np.hypot(rot[:, 0], rot[:, 2])
-        length = h * _edge_mean(lam, axis).ravel() * np.sinc(bend / (2.0 * np.pi))
-        chords.append(mid[:, :, col] * length[:, None])
-    chords = np.concatenate(chords)
-    pos = grid.laplacian.solve(grid.incidence.T @ chords)
-    return pos.reshape(nf, mf, 3)
-
-
-def refine_positions(
-    grid: FineGrid,
-    pos: np.ndarray,
-    frames: np.ndarray,
-    rot_u: np.ndarray,
-    rot_v: np.ndarray,
-    lam_u: np.ndarray,
-    lam_v: np.ndarray,
-    iterations: int = 3,
-    shear_prior: float = 0.01,
-    cg_tol: float = 1e-7,
-    cg_maxiter: int = 60,
-) -> tuple[np.ndarray, int]:
-    """Gauss–Newton passes that let the material lines shear (F ≠ 0) as compatibility demands.
-
-    Each fine edge must lie in the tangent plane (⊥ the mid-edge normal from the frames) and
-    have the measured chord length; its in-plane direction is pulled only weakly
-    (``shear_prior``) towards the orthogonal net of the frames.  On a curved, non-developable
-    sheet the lengths and normals then fix the shear that the gauges do not measure.  Each pass
-    is a linear least-squares problem solved by conjugate gradients preconditioned with the
-    fixed graph Laplacian.
-    """
-    if iterations <= 0:
-        return pos, 0
-    h = grid.spacing
-    nf, mf = grid.nf, grid.mf
-    flat = frames.reshape(-1, 3, 3)
-    tails, heads = grid.edge_tails, grid.edge_heads
     nu = grid.n_uedges
-    nrm = flat[tails, :, 2] + flat[heads, :, 2]
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    # orthogonal-net direction of each edge (t_u for u-edges, t_v for v-edges) → its in-plane normal
-    t_net = np.concatenate([flat[tails[:nu], :, 0] + flat[heads[:nu], :, 0], flat[tails[nu:], :, 1] + flat[heads[nu:], :, 1]])
-    b_net = np.cross(nrm, t_net)
-    b_net /= np.linalg.norm(b_net, axis=1, keepdims=True)
-    bend = np.concatenate([np.hypot(rot_u[:, 1], rot_u[:, 2]), np.hypot(rot_v[:, 0], rot_v[:, 2])])
-    length = h * np.concatenate([_edge_mean(lam_u, 1).ravel(), _edge_mean(lam_v, 0).ravel()]) * np.sinc(bend / (2.0 * np.pi))
-    inc, inc_t = grid.incidence, grid.incidence.T
-    x = pos.reshape(-1, 3).copy()
-    beta = shear_prior
-
-    def apply(p: np.ndarray, t_dir: np.ndarray) -> np.ndarray:
-        d = inc @ p
-        w = (
-            nrm * np.einsum("ij,ij->i", nrm, d)[:, None]
-            + t_dir * np.einsum("ij,ij->i", t_dir, d)[:, None]
-            + beta * b_net * np.einsum("ij,ij->i", b_net, d)[:, None]
-        )
-        return inc_t @ w
-
-    done = 0
-    for _ in range(iterations):
-        d = inc @ x
-        d -= nrm * np.einsum("ij,ij->i", nrm, d)[:, None]
-        t_dir = d / np.linalg.norm(d, axis=1, keepdims=True)
-        rhs = inc_t @ (t_dir * length[:, None])
-        # preconditioned conjugate gradients, all three coordinates as one vector
-        r = rhs - apply(x, t_dir)
-        z = grid.laplacian.solve(r)
-        p = z.copy()
-        rz = np.vdot(r, z)
-        r0 = np.sqrt(np.vdot(rhs, rhs)) + 1e-300
-        for _k in range(cg_maxiter):
-            ap = apply(p, t_dir)
-            alpha = rz / np.vdot(p, ap)
-            x += alpha * p
-            r -= alpha * ap
-            if np.sqrt(np.vdot(r, r)) < cg_tol * r0:
-                break
-            z = grid.laplacian.solve(r)
-            rz_new = np.vdot(r, z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
-        done += 1
-    return x.reshape(nf, mf, 3), done
+    mid_u = flat[grid.edge_tails[:nu]] @ exp_so3(0.5 * rot_u)
+    mid_v = flat[grid.edge_tails[nu:]] @ exp_so3(0.5 * rot_v)
+    g = _edge_mean(gamma, 0).ravel()
+    dir_v = mid_v[:, :, 0] * np.sin(g)[:, None] + mid_v[:, :, 1] * np.cos(g)[:, None]
+    bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2])
+    bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2])
+    len_u = h * _edge_mean(lam_u, 1).ravel() * np.sinc(bend_u / (2.0 * np.pi))
+    len_v = h * _edge_mean(lam_v, 0).ravel() * np.sinc(bend_v / (2.0 * np.pi))
+    chords = np.concatenate([mid_u[:, :, 0] * len_u[:, None], dir_v * len_v[:, None]])
+    pos = grid.laplacian.solve(grid.incidence.T @ chords)
+    return pos.reshape(grid.nf, grid.mf, 3)

@@ -62,7 +62,7 @@ class FineGrid:
     gauge_length: float
     sub: int = 2
     field_smoothing: float = 1e-3
-    twist_tikhonov: float = 1e-4
+    curvature_smoothing: float = 1e-2
     # filled in __post_init__
     nf: int = field(init=False)
     mf: int = field(init=False)
@@ -87,6 +87,9 @@ class FineGrid:
         self.centre = (self.nf // 2, self.mf // 2)
         self._build_operators()
         self._field_solvers: dict[tuple[bytes, int], tuple[FixedSolver, sp.csr_matrix]] = {}
+        self._potential_solvers: dict[bytes, tuple[FixedSolver, sp.csr_matrix]] = {}
+        self._field_maps: dict[bytes, object] = {}
+        self._build_potential_operators()
 
     # ----------------------------------------------------------------------------- operators
     def _build_operators(self) -> None:
@@ -126,13 +129,112 @@ class FineGrid:
         )
         self.edge_tails, self.edge_heads = tails, heads
         lap = (self.incidence.T @ self.incidence).tocsc()
-        # The tiny diagonal fixes the free translation/rotation offset; right-hand sides are
-        # divergences (sum zero), so it only selects the zero-mean solution.
-        self.laplacian = FixedSolver(lap + 1e-9 * sp.identity(n_nodes))
+        # The Laplacian's null space is the constant: pin the centre node (any offset is
+        # removed later when the surface is put in the sensor frame).
+        c = idx[self.centre]
+        self.laplacian = FixedSolver(lap + sp.csc_matrix(([1.0], ([c], [c])), shape=lap.shape))
         du = self.incidence[: self.n_uedges]
         dv = self.incidence[self.n_uedges :]
-        self.twist_solver = FixedSolver((lap + self.twist_tikhonov * sp.identity(n_nodes)).tocsc())
         self.du, self.dv = du, dv
+
+    def _build_potential_operators(self) -> None:
+        """Operators on the bending potential z, defined on the fine grid plus one ring.
+
+        k_u = −z_uu, k_v = −z_vv, τ = z_uv at every fine node (central differences), and the
+        third differences of z over the extended grid for the smoothness prior.
+        """
+        nf, mf, h = self.nf, self.mf, self.spacing
+        ne_, me_ = nf + 2, mf + 2
+        ext = np.arange(ne_ * me_).reshape(ne_, me_)
+        a, b = np.meshgrid(np.arange(1, nf + 1), np.arange(1, mf + 1), indexing="ij")
+        rows = np.arange(nf * mf)
+
+        def op(stencil: list[tuple[int, int, float]]) -> sp.csr_matrix:
+            r = np.concatenate([rows] * len(stencil))
+            c = np.concatenate([ext[a + da, b + db].ravel() for da, db, _ in stencil])
+            v = np.concatenate([np.full(nf * mf, w) for _, _, w in stencil])
+            return sp.csr_matrix((v, (r, c)), shape=(nf * mf, ne_ * me_))
+
+        self.z_uu = op([(0, -1, 1.0), (0, 0, -2.0), (0, 1, 1.0)]) / (h * h)
+        self.z_vv = op([(-1, 0, 1.0), (0, 0, -2.0), (1, 0, 1.0)]) / (h * h)
+        self.z_uv = op([(1, 1, 0.25), (1, -1, -0.25), (-1, 1, -0.25), (-1, -1, 0.25)]) / (h * h)
+
+        def d(k: int, order: int) -> sp.csr_matrix:
+            coeffs = {1: [-1.0, 1.0], 2: [1.0, -2.0, 1.0], 3: [-1.0, 3.0, -3.0, 1.0]}[order]
+            return sp.diags(coeffs, list(range(order + 1)), shape=(k - order, k))
+
+        def d0(k: int, order: int) -> sp.csr_matrix:
+            return sp.identity(k) if order == 0 else d(k, order)
+
+        # ‖∇k‖²: all third derivatives of z with their binomial weights
+        blocks = []
+        for ov, ou, w in ((0, 3, 1.0), (1, 2, 3.0), (2, 1, 3.0), (3, 0, 1.0)):
+            blocks.append(np.sqrt(w) * sp.kron(d0(ne_, ov), d0(me_, ou)))
+        self.z_third = (sp.vstack(blocks) / h**3).tocsr()
+        self.n_potential = ne_ * me_
+
+    def potential_solver(self, valid: np.ndarray) -> tuple[FixedSolver, sp.csr_matrix]:
+        """Solver for the bending potential whose curvatures' gauge averages fit the turning
+        data of the valid units; returns (solver, masked data operator transposed, (2NM) columns)."""
+        valid = np.asarray(valid, dtype=bool).reshape(2, -1)
+        key = valid.tobytes()
+        hit = self._potential_solvers.get(key)
+        if hit is None:
+            obs = sp.vstack([-(self.average[0] @ self.z_uu), -(self.average[1] @ self.z_vv)]).tocsr()
+            obs_t_w = (obs.T @ sp.diags(valid.ravel().astype(float))).tocsr()
+            area = self.spacing**2 / self.pitch**2  # prior per fine node, data per unit
+            alpha = self.curvature_smoothing * area
+            normal = obs_t_w @ obs + alpha * (self.z_third.T @ self.z_third)
+            # z = a + bu + cv + d·uv changes neither data nor prior: pin z at the four nodes of
+            # the centre cell (the twist's constant is set later from the Gauss equation)
+            a0, b0 = self.centre
+            me_ = self.mf + 2
+            pins = [(a0 + 1 + da) * me_ + (b0 + 1 + db) for da in (0, 1) for db in (0, 1)]
+            rho = float(normal.diagonal().max())
+            normal = normal + sp.csr_matrix((np.full(4, rho), (pins, pins)), shape=normal.shape)
+            hit = (FixedSolver(normal.tocsc()), obs_t_w)
+            if len(self._potential_solvers) > 16:
+                self._potential_solvers.pop(next(iter(self._potential_solvers)))
+            self._potential_solvers[key] = hit
+        return hit
+
+    def field_maps(self, valid: np.ndarray):
+        """Linear maps from unit data to the fine fields for this validity mask, cached.
+
+        Returns a function (turning (2, N, M), stretch (2, N, M)) → (k_u, k_v, τ, λ_u, λ_v), each
+        (nf, mf).  Small grids precompute the composite dense matrices (one product per field);
+        large ones go through the sparse factorisations.
+        """
+        valid = np.asarray(valid, dtype=bool).reshape(2, self.n, self.m)
+        key = valid.tobytes()
+        fn = self._field_maps.get(key)
+        if fn is not None:
+            return fn
+        shape = (self.nf, self.mf)
+        n_fine = self.nf * self.mf
+        curv_ops = sp.vstack([-self.z_uu, -self.z_vv, self.z_uv]).tocsr()
+        p_solver, obs_t_w = self.potential_solver(valid)
+        s_solvers = [self.field_solver(d, valid[d]) for d in (0, 1)]
+        if n_fine * 2 * self.n * self.m <= 4_000_000:
+            curv = curv_ops @ p_solver.solve(obs_t_w.toarray())
+            stretch_maps = [sol.solve(at_w.toarray()) for sol, at_w in s_solvers]
+
+            def fn(turning, stretch):
+                k = curv @ turning.ravel()
+                lam = [1.0 + stretch_maps[d] @ (stretch[d].ravel() - 1.0) for d in (0, 1)]
+                return (*(k[i * n_fine : (i + 1) * n_fine].reshape(shape) for i in range(3)), *(x.reshape(shape) for x in lam))
+
+        else:
+
+            def fn(turning, stretch):
+                k = curv_ops @ p_solver.solve(obs_t_w @ turning.ravel())
+                lam = [1.0 + sol.solve(at_w @ (stretch[d].ravel() - 1.0)) for d, (sol, at_w) in enumerate(s_solvers)]
+                return (*(k[i * n_fine : (i + 1) * n_fine].reshape(shape) for i in range(3)), *(x.reshape(shape) for x in lam))
+
+        if len(self._field_maps) > 16:
+            self._field_maps.pop(next(iter(self._field_maps)))
+        self._field_maps[key] = fn
+        return fn
 
     # --------------------------------------------------------------------------- field solve
     def field_solver(self, direction: int, valid: np.ndarray) -> tuple[FixedSolver, sp.csr_matrix]:

@@ -13,7 +13,7 @@ __all__ = ["Surface", "Diagnostics", "hermite_patch_eval"]
 class Diagnostics:
     """How the solve went."""
 
-    iterations: int  # outer refinement iterations of the position solve
+    iterations: int  # fixed-point passes of the shear estimate + rotation corrections
     residual: float  # RMS misfit of the fitted fields to the decoupled gauge data (rad per gauge)
     solve_time: float  # seconds, strains in to surface out
     status: str  # "solved", or a note such as "no valid gauge"
