@@ -63,7 +63,8 @@ __all__ = ["DeviceConfig", "Device", "ScanRecord"]
 FW_VERSION = (0, 1, 0)
 STATUS_PERIOD_S = 1.0
 RETRY_MEMORY = 8  # answered commands remembered for idempotent retries (PROTOCOL.md §8)
-# Scans the emulator still sends late when its own loop fell behind; older ones count as dropped.
+# Completed scans still sent when poll() comes late (the emulator's loop was busy, or a caller
+# polls coarsely); older ones count as dropped.
 MAX_BACKLOG_SCANS = 8
 # fault bits that describe "since the previous STATUS" rather than a present condition
 _TRANSIENT_FAULTS = int(FaultFlag.SCAN_BUFFER_OVERRUN | FaultFlag.HOST_FRAME_ERRORS)

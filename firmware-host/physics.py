@@ -519,18 +519,25 @@ class PalmGesture(Shape):
         if t.ndim == 0:
             return getattr(self.shape_at(float(t)), method)(uv)
         t = _as_t(t, uv)
-        # the emulator asks for a handful of instants (one per TDM step): evaluate each once
-        times, inverse = np.unique(t, return_inverse=True)
-        inverse = inverse.reshape(t.shape)
+        # the emulator asks for a handful of instants (one per TDM step): evaluate each distinct
+        # instantaneous shape once (during a hold all instants share the key shape)
+        flat_uv = uv.reshape(-1, 2)
+        times, inverse = np.unique(t.reshape(-1), return_inverse=True)
+        shapes = [self.shape_at(float(tk)) for tk in times]
+        group = np.array([next(i for i, sh in enumerate(shapes) if sh is shape) for shape in shapes])
+        point_group = group[inverse]
+        order = np.argsort(point_group, kind="stable")
+        bounds = np.searchsorted(point_group[order], np.arange(len(shapes) + 1))
         outs = None
-        for k, tk in enumerate(times):
-            sel = inverse == k
-            res = getattr(self.shape_at(float(tk)), method)(uv[sel])
+        for g in np.unique(group):
+            idx = order[bounds[g] : bounds[g + 1]]
+            res = getattr(shapes[g], method)(flat_uv[idx])
             res = res if isinstance(res, tuple) else (res,)
             if outs is None:
-                outs = tuple(np.empty(uv.shape[:-1] + (3,)) for _ in res)
+                outs = tuple(np.empty((flat_uv.shape[0], 3)) for _ in res)
             for o, r in zip(outs, res):
-                o[sel] = r
+                o[idx] = r
+        outs = tuple(o.reshape(uv.shape[:-1] + (3,)) for o in outs)
         return outs if method == "position_and_normal" else outs[0]
 
     def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
