@@ -188,8 +188,9 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     misclosures over the whole grid (linearised rotation averaging on the fixed Laplacian)."""
     nf, mf = grid.nf, grid.mf
     a0, b0 = grid.centre
-    ru = exp_so3(rot_u).reshape(nf, mf - 1, 3, 3)
-    rv = exp_so3(rot_v).reshape(nf - 1, mf, 3, 3)
+    edge_rot = exp_so3(np.concatenate([rot_u, rot_v]))
+    ru = edge_rot[: rot_u.shape[0]].reshape(nf, mf - 1, 3, 3)
+    rv = edge_rot[rot_u.shape[0] :].reshape(nf - 1, mf, 3, 3)
     frames = np.empty((nf, mf, 3, 3))
     frames[a0, b0] = np.eye(3)
     frames[a0, b0 + 1 :] = _prefix_products(ru[a0, b0:])
@@ -197,7 +198,6 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     frames[a0 + 1 :] = frames[a0] @ _prefix_products(rv[a0:])
     frames[:a0] = (frames[a0] @ _prefix_products(np.swapaxes(rv[:a0], -1, -2)[::-1]))[::-1]
     flat = frames.reshape(-1, 3, 3)
-    edge_rot = np.concatenate([ru.reshape(-1, 3, 3), rv.reshape(-1, 3, 3)])
     for _ in range(corrections):
         tails, heads = flat[grid.edge_tails], flat[grid.edge_heads]
         mis = log_so3(tails @ edge_rot @ np.swapaxes(heads, -1, -2))  # world-frame misclosure
@@ -208,18 +208,20 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
 
 def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamma) -> np.ndarray:
     """Positions (nf, mf, 3) whose edge vectors best match the chords of the arcs implied by the
-    frames: length λ·spacing·sinc(bend/2) along the mid-edge tangent (x_u, or x_v sheared by γ)."""
+    frames: length λ·spacing·sinc(bend/2) along the bisector of the end tangents (x̂_u, or x̂_v
+    sheared by γ), which is the chord direction of a circular arc."""
     h = grid.spacing
-    flat = frames.reshape(-1, 3, 3)
-    nu = grid.n_uedges
-    mid_u = flat[grid.edge_tails[:nu]] @ exp_so3(0.5 * rot_u)
-    mid_v = flat[grid.edge_tails[nu:]] @ exp_so3(0.5 * rot_v)
-    g = _edge_mean(gamma, 0).ravel()
-    dir_v = mid_v[:, :, 0] * np.sin(g)[:, None] + mid_v[:, :, 1] * np.cos(g)[:, None]
+    nf, mf = grid.nf, grid.mf
+    t_u = frames[..., 0]
+    t_v = frames[..., 0] * np.sin(gamma)[..., None] + frames[..., 1] * np.cos(gamma)[..., None]
+    dir_u = (t_u[:, :-1] + t_u[:, 1:]).reshape(-1, 3)
+    dir_v = (t_v[:-1] + t_v[1:]).reshape(-1, 3)
     bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2])
     bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2])
     len_u = h * _edge_mean(lam_u, 1).ravel() * np.sinc(bend_u / (2.0 * np.pi))
     len_v = h * _edge_mean(lam_v, 0).ravel() * np.sinc(bend_v / (2.0 * np.pi))
-    chords = np.concatenate([mid_u[:, :, 0] * len_u[:, None], dir_v * len_v[:, None]])
+    chords = np.concatenate(
+        [dir_u * (len_u / np.linalg.norm(dir_u, axis=1))[:, None], dir_v * (len_v / np.linalg.norm(dir_v, axis=1))[:, None]]
+    )
     pos = grid.laplacian.solve(grid.incidence.T @ chords)
-    return pos.reshape(grid.nf, grid.mf, 3)
+    return pos.reshape(nf, mf, 3)

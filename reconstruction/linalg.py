@@ -9,7 +9,7 @@ __all__ = ["exp_so3", "log_so3", "FixedSolver"]
 
 # Below this size a dense Cholesky factor is faster to apply than SuperLU's triangular solves
 # (Python overhead dominates); above it the sparse factor wins on memory and time.
-_DENSE_LIMIT = 600
+_DENSE_LIMIT = 200
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:
