@@ -37,7 +37,6 @@ from skinmap.protocol import (
     FieldError,
     Hello,
     LengthError,
-    MsgType,
     Nak,
     Ping,
     ProtocolError,
@@ -68,7 +67,7 @@ RETRY_MEMORY = 8  # answered commands remembered for idempotent retries (PROTOCO
 MAX_BACKLOG_SCANS = 8
 # fault bits that describe "since the previous STATUS" rather than a present condition
 _TRANSIENT_FAULTS = int(FaultFlag.SCAN_BUFFER_OVERRUN | FaultFlag.HOST_FRAME_ERRORS)
-_HOST_FRAME_LIMIT = 4096  # a host command is tiny; longer garbage is discarded unbuffered
+_HOST_FRAME_LIMIT = 300  # receive buffer (PROTOCOL.md §13); longer bodies are skipped to the next 0x00
 
 
 @dataclass(frozen=True)
@@ -301,7 +300,9 @@ class Device:
                 break
             body = bytes(self._rx[: end + 1])
             del self._rx[: end + 1]
-            if len(body) > 1:
+            if len(body) - 1 > _HOST_FRAME_LIMIT:
+                self.frames_rejected += 1  # longer than any command: overflowed the buffer
+            elif len(body) > 1:
                 out.append(self._handle_body(body, now_s))
         if len(self._rx) > _HOST_FRAME_LIMIT:
             self._rx.clear()

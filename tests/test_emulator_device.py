@@ -217,9 +217,11 @@ def test_naks_for_unknown_commands_bad_length_and_silence_for_damage():
     dev, host, _ = make()
     seen = host.raw(_frame_with(0x7F, b"\x34\x12\x00"), 100.0)
     assert only(seen, p.MsgType.NAK) == [p.Nak(0x1234, 0x7F, int(p.ErrorCode.UNKNOWN_COMMAND), 0)]
-    hello_to_device = p.encode_frame(dev.hello(), 0)
-    nak = only(host.raw(hello_to_device, 100.0), p.MsgType.NAK)[0]
-    assert (nak.command, nak.error) == (int(p.MsgType.HELLO), p.ErrorCode.UNKNOWN_COMMAND)
+    ack_to_device = p.encode_frame(p.Ack(0x0506, int(p.MsgType.START)), 0)  # a device -> host type
+    nak = only(host.raw(ack_to_device, 100.0), p.MsgType.NAK)[0]
+    assert nak == p.Nak(0x0506, int(p.MsgType.ACK), int(p.ErrorCode.UNKNOWN_COMMAND), 0)
+    # a HELLO does not even fit the 300-byte receive buffer: skipped and counted, no answer
+    assert host.raw(p.encode_frame(dev.hello(), 0), 100.0) == []
     frames = host.raw(_frame_with(int(p.MsgType.START), b"\x05\x00\x00"), 100.0)
     assert only(frames, p.MsgType.NAK) == [p.Nak(5, int(p.MsgType.START), int(p.ErrorCode.BAD_LENGTH), 0)]
     seen += frames
@@ -232,13 +234,13 @@ def test_naks_for_unknown_commands_bad_length_and_silence_for_damage():
     assert only(frames, p.MsgType.NAK) == only(frames, p.MsgType.ACK) == []
     seen += frames + host.poll(100.1)
     assert dev.state == p.DeviceState.IDLE
-    assert dev.frames_rejected == 4  # bad length x2, CRC, garbage (unknown types are answered)
+    assert dev.frames_rejected == 5  # HELLO, bad length x2, CRC, garbage (unknown types: answered)
     statuses = only(seen, p.MsgType.STATUS)  # rejected frames raise HOST_FRAME_ERRORS at once
     assert statuses and all(s.fault_flags & p.FaultFlag.HOST_FRAME_ERRORS for s in statuses)
     later = only(host.poll(101.2), p.MsgType.STATUS)[0]  # periodic: grew since the previous one
-    assert later.frames_rejected == 4 and later.fault_flags & p.FaultFlag.HOST_FRAME_ERRORS
+    assert later.frames_rejected == 5 and later.fault_flags & p.FaultFlag.HOST_FRAME_ERRORS
     quiet = only(host.poll(102.2), p.MsgType.STATUS)[0]  # nothing new since: the flag clears
-    assert quiet.frames_rejected == 4 and not quiet.fault_flags & p.FaultFlag.HOST_FRAME_ERRORS
+    assert quiet.frames_rejected == 5 and not quiet.fault_flags & p.FaultFlag.HOST_FRAME_ERRORS
 
 
 def test_commands_split_across_chunks_and_oversize_garbage():
