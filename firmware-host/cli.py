@@ -11,6 +11,7 @@ import argparse
 import re
 import signal
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-noise", action="store_true")
     g.add_argument("--no-hysteresis", action="store_true")
     g.add_argument("--no-drift", action="store_true")
+    g.add_argument("--response-tau", type=float, default=0.0, metavar="S",
+                   help="first-order gauge response time constant, s (default 0: instantaneous)")
 
     g = p.add_argument_group("link")
     x = g.add_mutually_exclusive_group()
@@ -123,6 +126,10 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
     off = [e for e, flag in (("noise", args.no_noise), ("hysteresis", args.no_hysteresis), ("drift", args.no_drift)) if flag]
     if off:
         elec = elec.without(*off)
+    try:
+        elec = replace(elec, response_tau_s=args.response_tau)
+    except ValueError as exc:
+        parser.error(str(exc))
     try:
         cfg = DeviceConfig(n=n, m=m, pitch_mm=args.pitch, scan_rate_hz=args.rate,
                            max_step_rate_hz=args.max_step_rate, seed=args.seed, electrical=elec)

@@ -8,6 +8,8 @@ R = R0 · (1 + GF · ε_h + drift) + noise, then a 24-bit ADC over [0, full scal
   half-width is proportional to the distance from the rest state, w = (H/2)·|ε|. Loading then
   reads (1 − H/2)·ε, unloading (1 + H/2)·ε, so the loop height is H (≈ 4 %) of the strain
   excursion at its peak and closes at rest; there is no creep;
+- optionally a first-order response lag of the gauge (time constant ``response_tau_s``; the
+  gauges respond within 170 ms, i.e. τ ≲ 57 ms for 95 %), off by default;
 - drift is an Ornstein–Uhlenbeck process on the relative resistance (tiny, slow);
 - white noise of s.d. 0.007 % of R;
 - the ADC quantises to one LSB (full scale / 2^24; the default full scale 16.777216 Ω makes the
@@ -34,6 +36,7 @@ __all__ = [
     "draw_calibration",
     "hysteresis_step",
     "drift_step",
+    "lag_step",
     "strain_to_resistance",
     "quantise",
     "resistance_to_strain",
@@ -106,6 +109,7 @@ class ElectricalConfig:
     noise_rel_sd: float = 7e-5  # white noise s.d. as a fraction of R (0.007 %)
     drift_rel_sd: float = 1e-5  # stationary s.d. of the relative drift
     drift_tau_s: float = 600.0  # drift correlation time
+    response_tau_s: float = 0.0  # first-order lag of the gauge response (0: instantaneous)
     quantise: bool = True  # ADC quantisation (else the value is only rounded to 1 µΩ on the wire)
     adc_bits: int = 24
     adc_full_scale_ohm: float = 16.777216  # 2^24 µΩ: one ADC LSB = 1 µΩ
@@ -117,6 +121,8 @@ class ElectricalConfig:
                 raise ValueError(f"ElectricalConfig.{name} must be finite and >= 0, got {v!r}")
         if not 0 <= self.hysteresis < 1:
             raise ValueError(f"ElectricalConfig.hysteresis must be in [0, 1), got {self.hysteresis!r}")
+        if not (math.isfinite(self.response_tau_s) and self.response_tau_s >= 0):
+            raise ValueError(f"ElectricalConfig.response_tau_s must be >= 0 s, got {self.response_tau_s!r}")
         if not self.drift_tau_s > 0:
             raise ValueError(f"ElectricalConfig.drift_tau_s must be > 0, got {self.drift_tau_s!r}")
         if not 8 <= int(self.adc_bits) <= 32:
@@ -129,11 +135,11 @@ class ElectricalConfig:
 
     @classmethod
     def ideal(cls) -> "ElectricalConfig":
-        """No hysteresis, drift, noise or quantisation (only the 1 µΩ wire rounding remains)."""
-        return cls(hysteresis=0.0, noise_rel_sd=0.0, drift_rel_sd=0.0, quantise=False)
+        """No lag, hysteresis, drift, noise or quantisation (only the 1 µΩ wire rounding remains)."""
+        return cls(hysteresis=0.0, noise_rel_sd=0.0, drift_rel_sd=0.0, quantise=False, response_tau_s=0.0)
 
     def without(self, *effects: str) -> "ElectricalConfig":
-        """A copy with the named effects off: 'hysteresis', 'noise', 'drift', 'quantise'."""
+        """A copy with the named effects off: 'hysteresis', 'noise', 'drift', 'quantise', 'lag'."""
         changes = {}
         for e in effects:
             if e == "hysteresis":
@@ -144,8 +150,10 @@ class ElectricalConfig:
                 changes["drift_rel_sd"] = 0.0
             elif e == "quantise":
                 changes["quantise"] = False
+            elif e == "lag":
+                changes["response_tau_s"] = 0.0
             else:
-                raise ValueError(f"unknown effect {e!r}; known: hysteresis, noise, drift, quantise")
+                raise ValueError(f"unknown effect {e!r}; known: hysteresis, noise, drift, quantise, lag")
         return replace(self, **changes)
 
     @property
@@ -163,6 +171,14 @@ def hysteresis_step(memory: np.ndarray, strain: np.ndarray, fraction: float) -> 
     [ε − w, ε + w], w = (fraction/2)·|ε|.  Returns the new output (= new memory)."""
     w = 0.5 * fraction * np.abs(strain)
     return np.clip(memory, strain - w, strain + w)
+
+
+def lag_step(state: np.ndarray, strain: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
+    """Exact first-order response to a strain held over the last ``dt_s``."""
+    if tau_s <= 0 or dt_s <= 0:
+        return strain if tau_s <= 0 else state
+    a = math.exp(-dt_s / tau_s)
+    return state * a + strain * (1.0 - a)
 
 
 def drift_step(
@@ -239,18 +255,24 @@ class GaugeReadout:
     open_mask: np.ndarray | None = None
     saturated_mask: np.ndarray | None = None
     _memory: np.ndarray | None = field(default=None, repr=False)
+    _lagged: np.ndarray | None = field(default=None, repr=False)
     _drift: np.ndarray | None = field(default=None, repr=False)
     _last_t: float | None = field(default=None, repr=False)
 
     def reset_state(self) -> None:
         """Power cycle: hysteresis memory and drift start afresh (calibration is kept)."""
-        self._memory = self._drift = self._last_t = None
+        self._memory = self._drift = self._last_t = self._lagged = None
 
     def read(self, strain: np.ndarray, t_s: float) -> np.ndarray:
         strain = np.asarray(strain, dtype=float)
         if strain.shape != self.calibration.shape:
             raise ValueError(f"strain has shape {strain.shape}, expected {self.calibration.shape}")
         cfg = self.config
+        dt = 0.0 if self._last_t is None else t_s - self._last_t
+        if cfg.response_tau_s:
+            self._lagged = strain.copy() if self._lagged is None else lag_step(
+                self._lagged, strain, dt, cfg.response_tau_s)
+            strain = self._lagged
         if cfg.hysteresis:
             self._memory = strain.copy() if self._memory is None else self._memory
             self._memory = hysteresis_step(self._memory, strain, cfg.hysteresis)
@@ -260,7 +282,6 @@ class GaugeReadout:
             if self._drift is None:
                 self._drift = cfg.drift_rel_sd * self.rng.standard_normal(strain.shape)
             else:
-                dt = 0.0 if self._last_t is None else t_s - self._last_t
                 self._drift = drift_step(self._drift, dt, cfg.drift_rel_sd, cfg.drift_tau_s, self.rng)
             drift = self._drift
         self._last_t = t_s

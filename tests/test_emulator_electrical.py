@@ -108,9 +108,26 @@ def test_drift_is_small_and_seeded():
     assert 0 < np.abs(rel).max() < 1e-4
 
 
+def test_response_lag_is_first_order_and_off_by_default():
+    assert ElectricalConfig().response_tau_s == 0.0
+    cal = draw_calibration(np.random.default_rng(0), 2, 2)
+    cfg = ElectricalConfig.ideal()
+    cfg = ElectricalConfig(**{**cfg.__dict__, "response_tau_s": 0.05})
+    ro = GaugeReadout(cal, cfg, np.random.default_rng(0))
+    zero, step = np.zeros((2, 2, 2, 2)), np.full((2, 2, 2, 2), 0.01)
+    ro.read(zero, 0.0)
+    eps = [resistance_to_strain(ro.read(step, 0.01 * k), cal) for k in range(1, 31)]
+    eps = np.array(eps)[:, 0, 0, 0, 0]
+    expected = 0.01 * (1 - np.exp(-0.01 * np.arange(1, 31) / 0.05))
+    np.testing.assert_allclose(eps, expected, atol=2e-7)
+    assert eps[17] > 0.0095  # within 170 ms the response is above 95 %
+
+
 def test_bad_inputs_are_named():
     with pytest.raises(ValueError, match="hysteresis"):
         ElectricalConfig(hysteresis=-0.1)
+    with pytest.raises(ValueError, match="response_tau_s"):
+        ElectricalConfig(response_tau_s=-1.0)
     with pytest.raises(ValueError, match="unknown effect"):
         ElectricalConfig().without("wobble")
     with pytest.raises(ValueError, match=r"\(2, 2, N, M\)"):
