@@ -385,3 +385,21 @@ def test_any_size_from_2x2_to_32x32(n, m):
     assert scan.step_period_ns == round(1e12 / (5000 * 2 * min(n, m)))
     eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
     np.testing.assert_allclose(eps, np.stack(gauge_strains(shape, n, m)), atol=3e-7)
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=150, deadline=None)
+@given(chunks=st.lists(st.binary(max_size=400), max_size=6), seed=st.integers(0, 3))
+def test_arbitrary_host_bytes_never_break_the_firmware(chunks, seed):
+    dev = Device(DeviceConfig(n=2, m=3, seed=seed, electrical=IDEAL), make_shape("flat"), now_s=0.0)
+    dec = p.StreamDecoder()
+    dec.feed(dev.poll(0.0))
+    valid = p.encode_frame(p.Ping(77, b"alive"), 0)
+    for k, chunk in enumerate(chunks):
+        dec.feed(dev.on_bytes(chunk, 0.01 * k))
+    # whatever came before, a delimiter then a valid command is answered
+    frames = dec.feed(dev.on_bytes(b"\x00" + valid, 1.0))
+    assert any(f.msg_type == p.MsgType.ACK and f.msg.request_id == 77 for f in frames)
+    assert dec.crc_errors == dec.cobs_errors == 0  # the device's own output is always clean

@@ -294,3 +294,26 @@ def test_bad_arguments_are_named():
         gauge_layer_strains(Flat(), [[0, 0]], [[2.0, 0.0]], [0.2])
     with pytest.raises(ValueError, match="per-gauge times"):
         gauge_strains(Flat(), 3, 3, t=np.zeros((3, 3)))
+
+
+from hypothesis import example, given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None)
+@example(radius=40.0, angle=0.0, h_u=0.2, h_l=0.3)
+@example(radius=-25.0, angle=180.0, h_u=0.1, h_l=0.4)
+@given(
+    radius=st.floats(15.0, 500.0) | st.floats(-500.0, -15.0),
+    angle=st.floats(-180.0, 180.0),
+    h_u=st.floats(0.05, 0.5),
+    h_l=st.floats(0.05, 0.5),
+)
+def test_cylinder_property_exact_strains_and_decoupling(radius, angle, h_u, h_l):
+    eu, el = gauge_strains(Cylinder(radius, axis_angle=angle), 2, 3, h_upper=h_u, h_lower=h_l)
+    c2 = math.cos(math.radians(angle)) ** 2
+    for k, c in ((0, c2), (1, 1.0 - c2)):
+        np.testing.assert_allclose(eu[k], math.sqrt(1 - c + c * (1 + h_u / radius) ** 2) - 1, atol=1e-9)
+        np.testing.assert_allclose(el[k], math.sqrt(1 - c + c * (1 - h_l / radius) ** 2) - 1, atol=1e-9)
+    if c2 > 0.999999:  # a pure bend along u: the paper's formula recovers the radius
+        r, s = decouple_pair(eu[0], el[0], h_u, h_l)
+        np.testing.assert_allclose(r, radius, rtol=1e-5)
