@@ -632,6 +632,8 @@ def make_shape(kind: str, **params) -> Shape:
 
         allowed = [p for p in inspect.signature(factory).parameters]
         unknown = sorted(set(params) - set(allowed))
+        if not unknown:  # a value of the wrong type, e.g. a pair where a number belongs
+            raise ValueError(f"shape {kind!r}: bad parameter value ({exc})") from exc
         raise ValueError(
             f"shape {kind!r}: unknown parameter(s) {unknown}; allowed: {', '.join(allowed)}"
         ) from exc

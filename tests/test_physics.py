@@ -275,6 +275,7 @@ def test_spec_parsing_and_factory():
         ("cylinder:radius", "key=value"),
         ("cylinder + gaussian", "graph shapes"),
         ("membrane:fingers=3", "fingers"),
+        ("cylinder:radius=3/4", "bad parameter value"),
         ("", "empty"),
     ],
 )
