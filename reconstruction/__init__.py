@@ -21,6 +21,7 @@ from .decouple import decouple
 from .engine import (
     integrate_frames,
     integrate_positions,
+    potential_curvatures,
     rotation_rates,
     solve_fields,
     solve_shear,
@@ -28,6 +29,7 @@ from .engine import (
     unit_data,
 )
 from .grid import FineGrid
+from .robust import huber_potential
 from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma
 
@@ -50,8 +52,8 @@ def _positive(name: str, value: float) -> float:
 
 def default_subdivision(n: int, m: int) -> int:
     """Fine-grid intervals per pitch: 4 (3 mm at 12 mm pitch) resolves features down to the
-    gauge length; large arrays use 2 to keep the frame time within budget."""
-    return 2
+    gauge length; arrays of more than 100 cells use 2 to keep the frame time within budget."""
+    return 4 if n * m <= 100 else 2
 
 
 class Reconstructor:
@@ -68,6 +70,10 @@ class Reconstructor:
     shear_passes : fixed-point passes of the shear estimate (0 keeps the material lines
         orthogonal, F = 0).
     frame_corrections : least-squares rotation corrections after the tree integration.
+    convex_solver : "factorized" (default: the least-squares field fit by its cached
+        factorisation) or "clarabel" (the same convex fit with a Huber loss on the turning data,
+        threshold ``huber_sigmas`` noise s.d., solved by Clarabel each frame: robust to a
+        glitching gauge, a few ms slower).
     """
 
     def __init__(
@@ -81,6 +87,8 @@ class Reconstructor:
         subdivision: int | None = None,
         shear_passes: int = 2,
         frame_corrections: int = 1,
+        convex_solver: str = "factorized",
+        huber_sigmas: float = 4.0,
     ):
         for name, val in (("n (rows)", n), ("m (columns)", m)):
             if isinstance(val, bool) or int(val) != val or int(val) < 2:
@@ -98,6 +106,10 @@ class Reconstructor:
             if isinstance(val, bool) or int(val) != val or val < 0:
                 raise ValueError(f"{name} must be an integer >= 0, got {val!r}")
         self.shear_passes, self.frame_corrections = int(shear_passes), int(frame_corrections)
+        if convex_solver not in ("factorized", "clarabel"):
+            raise ValueError(f"convex_solver must be 'factorized' or 'clarabel', got {convex_solver!r}")
+        self.convex_solver = convex_solver
+        self.huber_sigmas = _positive("huber_sigmas", huber_sigmas)
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -116,10 +128,12 @@ class Reconstructor:
         *,
         strain_sigma: float = DEFAULT_STRAIN_SIGMA,
         previous: Surface | None = None,
+        twist_sign: float | None = None,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
-        the smoothness prior).  ``previous`` (the last frame's surface) chooses the sign of an
-        otherwise unobservable constant twist consistently from frame to frame."""
+        the smoothness prior).  A constant twist (an oblique cylinder) has two mirror-image
+        solutions with identical strains: ``twist_sign`` (+1 or −1) picks one; by default the
+        sign of ``previous`` (the last frame's surface) is kept, else +1."""
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
@@ -135,8 +149,18 @@ class Reconstructor:
         if n_valid == 0:
             status = "no valid gauge: flat sheet assumed"
         k_u, k_v, tau0, lam_u, lam_v = solve_fields(grid, turning, stretch, valid)
+        convex_info = {"status": "factorized", "iterations": 0}
+        if self.convex_solver == "clarabel":
+            # turning per length = (ε_u − ε_l)/(h_u + h_l); floor for noise-free use
+            sig_turn = max(np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower), 1e-6)
+            z, convex_info = huber_potential(grid, turning, valid, self.huber_sigmas * sig_turn)
+            k_u, k_v, tau0 = potential_curvatures(grid, z)
         sign = 1.0
-        if previous is not None and previous.diagnostics.twist_constant != 0.0:
+        if twist_sign is not None:
+            if twist_sign not in (1, -1, 1.0, -1.0):
+                raise ValueError(f"twist_sign must be +1 or -1, got {twist_sign!r}")
+            sign = float(twist_sign)
+        elif previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
         tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign)
         if self.shear_passes:
@@ -146,7 +170,7 @@ class Reconstructor:
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, gamma)
-        iterations = self.shear_passes + self.frame_corrections
+        iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         pos, frames = _to_sensor_frame(grid, pos, frames)
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         fit = np.concatenate(
@@ -161,6 +185,7 @@ class Reconstructor:
             status=status,
             twist_constant=twist_c,
             valid_units=n_valid,
+            extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"]},
         )
         surf = Surface(
             pitch=self.pitch,
@@ -204,14 +229,15 @@ def reconstruct(
     gauge_length: float = 10.0,
     strain_sigma: float = DEFAULT_STRAIN_SIGMA,
     previous: Surface | None = None,
+    twist_sign: float | None = None,
 ) -> Surface:
     """Reconstruct the sheet's surface from one frame of strains.
 
     ``eps_upper``, ``eps_lower``: (2, N, M) engineering strain; ``[0]`` row-direction (u) gauges,
     ``[1]`` column-direction (v) gauges; NaN for a missing gauge.  ``strain_sigma``: strain-noise
     s.d. of one gauge for the uncertainty estimate.  ``previous``: the last frame's surface (keeps
-    the sign of an unobservable constant twist).  Geometry-dependent work is cached by
-    (N, M, pitch, h_upper, h_lower, gauge_length).
+    the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly.
+    Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length).
     """
     eu = np.asarray(eps_upper, dtype=float)
     if eu.ndim != 3 or eu.shape[0] != 2:
@@ -225,4 +251,4 @@ def reconstruct(
             _CACHE.popitem(last=False)
     else:
         _CACHE.move_to_end(key)
-    return rec(eu, eps_lower, strain_sigma=strain_sigma, previous=previous)
+    return rec(eu, eps_lower, strain_sigma=strain_sigma, previous=previous, twist_sign=twist_sign)

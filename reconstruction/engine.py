@@ -25,6 +25,7 @@ from .linalg import exp_so3, log_so3
 __all__ = [
     "unit_data",
     "solve_fields",
+    "potential_curvatures",
     "solve_twist",
     "solve_shear",
     "rotation_rates",
@@ -48,6 +49,12 @@ def solve_fields(grid: FineGrid, turning: np.ndarray, stretch: np.ndarray, valid
     """Fine-grid fields k_u, k_v, τ (from one bending potential, so that they satisfy the
     linearised Codazzi equations) and λ_u, λ_v (smoothed stretch) fitting the unit data."""
     return grid.field_maps(valid)(turning, stretch)
+
+
+def potential_curvatures(grid: FineGrid, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """k_u = −z_uu, k_v = −z_vv, τ = z_uv on the fine grid from a bending potential z."""
+    shape = (grid.nf, grid.mf)
+    return -(grid.z_uu @ z).reshape(shape), -(grid.z_vv @ z).reshape(shape), (grid.z_uv @ z).reshape(shape)
 
 
 def _d_u(f: np.ndarray, h: float) -> np.ndarray:

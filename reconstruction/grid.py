@@ -173,25 +173,39 @@ class FineGrid:
         self.z_third = (sp.vstack(blocks) / h**3).tocsr()
         self.n_potential = ne_ * me_
 
+    def potential_observation(self) -> sp.csr_matrix:
+        """Data operator of the bending potential: rows are the units' mean turning per length,
+        (2·N·M, n_potential)."""
+        if not hasattr(self, "_potential_obs"):
+            self._potential_obs = sp.vstack([-(self.average[0] @ self.z_uu), -(self.average[1] @ self.z_vv)]).tocsr()
+        return self._potential_obs
+
+    def potential_prior(self) -> sp.csc_matrix:
+        """Quadratic form of the potential's prior: smoothness α‖∇k‖² plus pins of z at the four
+        nodes of the centre cell (z = a + bu + cv + d·uv changes neither data nor smoothness; the
+        twist's constant is set later from the Gauss equation)."""
+        if not hasattr(self, "_potential_prior"):
+            obs = self.potential_observation()
+            area = self.spacing**2 / self.pitch**2  # prior per fine node, data per unit
+            smooth = self.curvature_smoothing * area * (self.z_third.T @ self.z_third)
+            a0, b0 = self.centre
+            me_ = self.mf + 2
+            pins = [(a0 + 1 + da) * me_ + (b0 + 1 + db) for da in (0, 1) for db in (0, 1)]
+            rho = float((obs.T @ obs + smooth).diagonal().max())
+            self._potential_prior = (smooth + sp.csr_matrix((np.full(4, rho), (pins, pins)), shape=smooth.shape)).tocsc()
+        return self._potential_prior
+
     def potential_solver(self, valid: np.ndarray) -> tuple[FixedSolver, sp.csr_matrix]:
         """Solver for the bending potential whose curvatures' gauge averages fit the turning
-        data of the valid units; returns (solver, masked data operator transposed, (2NM) columns)."""
+        data of the valid units (least squares + prior); returns (solver, masked data
+        operator transposed, with 2·N·M columns)."""
         valid = np.asarray(valid, dtype=bool).reshape(2, -1)
         key = valid.tobytes()
         hit = self._potential_solvers.get(key)
         if hit is None:
-            obs = sp.vstack([-(self.average[0] @ self.z_uu), -(self.average[1] @ self.z_vv)]).tocsr()
+            obs = self.potential_observation()
             obs_t_w = (obs.T @ sp.diags(valid.ravel().astype(float))).tocsr()
-            area = self.spacing**2 / self.pitch**2  # prior per fine node, data per unit
-            alpha = self.curvature_smoothing * area
-            normal = obs_t_w @ obs + alpha * (self.z_third.T @ self.z_third)
-            # z = a + bu + cv + d·uv changes neither data nor prior: pin z at the four nodes of
-            # the centre cell (the twist's constant is set later from the Gauss equation)
-            a0, b0 = self.centre
-            me_ = self.mf + 2
-            pins = [(a0 + 1 + da) * me_ + (b0 + 1 + db) for da in (0, 1) for db in (0, 1)]
-            rho = float(normal.diagonal().max())
-            normal = normal + sp.csr_matrix((np.full(4, rho), (pins, pins)), shape=normal.shape)
+            normal = obs_t_w @ obs + self.potential_prior()
             hit = (FixedSolver(normal.tocsc()), obs_t_w)
             if len(self._potential_solvers) > 16:
                 self._potential_solvers.pop(next(iter(self._potential_solvers)))

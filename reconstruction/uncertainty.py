@@ -21,7 +21,12 @@ def height_response(grid: FineGrid, valid: np.ndarray) -> np.ndarray:
     """Linear map (nf·mf, 2·N·M) from the units' turning per length to fine-node heights in the
     sensor frame (centre height and slopes pinned), about the flat sheet."""
     solver, obs_t_w = grid.potential_solver(valid)
-    z = solver.solve(obs_t_w.toarray()).reshape(grid.nf + 2, grid.mf + 2, -1)[1:-1, 1:-1]
+    z_ext = solver.solve(obs_t_w.toarray())
+    # the reconstruction replaces the potential's mean twist by the Gauss-equation constant
+    # (zero about the flat sheet): remove it here too
+    mean_twist = (grid.z_uv @ z_ext).mean(axis=0)
+    z = z_ext.reshape(grid.nf + 2, grid.mf + 2, -1)[1:-1, 1:-1]
+    z = z - np.multiply.outer(np.outer(grid.v, grid.u), mean_twist)
     a0, b0 = grid.centre
     h = grid.spacing
     slope_u = (z[a0, b0 + 1] - z[a0, b0 - 1]) / (2 * h)

@@ -1,0 +1,265 @@
+"""Shape reconstruction: accuracy on the forward model's shapes, conventions, degenerate input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap import decouple, reconstruct
+from skinmap.emulator import physics as ph
+from skinmap.reconstruction import Reconstructor, Surface
+
+N = M = 5
+PITCH = 12.0
+CENTRES = ph.cell_centres(N, M, PITCH)
+NOISE = 0.0057e-2  # strain s.d. per gauge
+
+
+def strains(shape, n=N, m=M):
+    return ph.gauge_strains(shape, n, m, PITCH, 0.2, 0.2, 10.0)
+
+
+def aligned_errors(recon: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per-node distances after the best rigid alignment (Kabsch) of recon onto truth."""
+    p, q = recon.reshape(-1, 3), truth.reshape(-1, 3)
+    pc, qc = p - p.mean(0), q - q.mean(0)
+    u, _, vt = np.linalg.svd(pc.T @ qc)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return np.linalg.norm(pc @ rot.T - qc, axis=1)
+
+
+def mean_error(shape, **kw) -> float:
+    eu, el = strains(shape)
+    surf = reconstruct(eu, el, PITCH, **kw)
+    return float(aligned_errors(surf.nodes, shape.position(CENTRES)).mean())
+
+
+# ---------------------------------------------------------------------------------- decouple
+def test_decouple_matches_the_paper_formulas():
+    eu = np.array([0.012, -0.003])
+    el = np.array([0.004, 0.005])
+    kappa, eps_s = decouple(eu, el, 0.2, 0.3)
+    r_hat = ((1 + el) * 0.2 + (1 + eu) * 0.3) / (eu - el)
+    assert kappa == pytest.approx(1.0 / r_hat, rel=1e-12)
+    assert eps_s == pytest.approx((eu * 0.3 + el * 0.2) / 0.5, rel=1e-12)
+
+
+def test_decouple_flat_cell_gives_zero_curvature_without_warnings():
+    with np.errstate(all="raise"):
+        kappa, eps_s = decouple(np.full((2, 3, 3), 0.01), np.full((2, 3, 3), 0.01), 0.2, 0.2)
+    assert np.all(kappa == 0.0) and np.allclose(eps_s, 0.01)
+
+
+def test_decouple_recovers_the_bend_radius_of_a_cylinder():
+    eu, el = strains(ph.Cylinder(radius=40.0))
+    kappa, eps_s = decouple(eu, el, 0.2, 0.2)
+    assert kappa[0] == pytest.approx(1 / 40.0, rel=1e-6)  # row gauges follow the circumference
+    assert np.allclose(kappa[1], 0.0, atol=1e-9) and np.allclose(eps_s, 0.0, atol=1e-7)
+
+
+def test_decouple_rejects_bad_input_and_propagates_nan():
+    with pytest.raises(ValueError, match="same shape"):
+        decouple(np.zeros(3), np.zeros(4))
+    with pytest.raises(ValueError, match="offsets"):
+        decouple(0.0, 0.0, -0.2, 0.2)
+    kappa, eps_s = decouple(np.array([np.nan, 0.01]), np.array([0.0, 0.0]))
+    assert np.isnan(kappa[0]) and np.isnan(eps_s[0]) and np.isfinite(kappa[1])
+
+
+# ------------------------------------------------------------------ outputs and conventions
+def test_outputs_shapes_and_sensor_frame():
+    eu, el = strains(ph.GaussianBumps(height=4.0, fwhm=18.0, centre=(3.0, -2.0)))
+    surf = reconstruct(eu, el, pitch=PITCH, h_upper=0.2, h_lower=0.2)
+    assert isinstance(surf, Surface)
+    assert surf.nodes.shape == (N, M, 3) and surf.nodes.dtype == np.float64
+    assert surf.normals.shape == (N, M, 3) and surf.node_sigma.shape == (N, M)
+    assert np.allclose(np.linalg.norm(surf.normals, axis=-1), 1.0)
+    c = (N // 2, M // 2)
+    assert np.allclose(surf.nodes[c], 0.0, atol=1e-9)
+    assert np.allclose(surf.normals[c], [0.0, 0.0, 1.0], atol=1e-6)
+    # the row direction (+u) at the centre is +x; +v points to +y
+    p, _ = surf.locate([[-0.01, 0.0], [0.01, 0.0], [0.0, -0.01], [0.0, 0.01]])
+    t_u, t_v = (p[1] - p[0]) / 0.02, (p[3] - p[2]) / 0.02
+    assert t_u[0] > 0.9 and abs(t_u[1]) < 1e-4 and abs(t_u[2]) < 1e-4
+    assert t_v[1] > 0.9 and abs(t_v[2]) < 1e-4
+    cloud = surf.points(per_pitch=20)
+    assert cloud.shape == (N * M * 400, 3) and np.all(np.isfinite(cloud))
+    d = surf.diagnostics
+    assert d.status == "solved" and d.solve_time > 0 and d.iterations >= 1 and d.residual >= 0
+
+
+def test_convex_bending_points_normals_outward():
+    eu, el = strains(ph.Cylinder(radius=30.0))
+    surf = reconstruct(eu, el, PITCH)
+    # convex: the sheet curves away from its upper side, edges below the centre's tangent plane
+    assert surf.nodes[2, 0, 2] < -5.0 and surf.nodes[2, 4, 2] < -5.0
+    assert surf.normals[2, 0, 0] < -0.5 and surf.normals[2, 4, 0] > 0.5
+
+
+def test_locate_is_consistent_with_nodes_and_accurate_between_them():
+    shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-4.0, 5.0))
+    eu, el = strains(shape)
+    surf = reconstruct(eu, el, PITCH)
+    pos, nrm = surf.locate(CENTRES.reshape(-1, 2))
+    assert np.allclose(pos, surf.nodes.reshape(-1, 3), atol=1e-9)
+    assert np.allclose(nrm, surf.normals.reshape(-1, 3), atol=1e-9)
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(-29.9, 29.9, size=(200, 2))  # up to half a pitch beyond the outer cells
+    pos, nrm = surf.locate(uv)
+    assert pos.shape == (200, 3) and np.allclose(np.linalg.norm(nrm, axis=1), 1.0)
+    # compare with the truth in the reconstruction's best-aligned frame
+    truth_nodes = shape.position(CENTRES).reshape(-1, 3)
+    p, q = surf.nodes.reshape(-1, 3), truth_nodes
+    pc, qc = p.mean(0), q.mean(0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    rot = vt.T @ np.diag([1, 1, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    err = np.linalg.norm((pos - pc) @ rot.T + qc - shape.position(uv), axis=1)
+    assert err.mean() < 0.2
+    normal_err = np.degrees(np.arccos(np.clip(np.sum((nrm @ rot.T) * shape.normal(uv), axis=1), -1, 1)))
+    assert normal_err.mean() < 2.0
+    assert surf.locate_sigma(uv).shape == (200,)
+
+
+def test_locate_rejects_points_off_the_sheet_and_bad_shapes():
+    surf = reconstruct(*strains(ph.Flat()), PITCH)
+    with pytest.raises(ValueError, match="off the sheet"):
+        surf.locate([[31.0, 0.0]])
+    with pytest.raises(ValueError, match=r"\(K, 2\)"):
+        surf.locate(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        surf.locate([[np.nan, 0.0]])
+
+
+# ------------------------------------------------------------------------------- accuracy
+@pytest.mark.parametrize(
+    "shape",
+    [ph.Flat(), ph.Cylinder(25.0), ph.Cylinder(25.0, axis_angle=90.0), ph.Cylinder(-30.0), ph.Cylinder(60.0, 90.0)],
+    ids=["flat", "cyl-R25-u", "cyl-R25-v", "cyl-R-30", "cyl-R60-v"],
+)
+def test_flat_and_grid_aligned_cylinders_within_0_02_mm(shape):
+    assert mean_error(shape) < 0.005  # target 0.02
+
+
+@pytest.mark.parametrize(
+    "height, fwhm, centre",
+    [(4.0, 18.0, (3.0, -2.0)), (-3.0, 20.0, (-10.0, 8.0)), (5.0, 24.0, (12.0, 12.0)), (2.5, 15.0, (0.0, 0.0)), (3.0, 16.0, (-20.0, -6.0))],
+)
+def test_gaussian_bumps_within_0_15_mm(height, fwhm, centre):
+    assert mean_error(ph.GaussianBumps(height=height, fwhm=fwhm, centre=centre)) < 0.12
+
+
+@pytest.mark.parametrize(
+    "shape, bound",
+    [(ph.SphereCap(40.0), 0.2), (ph.SphereCap(-60.0), 0.1), (ph.Saddle(60.0), 0.15), (ph.Saddle(-40.0), 0.3), (ph.Cylinder(40.0, 30.0), 0.05)],
+    ids=["sphere-R40", "sphere-R-60", "saddle-R60", "saddle-R-40", "oblique-30"],
+)
+def test_doubly_curved_and_oblique_within_0_5_mm(shape, bound):
+    assert mean_error(shape) < bound
+
+
+def test_mirror_image_twist_is_chosen_by_twist_sign():
+    shape = ph.Cylinder(40.0, axis_angle=-30.0)
+    # identical strains to the +30° cylinder's mirror image: the default sign picks that one
+    assert mean_error(shape) > 1.0
+    assert mean_error(shape, twist_sign=-1) < 0.05
+    eu, el = strains(shape)
+    prev = reconstruct(eu, el, PITCH, twist_sign=-1)
+    follow = reconstruct(eu, el, PITCH, previous=prev)  # the sign carries over frame to frame
+    assert np.allclose(follow.nodes, prev.nodes)
+
+
+def test_noisy_bump_within_0_2_mm():
+    shape = ph.GaussianBumps(height=4.0, fwhm=18.0, centre=(3.0, -2.0))
+    eu, el = strains(shape)
+    rng = np.random.default_rng(11)
+    errs = []
+    for _ in range(5):
+        surf = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH)
+        errs.append(aligned_errors(surf.nodes, shape.position(CENTRES)).mean())
+    assert max(errs) < 0.15
+
+
+# ---------------------------------------------------------------- degenerate input, sigma
+def test_all_zero_input_gives_the_flat_sheet():
+    surf = reconstruct(np.zeros((2, N, M)), np.zeros((2, N, M)), PITCH)
+    flat = np.concatenate([CENTRES, np.zeros((N, M, 1))], axis=-1)
+    assert np.allclose(surf.nodes, flat, atol=1e-9)
+    assert np.all(np.isfinite(surf.node_sigma))
+
+
+def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
+    shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(2.0, 1.0))
+    eu, el = strains(shape)
+    full = reconstruct(eu, el, PITCH)
+    eu_dead = eu.copy()
+    eu_dead[0, 1, 3] = np.nan
+    surf = reconstruct(eu_dead, el, PITCH)
+    assert np.all(np.isfinite(surf.nodes)) and np.all(np.isfinite(surf.normals))
+    assert surf.diagnostics.valid_units == 2 * N * M - 1 and "missing" in surf.diagnostics.status
+    assert aligned_errors(surf.nodes, shape.position(CENTRES)).mean() < 0.3
+    raised = surf.node_sigma - full.node_sigma
+    assert np.all(raised >= -1e-12) and raised[1, 4] > 5 * full.node_sigma[1, 4]
+
+
+def test_all_gauges_missing_still_gives_a_surface():
+    nan = np.full((2, N, M), np.nan)
+    surf = reconstruct(nan, nan, PITCH)
+    assert np.all(np.isfinite(surf.nodes)) and "no valid gauge" in surf.diagnostics.status
+    assert np.all(np.isfinite(surf.node_sigma))
+
+
+def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
+    shape = ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0))
+    eu, el = strains(shape)
+    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE)
+    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE)
+    assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
+    assert np.allclose(double.node_sigma, 2 * base.node_sigma, rtol=1e-9)
+    assert np.allclose(base.locate_sigma(CENTRES.reshape(-1, 2)), base.node_sigma.ravel())
+    rng = np.random.default_rng(2)
+    runs = np.array(
+        [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH).nodes for _ in range(40)]
+    )
+    # empirical one-s.d. scatter of the corner nodes (all runs share the sensor frame)
+    scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
+    for corner in ((0, 0), (0, M - 1), (N - 1, 0), (N - 1, M - 1)):
+        assert 0.4 < scatter[corner] / base.node_sigma[corner] < 2.5
+
+
+# ---------------------------------------------------------------------- API and solvers
+def test_bad_input_is_rejected_with_clear_errors():
+    eu, el = strains(ph.Flat())
+    with pytest.raises(ValueError, match=r"\(2, N, M\)"):
+        reconstruct(eu[0], el[0])
+    with pytest.raises(ValueError, match="eps_lower must have shape"):
+        reconstruct(eu, el[:, :4])
+    with pytest.raises(ValueError, match="infinite"):
+        reconstruct(np.full_like(eu, np.inf), el)
+    with pytest.raises(ValueError, match="pitch"):
+        reconstruct(eu, el, pitch=-1.0)
+    with pytest.raises(ValueError, match="strain_sigma"):
+        reconstruct(eu, el, strain_sigma=-1.0)
+    with pytest.raises(ValueError, match="previous"):
+        reconstruct(eu, el, previous="last frame")
+    with pytest.raises(ValueError, match="convex_solver"):
+        Reconstructor(5, 5, convex_solver="cvx")
+
+
+def test_clarabel_fit_agrees_with_the_factorised_fit_on_consistent_data():
+    shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
+    eu, el = strains(shape)
+    fast = Reconstructor(N, M, PITCH)
+    robust = Reconstructor(N, M, PITCH, convex_solver="clarabel")
+    a, b = fast(eu, el), robust(eu, el)
+    assert np.abs(a.nodes - b.nodes).max() < 1e-4
+    assert b.diagnostics.extra["convex_status"] == "Solved"
+
+
+def test_other_grid_sizes_and_rectangular_arrays():
+    for n, m in ((4, 6), (8, 8)):
+        shape = ph.Cylinder(80.0)
+        eu, el = strains(shape, n, m)
+        surf = reconstruct(eu, el, PITCH)
+        truth = shape.position(ph.cell_centres(n, m, PITCH))
+        assert surf.nodes.shape == (n, m, 3)
+        assert aligned_errors(surf.nodes, truth).mean() < 0.01
