@@ -451,6 +451,8 @@ class Device:
         return max(t, self._stall_until)
 
     def _drop(self, count: int, period: float) -> None:
+        if count <= 0:
+            return
         self.scans_dropped += count
         self.sample_index = (self.sample_index + count) & 0xFFFFFFFF
         self._next_t0 += count * period

@@ -303,6 +303,11 @@ def test_stall_drops_scans_and_flags_the_next_one():
 def test_busy_link_drops_whole_scans():
     dev, host, _ = make()
     host.send(p.Start(1), 100.0)
+    host.poll(100.05, tx_ready=False)  # busy while nothing completes: nothing lost
+    first = only(host.poll(100.1), p.MsgType.SCAN)
+    assert [s.sample_index for s in first] == [0] and not first[0].flags & p.ScanFlag.DROPPED_BEFORE
+    dev, host, _ = make()
+    host.send(p.Start(1), 100.0)
     assert only(host.poll(100.35, tx_ready=False), p.MsgType.SCAN) == []
     scans = only(host.poll(100.45), p.MsgType.SCAN)
     assert [s.sample_index for s in scans] == [3]
