@@ -171,7 +171,7 @@ class Reconstructor:
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, gamma)
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
-        pos, frames = _to_sensor_frame(grid, pos, frames)
+        pos = _to_sensor_frame(grid, pos)
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         fit = np.concatenate(
             [(grid.average[d] @ f.ravel() - turning[d].ravel())[valid[d].ravel()] for d, f in ((0, k_u), (1, k_v))]
@@ -200,10 +200,9 @@ class Reconstructor:
         return surf
 
 
-def _to_sensor_frame(grid: FineGrid, pos: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x)."""
     a0, b0 = grid.centre
-    h = grid.spacing
     x_u = pos[a0, b0 + 1] - pos[a0, b0 - 1]
     x_v = pos[a0 + 1, b0] - pos[a0 - 1, b0]
     nz = np.cross(x_u, x_v)
@@ -211,8 +210,7 @@ def _to_sensor_frame(grid: FineGrid, pos: np.ndarray, frames: np.ndarray) -> tup
     ex = x_u - nz * (x_u @ nz)
     ex /= np.linalg.norm(ex)
     rot = np.stack([ex, np.cross(nz, ex), nz])  # rows: new axes in the old frame
-    del h
-    return (pos - pos[a0, b0]) @ rot.T, np.einsum("ij,abjk->abik", rot, frames)
+    return (pos - pos[a0, b0]) @ rot.T
 
 
 _CACHE: "OrderedDict[tuple, Reconstructor]" = OrderedDict()

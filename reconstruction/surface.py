@@ -23,42 +23,49 @@ class Diagnostics:
 
 
 def _hermite_basis(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic Hermite basis (h00, h10, h01, h11) and derivatives, each (4, K)."""
+    """Cubic Hermite basis (h00, h10, h01, h11) and derivatives, each (K, 4)."""
     t2, t3 = t * t, t * t * t
-    h = np.stack([2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2])
-    dh = np.stack([6 * t2 - 6 * t, 3 * t2 - 4 * t + 1, -6 * t2 + 6 * t, 3 * t2 - 2 * t])
+    h = np.stack([2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2], axis=-1)
+    dh = np.stack([6 * t2 - 6 * t, 3 * t2 - 4 * t + 1, -6 * t2 + 6 * t, 3 * t2 - 2 * t], axis=-1)
     return h, dh
 
 
 def hermite_patch_eval(
-    pos: np.ndarray, d_u: np.ndarray, d_v: np.ndarray, d_uv: np.ndarray, u0: float, v0: float, spacing: float, uv: np.ndarray
+    coeffs: np.ndarray, u0: float, v0: float, spacing: float, uv: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bicubic Hermite interpolation on a uniform grid (values and u, v, uv derivatives at the
-    nodes, arrays (nf, mf, 3)); returns positions, ∂/∂u and ∂/∂v at ``uv`` (K, 2)."""
-    nf, mf = pos.shape[:2]
+    """Bicubic Hermite interpolation on a uniform grid.
+
+    ``coeffs`` (nf, mf, 4, 3): value and the u, v, uv derivatives (scaled by the spacing) at each
+    node.  Returns positions, ∂/∂u and ∂/∂v at ``uv`` (K, 2).
+    """
+    nf, mf = coeffs.shape[:2]
     x = (uv[:, 0] - u0) / spacing
     y = (uv[:, 1] - v0) / spacing
     b = np.clip(np.floor(x).astype(int), 0, mf - 2)
     a = np.clip(np.floor(y).astype(int), 0, nf - 2)
-    s, t = x - b, y - a
-    hs, dhs = _hermite_basis(s)
-    ht, dht = _hermite_basis(t)
-    out = np.zeros((3, uv.shape[0], 3))
-    for ci, (da, db) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
-        ia, ib = a + da, b + db
-        # corner (da, db): value weight h(s)_db0 h(t)_da0 etc.
-        su, sv = 2 * db, 2 * da  # index into basis: 0 = value at 0, 2 = value at 1
-        f, fu, fv, fuv = pos[ia, ib], d_u[ia, ib] * spacing, d_v[ia, ib] * spacing, d_uv[ia, ib] * spacing**2
-        for (wu, dwu), (wv, dwv), val in (
-            ((hs[su], dhs[su]), (ht[sv], dht[sv]), f),
-            ((hs[su + 1], dhs[su + 1]), (ht[sv], dht[sv]), fu),
-            ((hs[su], dhs[su]), (ht[sv + 1], dht[sv + 1]), fv),
-            ((hs[su + 1], dhs[su + 1]), (ht[sv + 1], dht[sv + 1]), fuv),
-        ):
-            out[0] += (wu * wv)[:, None] * val
-            out[1] += (dwu * wv)[:, None] * val
-            out[2] += (wu * dwv)[:, None] * val
-    return out[0], out[1] / spacing, out[2] / spacing
+    hs, dhs = _hermite_basis(x - b)
+    ht, dht = _hermite_basis(y - a)
+    # corner (da, db) ∈ {0,1}²; quantity q = value, ∂u, ∂v, ∂uv; basis index along u: 2·db + (q & 1),
+    # along v: 2·da + (q >> 1)
+    c = np.stack([coeffs[a, b], coeffs[a, b + 1], coeffs[a + 1, b], coeffs[a + 1, b + 1]], axis=1)  # (K, 4, 4, 3)
+    iu = np.array([[0, 1, 0, 1], [2, 3, 2, 3], [0, 1, 0, 1], [2, 3, 2, 3]])
+    iv = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 3, 3], [2, 2, 3, 3]])
+    wu, dwu = hs[:, iu], dhs[:, iu]  # (K, 4, 4)
+    wv, dwv = ht[:, iv], dht[:, iv]
+    pos = np.einsum("kcq,kcqd->kd", wu * wv, c)
+    d_u = np.einsum("kcq,kcqd->kd", dwu * wv, c) / spacing
+    d_v = np.einsum("kcq,kcqd->kd", wu * dwv, c) / spacing
+    return pos, d_u, d_v
+
+
+def _central(f: np.ndarray, h: float, axis: int) -> np.ndarray:
+    """Central differences along ``axis`` (one-sided at the ends)."""
+    f = np.moveaxis(f, axis, 0)
+    out = np.empty_like(f)
+    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
+    out[0] = (f[1] - f[0]) / h
+    out[-1] = (f[-1] - f[-2]) / h
+    return np.moveaxis(out, 0, axis)
 
 
 class Surface:
@@ -92,16 +99,14 @@ class Surface:
         self._spacing = float(fine_u[1] - fine_u[0])
         self._pos = fine_positions
         h = self._spacing
-        self._du = np.gradient(fine_positions, h, axis=1)
-        self._dv = np.gradient(fine_positions, h, axis=0)
-        self._duv = np.gradient(self._du, h, axis=0)
+        d_u = _central(fine_positions, h, 1)
+        d_v = _central(fine_positions, h, 0)
+        self._coeffs = np.stack([fine_positions, h * d_u, h * d_v, h * h * _central(d_u, h, 0)], axis=2)
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
         self.nodes = fine_positions[np.ix_(rows, cols)].copy()
-        nrm = np.cross(self._du, self._dv)
-        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-        self._fine_normals = nrm
-        self.normals = nrm[np.ix_(rows, cols)].copy()
+        nrm = np.cross(d_u[np.ix_(rows, cols)], d_v[np.ix_(rows, cols)])
+        self.normals = nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
@@ -153,7 +158,7 @@ class Surface:
         positions are C¹ and normals continuous across patches.
         """
         uv = self._check_uv(uv)
-        p, pu, pv = hermite_patch_eval(self._pos, self._du, self._dv, self._duv, self._u[0], self._v[0], self._spacing, uv)
+        p, pu, pv = hermite_patch_eval(self._coeffs, self._u[0], self._v[0], self._spacing, uv)
         n = np.cross(pu, pv)
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
         return p, n

@@ -1,0 +1,203 @@
+"""Reconstruction benchmark: accuracy per shape class and time per frame.
+
+Run: .venv/bin/python bench/reconstruction.py [--quick] [--seed S] [--shapes K]
+
+Accuracy: 5×5 cells, 12 mm pitch, h = 0.2 mm, 10 mm gauges; strains from the physics forward
+model (skinmap.emulator.physics) for shapes with seeded random parameters; node error after the
+best rigid alignment, noise-free and with strain noise s.d. 0.0057 % on every gauge; for bumps
+also the feature-size fidelity L_r/L_g (diameter of the largest circle inside the −6 dB contour
+around the peak, reconstructed over true).
+
+Timing: median and 90th percentile per frame of `reconstruct(...)` plus `locate` of 20 elements,
+for N×N = 5, 8, 16, 32 on a slowly moving bump, warm (geometry cached, previous frame passed), on
+one core (BLAS threads pinned to 1), and the same with the Clarabel field fit for comparison.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core, as in the gateway
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy import ndimage  # noqa: E402
+
+from skinmap.emulator import physics as ph  # noqa: E402
+from skinmap.reconstruction import Reconstructor, reconstruct  # noqa: E402
+
+PITCH, H, GAUGE = 12.0, 0.2, 10.0
+NOISE = 0.0057e-2
+
+
+def kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation r and centroids (pc, qc) such that (x − pc) r^T + qc best maps p onto q."""
+    pc, qc = p.mean(0), q.mean(0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T, pc, qc
+
+
+def node_errors(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
+    r, pc, qc = kabsch(p, q)
+    return np.linalg.norm((p - pc) @ r.T + qc - q, axis=1)
+
+
+def feature_size(height: np.ndarray, peak: tuple[int, int], step: float) -> float:
+    """Diameter (mm) of the largest circle inside the −6 dB (half-height) region around the peak."""
+    region = height >= 0.5 * height[peak]
+    labels, _ = ndimage.label(region)
+    blob = np.pad(labels == labels[peak], 1)  # the sheet's edge bounds the region too
+    return 2.0 * float(ndimage.distance_transform_edt(blob).max()) * step
+
+
+def bump_fidelity(shape: ph.GaussianBumps, surf, n: int, m: int) -> float:
+    """L_r / L_g on a 0.25 mm material grid, the reconstruction aligned to the truth by its nodes."""
+    h_sign = np.sign(shape.bumps[0][0])
+    step = 0.25
+    u0, u1, v0, v1 = surf.extent
+    us = np.arange(u0, u1 + 1e-9, step)
+    vs = np.arange(v0, v1 + 1e-9, step)
+    uu, vv = np.meshgrid(us, vs)
+    uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    truth = shape.position(uv)
+    r, pc, qc = kabsch(surf.nodes.reshape(-1, 3), shape.position(ph.cell_centres(n, m, PITCH)).reshape(-1, 3))
+    recon = (surf.locate(uv)[0] - pc) @ r.T + qc
+    z_g = h_sign * truth[:, 2].reshape(uu.shape)
+    z_r = h_sign * recon[:, 2].reshape(uu.shape)
+    peak_g = np.unravel_index(np.argmax(z_g), z_g.shape)
+    peak_r = np.unravel_index(np.argmax(z_r), z_r.shape)
+    return feature_size(z_r, peak_r, step) / feature_size(z_g, peak_g, step)
+
+
+def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[object, dict]]]:
+    """Seeded random shapes per class, each with the keyword arguments its reconstruction uses."""
+
+    def signed(lo, hi):
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))) * rng.choice([-1.0, 1.0]))
+
+    classes: dict[str, list] = {"flat": [(ph.Flat(), {})]}
+    classes["cylinder on a grid line, |R| 25-100"] = [
+        (ph.Cylinder(signed(25, 100), axis_angle=float(rng.choice([0.0, 90.0]))), {}) for _ in range(k)
+    ]
+    classes["bump |h| 1-5, FWHM 15-30, anywhere"] = [
+        (ph.GaussianBumps(height=signed(1, 5), fwhm=float(rng.uniform(15, 30)), centre=tuple(rng.uniform(-24, 24, 2))), {})
+        for _ in range(k)
+    ]
+    classes["bump |h| 5, FWHM 15 (spec corner)"] = [
+        (ph.GaussianBumps(height=5.0 * rng.choice([-1.0, 1.0]), fwhm=15.0, centre=tuple(rng.uniform(-24, 24, 2))), {})
+        for _ in range(k)
+    ]
+    classes["sphere cap |R| 40-120"] = [(ph.SphereCap(signed(40, 120)), {}) for _ in range(k)]
+    classes["saddle |R| 40-120"] = [(ph.Saddle(signed(40, 120)), {}) for _ in range(k)]
+    # An oblique cylinder's twist sign(R)·sign(axis angle) is not observable (its mirror image
+    # gives the same strains): rows with the default sign (+1), the other sign told via
+    # twist_sign, and the other sign left to the default (the mirror image is reconstructed).
+    obl = [(signed(30, 100), float(rng.uniform(10, 80))) for _ in range(k)]
+    classes["oblique cylinder, twist > 0"] = [(ph.Cylinder(r, np.sign(r) * a), {}) for r, a in obl]
+    classes["oblique cylinder, twist < 0, twist_sign=-1"] = [
+        (ph.Cylinder(r, -np.sign(r) * a), {"twist_sign": -1}) for r, a in obl
+    ]
+    classes["oblique cylinder, twist < 0, default sign"] = [(ph.Cylinder(r, -np.sign(r) * a), {}) for r, a in obl]
+    return classes
+
+
+def accuracy_table(k: int, noisy_draws: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = m = 5
+    centres = ph.cell_centres(n, m, PITCH)
+    print(f"\nAccuracy, {n}x{m} cells, pitch {PITCH:g} mm, h = {H:g} mm, {GAUGE:g} mm gauges "
+          f"({k} random shapes per class, seed {seed}; noisy: s.d. {100 * NOISE:.4f} % strain, {noisy_draws} draws each)")
+    head = f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} {'L_r/L_g':>16s}"
+    print(head)
+    print("-" * len(head))
+    for name, shapes in shape_classes(rng, k).items():
+        clean_mean, clean_max, noisy_mean, noisy_max, fid = [], [], [], [], []
+        for shape, kw in shapes:
+            eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
+            truth = shape.position(centres)
+            surf = reconstruct(eu, el, PITCH, H, H, **kw)
+            e = node_errors(surf.nodes, truth)
+            clean_mean.append(e.mean())
+            clean_max.append(e.max())
+            for _ in range(noisy_draws):
+                noisy = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, H, H, **kw)
+                e = node_errors(noisy.nodes, truth)
+                noisy_mean.append(e.mean())
+                noisy_max.append(e.max())
+            if isinstance(shape, ph.GaussianBumps):
+                fid.append(bump_fidelity(shape, surf, n, m))
+        f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
+        print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
+              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {f:>16s}")
+    print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape)")
+
+
+def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> np.ndarray:
+    times = []
+    prev = None
+    for eu, el in frames:
+        t0 = time.perf_counter()
+        surf = rec(eu, el, previous=prev)
+        surf.locate(uv)
+        times.append(time.perf_counter() - t0)
+        prev = surf
+    return np.array(times)
+
+
+def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    print("\nTime per frame: reconstruct + locate(20 elements), warm, one core")
+    head = f"{'N x N':>7s} {'fine grid':>10s} {'setup ms':>9s} {'median ms':>10s} {'p90 ms':>8s} {'clarabel fit median ms':>23s}"
+    print(head)
+    print("-" * len(head))
+    medians = {}
+    for n in sizes:
+        half = 0.5 * n * PITCH
+        uv = rng.uniform(-half, half, size=(20, 2))
+        count = frames_for[n]
+        frames = []
+        for k in range(count):
+            phase = 2 * np.pi * k / max(count, 1)
+            shape = ph.GaussianBumps(height=3.0, fwhm=max(18.0, 0.4 * n * PITCH),
+                                     centre=(0.3 * half * np.cos(phase), 0.3 * half * np.sin(phase)))
+            eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
+            frames.append((eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)))
+        t0 = time.perf_counter()
+        rec = Reconstructor(n, n, PITCH, H, H, GAUGE)
+        rec(*frames[0])
+        setup = time.perf_counter() - t0
+        t = time_frames(rec, frames, uv)
+        medians[n] = np.median(t)
+        cl = "-"
+        if n <= 16:
+            rec_c = Reconstructor(n, n, PITCH, H, H, GAUGE, convex_solver="clarabel")
+            rec_c(*frames[0])
+            tc = time_frames(rec_c, frames[: max(5, count // 4)], uv)
+            cl = f"{1e3 * np.median(tc):.2f}"
+        print(f"{n:>3d}x{n:<3d} {rec.grid.nf:>4d}x{rec.grid.mf:<5d} {1e3 * setup:9.1f} {1e3 * medians[n]:10.2f} "
+              f"{1e3 * np.percentile(t, 90):8.2f} {cl:>23s}")
+    if len(medians) > 1:
+        lo, hi = min(medians), max(medians)
+        print(f"scaling {lo}->{hi}: time x{medians[hi] / medians[lo]:.1f} for cells x{(hi / lo) ** 2:.0f} "
+              f"(N^3 would be x{(hi / lo) ** 3:.0f})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer shapes and frames (about 20 s)")
+    ap.add_argument("--seed", type=int, default=2024, help="seed of the random shape parameters and noise")
+    ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
+    args = ap.parse_args()
+    k = args.shapes or (4 if args.quick else 12)
+    accuracy_table(k, 1 if args.quick else 3, args.seed)
+    frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
+    timing_table([5, 8, 16, 32], frames, args.seed)
+
+
+if __name__ == "__main__":
+    main()
