@@ -2,29 +2,21 @@
 from __future__ import annotations
 
 import json
-import socket
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port, running_gateway
 
 from skinmap.daemon.cli import main as skinmap_main
 from skinmap.daemon.config import parse_config
-from skinmap.daemon.service import Gateway, open_zenoh
 from skinmap.emulator.device import DeviceConfig
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import PtyTransport
 
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -55,18 +47,13 @@ directory = "state"
     cfg = load_config(cfg_path)
     outputs: dict[str, object] = {}
     try:
-        with open_zenoh(cfg) as session:
-            gw = Gateway(cfg, zenoh_session=session)
-            runner = threading.Thread(target=gw.run, daemon=True)
-            runner.start()
+        with running_gateway(cfg) as gw:
             deadline = time.monotonic() + 30
             while gw.stats.results < 20 and time.monotonic() < deadline:
                 time.sleep(0.05)
             outputs["gateway_results"] = gw.stats.results
             outputs["info_rc"] = skinmap_main(["info", "--connect", f"tcp/127.0.0.1:{zport}", "--device", "cli", "--json"])
             outputs["echo_rc"] = skinmap_main(["echo", "--connect", f"tcp/127.0.0.1:{zport}", "--device", "cli", "--duration", "1.0"])
-            gw.stop()
-            runner.join(timeout=20)
     finally:
         emu.stop()
     return tmp, cfg_path, outputs

@@ -4,17 +4,16 @@ replays to identical results.
 from __future__ import annotations
 
 import socket
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port, running_gateway
 
 from skinmap.daemon.client import SkinmapClient
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.replay import replay_log
-from skinmap.daemon.service import Gateway, open_zenoh
 from skinmap.emulator.device import DeviceConfig
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.emulator.emulator import Emulator
@@ -22,12 +21,6 @@ from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import PtyTransport
 
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,32 +61,25 @@ def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(em
     zport = free_port()
     cfg = make_config(tmp_path / "ttySKIN0", tmp_path, zport)
     errors = []
-    with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, zenoh_session=session)
-        runner = threading.Thread(target=gw.run, daemon=True)
-        runner.start()
-        try:
-            with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
-                first = client.elements(timeout=30.0)
-                assert first.positions.shape == (len(ELEMENT_UV), 3)
-                for _ in range(10):
-                    msg = client.elements(timeout=5.0)
-                    assert np.isfinite(msg.positions).all() and np.isfinite(msg.normals).all()
-                    assert (msg.flags & 1).all()
-                    result = next((r for r in list(gw.results) if r.seq == msg.seq), None)
-                    if result is None:
-                        continue
-                    truth = emulator.ground_truth(msg.seq)
-                    r, t = rigid_align(result.nodes_mm.reshape(-1, 3), truth.nodes.reshape(-1, 3))
-                    est = (msg.positions * 1000.0) @ r.T + t
-                    errors.append(np.linalg.norm(est - truth.element_positions, axis=1).mean())
-                info = client.info()
-                assert info["rows"] == 5 and info["elements"]["count"] == len(ELEMENT_UV)
-                status = client.latest("status")
-                assert status["connected"] is True
-        finally:
-            gw.stop()
-            runner.join(timeout=20)
+    with running_gateway(cfg) as gw:
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
+            first = client.elements(timeout=30.0)
+            assert first.positions.shape == (len(ELEMENT_UV), 3)
+            for _ in range(10):
+                msg = client.elements(timeout=5.0)
+                assert np.isfinite(msg.positions).all() and np.isfinite(msg.normals).all()
+                assert (msg.flags & 1).all()
+                result = next((r for r in list(gw.results) if r.seq == msg.seq), None)
+                if result is None:
+                    continue
+                truth = emulator.ground_truth(msg.seq)
+                r, t = rigid_align(result.nodes_mm.reshape(-1, 3), truth.nodes.reshape(-1, 3))
+                est = (msg.positions * 1000.0) @ r.T + t
+                errors.append(np.linalg.norm(est - truth.element_positions, axis=1).mean())
+            info = client.info()
+            assert info["rows"] == 5 and info["elements"]["count"] == len(ELEMENT_UV)
+            status = client.latest("status")
+            assert status["connected"] is True
     assert errors, "no published scan could be matched with the reconstruction it came from"
     assert float(np.mean(errors)) < 0.5, f"element error {np.mean(errors):.3f} mm"
 
@@ -107,26 +93,19 @@ def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(em
 def test_daemon_survives_unplug_and_replug_behind_the_same_link(emulator, tmp_path):
     zport = free_port()
     cfg = make_config(tmp_path / "ttySKIN0", tmp_path, zport)
-    with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, zenoh_session=session)
-        runner = threading.Thread(target=gw.run, daemon=True)
-        runner.start()
-        try:
-            with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
-                client.elements(timeout=30.0)
-                emulator.disconnect(reconnect_after_s=0.5)
-                deadline = time.monotonic() + 15
-                while gw.link.stats.reconnects < 1 and time.monotonic() < deadline:
-                    time.sleep(0.05)
-                assert gw.link.stats.reconnects >= 1
-                t_back = time.time_ns()
+    with running_gateway(cfg) as gw:
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
+            client.elements(timeout=30.0)
+            emulator.disconnect(reconnect_after_s=0.5)
+            deadline = time.monotonic() + 15
+            while gw.link.stats.reconnects < 1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert gw.link.stats.reconnects >= 1
+            t_back = time.time_ns()
+            msg = client.elements(timeout=10.0)
+            while msg.host_time_ns < t_back:  # skip anything queued from before the unplug
                 msg = client.elements(timeout=10.0)
-                while msg.host_time_ns < t_back:  # skip anything queued from before the unplug
-                    msg = client.elements(timeout=10.0)
-                assert np.isfinite(msg.positions).all()
-        finally:
-            gw.stop()
-            runner.join(timeout=20)
+            assert np.isfinite(msg.positions).all()
     assert gw.link.stats.disconnects >= 1
 
 
@@ -206,18 +185,13 @@ def test_dead_gauge_degrades_nearby_elements_and_is_reported(emulator, tmp_path)
     emulator.set_open(mask)
     zport = free_port()
     cfg = make_config(tmp_path / "ttySKIN0", tmp_path, zport)
-    with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, zenoh_session=session)
-        runner = threading.Thread(target=gw.run, daemon=True)
-        runner.start()
-        try:
-            with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
-                client.elements(timeout=30.0)
-                msg = client.elements(timeout=5.0)
-                status = client.status(timeout=5.0)
-        finally:
-            gw.stop()
-            runner.join(timeout=20)
+    with running_gateway(cfg) as gw:
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
+            client.elements(timeout=30.0)
+            msg = client.elements(timeout=5.0)
+            status = client.next("status", timeout=5.0)
+            if status["healthy"]:  # the first report may predate the first processed scan
+                status = client.next("status", timeout=5.0)
     assert np.isfinite(msg.positions).all() and np.isfinite(msg.uncertainty).all()
     degraded = (msg.flags & 0x04) != 0
     near = np.abs(ELEMENT_UV).max(axis=1) <= 18.0  # within 1.5 pitch of the centre cell

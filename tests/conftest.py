@@ -1,0 +1,30 @@
+"""Shared test helpers: free loopback ports and a gateway running in a background thread."""
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+from typing import Any, Iterator
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def running_gateway(cfg: Any, **gateway_kwargs: Any) -> Iterator[Any]:
+    """Open the config's Zenoh session, run a Gateway in a thread, stop and join it on exit."""
+    from skinmap.daemon.service import Gateway, open_zenoh
+
+    with open_zenoh(cfg) as session:
+        gw = Gateway(cfg, zenoh_session=session, **gateway_kwargs)
+        runner = threading.Thread(target=gw.run, daemon=True, name="test-gateway")
+        runner.start()
+        try:
+            yield gw
+        finally:
+            gw.stop()
+            runner.join(timeout=20)
