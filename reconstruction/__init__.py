@@ -154,6 +154,7 @@ class Reconstructor:
             # turning per length = (ε_u − ε_l)/(h_u + h_l); floor for noise-free use
             sig_turn = max(np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower), 1e-6)
             z, convex_info = huber_potential(grid, turning, valid, self.huber_sigmas * sig_turn)
+            convex_info["iterations"] = int(convex_info["iterations"])
             k_u, k_v, tau0 = potential_curvatures(grid, z)
         sign = 1.0
         if twist_sign is not None:
@@ -162,7 +163,8 @@ class Reconstructor:
             sign = float(twist_sign)
         elif previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
-        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign)
+        turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
+        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma)
         if self.shear_passes:
             gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes)
         else:

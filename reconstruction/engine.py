@@ -87,13 +87,15 @@ def solve_twist(
     lam_u: np.ndarray,
     lam_v: np.ndarray,
     twist_sign: float = 1.0,
+    turning_sigma: float = 0.0,
 ) -> tuple[np.ndarray, float]:
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
 
     The constant is set only where the product of the normal curvatures is mostly unexplained by
-    the metric (an oblique cylinder, a twisted sheet); its sign is not observable (mirror-image
-    twists give identical strains), so ``twist_sign`` chooses it.
+    the metric (an oblique cylinder, a twisted sheet) and exceeds what the turning noise
+    ``turning_sigma`` (per length, one unit) can produce; its sign is not observable
+    (mirror-image twists give identical strains), so ``twist_sign`` chooses it.
     """
     tau0 = tau0 - tau0.mean()
     # Only the region spanned by the cell centres: one-sided differences at the border would
@@ -108,7 +110,12 @@ def solve_twist(
     dev = np.sqrt(0.5 * (np.var(lam_u[inner]) + np.var(lam_v[inner])))
     ratio = dev / need if need > 0 else np.inf
     weight = float(np.clip(1.5 - 3.0 * ratio, 0.0, 1.0))
-    c = float(np.copysign(np.sqrt(max(prod, 0.0) * weight), twist_sign))
+    # three s.d. of the mean product when each unit's turning carries independent noise
+    n_units = grid.n * grid.m
+    noise = 3.0 * (turning_sigma * np.sqrt(np.mean(k_u[inner] ** 2) + np.mean(k_v[inner] ** 2)) + turning_sigma**2) / np.sqrt(n_units)
+    # unbiased above twice the noise level, off below it, continuous in between
+    significance = float(np.clip(prod / noise - 1.0, 0.0, 1.0)) if noise > 0 else float(prod > 0)
+    c = float(np.copysign(np.sqrt(max(prod, 0.0) * weight * significance), twist_sign))
     return tau0 + c, c
 
 
