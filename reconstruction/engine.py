@@ -115,8 +115,37 @@ def solve_twist(
     noise = 3.0 * (turning_sigma * np.sqrt(np.mean(k_u[inner] ** 2) + np.mean(k_v[inner] ** 2)) + turning_sigma**2) / np.sqrt(n_units)
     # unbiased above twice the noise level, off below it, continuous in between
     significance = float(np.clip(prod / noise - 1.0, 0.0, 1.0)) if noise > 0 else float(prod > 0)
-    c = float(np.copysign(np.sqrt(max(prod, 0.0) * weight * significance), twist_sign))
+    c2 = max(prod, 0.0) * weight * significance
+    if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
+        c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise)
+    c = float(np.copysign(np.sqrt(c2), twist_sign))
     return tau0 + c, c
+
+
+def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float) -> float:
+    """Squared constant twist of a sheet whose stretch pattern needs negative Gaussian curvature
+    (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
+
+    Without twist, Brioschi's formula asks for a shear F = F₀; a twist c adds −c²·EG to its
+    source, so F = F₀ − c² F₁.  The least-shear c² (least-squares over the cell-centre region)
+    is used only when it removes most of the shear (a uniform twist, as on a saddle, not the
+    local shear around a bump) and stands above the noise.
+    """
+    h = grid.spacing
+    s11, s22 = k_u / lam_u, k_v / lam_v
+    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, lam_u, lam_v, np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
+    f1 = _mixed_antiderivative(h * h * _cell_mean((lam_u * lam_v) ** 2))
+    f0, f1 = f0[inner], f1[inner]
+    den = float(np.sum(f1 * f1))
+    if den <= 0.0:
+        return 0.0
+    x = float(np.sum(f0 * f1)) / den
+    if x <= 0.0:
+        return 0.0
+    explained = x * x * den / max(float(np.sum(f0 * f0)), 1e-300)
+    weight = float(np.clip((explained - 0.5) / 0.3, 0.0, 1.0))
+    significance = float(np.clip(x / noise - 1.0, 0.0, 1.0)) if noise > 0 else 1.0
+    return x * weight * significance
 
 
 def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
@@ -128,6 +157,24 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
     return f - f.mean(axis=0, keepdims=True) - f.mean(axis=1, keepdims=True) + f.mean()
 
 
+def _brioschi_source(h: float, lam_u, lam_v, f, k_gauss) -> np.ndarray:
+    """F_uv that Brioschi's formula requires for Gaussian curvature ``k_gauss`` with
+    E = λ_u², G = λ_v² and the current F: E_vv/2 + G_uu/2 + K (EG − F²) + Q/(EG − F²)."""
+    e, g = lam_u * lam_u, lam_v * lam_v
+    e_u, e_v, g_u, g_v = _d_u(e, h), _d_v(e, h), _d_u(g, h), _d_v(g, h)
+    f_u, f_v = _d_u(f, h), _d_v(f, h)
+    det = e * g - f * f
+    a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
+    a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
+    det_b = -0.5 * e_v * (0.5 * e_v * g - 0.5 * f * g_u) + 0.5 * g_u * (0.5 * e_v * f - 0.5 * e * g_u)
+    q = a12 * (a21 * g - f * a31) - a13 * (a21 * f - e * a31) + det_b
+    return 0.5 * (_d_v(e_v, h) + _d_u(g_u, h)) + k_gauss * det + q / det
+
+
+def _cell_mean(f: np.ndarray) -> np.ndarray:
+    return 0.25 * (f[:-1, :-1] + f[1:, :-1] + f[:-1, 1:] + f[1:, 1:])
+
+
 def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3) -> np.ndarray:
     """Shear angle γ (nf, mf) between x_v and the normal to x_u, from the Gauss equation.
 
@@ -137,31 +184,14 @@ def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3
     with the current F; the least-norm solution fixes the part f(u) + g(v) that ∂_uv leaves free.
     """
     h = grid.spacing
-    def d_u(a):
-        return _d_u(a, h)
-
-    def d_v(a):
-        return _d_v(a, h)
-
-    e, g = lam_u * lam_u, lam_v * lam_v
-    e_u, e_v, g_u, g_v = d_u(e), d_v(e), d_u(g), d_v(g)
-    base = 0.5 * (d_v(e_v) + d_u(g_u))
     s11 = k_u / lam_u
-    f = np.zeros_like(e)
+    f = np.zeros_like(k_u)
     for _ in range(max(1, iterations)):
         sg = np.clip(f / (lam_u * lam_v), -0.9, 0.9)
         cg2 = 1.0 - sg * sg
         s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * np.sqrt(cg2)) / cg2
-        k_gauss = s11 * s22 - tau * tau
-        det = e * g - f * f
-        f_u, f_v = d_u(f), d_v(f)
-        a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
-        a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
-        det_b = -0.5 * e_v * (0.5 * e_v * g - 0.5 * f * g_u) + 0.5 * g_u * (0.5 * e_v * f - 0.5 * e * g_u)
-        q = a12 * (a21 * g - f * a31) - a13 * (a21 * f - e * a31) + det_b
-        src = base + k_gauss * det + q / det
-        cell = 0.25 * (src[:-1, :-1] + src[1:, :-1] + src[:-1, 1:] + src[1:, 1:])
-        f = _mixed_antiderivative(h * h * cell)
+        src = _brioschi_source(h, lam_u, lam_v, f, s11 * s22 - tau * tau)
+        f = _mixed_antiderivative(h * h * _cell_mean(src))
     return np.arcsin(np.clip(f / (lam_u * lam_v), -0.9, 0.9))
 
 
