@@ -483,7 +483,9 @@ class McapLogger:
 
     Storage errors raise `LogStorageError` from the call that hit them; the logger then drops
     messages (counted in `messages_dropped`) until `retry_interval_s` has passed, when the next
-    call tries to open a fresh file. A file cut by an error stays as `.mcap.active` and is
+    call tries to open a fresh file. Messages that may not have reached the disk because of
+    the error (the unfinished chunk of the abandoned file, the message being written) are
+    counted in `messages_lost`. A file cut by an error stays as `.mcap.active` and is
     readable with `skinmap.daemon.mcapinspect.recover`.
     """
 
@@ -566,6 +568,7 @@ class McapLogger:
         self.messages_written = 0
         self.messages_flushed = 0
         self.messages_dropped = 0
+        self.messages_lost = 0
         self.files_finished = 0
         self.finished_paths: list[str] = []
         self.abandoned_paths: list[str] = []
@@ -718,8 +721,12 @@ class McapLogger:
         self._check_time(t_ns)
         if seq is not None:
             _check_seq(seq)
-        if not self._ready(t_ns):
-            return
+        try:
+            if not self._ready(t_ns):
+                return
+        except LogStorageError:
+            self.messages_lost += 1  # no file could take it
+            raise
         self._guard("writing to", lambda: self._add(spec, int(t_ns), data, seq))
 
     def _ready(self, t_ns: int) -> bool:
@@ -765,6 +772,8 @@ class McapLogger:
                 pass
         if self._path is not None:
             self.abandoned_paths.append(self._path)
+        # Messages of the unfinished chunk may not have reached the disk.
+        self.messages_lost += self._pending_messages
         self._writer = self._stream = self._path = None
         self._channels.clear()
         self._schemas.clear()
@@ -851,8 +860,12 @@ class McapLogger:
         assert self._writer is not None and self._stream is not None
         channel = self._channel_id(spec)
         before = self._stream.position
-        self._writer.add_message(channel_id=channel, log_time=t_ns, publish_time=t_ns,
-                                 data=data, sequence=0 if seq is None else seq % 2**32)
+        try:
+            self._writer.add_message(channel_id=channel, log_time=t_ns, publish_time=t_ns,
+                                     data=data, sequence=0 if seq is None else seq % 2**32)
+        except OSError:
+            self._pending_messages += 1  # it was in the chunk whose write failed
+            raise
         self.messages_written += 1
         self._pending_messages += 1
         self._pending_bytes += len(data) + 31

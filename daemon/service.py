@@ -437,6 +437,8 @@ class Gateway:
             "log_state": self._log_state,
             "log_error": self._last_log_error,
             "log_dropped": int(s.log_dropped),
+            # Refused by failing storage or cut with an abandoned file (disk full, read-only).
+            "log_lost": int(lg.messages_dropped + lg.messages_lost) if lg is not None else 0,
             "log_file": (lg.current_path or "") if lg is not None else "",
             "log_bytes": int(lg.bytes_written) if lg is not None else 0,
             "publish_errors": int(s.publish_errors),
@@ -557,8 +559,9 @@ def _default_logger(cfg: DaemonConfig) -> Any:
     from skinmap.daemon.mcaplog import McapLogger
 
     lc = cfg.log
+    # The folder is created by the logger when it opens a file: a missing or read-only log
+    # folder then shows as log_state 'error' in status while publishing goes on.
     directory = cfg.resolve(lc.directory)
-    directory.mkdir(parents=True, exist_ok=True)
     return McapLogger(
         directory,
         basename=lc.basename,

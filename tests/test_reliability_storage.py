@@ -1,0 +1,391 @@
+"""Storage faults: disk full and read-only log folders while running, SIGKILL mid-write,
+rotation under load. skinmapd must keep publishing, say so in status, resume logging when the
+storage comes back, and leave every MCAP file readable.
+
+Figures (time to detect, time to resume, longest publishing gap, messages lost) are printed
+with the prefix "FIGURE" (run with -s to see them).
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import free_port, running_gateway
+from mcap.reader import make_reader
+
+from skinmap.daemon.cli import main as skinmap_main
+from skinmap.daemon.client import SkinmapClient
+from skinmap.daemon.config import parse_config
+from skinmap.daemon.mcapinspect import inspect, iter_messages_file_order
+from skinmap.daemon.mcaplog import LogStorageError, McapLogger
+from skinmap.daemon.replay import replay_log
+from skinmap.daemon.service import Gateway
+from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.emulator import Emulator
+from skinmap.emulator.physics import make_shape
+from skinmap.emulator.transport import PtyTransport
+from skinmap.protocol import Scan, decode_frame
+
+pytestmark = pytest.mark.slow
+
+DEVICE = "storage"
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    emu = Emulator(DeviceConfig(n=4, m=4, scan_rate_hz=40.0, seed=3), make_shape("cylinder", radius=45.0),
+                   PtyTransport(link=tmp_path / "tty"))
+    emu.start()
+    yield emu
+    emu.stop()
+
+
+def gateway_config(tmp_path: Path, zport: int, log_dir: Path, **log):
+    return parse_config({
+        "device": {"port": str(tmp_path / "tty"), "name": DEVICE, "scan_rate_hz": 40},
+        "output": {"rate_hz": 20, "status_rate_hz": 4},
+        "elements": {"layout": "grid", "rows": 1, "cols": 4},
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{zport}"]},
+        "log": {"directory": str(log_dir), **log},
+        "state": {"directory": str(tmp_path / "state")},
+    }, source=str(tmp_path / "skinmapd.toml"))
+
+
+def wait_for(predicate, timeout: float, what: str, poll: float = 0.02) -> float:
+    """Seconds until `predicate()` held; fails naming `what` after `timeout`."""
+    t0 = time.monotonic()
+    while not predicate():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(poll)
+    return time.monotonic() - t0
+
+
+class SwitchableStorage:
+    """An `open_file` for McapLogger whose files start failing with `fail` (an errno) on
+    demand, as a disk that fills up or a folder remounted read-only does."""
+
+    def __init__(self) -> None:
+        self.fail: int | None = None
+        self.refused = 0
+
+    def _check(self, path: str) -> None:
+        if self.fail is not None:
+            self.refused += 1
+            raise OSError(self.fail, os.strerror(self.fail), path)
+
+    def open(self, path: str):
+        self._check(path)
+        return _SwitchableFile(open(path, "xb", buffering=0), path, self)
+
+
+class _SwitchableFile:
+    def __init__(self, raw, path: str, storage: SwitchableStorage) -> None:
+        self.raw, self.path, self.storage = raw, path, storage
+
+    def write(self, data) -> int:
+        self.storage._check(self.path)
+        return self.raw.write(data)
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+    def fileno(self) -> int:
+        return self.raw.fileno()
+
+    def close(self) -> None:
+        self.raw.close()
+
+
+def test_logger_counts_what_failing_storage_lost(tmp_path):
+    storage = SwitchableStorage()
+    lg = McapLogger(tmp_path, chunk_size=1 << 20, retry_interval_s=60.0, open_file=storage.open)
+    t = time.time_ns()
+    for i in range(10):
+        lg.log_raw_frame(t + i, bytes([i + 1, 0]))
+    lg.flush()  # these ten are on disk
+    for i in range(5):
+        lg.log_raw_frame(t + 10 + i, bytes([i + 11, 0]))  # these wait in the open chunk
+    storage.fail = errno.ENOSPC
+    with pytest.raises(LogStorageError, match="No space left"):
+        lg.flush()
+    assert lg.messages_lost == 5 and not lg.healthy
+    lg.log_raw_frame(t + 20, b"\x30\x00")  # inside the retry interval: refused, counted
+    assert lg.messages_dropped == 1
+    (cut,) = lg.abandoned_paths
+    assert [m.data for m in iter_messages_file_order(cut)] == [bytes([i + 1, 0]) for i in range(10)]
+
+    # A message whose own chunk write fails is counted too.
+    storage.fail = None
+    small = McapLogger(tmp_path / "small", chunk_size=64, create_directory=True, open_file=storage.open)
+    small.log_raw_frame(t, bytes(100))
+    storage.fail = errno.EROFS
+    with pytest.raises(LogStorageError, match="Read-only"):
+        small.log_raw_frame(t + 1, bytes(100))
+    assert small.messages_lost == 1
+    # Opening a file on a refusing storage loses the message that wanted it.
+    fresh = McapLogger(tmp_path / "fresh", create_directory=True, open_file=storage.open)
+    with pytest.raises(LogStorageError):
+        fresh.log_status(t, {"a": 1})
+    assert fresh.messages_lost == 1 and fresh.current_path is None
+
+
+def elements_after(client: SkinmapClient, t_ns: int, timeout: float):
+    """The first elements message stamped after host time `t_ns`."""
+    deadline = time.monotonic() + timeout
+    while True:
+        msg = client.elements(timeout=max(0.1, deadline - time.monotonic()))
+        if msg.host_time_ns > t_ns:
+            return msg
+
+
+def receive_for(client: SkinmapClient, seconds: float) -> list:
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        out.append(client.elements(timeout=5.0))
+    return out
+
+
+def longest_gap_s(msgs: list) -> float:
+    t = np.array([m.host_time_ns for m in msgs], dtype=np.float64) / 1e9
+    return float(np.diff(t).max()) if len(t) > 1 else float("inf")
+
+
+@pytest.mark.parametrize("fault", [errno.ENOSPC, errno.EROFS], ids=["disk-full", "read-only"])
+def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(emulator, tmp_path, fault):
+    zport = free_port()
+    log_dir = tmp_path / "logs"
+    cfg = gateway_config(tmp_path, zport, log_dir)
+    storage = SwitchableStorage()
+    loggers: list[McapLogger] = []
+
+    def logger_factory(c):
+        lg = McapLogger(log_dir, basename="skinmap", chunk_size=8192, retry_interval_s=0.5,
+                        create_directory=True, open_file=storage.open)
+        loggers.append(lg)
+        return lg
+
+    with running_gateway(cfg, logger_factory=logger_factory) as gw:
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
+            client.elements(timeout=30.0)
+            wait_for(lambda: loggers[0].messages_flushed > 20, 15, "a first flushed chunk")
+
+            storage.fail = fault
+            t_fail = time.time_ns()
+            detect_s = wait_for(lambda: gw.status()["log_state"] == "error", 10, "log_state 'error'")
+            st = gw.status()
+            assert st["healthy"] is False
+            assert any("logging failed" in w and os.strerror(fault) in w for w in st["warnings"]), st["warnings"]
+            assert os.strerror(fault) in st["log_error"]
+            # Subscribers see the condition too.
+            wait_for(lambda: client.latest("status")["log_state"] == "error", 5, "a published status saying so")
+
+            # Publishing goes on while the storage refuses everything.
+            during = [elements_after(client, t_fail, 10.0)] + receive_for(client, 1.5)
+            assert len(during) >= 10 and all(np.isfinite(m.positions).all() for m in during)
+            assert gw.status()["log_state"] == "error"
+            lost = gw.status()["log_lost"]
+            assert lost > 0  # what the log missed is counted
+
+            storage.fail = None
+            resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 10, "logging to resume")
+            after = receive_for(client, 1.0)
+            assert gw.status()["healthy"] is True or all("logging" not in w for w in gw.status()["warnings"])
+            gap_s = longest_gap_s(during + after)
+            # Generous bound: recovery happened in-process; the measured figure is printed.
+            assert resume_s < 5.0
+    lg = loggers[0]
+    print(f"FIGURE storage {os.strerror(fault)}: detected in {detect_s:.3f} s, resumed {resume_s:.3f} s after "
+          f"space returned (retry 0.5 s), longest publish gap {gap_s * 1e3:.0f} ms, log messages lost "
+          f"{lg.messages_lost + lg.messages_dropped} ({lg.messages_lost} cut, {lg.messages_dropped} refused)")
+    assert gap_s < 1.0  # publishing never stopped (20 Hz output)
+    # Every file left behind is readable; the one cut by the fault holds an exact prefix.
+    assert lg.abandoned_paths
+    for path in lg.abandoned_paths:
+        it = iter_messages_file_order(path)
+        raw = [m for m in it if m.topic == "/raw"]
+        assert raw and not it.end.complete
+    finished = sorted(log_dir.glob("*.mcap"))
+    assert finished and len(list(log_dir.glob("*.mcap.active"))) == len(lg.abandoned_paths)
+    last = inspect(finished[-1])
+    assert last.end.complete and last.topics["/raw"].count > 10 and "/config" in last.topics
+    assert replay_log(finished[-1]).identical
+
+
+def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
+    """A log folder that cannot be created (its parent is a file: what a read-only mount looks
+    like to root) does not stop the daemon; logging starts once the folder is usable."""
+    zport = free_port()
+    blocker = tmp_path / "mnt"
+    blocker.write_text("not a folder")
+    log_dir = blocker / "logs"
+    cfg = gateway_config(tmp_path, zport, log_dir)
+    Gateway(cfg)  # constructing with the default logger must not fail on the folder
+    with running_gateway(cfg) as gw:  # default logger: retry every 5 s
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
+            client.elements(timeout=30.0)
+            wait_for(lambda: gw.status()["log_state"] == "error", 10, "log_state 'error'")
+            st = gw.status()
+            assert "Not a directory" in st["log_error"] and str(blocker) in st["log_error"]
+            assert len(receive_for(client, 1.0)) >= 10
+            blocker.unlink()
+            blocker.mkdir()
+            resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 12, "logging to resume")
+            assert len(receive_for(client, 1.0)) >= 10
+    print(f"FIGURE storage folder missing at start: logging resumed {resume_s:.2f} s after the folder "
+          f"became usable (retry interval 5 s)")
+    (done,) = sorted(log_dir.glob("*.mcap"))
+    assert inspect(done).end.complete and replay_log(done).identical
+
+
+# ---------------------------------------------------------------------------------------------
+# A real skinmapd process at full scan rate with small files, killed with SIGKILL.
+
+KILL_RATE_HZ = 100.0
+CHUNK_KB = 16
+
+
+@pytest.fixture(scope="module")
+def killed_daemon(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sigkill")
+    emu = Emulator(DeviceConfig(n=4, m=4, scan_rate_hz=KILL_RATE_HZ, seed=9), make_shape("palm"),
+                   PtyTransport(link=tmp / "tty"))
+    emu.start()
+    zport = free_port()
+    cfg_file = tmp / "skinmapd.toml"
+    cfg_file.write_text(f"""
+[device]
+port = "{tmp / 'tty'}"
+name = "kill"
+scan_rate_hz = {KILL_RATE_HZ}
+[output]
+rate_hz = 20
+[zenoh]
+listen = ["tcp/127.0.0.1:{zport}"]
+[log]
+directory = "logs"
+max_file_mb = 0.12
+chunk_kb = {CHUNK_KB}
+[state]
+directory = "state"
+""")
+    proc = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg_file)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    logs = tmp / "logs"
+    try:
+        deadline = time.monotonic() + 60
+        while len(list(logs.glob("*.mcap"))) < 3 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+        time.sleep(0.37)  # somewhere inside a chunk
+        os.kill(proc.pid, signal.SIGKILL)
+        t_kill = time.time_ns()
+        proc.wait(timeout=10)
+        sent_at_kill = emu.device.scans_sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+        emu.stop()
+    assert proc.returncode == -signal.SIGKILL
+    return {"logs": logs, "t_kill": t_kill, "sent": sent_at_kill, "tmp": tmp}
+
+
+REPLAY_SCRIPT = """
+import json, sys
+from skinmap.daemon.service import limit_blas_threads
+limit_blas_threads()  # before any solve: the solver caches what it builds
+from skinmap.daemon.replay import replay_log
+out = {}
+for path in sys.argv[1:]:
+    r = replay_log(path)
+    out[path] = {"compared": r.compared, "processed": r.processed, "identical": r.identical,
+                 "max_position_diff_m": r.max_position_diff_m}
+print(json.dumps(out))
+"""
+
+
+def replay_like_the_daemon(paths: list[Path]) -> dict[str, dict]:
+    """Replay reports from a fresh process that uses one BLAS thread, as skinmapd does: a
+    process whose BLAS uses more threads can differ from the live run in the last bits."""
+    proc = subprocess.run([sys.executable, "-c", REPLAY_SCRIPT, *map(str, paths)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def raw_frames(path: Path) -> list:
+    return [decode_frame(m.data) for m in iter_messages_file_order(path) if m.topic == "/raw"]
+
+
+def test_rotation_under_load_every_file_standalone_and_no_gap(killed_daemon):
+    logs = killed_daemon["logs"]
+    finished = sorted(logs.glob("*.mcap"))
+    (active,) = sorted(logs.glob("*.mcap.active"))
+    assert len(finished) >= 3
+    for path in finished:
+        report = inspect(path)
+        assert report.end.complete, report.format()
+        assert report.topics["/raw"].count > 0 and "/config" in report.topics and "config.toml" in report.attachments
+        with open(path, "rb") as f:  # the standard reader, with its summary and index
+            reader = make_reader(f)
+            assert reader.get_summary().statistics.message_count == sum(s.count for s in report.topics.values())
+    replays = replay_like_the_daemon(finished)
+    for path in finished:  # each file replays alone, including those that start mid-stream
+        rep = replays[str(path)]
+        assert rep["compared"] > 0 and rep["processed"] == rep["compared"], rep
+    worst_m = max(r["max_position_diff_m"] for r in replays.values())
+    identical = sum(r["identical"] for r in replays.values())
+    frames = [f for path in finished + [active] for f in raw_frames(path)]
+    seqs = np.array([f.seq for f in frames])
+    steps = np.diff(seqs) % 65536
+    assert (steps == 1).all(), f"frame seq gaps across files at {np.nonzero(steps != 1)[0][:5]}"
+    samples = np.array([f.msg.sample_index for f in frames if isinstance(f.msg, Scan)])
+    assert (np.diff(samples) == 1).all()
+    sizes = [p.stat().st_size for p in finished]
+    print(f"FIGURE rotation at {KILL_RATE_HZ:g} scans/s, max_file_mb 0.12: {len(finished)} finished files "
+          f"({min(sizes)}..{max(sizes)} bytes), {len(samples)} scans, no /raw gap across files; "
+          f"standalone replay: {identical}/{len(finished)} files bit-identical, all within {worst_m:.1e} m of live")
+    assert replays[str(finished[0])]["identical"]
+    assert worst_m < 1e-9
+
+
+def test_sigkill_mid_write_leaves_readable_files_losing_at_most_one_chunk(killed_daemon, capsys):
+    logs, t_kill = killed_daemon["logs"], killed_daemon["t_kill"]
+    (active,) = sorted(logs.glob("*.mcap.active"))
+    report = inspect(active)
+    end = report.end
+    assert not end.complete
+    # Only the unfinished chunk is unreadable: the cut tail is shorter than one chunk record.
+    assert end.file_bytes - end.valid_bytes <= CHUNK_KB * 1024 + 1024, end
+    frames = [f for path in sorted(logs.glob("*.mcap")) + [active] for f in raw_frames(path)]
+    last_logged = max(f.msg.sample_index for f in frames if isinstance(f.msg, Scan))
+    lost_scans = killed_daemon["sent"] - 1 - last_logged
+    last_t = max(m.log_time_ns for m in iter_messages_file_order(active))
+    lost_s = (t_kill - last_t) / 1e9
+    # A chunk is closed when full or 1 s old: at most ~1 s of data, plus what was in flight.
+    assert 0 <= lost_s < 2.5 and lost_scans <= 2.5 * KILL_RATE_HZ, (lost_s, lost_scans)
+
+    recovered = logs / "recovered.mcap"
+    assert skinmap_main(["recover", str(active), "-o", str(recovered)]) == 0
+    assert "recovered" in capsys.readouterr().out
+    with open(recovered, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary().statistics.message_count == sum(s.count for s in report.topics.values())
+    again = inspect(recovered)
+    assert again.end.complete and again.topics["/raw"].count == report.topics["/raw"].count
+    rep = replay_like_the_daemon([recovered])[str(recovered)]
+    assert rep["compared"] > 0 and rep["max_position_diff_m"] < 1e-9, rep
+    print(f"FIGURE SIGKILL at {KILL_RATE_HZ:g} scans/s, chunk {CHUNK_KB} KiB: cut tail "
+          f"{end.file_bytes - end.valid_bytes} bytes, last logged message {lost_s * 1e3:.0f} ms before the kill, "
+          f"{lost_scans} scans sent but not on disk; recovered file replays {rep['compared']} scans "
+          f"({'bit-identical' if rep['identical'] else 'max diff %.1e m' % rep['max_position_diff_m']})")
