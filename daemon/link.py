@@ -36,6 +36,10 @@ __all__ = ["LinkError", "LinkStats", "ScannerLink", "open_serial", "validate_hel
 
 READ_CHUNK = 65536
 READ_TIMEOUT_S = 0.02
+# StreamDecoder counters of frames it refused (the decoder's last_error says why).
+_REJECT_COUNTERS = ("cobs_errors", "crc_errors", "length_errors", "version_errors", "incompat_flag_drops",
+                    "unknown_type", "field_errors", "oversize_frames")
+FRAME_ERROR_REPORT_S = 1.0
 
 
 class LinkError(RuntimeError):
@@ -133,6 +137,9 @@ class ScannerLink:
         self.device_status: Status | None = None
         self.streaming = threading.Event()
         self._last_sample: int | None = None
+        self._rejected_reported = 0
+        self._garbage_reported = 0
+        self._next_reject_report = 0.0
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -226,6 +233,7 @@ class ScannerLink:
         self.stats.bytes_in += len(data)
         t_rx = self._clock_ns()
         frames = self._decoder.feed(data)
+        self._report_frame_errors()
         for f in frames:
             self._on_frame(f, t_rx)
             if isinstance(f.msg, Scan):
@@ -237,6 +245,23 @@ class ScannerLink:
                 raise _Rebooted(f.msg)
         self.stats.decoder = self._decoder.counters()
         return frames
+
+    def _report_frame_errors(self) -> None:
+        """Name damaged input in the event log, at most once per FRAME_ERROR_REPORT_S (the
+        decoder's counters hold the exact totals)."""
+        rejected = self._rejected_frames()
+        now = time.monotonic()
+        if rejected == self._rejected_reported or now < self._next_reject_report:
+            return
+        garbage = self._decoder.garbage_bytes
+        self._on_event("warning", f"serial link: {rejected - self._rejected_reported} damaged frame(s) rejected, "
+                                  f"{garbage - self._garbage_reported} byte(s) discarded (last: {self._decoder.last_error})")
+        self._rejected_reported, self._garbage_reported = rejected, garbage
+        self._next_reject_report = now + FRAME_ERROR_REPORT_S
+
+    def _rejected_frames(self) -> int:
+        d = self._decoder
+        return sum(getattr(d, name) for name in _REJECT_COUNTERS)
 
     def _request(self, msg: Message, what: str, retries: int = 3) -> Ack:
         """Send a command and wait for its ACK; retries reuse the request id (idempotent)."""
@@ -262,6 +287,7 @@ class ScannerLink:
     def _handshake(self) -> None:
         self.stats.state = "handshake"
         hello: Hello | None = None
+        rejected_before = self._rejected_frames()
         request = QueryInfo(self._next_request_id())
         for _ in range(3):
             self._send(request)
@@ -273,7 +299,12 @@ class ScannerLink:
             if hello is not None or self._stop.is_set():
                 break
         if hello is None:
-            raise LinkError(f"no HELLO from {self.cfg.port} within {self.cfg.handshake_timeout_s:g} s")
+            why = ""
+            if self._rejected_frames() > rejected_before:
+                # Say what the device did send: an absurd HELLO is refused by the decoder, and
+                # "no HELLO" alone would hide that the scanner is there but talking nonsense.
+                why = f"; frames received but rejected, last: {self._decoder.last_error}"
+            raise LinkError(f"no HELLO from {self.cfg.port} within {self.cfg.handshake_timeout_s:g} s{why}")
         validate_hello(hello, self.cfg)
         self.hello = hello
         self._on_hello(hello)
@@ -283,6 +314,7 @@ class ScannerLink:
             rate_mhz = hello.max_scan_rate_mhz
         self._request(SetScanRate(self._next_request_id(), rate_mhz), "SET_SCAN_RATE")
         self._request(Start(self._next_request_id()), "START")
+        self._last_sample = None  # START restarts the scan index: not a reboot, nothing lost
         self.streaming.set()
         self.stats.state = "streaming"
         self._on_event("info", f"scanner {hello.serial_number} {hello.n}×{hello.m} streaming at {rate_mhz / 1000:g} scans/s")
@@ -316,6 +348,7 @@ class ScannerLink:
                 self.stats.reboots += 1
                 self._on_event("warning", "scanner rebooted (unsolicited HELLO); handshaking again")
                 self.streaming.clear()
+                self._decoder.reset()  # the device restarted its frame sequence: not a loss
                 self._handshake()
                 continue
             now = time.monotonic()

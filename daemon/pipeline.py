@@ -14,10 +14,20 @@ import numpy as np
 from skinmap.daemon.calibration import Calibration, resistances_to_strains
 from skinmap.daemon.messages import ElementFlag
 
-__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator"]
+__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator", "reject_implausible_units",
+           "turning_noise_rad"]
 
 # An element whose 1-s.d. position uncertainty exceeds this is flagged DEGRADED.
 DEGRADED_SIGMA_MM = 0.5
+# A sensing unit whose upper and lower strains imply that its gauge turns by more than half a
+# circle (bend radius < L/π ≈ 3 mm for a 10 mm gauge) is not a film we can bend: both gauges
+# are rejected as implausible (which of the pair is wrong cannot be told).
+MAX_UNIT_TURNING_RAD = float(np.pi)
+# Fit misfit (rad per gauge) above which a scan's strains are inconsistent with any one smooth
+# sheet: every element is flagged DEGRADED. Legitimate shapes in the forward model stay below
+# ~1.2e-3 rad (16x16, membrane); the floor scales up with the configured strain noise.
+INCONSISTENT_RESIDUAL_RAD = 0.01
+INCONSISTENT_RESIDUAL_SIGMAS = 5.0
 
 
 @dataclass(frozen=True)
@@ -117,6 +127,7 @@ class FramePipeline:
 
         g = self.geometry
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
+        eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g)
         t0 = time.perf_counter()
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.warm_start and self._previous is not None:
@@ -136,6 +147,19 @@ class FramePipeline:
             # Elements near a gauge the scan could not use rest on the prior there.
             bad_cells = (~valid).any(axis=(0, 1)).ravel()
             flags[self._neighbour_cells[:, bad_cells].any(axis=1)] |= int(ElementFlag.DEGRADED)
+            # With no usable unit (both layers read) anywhere near, the position is the prior
+            # alone, not a current estimate.
+            measured_cells = (valid[0] & valid[1]).any(axis=0).ravel()
+            unmeasured = ~self._neighbour_cells[:, measured_cells].any(axis=1)
+            flags[unmeasured] = (flags[unmeasured] & (0xFF ^ int(ElementFlag.VALID))) | int(ElementFlag.DEGRADED)
+        diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
+        diagnostics["implausible_units"] = implausible
+        residual = diagnostics.get("residual", 0.0)
+        limit = max(INCONSISTENT_RESIDUAL_RAD,
+                    INCONSISTENT_RESIDUAL_SIGMAS * turning_noise_rad(self.strain_sigma, g))
+        diagnostics["inconsistent"] = bool(residual > limit)
+        if diagnostics["inconsistent"]:
+            flags |= int(ElementFlag.DEGRADED)
         finite = np.isfinite(nodes).all() and np.isfinite(normals).all() and np.isfinite(pos).all() and np.isfinite(nrm).all()
         if not finite:
             # Never publish NaN: hold the last good frame and say so.
@@ -156,7 +180,7 @@ class FramePipeline:
             element_sigma_mm=np.where(np.isfinite(sig), sig, 1e3),
             element_flags=flags,
             solve_time_s=solve_s,
-            diagnostics=_diagnostics_dict(getattr(surf, "diagnostics", None)),
+            diagnostics=diagnostics,
             surface=surf,
         )
         self._last_good = result
@@ -181,6 +205,28 @@ class FramePipeline:
             flags = np.full(k, int(ElementFlag.STALE), dtype=np.uint8)
         return FrameResult(seq, device_time_us, host_time_ns, eps_u, eps_l, valid, nodes, normals, node_sigma,
                            pos, nrm, sig, flags, solve_s, {"status": "non-finite solution; held last good frame"}, None)
+
+
+def turning_noise_rad(strain_sigma: float, geometry: ArrayGeometry) -> float:
+    """1-s.d. turning angle of one gauge due to strain noise: √2·σε·L / (h_u + h_l)."""
+    return float(np.sqrt(2.0) * strain_sigma * geometry.gauge_length_mm / (geometry.h_upper_mm + geometry.h_lower_mm))
+
+
+def reject_implausible_units(
+    eps_upper: np.ndarray, eps_lower: np.ndarray, valid: np.ndarray, geometry: ArrayGeometry
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Mark both gauges of a unit unusable when together they imply an impossible bend.
+
+    eps_* (2, N, M) with NaN for unusable gauges, valid (2, 2, N, M). Returns new arrays (the
+    inputs are not modified) and the number of units rejected here.
+    """
+    turning = (eps_upper - eps_lower) * geometry.gauge_length_mm / (geometry.h_upper_mm + geometry.h_lower_mm)
+    with np.errstate(invalid="ignore"):
+        bad = valid[0] & valid[1] & ~(np.abs(turning) <= MAX_UNIT_TURNING_RAD)
+    if not bad.any():
+        return eps_upper, eps_lower, valid, 0
+    valid = valid & ~bad[None]
+    return np.where(bad, np.nan, eps_upper), np.where(bad, np.nan, eps_lower), valid, int(bad.sum())
 
 
 def _locate(surf: Any, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
