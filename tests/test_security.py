@@ -408,3 +408,91 @@ def test_plain_tcp_client_cannot_talk_to_a_tls_listener(pki, tmp_path):
     finally:
         publisher.close()
         session.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# running unprivileged
+
+
+UNIT = REPO / "systemd" / "skinmapd.service"
+
+
+def _unit_settings() -> dict[str, list[str]]:
+    settings: dict[str, list[str]] = {}
+    for line in UNIT.read_text(encoding="utf-8").splitlines():
+        line = line.strip()
+        if line and not line.startswith(("#", "[")) and "=" in line:
+            key, value = line.split("=", 1)
+            settings.setdefault(key.strip(), []).append(value.strip())
+    return settings
+
+
+def test_unit_file_runs_the_service_without_privileges():
+    s = _unit_settings()
+    assert s["DynamicUser"] == ["yes"] and "User" not in s
+    assert s["CapabilityBoundingSet"] == [""] and s["AmbientCapabilities"] == [""]
+    assert s["NoNewPrivileges"] == ["yes"] and s["ProtectSystem"] == ["strict"]
+    assert s["DevicePolicy"] == ["closed"] and "/dev/skinmap0 rw" in s["DeviceAllow"]
+    assert set(s["RestrictAddressFamilies"][0].split()) <= {"AF_UNIX", "AF_INET", "AF_INET6",
+                                                            "AF_NETLINK"}
+    for key in ("ProtectHome", "PrivateTmp", "RestrictSUIDSGID", "ProtectKernelModules"):
+        assert s[key] == ["yes"], key
+
+
+@pytest.mark.slow
+def test_daemon_runs_as_an_unprivileged_user():
+    """skinmapd needs no privilege: as root we drop to nobody (what DynamicUser gives it) and
+    check it streams, logs and stops cleanly with no capabilities."""
+    import os
+    import signal
+    import sys
+    import tempfile
+
+    from skinmap.daemon.cli import start_emulator, stop_process
+
+    uid = 65534 if os.geteuid() == 0 else os.geteuid()
+    if uid == 0:
+        pytest.skip("cannot switch to an unprivileged user")
+    work = Path(tempfile.mkdtemp(prefix="skinmap-unprivileged-"))  # pytest's tmp is root-only
+    serial_port, zenoh_port = free_port(), free_port()
+    cfg = work / "skinmapd.toml"
+    cfg.write_text(f"""
+[device]
+port = "socket://127.0.0.1:{serial_port}"
+name = "{DEVICE}"
+scan_rate_hz = 20
+[zenoh]
+listen = ["tcp/127.0.0.1:{zenoh_port}"]
+[log]
+directory = "logs"
+[state]
+directory = "state"
+""")
+    if os.geteuid() == 0:
+        os.chown(work, uid, uid)
+        os.chown(cfg, uid, uid)
+    emulator = start_emulator(serial_port, size="4x4", shape="flat", rate=20.0)
+    # setpriv (util-linux) switches user and group and execs, as systemd does for the unit
+    drop = ["setpriv", f"--reuid={uid}", f"--regid={uid}", "--clear-groups"] \
+        if os.geteuid() == 0 else []
+    if drop and shutil.which("setpriv") is None:
+        pytest.skip("setpriv is needed to drop to an unprivileged user")
+    daemon = subprocess.Popen([*drop, sys.executable, "-m", "skinmap.daemon.service", "--config",
+                               str(cfg)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, cwd=work)
+    try:
+        with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap",
+                           device=DEVICE) as client:
+            assert client.elements(timeout=30.0).valid.any()
+            proc_status = dict(line.split(":", 1) for line in
+                               Path(f"/proc/{daemon.pid}/status").read_text().splitlines())
+            assert proc_status["Uid"].split()[:2] == [str(uid), str(uid)]
+            assert int(proc_status["CapEff"].strip(), 16) == 0
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=30) == 0, daemon.stderr.read().decode()[-2000:]
+        logs = sorted((work / "logs").glob("*.mcap"))
+        assert logs and all(p.stat().st_uid == uid for p in logs)
+    finally:
+        stop_process(daemon, timeout=10)
+        stop_process(emulator)
+        shutil.rmtree(work, ignore_errors=True)
