@@ -205,14 +205,19 @@ class Reconstructor:
 def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x)."""
     a0, b0 = grid.centre
-    x_u = pos[a0, b0 + 1] - pos[a0, b0 - 1]
-    x_v = pos[a0 + 1, b0] - pos[a0 - 1, b0]
-    nz = np.cross(x_u, x_v)
-    nz /= np.linalg.norm(nz)
-    ex = x_u - nz * (x_u @ nz)
-    ex /= np.linalg.norm(ex)
-    rot = np.stack([ex, np.cross(nz, ex), nz])  # rows: new axes in the old frame
+    x_u = (pos[a0, b0 + 1] - pos[a0, b0 - 1]).tolist()
+    x_v = (pos[a0 + 1, b0] - pos[a0 - 1, b0]).tolist()
+    nz = np.array(_cross3(x_u, x_v))
+    nz /= math.sqrt(nz @ nz)
+    ex = np.array(x_u) - nz * (nz @ x_u)
+    ex /= math.sqrt(ex @ ex)
+    rot = np.array([ex, _cross3(nz, ex), nz])  # rows: new axes in the old frame
     return (pos - pos[a0, b0]) @ rot.T
+
+
+def _cross3(a, b) -> list[float]:
+    """Cross product of two 3-vectors (np.cross costs more than the arithmetic here)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
 _CACHE: "OrderedDict[tuple, Reconstructor]" = OrderedDict()

@@ -133,7 +133,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     """
     h = grid.spacing
     s11, s22 = k_u / lam_u, k_v / lam_v
-    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, lam_u, lam_v, np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
+    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, _metric_terms(h, lam_u, lam_v), np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
     f1 = _mixed_antiderivative(h * h * _cell_mean((lam_u * lam_v) ** 2))
     f0, f1 = f0[inner], f1[inner]
     den = float(np.sum(f1 * f1))
@@ -157,18 +157,24 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
     return f - f.mean(axis=0, keepdims=True) - f.mean(axis=1, keepdims=True) + f.mean()
 
 
-def _brioschi_source(h: float, lam_u, lam_v, f, k_gauss) -> np.ndarray:
-    """F_uv that Brioschi's formula requires for Gaussian curvature ``k_gauss`` with
-    E = λ_u², G = λ_v² and the current F: E_vv/2 + G_uu/2 + K (EG − F²) + Q/(EG − F²)."""
+def _metric_terms(h: float, lam_u, lam_v) -> tuple:
+    """E, G, their first derivatives and E_vv/2 + G_uu/2, which do not change with F."""
     e, g = lam_u * lam_u, lam_v * lam_v
     e_u, e_v, g_u, g_v = _d_u(e, h), _d_v(e, h), _d_u(g, h), _d_v(g, h)
+    return e, g, e_u, e_v, g_u, g_v, 0.5 * (_d_v(e_v, h) + _d_u(g_u, h))
+
+
+def _brioschi_source(h: float, metric: tuple, f, k_gauss) -> np.ndarray:
+    """F_uv that Brioschi's formula requires for Gaussian curvature ``k_gauss`` with
+    E = λ_u², G = λ_v² and the current F: E_vv/2 + G_uu/2 + K (EG − F²) + Q/(EG − F²)."""
+    e, g, e_u, e_v, g_u, g_v, base = metric
     f_u, f_v = _d_u(f, h), _d_v(f, h)
     det = e * g - f * f
     a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
     a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
     det_b = -0.5 * e_v * (0.5 * e_v * g - 0.5 * f * g_u) + 0.5 * g_u * (0.5 * e_v * f - 0.5 * e * g_u)
     q = a12 * (a21 * g - f * a31) - a13 * (a21 * f - e * a31) + det_b
-    return 0.5 * (_d_v(e_v, h) + _d_u(g_u, h)) + k_gauss * det + q / det
+    return base + k_gauss * det + q / det
 
 
 def _cell_mean(f: np.ndarray) -> np.ndarray:
@@ -185,12 +191,13 @@ def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3
     """
     h = grid.spacing
     s11 = k_u / lam_u
+    metric = _metric_terms(h, lam_u, lam_v)
     f = np.zeros_like(k_u)
     for _ in range(max(1, iterations)):
         sg = np.clip(f / (lam_u * lam_v), -0.9, 0.9)
         cg2 = 1.0 - sg * sg
         s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * np.sqrt(cg2)) / cg2
-        src = _brioschi_source(h, lam_u, lam_v, f, s11 * s22 - tau * tau)
+        src = _brioschi_source(h, metric, f, s11 * s22 - tau * tau)
         f = _mixed_antiderivative(h * h * _cell_mean(src))
     return np.arcsin(np.clip(f / (lam_u * lam_v), -0.9, 0.9))
 
