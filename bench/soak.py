@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -105,6 +106,7 @@ class SoakResult:
     rss_growth_mb_h: float = float("nan")
     rss_growth_second_half_mb_h: float = float("nan")
     daemon_cpu_percent: float = float("nan")
+    load_average: list[float] = field(default_factory=list)  # 1-min load, start and end
     latency: dict[str, Any] = field(default_factory=dict)
     status: dict[str, Any] = field(default_factory=dict)
     daemon_exit_code: int | None = None
@@ -195,7 +197,8 @@ def run_soak(seconds: float, *, size: str = "5x5", scan_rate: float = 50.0, shap
     logs, state, cfg = workdir / "logs", workdir / "state", workdir / "soak.toml"
     write_config(cfg, serial_port, zenoh_port, logs, state, scan_rate, rotate_minutes, rotate_mb)
 
-    emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate)
+    emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate,
+                              extra=["--status-every", "0"])
     daemon_log = (workdir / "skinmapd.log").open("wb")
     daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
                               stdin=subprocess.DEVNULL, stdout=daemon_log, stderr=subprocess.STDOUT)
@@ -210,6 +213,7 @@ def run_soak(seconds: float, *, size: str = "5x5", scan_rate: float = 50.0, shap
             client.elements(timeout=60.0)  # the daemon streams
             t0 = time.monotonic()
             cpu0 = proc_cpu_seconds(daemon.pid)
+            result.load_average.append(os.getloadavg()[0])
             end, next_rss, next_progress = t0 + seconds, t0, t0 + progress_every
             last_report = (0, t0)
             while (now := time.monotonic()) < end:
@@ -238,6 +242,7 @@ def run_soak(seconds: float, *, size: str = "5x5", scan_rate: float = 50.0, shap
                     last_report = (len(seqs), now)
                     next_progress += progress_every
             elapsed = time.monotonic() - t0
+            result.load_average.append(os.getloadavg()[0])
             if daemon.poll() is None:
                 result.daemon_cpu_percent = (proc_cpu_seconds(daemon.pid) - cpu0) / elapsed * 100
                 rss_t.append(elapsed)
@@ -285,7 +290,9 @@ def format_report(r: SoakResult) -> str:
         f"{r.subscriber_gaps}",
         f"  daemon RSS start {r.rss_start_mb:.1f} MB, end {r.rss_end_mb:.1f} MB, max "
         f"{r.rss_max_mb:.1f} MB; growth {r.rss_growth_mb_h:+.2f} MB/h (second half "
-        f"{r.rss_growth_second_half_mb_h:+.2f} MB/h); CPU {r.daemon_cpu_percent:.1f} % of a core",
+        f"{r.rss_growth_second_half_mb_h:+.2f} MB/h); CPU {r.daemon_cpu_percent:.1f} % of a core; "
+        f"machine load (1 min) {' -> '.join(f'{x:.2f}' for x in r.load_average)} on "
+        f"{os.cpu_count()} CPUs",
         f"  dropped (daemon status): frames_dropped {st.get('frames_dropped', '?')} "
         f"(link {st.get('scans_lost', '?')}, queue {st.get('scans_dropped_queue', '?')}), "
         f"log_dropped {st.get('log_dropped', '?')}, crc_errors {st.get('crc_errors', '?')}, "
