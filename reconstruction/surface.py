@@ -80,6 +80,9 @@ class Surface:
         where gauges are missing.
     diagnostics : :class:`Diagnostics`.
     pitch, shape : grid pitch (mm) and (N, M).
+
+    Methods: :meth:`locate` (positions and normals of material points), :meth:`locate_sigma`,
+    :meth:`points` (dense cloud), :attr:`extent` (accepted material range).
     """
 
     def __init__(
@@ -92,12 +95,10 @@ class Surface:
         node_index: tuple[np.ndarray, np.ndarray],
         fine_sigma: Callable[[], np.ndarray],
         diagnostics: Diagnostics,
-        state: object = None,
     ):
         self.pitch = float(pitch)
         self._u, self._v = fine_u, fine_v
         self._spacing = float(fine_u[1] - fine_u[0])
-        self._pos = fine_positions
         h = self._spacing
         d_u = _central(fine_positions, h, 1)
         d_v = _central(fine_positions, h, 0)
@@ -111,7 +112,6 @@ class Surface:
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
         self.diagnostics = diagnostics
-        self.state = state  # fine-grid fields, used to warm-start the next frame
 
     # ------------------------------------------------------------------ uncertainty (lazy)
     @property
