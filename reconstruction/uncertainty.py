@@ -44,26 +44,30 @@ def fine_sigma(
     h_lower: float,
 ) -> np.ndarray:
     """One-s.d. position uncertainty (nf, mf) mm of every fine node."""
-    cache = grid.__dict__.setdefault("_response_cache", {})
-
-    def response(mask: np.ndarray) -> np.ndarray:
-        key = mask.tobytes()
-        if key not in cache:
-            if len(cache) > 8:
-                cache.pop(next(iter(cache)))
-            cache[key] = height_response(grid, mask)
-        return cache[key]
-
+    # Per validity mask, keep only the summed squares of the response rows (the full map is
+    # large for big arrays and the data enter only through one scalar below).
+    cache = grid.__dict__.setdefault("_sigma_cache", {})
+    key = valid.tobytes()
+    sums = cache.get(key)
+    if sums is None:
+        v = valid.ravel()
+        measured = (height_response(grid, valid)[:, v] ** 2).sum(axis=1)
+        missing = np.zeros_like(measured)
+        if not v.all():
+            missing = (height_response(grid, np.ones_like(valid))[:, ~v] ** 2).sum(axis=1)
+        if len(cache) > 16:
+            cache.pop(next(iter(cache)))
+        sums = cache[key] = (measured, missing)
+    measured, missing = sums
     # turning per length = (ε_u − ε_l)/(h_u + h_l): two independent gauges
     sig_turn = np.sqrt(2.0) * strain_sigma / (h_upper + h_lower)
-    v = valid.ravel()
-    var = (response(valid)[:, v] ** 2).sum(axis=1) * sig_turn**2
-    if not v.all():
-        measured = turning.ravel()[v]
+    var = measured * sig_turn**2
+    if not valid.all():
+        known = turning[valid]
         # a missing unit's turning is unknown with the spread of the measured ones
         # (floor: a 200 mm bend radius)
-        spread2 = (np.mean(measured**2) if measured.size else 0.0) + (1.0 / 200.0) ** 2
-        var += (response(np.ones_like(valid))[:, ~v] ** 2).sum(axis=1) * spread2
+        spread2 = (np.mean(known**2) if known.size else 0.0) + (1.0 / 200.0) ** 2
+        var = var + missing * spread2
     # in-plane: each pitch crossed adds one stretch reading's error times the pitch
     sig_stretch = strain_sigma * np.hypot(h_upper, h_lower) / (h_upper + h_lower)
     uu, vv = np.meshgrid(grid.u, grid.v)
