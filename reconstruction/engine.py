@@ -92,10 +92,12 @@ def solve_twist(
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
 
-    The constant is set only where the product of the normal curvatures is mostly unexplained by
-    the metric (an oblique cylinder, a twisted sheet) and exceeds what the turning noise
-    ``turning_sigma`` (per length, one unit) can produce; its sign is not observable
-    (mirror-image twists give identical strains), so ``twist_sign`` chooses it.
+    A positive product k_u k_v is attributed to a constant twist only in proportion to how
+    little the stretch varies (a developable sheet, e.g. an oblique cylinder) and once it exceeds
+    what the turning noise ``turning_sigma`` (per length, one unit) can produce; otherwise a
+    saddle turned off the grid lines is looked for (:func:`_saddle_twist`).  The sign is not
+    observable (mirror-image twists give identical strains), so ``twist_sign`` chooses it.
+    Returns (τ field, the constant).
     """
     tau0 = tau0 - tau0.mean()
     # Only the region spanned by the cell centres: one-sided differences at the border would
