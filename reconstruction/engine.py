@@ -20,7 +20,7 @@ import numpy as np
 
 from .decouple import decouple
 from .grid import FineGrid
-from .linalg import exp_so3, log_so3
+from .linalg import diff_u, diff_v, edge_mean, exp_so3, log_so3, unit
 
 __all__ = [
     "unit_data",
@@ -55,28 +55,6 @@ def potential_curvatures(grid: FineGrid, z: np.ndarray) -> tuple[np.ndarray, np.
     """k_u = −z_uu, k_v = −z_vv, τ = z_uv on the fine grid from a bending potential z."""
     shape = (grid.nf, grid.mf)
     return -(grid.z_uu @ z).reshape(shape), -(grid.z_vv @ z).reshape(shape), (grid.z_uv @ z).reshape(shape)
-
-
-def _d_u(f: np.ndarray, h: float) -> np.ndarray:
-    """∂/∂u by central differences (one-sided at the edges), like np.gradient but cheaper."""
-    out = np.empty_like(f)
-    out[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2.0 * h)
-    out[:, 0] = (f[:, 1] - f[:, 0]) / h
-    out[:, -1] = (f[:, -1] - f[:, -2]) / h
-    return out
-
-
-def _d_v(f: np.ndarray, h: float) -> np.ndarray:
-    """∂/∂v by central differences (one-sided at the edges)."""
-    out = np.empty_like(f)
-    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
-    out[0] = (f[1] - f[0]) / h
-    out[-1] = (f[-1] - f[-2]) / h
-    return out
-
-
-def _edge_mean(f: np.ndarray, axis: int) -> np.ndarray:
-    return 0.5 * (f[:-1] + f[1:]) if axis == 0 else 0.5 * (f[:, :-1] + f[:, 1:])
 
 
 def solve_twist(
@@ -162,15 +140,15 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
 def _metric_terms(h: float, lam_u, lam_v) -> tuple:
     """E, G, their first derivatives and E_vv/2 + G_uu/2, which do not change with F."""
     e, g = lam_u * lam_u, lam_v * lam_v
-    e_u, e_v, g_u, g_v = _d_u(e, h), _d_v(e, h), _d_u(g, h), _d_v(g, h)
-    return e, g, e_u, e_v, g_u, g_v, 0.5 * (_d_v(e_v, h) + _d_u(g_u, h))
+    e_u, e_v, g_u, g_v = diff_u(e, h), diff_v(e, h), diff_u(g, h), diff_v(g, h)
+    return e, g, e_u, e_v, g_u, g_v, 0.5 * (diff_v(e_v, h) + diff_u(g_u, h))
 
 
 def _brioschi_source(h: float, metric: tuple, f, k_gauss) -> np.ndarray:
     """F_uv that Brioschi's formula requires for Gaussian curvature ``k_gauss`` with
     E = λ_u², G = λ_v² and the current F: E_vv/2 + G_uu/2 + K (EG − F²) + Q/(EG − F²)."""
     e, g, e_u, e_v, g_u, g_v, base = metric
-    f_u, f_v = _d_u(f, h), _d_v(f, h)
+    f_u, f_v = diff_u(f, h), diff_v(f, h)
     det = e * g - f * f
     a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
     a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
@@ -217,12 +195,12 @@ def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, gamma) -> tuple[
     s11 = k_u / lam_u
     s12 = -tau
     s22 = (k_v / lam_v - s11 * sg * sg - 2.0 * s12 * sg * cg) / (cg * cg)
-    lu_u, lu_v, lv_u, f_u = _d_u(lam_u, h), _d_v(lam_u, h), _d_u(lam_v, h), _d_u(lam_u * lam_v * sg, h)
+    lu_u, lu_v, lv_u, f_u = diff_u(lam_u, h), diff_v(lam_u, h), diff_u(lam_v, h), diff_u(lam_u * lam_v * sg, h)
     w_u3 = ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) / (lam_u * cg)
     w_v3 = (lv_u - sg * lu_v) / (lam_u * cg)
     w_u = np.stack([-lam_u * s12, lam_u * s11, w_u3], axis=-1)
     w_v = np.stack([-lam_v * (s12 * sg + s22 * cg), lam_v * (s11 * sg + s12 * cg), w_v3], axis=-1)
-    return h * _edge_mean(w_u, 1).reshape(-1, 3), h * _edge_mean(w_v, 0).reshape(-1, 3)
+    return h * edge_mean(w_u, 1).reshape(-1, 3), h * edge_mean(w_v, 0).reshape(-1, 3)
 
 
 def _prefix_products(mats: np.ndarray) -> np.ndarray:
@@ -271,10 +249,8 @@ def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamm
     dir_v = (t_v[:-1] + t_v[1:]).reshape(-1, 3)
     bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2])
     bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2])
-    len_u = h * _edge_mean(lam_u, 1).ravel() * np.sinc(bend_u / (2.0 * np.pi))
-    len_v = h * _edge_mean(lam_v, 0).ravel() * np.sinc(bend_v / (2.0 * np.pi))
-    chords = np.concatenate(
-        [dir_u * (len_u / np.linalg.norm(dir_u, axis=1))[:, None], dir_v * (len_v / np.linalg.norm(dir_v, axis=1))[:, None]]
-    )
+    len_u = h * edge_mean(lam_u, 1).ravel() * np.sinc(bend_u / (2.0 * np.pi))
+    len_v = h * edge_mean(lam_v, 0).ravel() * np.sinc(bend_v / (2.0 * np.pi))
+    chords = np.concatenate([unit(dir_u) * len_u[:, None], unit(dir_v) * len_v[:, None]])
     pos = grid.laplacian.solve(grid.incidence.T @ chords)
     return pos.reshape(nf, mf, 3)

@@ -1,15 +1,54 @@
-"""Small numerical helpers: rotations and cached solvers for fixed sparse SPD systems."""
+"""Small numerical helpers: grid differences, vectors, rotations, and cached solvers for fixed
+sparse symmetric systems."""
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-__all__ = ["exp_so3", "log_so3", "FixedSolver"]
+__all__ = ["diff_u", "diff_v", "edge_mean", "exp_so3", "log_so3", "cross", "unit", "FixedSolver"]
 
-# Below this size a dense Cholesky factor is faster to apply than SuperLU's triangular solves
-# (Python overhead dominates); above it the sparse factor wins on memory and time.
+# Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
+# (Python overhead dominates); above it the banded factor wins on memory and time.
 _DENSE_LIMIT = 200
+
+
+def diff_u(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂u by central differences (one-sided at the edges), like np.gradient but cheaper."""
+    out = np.empty_like(f)
+    out[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2.0 * h)
+    out[:, 0] = (f[:, 1] - f[:, 0]) / h
+    out[:, -1] = (f[:, -1] - f[:, -2]) / h
+    return out
+
+
+def diff_v(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂v by central differences (one-sided at the edges)."""
+    out = np.empty_like(f)
+    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
+    out[0] = (f[1] - f[0]) / h
+    out[-1] = (f[-1] - f[-2]) / h
+    return out
+
+
+def edge_mean(f: np.ndarray, axis: int) -> np.ndarray:
+    """Mean of the two end values of every grid edge along ``axis`` (0: v-edges, 1: u-edges)."""
+    return 0.5 * (f[:-1] + f[1:]) if axis == 0 else 0.5 * (f[:, :-1] + f[:, 1:])
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product along the last axis (np.cross's axis handling costs more than the
+    arithmetic on the small arrays here)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Vectors along the last axis scaled to unit length."""
+    return v / np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:

@@ -6,6 +6,8 @@ from typing import Callable
 
 import numpy as np
 
+from .linalg import cross, diff_u, diff_v, unit
+
 __all__ = ["Surface", "Diagnostics", "hermite_patch_eval"]
 
 
@@ -58,16 +60,6 @@ def hermite_patch_eval(
     return pos, d_u, d_v
 
 
-def _central(f: np.ndarray, h: float, axis: int) -> np.ndarray:
-    """Central differences along ``axis`` (one-sided at the ends)."""
-    f = np.moveaxis(f, axis, 0)
-    out = np.empty_like(f)
-    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
-    out[0] = (f[1] - f[0]) / h
-    out[-1] = (f[-1] - f[-2]) / h
-    return np.moveaxis(out, 0, axis)
-
-
 class Surface:
     """A reconstructed sheet in the sensor frame (centre of the sheet at the origin, its normal
     +z, the row direction +u along +x; mm).
@@ -100,14 +92,13 @@ class Surface:
         self._u, self._v = fine_u, fine_v
         self._spacing = float(fine_u[1] - fine_u[0])
         h = self._spacing
-        d_u = _central(fine_positions, h, 1)
-        d_v = _central(fine_positions, h, 0)
-        self._coeffs = np.stack([fine_positions, h * d_u, h * d_v, h * h * _central(d_u, h, 0)], axis=2)
+        d_u = diff_u(fine_positions, h)
+        d_v = diff_v(fine_positions, h)
+        self._coeffs = np.stack([fine_positions, h * d_u, h * d_v, h * h * diff_v(d_u, h)], axis=2)
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
         self.nodes = fine_positions[np.ix_(rows, cols)].copy()
-        nrm = np.cross(d_u[np.ix_(rows, cols)], d_v[np.ix_(rows, cols)])
-        self.normals = nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
+        self.normals = unit(cross(d_u[np.ix_(rows, cols)], d_v[np.ix_(rows, cols)]))
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
@@ -159,9 +150,7 @@ class Surface:
         """
         uv = self._check_uv(uv)
         p, pu, pv = hermite_patch_eval(self._coeffs, self._u[0], self._v[0], self._spacing, uv)
-        n = np.cross(pu, pv)
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        return p, n
+        return p, unit(cross(pu, pv))
 
     def locate_sigma(self, uv) -> np.ndarray:
         """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine grid)."""
