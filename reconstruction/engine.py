@@ -20,7 +20,7 @@ import numpy as np
 
 from .decouple import decouple
 from .grid import FineGrid
-from .linalg import diff_u, diff_v, edge_mean, exp_so3, log_so3, unit
+from .linalg import cross, diff_u, diff_v, edge_mean, exp_so3, unit
 
 __all__ = [
     "unit_data",
@@ -213,7 +213,7 @@ def _prefix_products(mats: np.ndarray) -> np.ndarray:
     return out
 
 
-def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corrections: int = 2) -> np.ndarray:
+def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corrections: int = 1) -> np.ndarray:
     """Frames (nf, mf, 3, 3) (columns t_u, t_v, n) from edge rotations: integrate along the
     centre row then along every column, then least-squares corrections that spread the loop
     misclosures over the whole grid (linearised rotation averaging on the fixed Laplacian)."""
@@ -224,14 +224,21 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     rv = edge_rot[rot_u.shape[0] :].reshape(nf - 1, mf, 3, 3)
     frames = np.empty((nf, mf, 3, 3))
     frames[a0, b0] = np.eye(3)
-    frames[a0, b0 + 1 :] = _prefix_products(ru[a0, b0:])
-    frames[a0, :b0] = _prefix_products(np.swapaxes(ru[a0, :b0], -1, -2)[::-1])[::-1]
-    frames[a0 + 1 :] = frames[a0] @ _prefix_products(rv[a0:])
-    frames[:a0] = (frames[a0] @ _prefix_products(np.swapaxes(rv[:a0], -1, -2)[::-1]))[::-1]
+    # the centre is the middle node, so both halves of a line have the same length: one
+    # cumulative product for the two directions (backwards: transposed, reversed)
+    row = _prefix_products(np.stack([ru[a0, b0:], np.swapaxes(ru[a0, :b0], -1, -2)[::-1]], axis=1))
+    frames[a0, b0 + 1 :] = row[:, 0]
+    frames[a0, :b0] = row[::-1, 1]
+    col = frames[a0] @ _prefix_products(np.stack([rv[a0:], np.swapaxes(rv[:a0], -1, -2)[::-1]], axis=1))
+    frames[a0 + 1 :] = col[:, 0]
+    frames[:a0] = col[::-1, 1]
     flat = frames.reshape(-1, 3, 3)
     for _ in range(corrections):
-        tails, heads = flat[grid.edge_tails], flat[grid.edge_heads]
-        mis = log_so3(tails @ edge_rot @ np.swapaxes(heads, -1, -2))  # world-frame misclosure
+        # world-frame misclosure of each edge, R_tail exp(ω) = exp(m) R_head: for the small
+        # misclosures left by the tree, m = ½ Σ_k head_k × predicted_k (columns)
+        pred = flat[grid.edge_tails] @ edge_rot
+        heads = flat[grid.edge_heads]
+        mis = 0.5 * (cross(heads[..., 0], pred[..., 0]) + cross(heads[..., 1], pred[..., 1]) + cross(heads[..., 2], pred[..., 2]))
         delta = grid.laplacian.solve(grid.incidence.T @ mis)
         flat = exp_so3(delta) @ flat
     return flat.reshape(nf, mf, 3, 3)

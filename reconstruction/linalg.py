@@ -6,7 +6,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-__all__ = ["diff_u", "diff_v", "edge_mean", "exp_so3", "log_so3", "cross", "unit", "FixedSolver"]
+__all__ = ["diff_u", "diff_v", "edge_mean", "exp_so3", "cross", "unit", "FixedSolver"]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
 # (Python overhead dominates); above it the banded factor wins on memory and time.
@@ -73,20 +73,6 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     out[..., 1, 2] = b * y * z - a * x
     out[..., 2, 1] = b * y * z + a * x
     return out
-
-
-def log_so3(r: np.ndarray) -> np.ndarray:
-    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), for angles below π."""
-    r = np.asarray(r, dtype=float)
-    v = np.stack(
-        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1
-    )
-    cos = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    th = np.arccos(cos)
-    s = np.sin(th)
-    small = s < 1e-9
-    scale = np.where(small, 0.5 + th * th / 12.0, th / (2.0 * np.where(small, 1.0, s)))
-    return v * scale[..., None]
 
 
 class FixedSolver:
