@@ -20,6 +20,7 @@ import numpy as np
 from .decouple import decouple
 from .engine import (
     integrate_frames,
+    metric_terms,
     integrate_positions,
     potential_curvatures,
     rotation_rates,
@@ -164,9 +165,10 @@ class Reconstructor:
         elif previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
         turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
-        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma)
+        metric = metric_terms(grid.spacing, lam_u, lam_v)
+        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric)
         if self.shear_passes:
-            gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes)
+            gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
         else:
             gamma = np.zeros_like(k_u)
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, gamma)

@@ -26,6 +26,7 @@ __all__ = [
     "unit_data",
     "solve_fields",
     "potential_curvatures",
+    "metric_terms",
     "solve_twist",
     "solve_shear",
     "rotation_rates",
@@ -66,6 +67,7 @@ def solve_twist(
     lam_v: np.ndarray,
     twist_sign: float = 1.0,
     turning_sigma: float = 0.0,
+    metric: tuple | None = None,
 ) -> tuple[np.ndarray, float]:
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -97,12 +99,14 @@ def solve_twist(
     significance = float(np.clip(prod / noise - 1.0, 0.0, 1.0)) if noise > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
     if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
-        c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise)
+        if metric is None:
+            metric = metric_terms(grid.spacing, lam_u, lam_v)
+        c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
     c = float(np.copysign(np.sqrt(c2), twist_sign))
     return tau0 + c, c
 
 
-def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float) -> float:
+def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: tuple) -> float:
     """Squared constant twist of a sheet whose stretch pattern needs negative Gaussian curvature
     (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
 
@@ -113,7 +117,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     """
     h = grid.spacing
     s11, s22 = k_u / lam_u, k_v / lam_v
-    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, _metric_terms(h, lam_u, lam_v), np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
+    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, metric, np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
     f1 = _mixed_antiderivative(h * h * _cell_mean((lam_u * lam_v) ** 2))
     f0, f1 = f0[inner], f1[inner]
     den = float(np.sum(f1 * f1))
@@ -137,7 +141,7 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
     return f - f.mean(axis=0, keepdims=True) - f.mean(axis=1, keepdims=True) + f.mean()
 
 
-def _metric_terms(h: float, lam_u, lam_v) -> tuple:
+def metric_terms(h: float, lam_u, lam_v) -> tuple:
     """E, G, their first derivatives and E_vv/2 + G_uu/2, which do not change with F."""
     e, g = lam_u * lam_u, lam_v * lam_v
     e_u, e_v, g_u, g_v = diff_u(e, h), diff_v(e, h), diff_u(g, h), diff_v(g, h)
@@ -161,7 +165,7 @@ def _cell_mean(f: np.ndarray) -> np.ndarray:
     return 0.25 * (f[:-1, :-1] + f[1:, :-1] + f[:-1, 1:] + f[1:, 1:])
 
 
-def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3) -> np.ndarray:
+def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 2, metric: tuple | None = None) -> np.ndarray:
     """Shear angle γ (nf, mf) between x_v and the normal to x_u, from the Gauss equation.
 
     The gauges measure E = λ_u² and G = λ_v² but not F = x_u·x_v.  Brioschi's formula is linear
@@ -171,7 +175,8 @@ def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 3
     """
     h = grid.spacing
     s11 = k_u / lam_u
-    metric = _metric_terms(h, lam_u, lam_v)
+    if metric is None:
+        metric = metric_terms(h, lam_u, lam_v)
     f = np.zeros_like(k_u)
     for _ in range(max(1, iterations)):
         sg = np.clip(f / (lam_u * lam_v), -0.9, 0.9)
