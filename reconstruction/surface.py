@@ -10,6 +10,9 @@ from .linalg import cross, diff_u, diff_v, unit
 
 __all__ = ["Surface", "Diagnostics", "hermite_patch_eval"]
 
+# Points per block in locate(): the Hermite evaluation holds ~50 floats per point.
+_LOCATE_CHUNK = 16384
+
 
 @dataclass
 class Diagnostics:
@@ -149,6 +152,9 @@ class Surface:
         positions are C¹ and normals continuous across patches.
         """
         uv = self._check_uv(uv)
+        if uv.shape[0] > _LOCATE_CHUNK:  # bound the temporaries of a dense cloud
+            parts = [self.locate(uv[k : k + _LOCATE_CHUNK]) for k in range(0, uv.shape[0], _LOCATE_CHUNK)]
+            return np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts])
         p, pu, pv = hermite_patch_eval(self._coeffs, self._u[0], self._v[0], self._spacing, uv)
         return p, unit(cross(pu, pv))
 
