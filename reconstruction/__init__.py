@@ -176,11 +176,18 @@ class Reconstructor:
         pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, gamma)
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         pos = _to_sensor_frame(grid, pos)
+        if not np.all(np.isfinite(pos)):
+            # Only reachable with wildly inconsistent data; a surface must still come out.
+            uu, vv = np.meshgrid(grid.u, grid.v)
+            pos = np.stack([uu, vv, np.zeros_like(uu)], axis=-1)
+            status = "numerical failure: flat sheet returned"
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         fit = np.concatenate(
             [(grid.average[d] @ f.ravel() - turning[d].ravel())[valid[d].ravel()] for d, f in ((0, k_u), (1, k_v))]
         )
         residual = float(np.sqrt(np.mean(fit**2)) * self.gauge_length) if fit.size else 0.0
+        if not np.isfinite(residual):
+            residual = float("inf")
         h_u, h_l = self.h_upper, self.h_lower
         diag = Diagnostics(
             iterations=iterations,
