@@ -263,3 +263,17 @@ def test_other_grid_sizes_and_rectangular_arrays():
         truth = shape.position(ph.cell_centres(n, m, PITCH))
         assert surf.nodes.shape == (n, m, 3)
         assert aligned_errors(surf.nodes, truth).mean() < 0.01
+
+
+def test_random_and_partly_missing_strains_never_give_nan():
+    rng = np.random.default_rng(8)
+    uv = rng.uniform(-30.0, 30.0, size=(30, 2))
+    for _ in range(15):
+        eu = rng.uniform(-0.3, 0.3, (2, N, M))
+        el = rng.uniform(-0.3, 0.3, (2, N, M))
+        eu[rng.random((2, N, M)) < 0.1] = np.nan
+        el[rng.random((2, N, M)) < 0.1] = np.nan
+        surf = reconstruct(eu, el, PITCH)
+        pos, nrm = surf.locate(uv)
+        for arr in (surf.nodes, surf.normals, surf.node_sigma, pos, nrm, surf.locate_sigma(uv)):
+            assert np.all(np.isfinite(arr))
