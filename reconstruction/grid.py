@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .linalg import FixedSolver
+from .linalg import DowndatedSolver, FixedSolver
 
 __all__ = ["FineGrid", "hat_average_weights"]
 
@@ -205,12 +205,26 @@ class FineGrid:
         if hit is None:
             obs = self.potential_observation()
             obs_t_w = (obs.T @ sp.diags(valid.ravel().astype(float))).tocsr()
-            normal = obs_t_w @ obs + self.potential_prior()
-            hit = (FixedSolver(normal.tocsc()), obs_t_w)
+            hit = (self._masked_solver(("potential",), lambda m: obs.T @ sp.diags(m) @ obs + self.potential_prior(), obs, valid.ravel()), obs_t_w)
             if len(self._potential_solvers) > 16:
                 self._potential_solvers.pop(next(iter(self._potential_solvers)))
             self._potential_solvers[key] = hit
         return hit
+
+    def _masked_solver(self, name: tuple, normal_for, obs: sp.csr_matrix, valid: np.ndarray):
+        """Solver of a fit's normal matrix with the invalid data rows removed: the all-valid
+        factorisation (built once) downdated by the missing rows, or, if that is singular
+        (too much missing), a factorisation of its own."""
+        full = self.__dict__.setdefault("_full_solvers", {})
+        base = full.get(name)
+        if base is None:
+            base = full[name] = FixedSolver(normal_for(np.ones(valid.size)).tocsc())
+        if valid.all():
+            return base
+        try:
+            return DowndatedSolver(base, obs[~valid].toarray())
+        except np.linalg.LinAlgError:
+            return FixedSolver(normal_for(valid.astype(float)).tocsc())
 
     def field_maps(self, valid: np.ndarray):
         """Linear maps from unit data to the fine fields for this validity mask, cached.
@@ -265,8 +279,8 @@ class FineGrid:
             at_w = (a.T @ sp.diags(valid.astype(float))).tocsr()
             # α is per fine node; the data term has one row per unit (sub² fine nodes per unit)
             alpha = self.field_smoothing * (self.n * self.m) / (self.nf * self.mf)
-            normal = (at_w @ a + alpha * (self.smooth.T @ self.smooth)).tocsc()
-            hit = (FixedSolver(normal + 1e-12 * sp.identity(normal.shape[0])), at_w)
+            prior = alpha * (self.smooth.T @ self.smooth) + 1e-12 * sp.identity(a.shape[1])
+            hit = (self._masked_solver(("stretch", direction), lambda m: a.T @ sp.diags(m) @ a + prior, a, valid), at_w)
             if len(self._field_solvers) > 16:  # masks change rarely; keep the cache bounded
                 self._field_solvers.pop(next(iter(self._field_solvers)))
             self._field_solvers[key] = hit
