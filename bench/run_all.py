@@ -1,0 +1,27 @@
+"""Run every benchmark once with short settings and print their figures (`make bench`)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+RUNS = [
+    ["decode_rate.py"],
+    ["emulator_rate.py"],
+    ["reconstruction.py", "--quick"],
+    ["latency.py", "--seconds", "15"],
+]
+
+
+def main() -> int:
+    failed = 0
+    for args in RUNS:
+        print(f"\n=== {' '.join(args)} ===", flush=True)
+        failed += subprocess.call([sys.executable, str(HERE / args[0]), *args[1:]]) != 0
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
