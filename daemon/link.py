@@ -7,6 +7,7 @@ behind the same symlink (udev, /dev/serial/by-id, the emulator's link) is found 
 """
 from __future__ import annotations
 
+import random
 import select
 import threading
 import time
@@ -27,6 +28,7 @@ from skinmap.protocol import (
     SetScanRate,
     Start,
     Status,
+    Stop,
     StreamDecoder,
     encode_frame,
 )
@@ -131,7 +133,10 @@ class ScannerLink:
         self._port: Any = None
         self._decoder = StreamDecoder()
         self._tx_seq = 0
-        self._request_id = 0
+        # A device that was not power-cycled remembers its last answers by request id and replays
+        # them without executing (PROTOCOL.md §8): a host restarting its counter at 0 would have
+        # its new commands taken for retries of the previous session's.
+        self._request_id = random.randrange(0x10000)
         self.stats = LinkStats()
         self.hello: Hello | None = None
         self.device_status: Status | None = None
@@ -312,6 +317,9 @@ class ScannerLink:
         if hello.max_scan_rate_mhz and rate_mhz > hello.max_scan_rate_mhz:
             self._on_event("warning", f"requested {self.cfg.scan_rate_hz:g} scans/s, scanner allows {hello.max_scan_rate_mhz / 1000:g}")
             rate_mhz = hello.max_scan_rate_mhz
+        # A scanner that kept running (host restarted, port glitch without a power cycle) is
+        # still SCANNING and refuses SET_SCAN_RATE there; STOP is accepted in every state.
+        self._request(Stop(self._next_request_id()), "STOP")
         self._request(SetScanRate(self._next_request_id(), rate_mhz), "SET_SCAN_RATE")
         self._request(Start(self._next_request_id()), "START")
         self._last_sample = None  # START restarts the scan index: not a reboot, nothing lost
