@@ -356,7 +356,6 @@ class ScannerLink:
                 self.stats.reboots += 1
                 self._on_event("warning", "scanner rebooted (unsolicited HELLO); handshaking again")
                 self.streaming.clear()
-                self._decoder.reset()  # the device restarted its frame sequence: not a loss
                 self._handshake()
                 continue
             now = time.monotonic()
