@@ -20,7 +20,7 @@ import numpy as np
 
 from .decouple import decouple
 from .grid import FineGrid
-from .linalg import cross, diff_u, diff_v, edge_mean, exp_so3, unit
+from .linalg import diff_u, diff_v, edge_mean, exp_so3_t, matmul_t
 
 __all__ = [
     "unit_data",
@@ -209,11 +209,12 @@ def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, gamma) -> tuple[
 
 
 def _prefix_products(mats: np.ndarray) -> np.ndarray:
-    """Cumulative matrix products along axis 0 (P_k = M_0 M_1 … M_k), in log₂(K) batched steps."""
+    """Cumulative matrix products along axis 2 of components-first matrices (3, 3, K, ...):
+    P_k = M_0 M_1 … M_k, in log₂(K) batched steps."""
     out = mats.copy()
     step = 1
-    while step < out.shape[0]:
-        out[step:] = out[:-step] @ out[step:]
+    while step < out.shape[2]:
+        out[:, :, step:] = matmul_t(out[:, :, :-step], out[:, :, step:])
         step *= 2
     return out
 
@@ -221,32 +222,38 @@ def _prefix_products(mats: np.ndarray) -> np.ndarray:
 def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corrections: int = 1) -> np.ndarray:
     """Frames (nf, mf, 3, 3) (columns t_u, t_v, n) from edge rotations: integrate along the
     centre row then along every column, then least-squares corrections that spread the loop
-    misclosures over the whole grid (linearised rotation averaging on the fixed Laplacian)."""
+    misclosures over the whole grid (linearised rotation averaging on the fixed Laplacian).
+
+    The work is done components-first ((3, 3, nodes) arrays); the result is a view in the
+    usual (nf, mf, 3, 3) layout."""
     nf, mf = grid.nf, grid.mf
     a0, b0 = grid.centre
-    edge_rot = exp_so3(np.concatenate([rot_u, rot_v]))
-    ru = edge_rot[: rot_u.shape[0]].reshape(nf, mf - 1, 3, 3)
-    rv = edge_rot[rot_u.shape[0] :].reshape(nf - 1, mf, 3, 3)
-    frames = np.empty((nf, mf, 3, 3))
-    frames[a0, b0] = np.eye(3)
+    n_u = rot_u.shape[0]
+    edge_rot = exp_so3_t(np.concatenate([rot_u, rot_v]).T)  # (3, 3, E)
+    ru = edge_rot[:, :, :n_u].reshape(3, 3, nf, mf - 1)
+    rv = edge_rot[:, :, n_u:].reshape(3, 3, nf - 1, mf)
+    frames = np.empty((3, 3, nf, mf))
+    frames[:, :, a0, b0] = np.eye(3)
     # the centre is the middle node, so both halves of a line have the same length: one
     # cumulative product for the two directions (backwards: transposed, reversed)
-    row = _prefix_products(np.stack([ru[a0, b0:], np.swapaxes(ru[a0, :b0], -1, -2)[::-1]], axis=1))
-    frames[a0, b0 + 1 :] = row[:, 0]
-    frames[a0, :b0] = row[::-1, 1]
-    col = frames[a0] @ _prefix_products(np.stack([rv[a0:], np.swapaxes(rv[:a0], -1, -2)[::-1]], axis=1))
-    frames[a0 + 1 :] = col[:, 0]
-    frames[:a0] = col[::-1, 1]
-    flat = frames.reshape(-1, 3, 3)
+    row = _prefix_products(np.stack([ru[:, :, a0, b0:], ru[:, :, a0, b0 - 1 :: -1].transpose(1, 0, 2)], axis=3))
+    frames[:, :, a0, b0 + 1 :] = row[..., 0]
+    frames[:, :, a0, :b0] = row[:, :, ::-1, 1]
+    cols = np.stack([rv[:, :, a0:], rv[:, :, a0 - 1 :: -1].transpose(1, 0, 2, 3)], axis=3)  # (3, 3, L, 2, mf)
+    col = matmul_t(frames[:, :, a0, None, None, :], _prefix_products(cols))
+    frames[:, :, a0 + 1 :] = col[:, :, :, 0]
+    frames[:, :, :a0] = col[:, :, ::-1, 1]
+    flat = frames.reshape(3, 3, -1)
     for _ in range(corrections):
         # world-frame misclosure of each edge, R_tail exp(ω) = exp(m) R_head: for the small
-        # misclosures left by the tree, m = ½ Σ_k head_k × predicted_k (columns)
-        pred = flat[grid.edge_tails] @ edge_rot
-        heads = flat[grid.edge_heads]
-        mis = 0.5 * (cross(heads[..., 0], pred[..., 0]) + cross(heads[..., 1], pred[..., 1]) + cross(heads[..., 2], pred[..., 2]))
-        delta = grid.laplacian.solve(grid.incidence.T @ mis)
-        flat = exp_so3(delta) @ flat
-    return flat.reshape(nf, mf, 3, 3)
+        # misclosures left by the tree, m = ½ Σ_k head_k × predicted_k (columns), which is
+        # the axial vector of the skew part of A = predicted · headsᵀ
+        pred = matmul_t(np.take(flat, grid.edge_tails, axis=2), edge_rot)  # take: contiguous result
+        a = np.einsum("ikn,jkn->ijn", pred, np.take(flat, grid.edge_heads, axis=2))
+        mis = 0.5 * np.stack([a[2, 1] - a[1, 2], a[0, 2] - a[2, 0], a[1, 0] - a[0, 1]])
+        delta = grid.laplacian.solve(grid.divergence(mis))
+        flat = matmul_t(exp_so3_t(delta.T), flat)
+    return flat.reshape(3, 3, nf, mf).transpose(2, 3, 0, 1)
 
 
 def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamma) -> np.ndarray:
@@ -255,14 +262,16 @@ def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamm
     sheared by γ), which is the chord direction of a circular arc."""
     h = grid.spacing
     nf, mf = grid.nf, grid.mf
-    t_u = frames[..., 0]
-    t_v = frames[..., 0] * np.sin(gamma)[..., None] + frames[..., 1] * np.cos(gamma)[..., None]
-    dir_u = (t_u[:, :-1] + t_u[:, 1:]).reshape(-1, 3)
-    dir_v = (t_v[:-1] + t_v[1:]).reshape(-1, 3)
-    bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2])
-    bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2])
-    len_u = h * edge_mean(lam_u, 1).ravel() * np.sinc(bend_u / (2.0 * np.pi))
-    len_v = h * edge_mean(lam_v, 0).ravel() * np.sinc(bend_v / (2.0 * np.pi))
-    chords = np.concatenate([unit(dir_u) * len_u[:, None], unit(dir_v) * len_v[:, None]])
-    pos = grid.laplacian.solve(grid.incidence.T @ chords)
+    frames_t = frames.transpose(2, 3, 0, 1)  # components first: (3, 3, nf, mf)
+    t_u = frames_t[:, 0]
+    t_v = frames_t[:, 0] * np.sin(gamma) + frames_t[:, 1] * np.cos(gamma)
+    dir_u = t_u[:, :, :-1] + t_u[:, :, 1:]
+    dir_v = t_v[:, :-1] + t_v[:, 1:]
+    bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2]).reshape(nf, mf - 1)
+    bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2]).reshape(nf - 1, mf)
+    len_u = (h * edge_mean(lam_u, 1)) * np.sinc(bend_u / (2.0 * np.pi))
+    len_v = (h * edge_mean(lam_v, 0)) * np.sinc(bend_v / (2.0 * np.pi))
+    chord_u = dir_u * (len_u / np.sqrt(np.einsum("i...,i...->...", dir_u, dir_u)))
+    chord_v = dir_v * (len_v / np.sqrt(np.einsum("i...,i...->...", dir_v, dir_v)))
+    pos = grid.laplacian.solve(grid.divergence(chord_u.reshape(3, -1), chord_v.reshape(3, -1)))
     return pos.reshape(nf, mf, 3)

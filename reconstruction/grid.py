@@ -137,6 +137,25 @@ class FineGrid:
         dv = self.incidence[self.n_uedges :]
         self.du, self.dv = du, dv
 
+    def divergence(self, edge_values: np.ndarray, v_edge_values: np.ndarray | None = None) -> np.ndarray:
+        """incidenceᵀ @ values for components-first edge values (3, E) (u-edges first, as the
+        edge numbering), or the u- and v-edge parts given separately: each node gets the sum
+        over its incoming edges minus the sum over its outgoing ones.  Returns (nodes, 3), a
+        view of a components-first array (what the banded solver takes without a copy)."""
+        nf, mf = self.nf, self.mf
+        if v_edge_values is None:
+            u_vals, v_vals = edge_values[:, : self.n_uedges], edge_values[:, self.n_uedges :]
+        else:
+            u_vals, v_vals = edge_values, v_edge_values
+        u_vals = u_vals.reshape(-1, nf, mf - 1)
+        v_vals = v_vals.reshape(-1, nf - 1, mf)
+        out = np.zeros((u_vals.shape[0], nf, mf))
+        out[:, :, 1:] += u_vals
+        out[:, :, :-1] -= u_vals
+        out[:, 1:] += v_vals
+        out[:, :-1] -= v_vals
+        return out.reshape(-1, nf * mf).T
+
     def _build_potential_operators(self) -> None:
         """Operators on the bending potential z, defined on the fine grid plus one ring.
 

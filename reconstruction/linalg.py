@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.sparse as sp
 
-__all__ = ["diff_u", "diff_v", "edge_mean", "exp_so3", "cross", "unit", "FixedSolver", "DowndatedSolver"]
+__all__ = [
+    "diff_u", "diff_v", "edge_mean", "exp_so3", "exp_so3_t", "matmul_t", "cross", "cross_t", "unit",
+    "FixedSolver", "DowndatedSolver",
+]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
 # (Python overhead dominates); above it the banded factor wins on memory and time.
@@ -54,25 +58,47 @@ def unit(v: np.ndarray) -> np.ndarray:
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) from rotation vectors (..., 3) (Rodrigues)."""
     w = np.asarray(w, dtype=float)
-    th2 = np.einsum("...i,...i->...", w, w)
-    th = np.sqrt(th2)
-    small = th2 < 1e-12
-    safe = np.where(small, 1.0, th)
-    # Taylor series below 1e-6 rad keeps full precision where sin(x)/x loses it
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    out = np.empty(w.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1.0 - b * (y * y + z * z)
-    out[..., 1, 1] = 1.0 - b * (x * x + z * z)
-    out[..., 2, 2] = 1.0 - b * (x * x + y * y)
-    out[..., 0, 1] = b * x * y - a * z
-    out[..., 1, 0] = b * x * y + a * z
-    out[..., 0, 2] = b * x * z + a * y
-    out[..., 2, 0] = b * x * z - a * y
-    out[..., 1, 2] = b * y * z - a * x
-    out[..., 2, 1] = b * y * z + a * x
+    return np.moveaxis(exp_so3_t(np.moveaxis(w, -1, 0)), (0, 1), (-2, -1))
+
+
+def exp_so3_t(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (3, 3, ...) from rotation vectors (3, ...), components leading.
+
+    Components-first layout keeps every operation on long contiguous vectors: numpy's inner
+    loops over a trailing axis of length 3 cost several times the arithmetic.
+    """
+    x, y, z = w[0], w[1], w[2]
+    half = 0.5 * np.sqrt(x * x + y * y + z * z)
+    sh = np.sin(half)
+    # sin(θ/2)/(θ/2) stays accurate for small θ (no cancellation), and is 1 at θ = 0
+    sinc_h = np.divide(sh, half, out=np.ones_like(half), where=half > 0)
+    a = sinc_h * np.cos(half)  # sin θ / θ
+    b = 0.5 * sinc_h * sinc_h  # (1 − cos θ) / θ²
+    c = 1.0 - 2.0 * sh * sh  # cos θ
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    out = np.empty((3, 3) + w.shape[1:])
+    out[0, 0] = c + bx * x
+    out[1, 1] = c + by * y
+    out[2, 2] = c + bz * z
+    bxy, bxz, byz = bx * y, bx * z, by * z
+    out[0, 1] = bxy - az
+    out[1, 0] = bxy + az
+    out[0, 2] = bxz + ay
+    out[2, 0] = bxz - ay
+    out[1, 2] = byz - ax
+    out[2, 1] = byz + ax
     return out
+
+
+def matmul_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Products of 3×3 matrices stored components-first, (3, 3, ...) @ (3, 3, ...)."""
+    return np.einsum("ik...,kj...->ij...", a, b)
+
+
+def cross_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of vectors stored components-first, (3, ...)."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 class FixedSolver:
@@ -105,12 +131,17 @@ class FixedSolver:
             ab = np.zeros((bw + 1, self.size))
             np.add.at(ab, (bw + rows - cols, cols), vals)
             self._band = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
+            # LAPACK directly: scipy's wrapper re-validates its arguments on every call
+            self._pbtrs = scipy.linalg.lapack.get_lapack_funcs("pbtrs", (self._band,))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, dtype=float)
         if self._pinv is not None:
             return self._pinv @ b
-        return scipy.linalg.cho_solve_banded((self._band, False), b, check_finite=False)
+        x, info = self._pbtrs(self._band, b, lower=0)
+        if info != 0:
+            raise ValueError(f"banded solve failed: illegal argument {-info} (right-hand side shape {b.shape})")
+        return x
 
 
 class DowndatedSolver:
