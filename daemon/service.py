@@ -94,6 +94,7 @@ class GatewayStats:
     publish_errors: int = 0
     log_dropped: int = 0
     log_errors: int = 0
+    processing_errors: int = 0
     last_seq: int = -1
     last_solver_ms: float = 0.0
     latencies_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2048))
@@ -140,6 +141,7 @@ class Gateway:
         self._tare_mtime: float | None = None
         self._log_state = "off"
         self._last_log_error = ""
+        self._processing_error = ""  # the last scan's failure; empty once a scan succeeds
         self._ready_sent = False
         self._surface_decimator = OutputDecimator(cfg.output.surface_rate_hz)
         self._strains_decimator = OutputDecimator(cfg.output.strains_rate_hz)
@@ -288,14 +290,19 @@ class Gateway:
             try:
                 self._process(scan, t_rx)
             except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
-                log.exception("processing scan %s failed", getattr(scan, "sample_index", "?"))
-                self._enqueue_log(("event", time.time_ns(), "error", f"processing failed: {exc}"))
+                self.stats.processing_errors += 1
+                text = f"processing failed: {type(exc).__name__}: {exc}"
+                if text != self._processing_error:  # a repeated failure is counted, not re-logged
+                    log.exception("processing scan %s failed", getattr(scan, "sample_index", "?"))
+                    self._enqueue_log(("event", time.time_ns(), "error", text))
+                self._processing_error = text
 
     def _process(self, scan: Scan, t_rx: int) -> None:
         pipeline = self._ensure_pipeline()
         if pipeline is None or (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):
             return
         result = pipeline.process(scan.resistances_ohm(), scan.sample_index, scan.timestamp_us, t_rx)
+        self._processing_error = ""
         self.stats.results += 1
         self.stats.last_seq = result.seq
         self.stats.last_solver_ms = result.solve_time_s * 1e3
@@ -442,6 +449,7 @@ class Gateway:
             "log_file": (lg.current_path or "") if lg is not None else "",
             "log_bytes": int(lg.bytes_written) if lg is not None else 0,
             "publish_errors": int(s.publish_errors),
+            "processing_errors": int(s.processing_errors),
             "calibration": self._pipeline.calibration.source if self._pipeline else "",
             "uptime_s": round(time.monotonic() - s.started_mono, 1),
             **self._conditions(),
@@ -457,6 +465,8 @@ class Gateway:
             warnings.append(f"scanner stalled: {ls.last_error}")
         if self._log_state == "error":
             warnings.append(f"logging failed (publishing continues): {self._last_log_error}")
+        if self._processing_error:
+            warnings.append(f"{self._processing_error} (nothing published for these scans)")
         faults: list[str] = []
         dev = self.link.device_status
         if dev is not None and dev.fault_flags:

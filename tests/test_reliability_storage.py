@@ -246,6 +246,44 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
     assert inspect(done).end.complete and replay_log(done).identical
 
 
+def test_failing_reconstruction_is_reported_counted_and_logged_once(emulator, tmp_path, monkeypatch, caplog):
+    """A pipeline that fails every scan (a bug, a bad calibration) must not look healthy: the
+    status names it and counts the scans, the log says it once, and publishing resumes when
+    scans process again."""
+    from skinmap.daemon.pipeline import FramePipeline
+
+    zport = free_port()
+    cfg = gateway_config(tmp_path, zport, tmp_path / "logs")
+    original = FramePipeline.process
+    broken = {"on": False}
+
+    def process(self, *args, **kwargs):
+        if broken["on"]:
+            raise FloatingPointError("injected solver failure")
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(FramePipeline, "process", process)
+    with running_gateway(cfg) as gw:
+        with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
+            client.elements(timeout=30.0)
+            broken["on"] = True
+            wait_for(lambda: gw.stats.processing_errors >= 20, 10, "20 failed scans")
+            st = gw.status()
+            assert st["healthy"] is False and st["processing_errors"] >= 20
+            assert any("injected solver failure" in w for w in st["warnings"]), st["warnings"]
+            broken["on"] = False
+            t_good = time.time_ns()
+            t0 = time.monotonic()
+            elements_after(client, t_good, 5.0)
+            resume_s = time.monotonic() - t0
+            wait_for(lambda: not any("processing" in w for w in gw.status()["warnings"]), 5, "the warning to clear")
+    logged = [r for r in caplog.records if "processing scan" in r.getMessage()]
+    print(f"FIGURE failing reconstruction: {gw.stats.processing_errors} scans failed, logged {len(logged)} time(s); "
+          f"published again {resume_s * 1e3:.0f} ms after scans processed again")
+    assert len(logged) == 1
+    assert resume_s < 5.0
+
+
 # ---------------------------------------------------------------------------------------------
 # A real skinmapd process at full scan rate with small files, killed with SIGKILL.
 
@@ -290,6 +328,7 @@ directory = "state"
         t_kill = time.time_ns()
         proc.wait(timeout=10)
         sent_at_kill = emu.device.scans_sent
+        dropped_by_device = emu.device.scans_dropped
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -297,7 +336,7 @@ directory = "state"
         proc.stderr.close()
         emu.stop()
     assert proc.returncode == -signal.SIGKILL
-    return {"logs": logs, "t_kill": t_kill, "sent": sent_at_kill, "tmp": tmp}
+    return {"logs": logs, "t_kill": t_kill, "sent": sent_at_kill, "device_dropped": dropped_by_device}
 
 
 REPLAY_SCRIPT = """
@@ -342,7 +381,8 @@ def test_rotation_under_load_every_file_standalone_and_no_gap(killed_daemon):
     replays = replay_like_the_daemon(finished)
     for path in finished:  # each file replays alone, including those that start mid-stream
         rep = replays[str(path)]
-        assert rep["compared"] > 0 and rep["processed"] == rep["compared"], rep
+        # A scan whose strains and elements straddle a rotation is compared in neither file.
+        assert rep["compared"] > 0 and rep["processed"] - rep["compared"] <= 1, rep
     worst_m = max(r["max_position_diff_m"] for r in replays.values())
     identical = sum(r["identical"] for r in replays.values())
     frames = [f for path in finished + [active] for f in raw_frames(path)]
@@ -350,10 +390,14 @@ def test_rotation_under_load_every_file_standalone_and_no_gap(killed_daemon):
     steps = np.diff(seqs) % 65536
     assert (steps == 1).all(), f"frame seq gaps across files at {np.nonzero(steps != 1)[0][:5]}"
     samples = np.array([f.msg.sample_index for f in frames if isinstance(f.msg, Scan)])
-    assert (np.diff(samples) == 1).all()
+    # Scans the emulated device itself skipped (it runs in this busy test process) are
+    # flagged by the device; every scan it sent is in the log.
+    skipped = int((np.diff(samples) - 1).sum())
+    assert (np.diff(samples) >= 1).all() and skipped <= killed_daemon["device_dropped"]
     sizes = [p.stat().st_size for p in finished]
     print(f"FIGURE rotation at {KILL_RATE_HZ:g} scans/s, max_file_mb 0.12: {len(finished)} finished files "
-          f"({min(sizes)}..{max(sizes)} bytes), {len(samples)} scans, no /raw gap across files; "
+          f"({min(sizes)}..{max(sizes)} bytes), {len(samples)} scans, no /raw frame gap across files "
+          f"({skipped} scans skipped by the device itself); "
           f"standalone replay: {identical}/{len(finished)} files bit-identical, all within {worst_m:.1e} m of live")
     assert replays[str(finished[0])]["identical"]
     assert worst_m < 1e-9
