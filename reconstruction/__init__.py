@@ -168,12 +168,12 @@ class Reconstructor:
         metric = metric_terms(grid.spacing, lam_u, lam_v)
         tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric)
         if self.shear_passes:
-            gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
+            sin_gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
         else:
-            gamma = np.zeros_like(k_u)
-        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, gamma)
+            sin_gamma = np.zeros_like(k_u)
+        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
-        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, gamma)
+        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         pos = _to_sensor_frame(grid, pos)
         if not np.all(np.isfinite(pos)):

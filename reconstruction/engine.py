@@ -16,17 +16,21 @@ a frame costs a few matrix-vector products and vectorised rotation algebra.
 """
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numpy as np
 
 from .decouple import decouple
 from .grid import FineGrid
-from .linalg import diff_u, diff_v, edge_mean, exp_so3_t, matmul_t
+from .linalg import diff_u_t, diff_v_t, edge_mean, exp_so3_t, matmul_t
 
 __all__ = [
     "unit_data",
     "solve_fields",
     "potential_curvatures",
     "metric_terms",
+    "Metric",
     "solve_twist",
     "solve_shear",
     "rotation_rates",
@@ -67,7 +71,7 @@ def solve_twist(
     lam_v: np.ndarray,
     twist_sign: float = 1.0,
     turning_sigma: float = 0.0,
-    metric: tuple | None = None,
+    metric: Metric | None = None,
 ) -> tuple[np.ndarray, float]:
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -79,34 +83,38 @@ def solve_twist(
     observable (mirror-image twists give identical strains), so ``twist_sign`` chooses it.
     Returns (τ field, the constant).
     """
-    tau0 = tau0 - tau0.mean()
+    tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
     # bias the estimates.
     inner = (slice(grid.node_rows[0], grid.node_rows[-1] + 1), slice(grid.node_cols[0], grid.node_cols[-1] + 1))
-    prod = np.mean((k_u * k_v - tau0 * tau0)[inner])
+    ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau0[inner], lam_u[inner], lam_v[inner]
+    count = ku_in.size
+    prod = float((ku_in * kv_in - t_in * t_in).sum()) / count
     # A doubly curved sheet (K ≠ 0) cannot be laid flat without stretching by about K ρ²/12
     # over a half-size ρ; a developable one needs none.  Attribute positive k_u k_v to a constant
     # twist only in proportion to how little the stretch varies.
     rho2 = 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
     need = abs(prod) * rho2 / 12.0
-    dev = np.sqrt(0.5 * (np.var(lam_u[inner]) + np.var(lam_v[inner])))
-    ratio = dev / need if need > 0 else np.inf
-    weight = float(np.clip(1.5 - 3.0 * ratio, 0.0, 1.0))
+    lu_dev, lv_dev = lu_in - lu_in.sum() / count, lv_in - lv_in.sum() / count
+    dev = math.sqrt(0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count)
+    ratio = dev / need if need > 0 else math.inf
+    weight = min(max(1.5 - 3.0 * ratio, 0.0), 1.0)
     # three s.d. of the mean product when each unit's turning carries independent noise
     n_units = grid.n * grid.m
-    noise = 3.0 * (turning_sigma * np.sqrt(np.mean(k_u[inner] ** 2) + np.mean(k_v[inner] ** 2)) + turning_sigma**2) / np.sqrt(n_units)
+    curv_rms = math.sqrt(float((ku_in * ku_in).sum() + (kv_in * kv_in).sum()) / count)
+    noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(n_units)
     # unbiased above twice the noise level, off below it, continuous in between
-    significance = float(np.clip(prod / noise - 1.0, 0.0, 1.0)) if noise > 0 else float(prod > 0)
+    significance = min(max(prod / noise - 1.0, 0.0), 1.0) if noise > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
     if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
         if metric is None:
             metric = metric_terms(grid.spacing, lam_u, lam_v)
         c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
-    c = float(np.copysign(np.sqrt(c2), twist_sign))
+    c = math.copysign(math.sqrt(c2), twist_sign)
     return tau0 + c, c
 
 
-def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: tuple) -> float:
+def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> float:
     """Squared constant twist of a sheet whose stretch pattern needs negative Gaussian curvature
     (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
 
@@ -116,44 +124,67 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     local shear around a bump) and stands above the noise.
     """
     h = grid.spacing
-    s11, s22 = k_u / lam_u, k_v / lam_v
-    f0 = _mixed_antiderivative(h * h * _cell_mean(_brioschi_source(h, metric, np.zeros_like(k_u), s11 * s22 - tau0 * tau0)))
-    f1 = _mixed_antiderivative(h * h * _cell_mean((lam_u * lam_v) ** 2))
+    eg = metric.eg
+    src0 = metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau0 * tau0) * eg
+    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.stack([src0, eg * eg])))
     f0, f1 = f0[inner], f1[inner]
-    den = float(np.sum(f1 * f1))
+    den = float((f1 * f1).sum())
     if den <= 0.0:
         return 0.0
-    x = float(np.sum(f0 * f1)) / den
+    x = float((f0 * f1).sum()) / den
     if x <= 0.0:
         return 0.0
-    explained = x * x * den / max(float(np.sum(f0 * f0)), 1e-300)
-    weight = float(np.clip((explained - 0.5) / 0.3, 0.0, 1.0))
-    significance = float(np.clip(x / noise - 1.0, 0.0, 1.0)) if noise > 0 else 1.0
+    explained = x * x * den / max(float((f0 * f0).sum()), 1e-300)
+    weight = min(max((explained - 0.5) / 0.3, 0.0), 1.0)
+    significance = min(max(x / noise - 1.0, 0.0), 1.0) if noise > 0 else 1.0
     return x * weight * significance
 
 
 def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
-    """Least-norm node field F (nf, mf) whose mixed difference over every cell equals ``cell``
-    (nf−1, mf−1): a double cumulative sum solves it exactly; removing the row and column means
-    (double centring) projects out the free part f(u) + g(v)."""
-    f = np.zeros((cell.shape[0] + 1, cell.shape[1] + 1))
-    f[1:, 1:] = np.cumsum(np.cumsum(cell, axis=0), axis=1)
-    return f - f.mean(axis=0, keepdims=True) - f.mean(axis=1, keepdims=True) + f.mean()
+    """Least-norm node fields F (..., nf, mf) whose mixed difference over every cell equals
+    ``cell`` (..., nf−1, mf−1): a double cumulative sum solves it exactly; removing the row and
+    column means (double centring) projects out the free part f(u) + g(v)."""
+    f = np.zeros(cell.shape[:-2] + (cell.shape[-2] + 1, cell.shape[-1] + 1))
+    f[..., 1:, 1:] = cell.cumsum(axis=-2).cumsum(axis=-1)
+    col_mean = f.sum(axis=-2, keepdims=True) * (1.0 / f.shape[-2])
+    row_mean = f.sum(axis=-1, keepdims=True) * (1.0 / f.shape[-1])
+    return f - col_mean - (row_mean - row_mean.sum(axis=-2, keepdims=True) * (1.0 / f.shape[-2]))
 
 
-def metric_terms(h: float, lam_u, lam_v) -> tuple:
-    """E, G, their first derivatives and E_vv/2 + G_uu/2, which do not change with F."""
-    e, g = lam_u * lam_u, lam_v * lam_v
-    e_u, e_v, g_u, g_v = diff_u(e, h), diff_v(e, h), diff_u(g, h), diff_v(g, h)
-    return e, g, e_u, e_v, g_u, g_v, 0.5 * (diff_v(e_v, h) + diff_u(g_u, h))
+class Metric(NamedTuple):
+    """First fundamental form terms that do not change with the shear F: E = λ_u², G = λ_v²,
+    their first derivatives, EG, and Brioschi's F_uv source at F = 0 without the curvature
+    term (E_vv/2 + G_uu/2 + Q(F = 0)/(EG))."""
+
+    e: np.ndarray
+    g: np.ndarray
+    e_u: np.ndarray
+    e_v: np.ndarray
+    g_u: np.ndarray
+    g_v: np.ndarray
+    base: np.ndarray  # E_vv/2 + G_uu/2
+    eg: np.ndarray
+    source0: np.ndarray
 
 
-def _brioschi_source(h: float, metric: tuple, f, k_gauss) -> np.ndarray:
+def metric_terms(h: float, lam_u, lam_v) -> Metric:
+    """The F-independent metric terms (:class:`Metric`) from the stretch fields."""
+    e_g = np.stack([lam_u * lam_u, lam_v * lam_v])
+    (e_u, g_u), (e_v, g_v) = diff_u_t(e_g, h), diff_v_t(e_g, h)
+    e, g = e_g
+    base = 0.5 * (diff_v_t(e_v, h) + diff_u_t(g_u, h))
+    eg = e * g
+    # Q at F = 0: a12·a21·g + a13·e·a31 + det_b with a21 = −G_u/2, a13 = −E_v/2
+    q0 = -0.25 * (e_u * g_u * g + e_v * e * g_v + e_v * e_v * g + e * g_u * g_u)
+    return Metric(e, g, e_u, e_v, g_u, g_v, base, eg, base + q0 / eg)
+
+
+def _brioschi_source(h: float, metric: Metric, f, k_gauss) -> np.ndarray:
     """F_uv that Brioschi's formula requires for Gaussian curvature ``k_gauss`` with
     E = λ_u², G = λ_v² and the current F: E_vv/2 + G_uu/2 + K (EG − F²) + Q/(EG − F²)."""
-    e, g, e_u, e_v, g_u, g_v, base = metric
-    f_u, f_v = diff_u(f, h), diff_v(f, h)
-    det = e * g - f * f
+    e, g, e_u, e_v, g_u, g_v, base = metric[:7]
+    f_u, f_v = diff_u_t(f, h), diff_v_t(f, h)
+    det = metric.eg - f * f
     a12, a13 = 0.5 * e_u, f_u - 0.5 * e_v
     a21, a31 = f_v - 0.5 * g_u, 0.5 * g_v
     det_b = -0.5 * e_v * (0.5 * e_v * g - 0.5 * f * g_u) + 0.5 * g_u * (0.5 * e_v * f - 0.5 * e * g_u)
@@ -162,33 +193,41 @@ def _brioschi_source(h: float, metric: tuple, f, k_gauss) -> np.ndarray:
 
 
 def _cell_mean(f: np.ndarray) -> np.ndarray:
-    return 0.25 * (f[:-1, :-1] + f[1:, :-1] + f[:-1, 1:] + f[1:, 1:])
+    """Mean of the four corners of every grid cell, over the last two axes."""
+    s = f[..., :-1, :] + f[..., 1:, :]
+    return 0.25 * (s[..., :-1] + s[..., 1:])
 
 
-def solve_shear(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 2, metric: tuple | None = None) -> np.ndarray:
-    """Shear angle γ (nf, mf) between x_v and the normal to x_u, from the Gauss equation.
+def solve_shear(
+    grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, iterations: int = 2, metric: Metric | None = None
+) -> np.ndarray:
+    """Sine of the shear angle γ (nf, mf) between x_v and the normal to x_u, from the Gauss
+    equation (|sin γ| ≤ 0.9).
 
     The gauges measure E = λ_u² and G = λ_v² but not F = x_u·x_v.  Brioschi's formula is linear
     in F_uv:  F_uv = E_vv/2 + G_uu/2 + K (EG − F²) + Q(E, F, G, first derivatives)/(EG − F²),
     with K = det S from the curvature fields.  Fixed-point passes re-evaluate the right-hand side
-    with the current F; the least-norm solution fixes the part f(u) + g(v) that ∂_uv leaves free.
+    with the current F (the first from F = 0, whose source is precomputed in ``metric``); the
+    least-norm solution fixes the part f(u) + g(v) that ∂_uv leaves free.
     """
     h = grid.spacing
-    s11 = k_u / lam_u
     if metric is None:
         metric = metric_terms(h, lam_u, lam_v)
-    f = np.zeros_like(k_u)
-    for _ in range(max(1, iterations)):
-        sg = np.clip(f / (lam_u * lam_v), -0.9, 0.9)
+    s11 = k_u / lam_u
+    lam_uv = lam_u * lam_v
+    f = _mixed_antiderivative((h * h) * _cell_mean(metric.source0 + (s11 * k_v / lam_v - tau * tau) * metric.eg))
+    for _ in range(max(1, iterations) - 1):
+        sg = np.clip(f / lam_uv, -0.9, 0.9)
         cg2 = 1.0 - sg * sg
         s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * np.sqrt(cg2)) / cg2
         src = _brioschi_source(h, metric, f, s11 * s22 - tau * tau)
-        f = _mixed_antiderivative(h * h * _cell_mean(src))
-    return np.arcsin(np.clip(f / (lam_u * lam_v), -0.9, 0.9))
+        f = _mixed_antiderivative((h * h) * _cell_mean(src))
+    return np.clip(f / lam_uv, -0.9, 0.9)
 
 
-def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, gamma) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation vectors (in the tail frame) of every u-edge and v-edge, (E, 3) each.
+def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, sin_gamma) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation vectors (in the tail frame) of every u-edge and v-edge, components first:
+    (3, E_u) and (3, E_v).
 
     The frame is e1 = x_u/|x_u|, e2 = n × e1, e3 = n; x_v = λ_v (sin γ e1 + cos γ e2).  With the
     shape operator S (convex positive) in (e1, e2): S11 = k_u/λ_u, S12 = −τ and S22 from the
@@ -196,16 +235,20 @@ def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, gamma) -> tuple[
     (E, F, G) = (λ_u², λ_u λ_v sin γ, λ_v²).
     """
     h = grid.spacing
-    sg, cg = np.sin(gamma), np.cos(gamma)
+    sg = sin_gamma
+    cg = np.sqrt(1.0 - sg * sg)
     s11 = k_u / lam_u
-    s12 = -tau
-    s22 = (k_v / lam_v - s11 * sg * sg - 2.0 * s12 * sg * cg) / (cg * cg)
-    lu_u, lu_v, lv_u, f_u = diff_u(lam_u, h), diff_v(lam_u, h), diff_u(lam_v, h), diff_u(lam_u * lam_v * sg, h)
-    w_u3 = ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) / (lam_u * cg)
-    w_v3 = (lv_u - sg * lu_v) / (lam_u * cg)
-    w_u = np.stack([-lam_u * s12, lam_u * s11, w_u3], axis=-1)
-    w_v = np.stack([-lam_v * (s12 * sg + s22 * cg), lam_v * (s11 * sg + s12 * cg), w_v3], axis=-1)
-    return h * edge_mean(w_u, 1).reshape(-1, 3), h * edge_mean(w_v, 0).reshape(-1, 3)
+    s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * cg) / (cg * cg)
+    lu_u, lv_u, f_u = diff_u_t(np.stack([lam_u, lam_v, lam_u * lam_v * sg]), h)
+    lu_v = diff_v_t(lam_u, h)
+    inv = 1.0 / (lam_u * cg)
+    w_u = np.stack([lam_u * tau, lam_u * s11, ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) * inv])
+    w_v = np.stack([lam_v * (tau * sg - s22 * cg), lam_v * (s11 * sg - tau * cg), (lv_u - sg * lu_v) * inv])
+    half_h = 0.5 * h
+    return (
+        (half_h * (w_u[:, :, :-1] + w_u[:, :, 1:])).reshape(3, -1),
+        (half_h * (w_v[:, :-1] + w_v[:, 1:])).reshape(3, -1),
+    )
 
 
 def _prefix_products(mats: np.ndarray) -> np.ndarray:
@@ -228,8 +271,8 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     usual (nf, mf, 3, 3) layout."""
     nf, mf = grid.nf, grid.mf
     a0, b0 = grid.centre
-    n_u = rot_u.shape[0]
-    edge_rot = exp_so3_t(np.concatenate([rot_u, rot_v]).T)  # (3, 3, E)
+    n_u = rot_u.shape[1]
+    edge_rot = exp_so3_t(np.concatenate([rot_u, rot_v], axis=1))  # (3, 3, E)
     ru = edge_rot[:, :, :n_u].reshape(3, 3, nf, mf - 1)
     rv = edge_rot[:, :, n_u:].reshape(3, 3, nf - 1, mf)
     frames = np.empty((3, 3, nf, mf))
@@ -256,7 +299,7 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     return flat.reshape(3, 3, nf, mf).transpose(2, 3, 0, 1)
 
 
-def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamma) -> np.ndarray:
+def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma) -> np.ndarray:
     """Positions (nf, mf, 3) whose edge vectors best match the chords of the arcs implied by the
     frames: length λ·spacing·sinc(bend/2) along the bisector of the end tangents (x̂_u, or x̂_v
     sheared by γ), which is the chord direction of a circular arc."""
@@ -264,11 +307,11 @@ def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, gamm
     nf, mf = grid.nf, grid.mf
     frames_t = frames.transpose(2, 3, 0, 1)  # components first: (3, 3, nf, mf)
     t_u = frames_t[:, 0]
-    t_v = frames_t[:, 0] * np.sin(gamma) + frames_t[:, 1] * np.cos(gamma)
+    t_v = frames_t[:, 0] * sin_gamma + frames_t[:, 1] * np.sqrt(1.0 - sin_gamma * sin_gamma)
     dir_u = t_u[:, :, :-1] + t_u[:, :, 1:]
     dir_v = t_v[:, :-1] + t_v[:, 1:]
-    bend_u = np.hypot(rot_u[:, 1], rot_u[:, 2]).reshape(nf, mf - 1)
-    bend_v = np.hypot(rot_v[:, 0], rot_v[:, 2]).reshape(nf - 1, mf)
+    bend_u = np.hypot(rot_u[1], rot_u[2]).reshape(nf, mf - 1)
+    bend_v = np.hypot(rot_v[0], rot_v[2]).reshape(nf - 1, mf)
     len_u = (h * edge_mean(lam_u, 1)) * np.sinc(bend_u / (2.0 * np.pi))
     len_v = (h * edge_mean(lam_v, 0)) * np.sinc(bend_v / (2.0 * np.pi))
     chord_u = dir_u * (len_u / np.sqrt(np.einsum("i...,i...->...", dir_u, dir_u)))

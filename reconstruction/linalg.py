@@ -8,7 +8,7 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 
 __all__ = [
-    "diff_u", "diff_v", "edge_mean", "exp_so3", "exp_so3_t", "matmul_t", "cross", "cross_t", "unit",
+    "diff_u", "diff_v", "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "matmul_t", "cross", "cross_t", "unit",
     "FixedSolver", "DowndatedSolver",
 ]
 
@@ -32,6 +32,25 @@ def diff_v(f: np.ndarray, h: float) -> np.ndarray:
     out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
     out[0] = (f[1] - f[0]) / h
     out[-1] = (f[-1] - f[-2]) / h
+    return out
+
+
+def diff_u_t(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂u of fields (..., nf, mf) (u along the last axis), central differences, one-sided at
+    the edges; leading axes stack several fields so one call serves them all."""
+    out = np.empty_like(f)
+    out[..., 1:-1] = (f[..., 2:] - f[..., :-2]) * (0.5 / h)
+    out[..., 0] = (f[..., 1] - f[..., 0]) * (1.0 / h)
+    out[..., -1] = (f[..., -1] - f[..., -2]) * (1.0 / h)
+    return out
+
+
+def diff_v_t(f: np.ndarray, h: float) -> np.ndarray:
+    """∂/∂v of fields (..., nf, mf) (v along the second-last axis), like :func:`diff_u_t`."""
+    out = np.empty_like(f)
+    out[..., 1:-1, :] = (f[..., 2:, :] - f[..., :-2, :]) * (0.5 / h)
+    out[..., 0, :] = (f[..., 1, :] - f[..., 0, :]) * (1.0 / h)
+    out[..., -1, :] = (f[..., -1, :] - f[..., -2, :]) * (1.0 / h)
     return out
 
 

@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 
 from .linalg import cross, diff_u, diff_v, unit
 
-__all__ = ["Surface", "Diagnostics", "hermite_patch_eval"]
+__all__ = ["Surface", "Diagnostics", "hermite_patch_eval", "hermite_grid_eval"]
 
 # Points per block in locate(): the Hermite evaluation holds ~50 floats per point.
 _LOCATE_CHUNK = 16384
@@ -29,10 +31,25 @@ class Diagnostics:
 
 def _hermite_basis(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cubic Hermite basis (h00, h10, h01, h11) and derivatives, each (K, 4)."""
-    t2, t3 = t * t, t * t * t
-    h = np.stack([2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2], axis=-1)
-    dh = np.stack([6 * t2 - 6 * t, 3 * t2 - 4 * t + 1, -6 * t2 + 6 * t, 3 * t2 - 2 * t], axis=-1)
+    t2 = t * t
+    t3 = t2 * t
+    h = np.empty(t.shape + (4,))
+    dh = np.empty(t.shape + (4,))
+    h[..., 2] = 3.0 * t2 - 2.0 * t3
+    h[..., 0] = 1.0 - h[..., 2]
+    h[..., 1] = t3 - 2.0 * t2 + t
+    h[..., 3] = t3 - t2
+    dh[..., 2] = 6.0 * (t - t2)
+    dh[..., 0] = -dh[..., 2]
+    dh[..., 1] = 3.0 * t2 - 4.0 * t + 1.0
+    dh[..., 3] = 3.0 * t2 - 2.0 * t
     return h, dh
+
+
+# Corner c = 2·da + db of a patch, quantity q = value, ∂u, ∂v, ∂uv (q = qu + 2·qv): the u-basis
+# index is 2·db + qu, the v-basis index 2·da + qv.
+_IU = np.array([[0, 1, 0, 1], [2, 3, 2, 3], [0, 1, 0, 1], [2, 3, 2, 3]]).ravel()
+_IV = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 3, 3], [2, 2, 3, 3]]).ravel()
 
 
 def hermite_patch_eval(
@@ -44,23 +61,45 @@ def hermite_patch_eval(
     node.  Returns positions, ∂/∂u and ∂/∂v at ``uv`` (K, 2).
     """
     nf, mf = coeffs.shape[:2]
-    x = (uv[:, 0] - u0) / spacing
-    y = (uv[:, 1] - v0) / spacing
-    b = np.clip(np.floor(x).astype(int), 0, mf - 2)
-    a = np.clip(np.floor(y).astype(int), 0, nf - 2)
+    x = (uv[:, 0] - u0) * (1.0 / spacing)
+    y = (uv[:, 1] - v0) * (1.0 / spacing)
+    b = np.clip(x.astype(int), 0, mf - 2)  # x >= 0 on the sheet: truncation is floor
+    a = np.clip(y.astype(int), 0, nf - 2)
     hs, dhs = _hermite_basis(x - b)
     ht, dht = _hermite_basis(y - a)
-    # corner (da, db) ∈ {0,1}²; quantity q = value, ∂u, ∂v, ∂uv; basis index along u: 2·db + (q & 1),
-    # along v: 2·da + (q >> 1)
-    c = np.stack([coeffs[a, b], coeffs[a, b + 1], coeffs[a + 1, b], coeffs[a + 1, b + 1]], axis=1)  # (K, 4, 4, 3)
-    iu = np.array([[0, 1, 0, 1], [2, 3, 2, 3], [0, 1, 0, 1], [2, 3, 2, 3]])
-    iv = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 3, 3], [2, 2, 3, 3]])
-    wu, dwu = hs[:, iu], dhs[:, iu]  # (K, 4, 4)
-    wv, dwv = ht[:, iv], dht[:, iv]
-    pos = np.einsum("kcq,kcqd->kd", wu * wv, c)
-    d_u = np.einsum("kcq,kcqd->kd", dwu * wv, c) / spacing
-    d_v = np.einsum("kcq,kcqd->kd", wu * dwv, c) / spacing
-    return pos, d_u, d_v
+    p = a * mf + b
+    corners = np.stack([p, p + 1, p + mf, p + mf + 1], axis=1)  # (K, 4)
+    c = np.take(coeffs.reshape(nf * mf, 12), corners, axis=0).reshape(-1, 16, 3)
+    wu, dwu = np.take(hs, _IU, axis=1), np.take(dhs, _IU, axis=1)  # (K, 16)
+    wv, dwv = np.take(ht, _IV, axis=1), np.take(dht, _IV, axis=1)
+    w = np.stack([wu * wv, dwu * wv * (1.0 / spacing), wu * dwv * (1.0 / spacing)], axis=1)  # (K, 3, 16)
+    out = w @ c  # (K, 3, 3): position, ∂u, ∂v
+    return out[:, 0], out[:, 1], out[:, 2]
+
+
+@lru_cache(maxsize=32)
+def _regular_basis(n_nodes: int, start: float, step: float, count: int) -> sp.csr_matrix:
+    """Sparse (count, 2·n_nodes) Hermite basis of ``count`` regular samples ``step`` apart from
+    ``start`` (in grid-spacing units) along one axis: column 2·node + q, q = value, derivative."""
+    x = start + step * np.arange(count)
+    k = np.clip(x.astype(int), 0, n_nodes - 2)
+    h, _ = _hermite_basis(x - k)
+    cols = np.stack([2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3], axis=1)
+    rows = np.repeat(np.arange(count), 4)
+    return sp.csr_matrix((h.ravel(), (rows, cols.ravel())), shape=(count, 2 * n_nodes))
+
+
+def hermite_grid_eval(coeffs: np.ndarray, basis_u: sp.csr_matrix, basis_v: sp.csr_matrix) -> np.ndarray:
+    """Positions (Kv·Ku, 3) on a regular sample grid (v-major), from the separable bicubic
+    Hermite form P = B_v D B_uᵀ per coordinate: two sparse products, four terms per sample and
+    axis, instead of a per-point patch evaluation."""
+    nf, mf = coeffs.shape[:2]
+    # D[2a + qv, 2b + qu] = coeffs[a, b, qu + 2 qv]
+    d = coeffs.reshape(nf, mf, 2, 2, 3).transpose(1, 3, 0, 2, 4).reshape(2 * mf, 2 * nf * 3)
+    y = basis_u @ d  # (Ku, 2nf·3)
+    ku = y.shape[0]
+    y = y.reshape(ku, 2 * nf, 3).transpose(1, 0, 2).reshape(2 * nf, ku * 3)
+    return (basis_v @ y).reshape(-1, 3)
 
 
 class Surface:
@@ -178,10 +217,13 @@ class Surface:
             raise ValueError(f"per_pitch must be a positive integer, got {per_pitch!r}")
         u0, u1, v0, v1 = self.extent
         step = self.pitch / int(per_pitch)
-        us = u0 + step * (np.arange(int(round((u1 - u0) / step))) + 0.5)
-        vs = v0 + step * (np.arange(int(round((v1 - v0) / step))) + 0.5)
-        uu, vv = np.meshgrid(us, vs)
-        return self.locate(np.stack([uu.ravel(), vv.ravel()], axis=1))[0]
+        count_u, count_v = int(round((u1 - u0) / step)), int(round((v1 - v0) / step))
+        # samples at u0 + step·(i + ½), in grid-spacing units
+        rel = step / self._spacing
+        nf, mf = self._coeffs.shape[:2]
+        basis_u = _regular_basis(mf, 0.5 * rel, rel, count_u)
+        basis_v = _regular_basis(nf, 0.5 * rel, rel, count_v)
+        return hermite_grid_eval(self._coeffs, basis_u, basis_v)
 
     def __repr__(self) -> str:
         d = self.diagnostics
