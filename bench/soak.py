@@ -88,6 +88,20 @@ def sequence_gaps(seqs: np.ndarray) -> int:
     return int(np.sum(steps[(steps > 1) & (steps < 2**31)] - 1))
 
 
+def source_fingerprint() -> str:
+    """Hash of the skinmap sources the daemon runs, so a replay can tell whether the code it
+    re-runs is the code that wrote the log (a DIFFERENT verdict is expected otherwise)."""
+    import hashlib
+    import importlib
+
+    digest = hashlib.sha256()
+    for name in ("skinmap", "skinmap.protocol", "skinmap.reconstruction", "skinmap.daemon"):
+        for folder in importlib.import_module(name).__path__:
+            for path in sorted(Path(folder).glob("*.py")):
+                digest.update(path.name.encode() + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 # ---------------------------------------------------------------------------------------------
 # the run
 
@@ -113,6 +127,7 @@ class SoakResult:
     files: list[dict[str, Any]] = field(default_factory=list)
     replay: dict[str, Any] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    source_at_start: str = ""
 
     @property
     def ok(self) -> bool:
@@ -145,6 +160,7 @@ directory = "{state}"
 
 
 def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
+    """Read every MCAP file in ``logs``; replay the smallest finished one (``replay``)."""
     from skinmap.daemon.mcapinspect import inspect
     from skinmap.daemon.replay import replay_log
     from skinmap.daemon.service import limit_blas_threads
@@ -177,10 +193,15 @@ def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
         target = min(finished, key=lambda p: p.stat().st_size)  # bounded replay time
         t0 = time.monotonic()
         rep = replay_log(target)
+        same_code = source_fingerprint() == result.source_at_start
         result.replay = {"file": target.name, "identical": rep.identical, "compared": rep.compared,
-                         "mismatched": len(rep.mismatched), "seconds": time.monotonic() - t0}
+                         "mismatched": len(rep.mismatched), "seconds": time.monotonic() - t0,
+                         "max_position_diff_m": rep.max_position_diff_m, "same_code": same_code}
         if not rep.identical:
-            result.problems.append(f"replay of {target.name} not identical: {rep.format()}")
+            result.problems.append(
+                f"replay of {target.name} not identical" + ("" if same_code else
+                " (the skinmap sources changed during the run, so this was expected)")
+                + f": {rep.format()}")
     elif replay:
         result.problems.append("no finished file with /raw frames to replay")
 
@@ -192,7 +213,8 @@ def run_soak(seconds: float, *, size: str = "5x5", scan_rate: float = 50.0, shap
         raise ValueError(f"seconds must be > 0, got {seconds!r}")
     if progress_every <= 0:
         raise ValueError(f"progress_every must be > 0, got {progress_every!r}")
-    result = SoakResult(seconds=seconds, size=size, scan_rate_hz=scan_rate)
+    result = SoakResult(seconds=seconds, size=size, scan_rate_hz=scan_rate,
+                        source_at_start=source_fingerprint())
     serial_port, zenoh_port = free_port(), free_port()
     logs, state, cfg = workdir / "logs", workdir / "state", workdir / "soak.toml"
     write_config(cfg, serial_port, zenoh_port, logs, state, scan_rate, rotate_minutes, rotate_mb)
@@ -314,7 +336,8 @@ def format_report(r: SoakResult) -> str:
         rp = r.replay
         lines.append(f"  replay of {rp['file']}: {'IDENTICAL' if rp['identical'] else 'DIFFERENT'} "
                      f"({rp['compared']} element messages compared, {rp['mismatched']} mismatched, "
-                     f"{rp['seconds']:.1f} s)")
+                     f"max difference {rp['max_position_diff_m'] * 1e3:.3g} mm, {rp['seconds']:.1f} s"
+                     + ("" if rp["same_code"] else "; sources changed during the run") + ")")
     lines.append("  result: " + ("OK" if r.ok else "PROBLEMS: " + "; ".join(r.problems)))
     return "\n".join(lines)
 
