@@ -26,9 +26,9 @@ from skinmap import protocol as p
 from skinmap.daemon.config import DEMO_CONFIG, ConfigError, DaemonConfig, config_to_toml, load_config, parse_config
 from skinmap.daemon.zenoh_io import make_session_config
 
-CONFIG_EXAMPLES = 1000
-TOML_EXAMPLES = 500
-DECODER_EXAMPLES = 400
+CONFIG_EXAMPLES = 800
+TOML_EXAMPLES = 400
+DECODER_EXAMPLES = 300
 
 # ---------------------------------------------------------------------------------------------
 # Random configuration documents, built from the config dataclasses themselves.

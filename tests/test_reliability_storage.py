@@ -27,7 +27,7 @@ from skinmap.daemon.config import parse_config
 from skinmap.daemon.mcapinspect import inspect, iter_messages_file_order
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
 from skinmap.daemon.replay import replay_log
-from skinmap.daemon.service import Gateway
+from skinmap.daemon.service import Gateway, _default_logger
 from skinmap.emulator.device import DeviceConfig
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
@@ -229,7 +229,13 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
     log_dir = blocker / "logs"
     cfg = gateway_config(tmp_path, zport, log_dir)
     Gateway(cfg)  # constructing with the default logger must not fail on the folder
-    with running_gateway(cfg) as gw:  # default logger: retry every 5 s
+
+    def default_logger_retrying_fast(c):
+        lg = _default_logger(c)
+        lg.retry_interval_s = 0.5  # skinmapd retries every 5 s; the test need not wait that long
+        return lg
+
+    with running_gateway(cfg, logger_factory=default_logger_retrying_fast) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
             wait_for(lambda: gw.status()["log_state"] == "error", 10, "log_state 'error'")
@@ -238,10 +244,11 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
             assert len(receive_for(client, 1.0)) >= 10
             blocker.unlink()
             blocker.mkdir()
-            resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 12, "logging to resume")
+            resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 10, "logging to resume")
             assert len(receive_for(client, 1.0)) >= 10
     print(f"FIGURE storage folder missing at start: logging resumed {resume_s:.2f} s after the folder "
-          f"became usable (retry interval 5 s)")
+          f"became usable (retry interval 0.5 s here, 5 s in skinmapd)")
+    assert resume_s < 5.0
     (done,) = sorted(log_dir.glob("*.mcap"))
     assert inspect(done).end.complete and replay_log(done).identical
 
