@@ -6,7 +6,6 @@ so a typo never silently falls back to a default.
 """
 from __future__ import annotations
 
-import ipaddress
 import math
 import re
 import tomllib
@@ -237,17 +236,6 @@ def _endpoint(key: str, value: Any) -> str:
     return value
 
 
-def is_loopback_endpoint(endpoint: str) -> bool:
-    """True when a Zenoh endpoint names a loopback address."""
-    host = endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def _string_list(item: Callable[[str, Any], Any]) -> Callable[[str, Any], tuple]:
     def check(key: str, value: Any) -> tuple:
         if not isinstance(value, list):
@@ -399,15 +387,20 @@ def _cross_checks(cfg: DaemonConfig) -> None:
     if z.enabled and not z.listen and not z.connect and not z.config_file:
         raise _fail("zenoh.listen", list(z.listen), "give at least one listen or connect endpoint (or zenoh.enabled = false)")
     if not z.allow_non_loopback:
+        # The same rule the session itself applies, so `--check` and start-up never disagree.
+        from skinmap.daemon.zenoh_io import check_loopback_endpoint
+
         for key, endpoints in (("zenoh.listen", z.listen), ("zenoh.connect", z.connect)):
             for ep in endpoints:
-                if not is_loopback_endpoint(ep):
+                try:
+                    check_loopback_endpoint(ep, listen=key == "zenoh.listen")
+                except ValueError as exc:
                     raise _fail(
                         key,
                         ep,
-                        "non-loopback endpoints are refused unless zenoh.allow_non_loopback = true "
-                        "(use tcp/127.0.0.1:PORT)",
-                    )
+                        f"non-loopback endpoints are refused unless zenoh.allow_non_loopback = true "
+                        f"(use tcp/127.0.0.1:PORT): {exc}",
+                    ) from None
     if z.config_file and not Path(cfg.resolve(z.config_file)).is_file():
         raise _fail("zenoh.config_file", z.config_file, "file does not exist")
 

@@ -96,6 +96,9 @@ def _first_pass(path: str) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]
 def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
                progress: bool = False, keep_results: bool = False) -> ReplayReport:
     """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max)."""
+    from skinmap.daemon.service import limit_blas_threads
+
+    limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
     path = str(path)
     report = ReplayReport(path)
     logged, config_for_seq, n_raw = _first_pass(path)

@@ -103,3 +103,9 @@ def test_effective_config_round_trips_through_toml():
     again = parse_config(tomllib.loads(config_to_toml(cfg)))
     for section in ("device", "reconstruction", "output", "elements", "zenoh", "log", "state"):
         assert getattr(again, section) == getattr(cfg, section), section
+
+
+def test_tls_on_loopback_needs_the_same_opt_in_as_the_session():
+    # make_session_config refuses anything but tcp on loopback by default; --check must agree.
+    with pytest.raises(ConfigError, match="zenoh.listen"):
+        parse_config({"zenoh": {"listen": ["tls/127.0.0.1:7447"]}})
