@@ -129,7 +129,9 @@ class StreamDecoder:
         self._accept(frame, frames)
 
     def _accept(self, frame: Frame, frames: list[Frame]) -> None:
-        if self._last_seq is not None:
+        # A HELLO with sequence 0 is a sender that (re)booted: its counter restarts, nothing was lost.
+        restarted = frame.seq == 0 and frame.msg_type == MsgType.HELLO
+        if self._last_seq is not None and not restarted:
             lost = (frame.seq - self._last_seq - 1) & 0xFFFF
             if lost:
                 self.seq_gaps += 1

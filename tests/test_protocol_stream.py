@@ -137,3 +137,16 @@ def test_counters_and_sequence_gaps() -> None:
     decoder.feed(b"\x02\x01\x00")
     assert decoder.length_errors == 1 and "shorter" in decoder.last_error
     assert decoder.frames_ok == 3
+
+
+def test_a_rebooted_sender_is_not_counted_as_sequence_loss():
+    from skinmap.protocol import Hello, Status, StreamDecoder, encode_frame
+    from skinmap.protocol.specgen import example_messages
+
+    msgs = {type(m): m for _name, _seq, m in example_messages()}
+    dec = StreamDecoder()
+    stream = b"".join(encode_frame(msgs[Status], s) for s in (100, 101, 103))  # one frame lost
+    stream += encode_frame(msgs[Hello], 0) + encode_frame(msgs[Status], 1)  # reboot: counter restarts
+    frames = dec.feed(stream)
+    assert len(frames) == 5
+    assert dec.seq_gaps == 1 and dec.seq_lost == 1
