@@ -12,6 +12,7 @@ RUNS = [
     ["emulator_rate.py"],
     ["reconstruction.py", "--quick"],
     ["latency.py", "--seconds", "15"],
+    ["soak.py", "--seconds", "60"],
 ]
 
 
