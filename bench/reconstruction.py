@@ -10,7 +10,9 @@ around the peak, reconstructed over true).
 
 Timing: median and 90th percentile per frame of `reconstruct(...)` plus `locate` of 20 elements,
 for N×N = 5, 8, 16, 32 on a slowly moving bump, warm (geometry cached, previous frame passed), on
-one core (BLAS threads pinned to 1), and the same with the Clarabel field fit for comparison.
+one core (BLAS threads limited to 1 with threadpoolctl, as in the daemon); CPU time of the
+frame's own thread; `Surface.points(per_pitch=20)`; and the optional Clarabel field fit for
+comparison.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy import ndimage  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.reconstruction import Reconstructor, reconstruct  # noqa: E402
@@ -137,6 +140,28 @@ def accuracy_table(k: int, noisy_draws: int, seed: int) -> None:
     print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape)")
 
 
+def bump_grid_table(positions: int, seed: int) -> None:
+    """Noise-free mean node error of bumps by height and FWHM, ``positions`` random centres each."""
+    rng = np.random.default_rng(seed)
+    n = m = 5
+    centres = ph.cell_centres(n, m, PITCH)
+    fwhms = (15.0, 18.0, 20.0, 25.0)
+    print(f"\nBumps by height and FWHM, {n}x{m}: noise-free mean node error (mm), {positions} random centres each "
+          f"(max in brackets)")
+    print(f"{'|h| mm':>10s} " + " ".join(f"{'FWHM ' + format(f, '.0f'):>15s}" for f in fwhms))
+    for height in (2.0, 3.0, 4.0, 5.0):
+        cells = []
+        for fwhm in fwhms:
+            errs = []
+            for _ in range(positions):
+                shape = ph.GaussianBumps(height=height * rng.choice([-1.0, 1.0]), fwhm=fwhm,
+                                         centre=tuple(rng.uniform(-24, 24, 2)))
+                eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
+                errs.append(node_errors(reconstruct(eu, el, PITCH, H, H).nodes, shape.position(centres)).mean())
+            cells.append(f"{np.mean(errs):.3f} [{np.max(errs):.3f}]")
+        print(f"{height:>10.0f} " + " ".join(f"{c:>15s}" for c in cells))
+
+
 def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Wall-clock and CPU seconds per frame (CPU time is what the frame costs this thread, and
     stays meaningful when other processes share the cores)."""
@@ -154,9 +179,9 @@ def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.nd
 
 def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> None:
     rng = np.random.default_rng(seed)
-    print("\nTime per frame: reconstruct + locate(20 elements), warm, one core")
+    print("\nTime per frame: reconstruct + locate(20 elements), warm, one core, one BLAS thread")
     head = (f"{'N x N':>7s} {'fine grid':>10s} {'setup ms':>9s} {'median ms':>10s} {'p90 ms':>8s} "
-            f"{'cpu median ms':>14s} {'clarabel fit median ms':>23s}")
+            f"{'cpu median ms':>14s} {'cpu p90 ms':>11s} {'points(20) ms':>14s} {'clarabel fit median ms':>23s}")
     print(head)
     print("-" * len(head))
     medians = {}
@@ -173,22 +198,30 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
             frames.append((eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)))
         t0 = time.perf_counter()
         rec = Reconstructor(n, n, PITCH, H, H, GAUGE)
-        rec(*frames[0])
+        surf = rec(*frames[0])
         setup = time.perf_counter() - t0
         t, cpu = time_frames(rec, frames, uv)
         medians[n] = np.median(cpu)
+        surf.points(per_pitch=20)  # builds the cached sampling bases
+        pts = []
+        for _ in range(5):
+            c0 = time.thread_time()
+            surf.points(per_pitch=20)
+            pts.append(time.thread_time() - c0)
         cl = "-"
         if n <= 16:
             rec_c = Reconstructor(n, n, PITCH, H, H, GAUGE, convex_solver="clarabel")
             rec_c(*frames[0])
-            tc, _ = time_frames(rec_c, frames[: max(5, count // 4)], uv)
-            cl = f"{1e3 * np.median(tc):.2f}"
+            tc, _ = time_frames(rec_c, frames[: max(5, count // 10)], uv)
+            cl = f"{1e3 * np.median(tc):.1f}"
         print(f"{n:>3d}x{n:<3d} {rec.grid.nf:>4d}x{rec.grid.mf:<5d} {1e3 * setup:9.1f} {1e3 * np.median(t):10.2f} "
-              f"{1e3 * np.percentile(t, 90):8.2f} {1e3 * medians[n]:14.2f} {cl:>23s}")
+              f"{1e3 * np.percentile(t, 90):8.2f} {1e3 * medians[n]:14.2f} {1e3 * np.percentile(cpu, 90):11.2f} "
+              f"{1e3 * np.median(pts):14.1f} {cl:>23s}")
     if len(medians) > 1:
         lo, hi = min(medians), max(medians)
         print(f"scaling {lo}->{hi}: cpu time x{medians[hi] / medians[lo]:.1f} for cells x{(hi / lo) ** 2:.0f} "
               f"(N^3 would be x{(hi / lo) ** 3:.0f})")
+    print(f"(load average during the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
 
 
 def main() -> None:
@@ -198,7 +231,9 @@ def main() -> None:
     ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
     args = ap.parse_args()
     k = args.shapes or (4 if args.quick else 12)
+    threadpool_limits(1)
     accuracy_table(k, 1 if args.quick else 3, args.seed)
+    bump_grid_table(4 if args.quick else 10, args.seed)
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
     timing_table([5, 8, 16, 32], frames, args.seed)
 

@@ -24,7 +24,6 @@ from .engine import (
     integrate_positions,
     potential_curvatures,
     rotation_rates,
-    solve_fields,
     solve_shear,
     solve_twist,
     unit_data,
@@ -149,7 +148,7 @@ class Reconstructor:
         status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
         if n_valid == 0:
             status = "no valid gauge: flat sheet assumed"
-        k_u, k_v, tau0, lam_u, lam_v = solve_fields(grid, turning, stretch, valid)
+        k_u, k_v, tau0, lam_u, lam_v, fit = grid.field_maps(valid)(turning, stretch)
         convex_info = {"status": "factorized", "iterations": 0}
         if self.convex_solver == "clarabel":
             # turning per length = (ε_u − ε_l)/(h_u + h_l); floor for noise-free use
@@ -157,6 +156,7 @@ class Reconstructor:
             z, convex_info = huber_potential(grid, turning, valid, self.huber_sigmas * sig_turn)
             convex_info["iterations"] = int(convex_info["iterations"])
             k_u, k_v, tau0 = potential_curvatures(grid, z)
+            fit = np.concatenate([grid.average[0] @ k_u.ravel(), grid.average[1] @ k_v.ravel()]) - turning.ravel()
         sign = 1.0
         if twist_sign is not None:
             if twist_sign not in (1, -1, 1.0, -1.0):
@@ -182,9 +182,7 @@ class Reconstructor:
             pos = np.stack([uu, vv, np.zeros_like(uu)], axis=-1)
             status = "numerical failure: flat sheet returned"
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
-        fit = np.concatenate(
-            [(grid.average[d] @ f.ravel() - turning[d].ravel())[valid[d].ravel()] for d, f in ((0, k_u), (1, k_v))]
-        )
+        fit = fit[valid.ravel()] if n_valid < valid.size else fit
         residual = float(np.sqrt(np.mean(fit**2)) * self.gauge_length) if fit.size else 0.0
         if not np.isfinite(residual):
             residual = float("inf")
@@ -212,7 +210,8 @@ class Reconstructor:
 
 
 def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
-    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x)."""
+    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x).
+    Returns (nf, mf, 3), a view of a components-first array."""
     a0, b0 = grid.centre
     x_u = (pos[a0, b0 + 1] - pos[a0, b0 - 1]).tolist()
     x_v = (pos[a0 + 1, b0] - pos[a0 - 1, b0]).tolist()
@@ -221,7 +220,9 @@ def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     ex = np.array(x_u) - nz * (nz @ x_u)
     ex /= math.sqrt(ex @ ex)
     rot = np.array([ex, _cross3(nz, ex), nz])  # rows: new axes in the old frame
-    return (pos - pos[a0, b0]) @ rot.T
+    pos_t = pos.transpose(2, 0, 1).reshape(3, -1)
+    out = rot @ (pos_t - pos[a0, b0][:, None])
+    return out.reshape(3, grid.nf, grid.mf).transpose(1, 2, 0)
 
 
 def _cross3(a, b) -> list[float]:

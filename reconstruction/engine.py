@@ -23,7 +23,7 @@ import numpy as np
 
 from .decouple import decouple
 from .grid import FineGrid
-from .linalg import diff_u_t, diff_v_t, edge_mean, exp_so3_t, matmul_t
+from .linalg import cayley_t, diff_u_t, diff_v_t, edge_mean, exp_so3_t, matmul_t
 
 __all__ = [
     "unit_data",
@@ -53,7 +53,7 @@ def unit_data(
 def solve_fields(grid: FineGrid, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray):
     """Fine-grid fields k_u, k_v, τ (from one bending potential, so that they satisfy the
     linearised Codazzi equations) and λ_u, λ_v (smoothed stretch) fitting the unit data."""
-    return grid.field_maps(valid)(turning, stretch)
+    return grid.field_maps(valid)(turning, stretch)[:5]
 
 
 def potential_curvatures(grid: FineGrid, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -279,11 +279,16 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     frames[:, :, a0, b0] = np.eye(3)
     # the centre is the middle node, so both halves of a line have the same length: one
     # cumulative product for the two directions (backwards: transposed, reversed)
-    row = _prefix_products(np.stack([ru[:, :, a0, b0:], ru[:, :, a0, b0 - 1 :: -1].transpose(1, 0, 2)], axis=3))
+    row = np.stack([ru[:, :, a0, b0:], ru[:, :, a0, b0 - 1 :: -1].transpose(1, 0, 2)], axis=3)  # (3, 3, L, 2)
+    cols = np.stack([rv[:, :, a0:], rv[:, :, a0 - 1 :: -1].transpose(1, 0, 2, 3)], axis=3)  # (3, 3, L', 2, mf)
+    if a0 == b0:  # square fine grid: the row and all columns in one batch
+        both = _prefix_products(np.concatenate([row[..., None], cols], axis=4))
+        row, cols = both[..., 0], both[..., 1:]
+    else:
+        row, cols = _prefix_products(row), _prefix_products(cols)
     frames[:, :, a0, b0 + 1 :] = row[..., 0]
     frames[:, :, a0, :b0] = row[:, :, ::-1, 1]
-    cols = np.stack([rv[:, :, a0:], rv[:, :, a0 - 1 :: -1].transpose(1, 0, 2, 3)], axis=3)  # (3, 3, L, 2, mf)
-    col = matmul_t(frames[:, :, a0, None, None, :], _prefix_products(cols))
+    col = matmul_t(frames[:, :, a0, None, None, :], cols)
     frames[:, :, a0 + 1 :] = col[:, :, :, 0]
     frames[:, :, :a0] = col[:, :, ::-1, 1]
     flat = frames.reshape(3, 3, -1)
@@ -295,7 +300,7 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
         a = np.einsum("ikn,jkn->ijn", pred, np.take(flat, grid.edge_heads, axis=2))
         mis = 0.5 * np.stack([a[2, 1] - a[1, 2], a[0, 2] - a[2, 0], a[1, 0] - a[0, 1]])
         delta = grid.laplacian.solve(grid.divergence(mis))
-        flat = matmul_t(exp_so3_t(delta.T), flat)
+        flat = matmul_t(cayley_t(delta.T), flat)
     return flat.reshape(3, 3, nf, mf).transpose(2, 3, 0, 1)
 
 
@@ -317,4 +322,5 @@ def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, sin_
     chord_u = dir_u * (len_u / np.sqrt(np.einsum("i...,i...->...", dir_u, dir_u)))
     chord_v = dir_v * (len_v / np.sqrt(np.einsum("i...,i...->...", dir_v, dir_v)))
     pos = grid.laplacian.solve(grid.divergence(chord_u.reshape(3, -1), chord_v.reshape(3, -1)))
-    return pos.reshape(nf, mf, 3)
+    # the banded solver returns (nodes, 3) in column-major order: a view of (3, nf, mf)
+    return np.ascontiguousarray(pos.T).reshape(3, nf, mf).transpose(1, 2, 0)

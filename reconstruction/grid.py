@@ -248,9 +248,11 @@ class FineGrid:
     def field_maps(self, valid: np.ndarray):
         """Linear maps from unit data to the fine fields for this validity mask, cached.
 
-        Returns a function (turning (2, N, M), stretch (2, N, M)) → (k_u, k_v, τ, λ_u, λ_v), each
-        (nf, mf).  Small grids precompute the composite dense matrices (one product per field);
-        large ones go through the sparse factorisations.
+        Returns a function (turning (2, N, M), stretch (2, N, M)) → (k_u, k_v, τ, λ_u, λ_v, fit):
+        five (nf, mf) fields and the misfit of the curvature fields' gauge averages to the
+        turning data, (2·N·M,) (invalid units included; mask them).  Small grids precompute one
+        composite dense matrix (a single product per frame); large ones go through the sparse
+        factorisations.
         """
         valid = np.asarray(valid, dtype=bool).reshape(2, self.n, self.m)
         key = valid.tobytes()
@@ -259,24 +261,35 @@ class FineGrid:
             return fn
         shape = (self.nf, self.mf)
         n_fine = self.nf * self.mf
+        n_units = self.n * self.m
         curv_ops = sp.vstack([-self.z_uu, -self.z_vv, self.z_uv]).tocsr()
+        average = sp.block_diag(self.average).tocsr()  # (2NM, 2 n_fine): k_u, k_v → unit means
         p_solver, obs_t_w = self.potential_solver(valid)
         s_solvers = [self.field_solver(d, valid[d]) for d in (0, 1)]
-        if n_fine * 2 * self.n * self.m <= 4_000_000:
-            curv = curv_ops @ p_solver.solve(obs_t_w.toarray())
-            stretch_maps = [sol.solve(at_w.toarray()) for sol, at_w in s_solvers]
+        if n_fine * 4 * n_units <= 4_000_000:
+            curv = curv_ops @ p_solver.solve(obs_t_w.toarray())  # (3 n_fine, 2NM)
+            stretch_maps = [sol.solve(at_w.toarray()) for sol, at_w in s_solvers]  # (n_fine, NM)
+            misfit = average @ curv[: 2 * n_fine] - np.eye(2 * n_units)  # (2NM, 2NM)
 
+            # one dense product per block (the maps are dense; stacking them block-diagonally
+            # would multiply zeros)
             def fn(turning, stretch):
-                k = curv @ turning.ravel()
-                lam = [1.0 + stretch_maps[d] @ (stretch[d].ravel() - 1.0) for d in (0, 1)]
-                return (*(k[i * n_fine : (i + 1) * n_fine].reshape(shape) for i in range(3)), *(x.reshape(shape) for x in lam))
+                d = turning.ravel()
+                k = curv @ d
+                lam_u = stretch_maps[0] @ (stretch[0].ravel() - 1.0)
+                lam_v = stretch_maps[1] @ (stretch[1].ravel() - 1.0)
+                lam_u += 1.0
+                lam_v += 1.0
+                return (*k.reshape(3, *shape), lam_u.reshape(shape), lam_v.reshape(shape), misfit @ d)
 
         else:
 
             def fn(turning, stretch):
-                k = curv_ops @ p_solver.solve(obs_t_w @ turning.ravel())
-                lam = [1.0 + sol.solve(at_w @ (stretch[d].ravel() - 1.0)) for d, (sol, at_w) in enumerate(s_solvers)]
-                return (*(k[i * n_fine : (i + 1) * n_fine].reshape(shape) for i in range(3)), *(x.reshape(shape) for x in lam))
+                d = turning.ravel()
+                k = curv_ops @ p_solver.solve(obs_t_w @ d)
+                lam = [1.0 + sol.solve(at_w @ (stretch[i].ravel() - 1.0)) for i, (sol, at_w) in enumerate(s_solvers)]
+                fit = average @ k[: 2 * n_fine] - d
+                return (*k.reshape(3, *shape), *(x.reshape(shape) for x in lam), fit)
 
         if len(self._field_maps) > 16:
             self._field_maps.pop(next(iter(self._field_maps)))

@@ -8,7 +8,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .linalg import cross, diff_u, diff_v, unit
+from .linalg import cross, cross_t, diff_u_t, diff_v_t, unit
 
 __all__ = ["Surface", "Diagnostics", "hermite_patch_eval", "hermite_grid_eval"]
 
@@ -134,13 +134,20 @@ class Surface:
         self._u, self._v = fine_u, fine_v
         self._spacing = float(fine_u[1] - fine_u[0])
         h = self._spacing
-        d_u = diff_u(fine_positions, h)
-        d_v = diff_v(fine_positions, h)
-        self._coeffs = np.stack([fine_positions, h * d_u, h * d_v, h * h * diff_v(d_u, h)], axis=2)
+        # components first ((3, nf, mf), free when the positions come from the engine): every
+        # difference below is then one operation on contiguous rows
+        pos_t = np.ascontiguousarray(np.asarray(fine_positions, dtype=float).transpose(2, 0, 1))
+        d_u = diff_u_t(pos_t, h)
+        d_v = diff_v_t(pos_t, h)
+        coeffs = np.stack([pos_t, h * d_u, h * d_v, (h * h) * diff_v_t(d_u, h)])  # (4, 3, nf, mf)
+        self._coeffs = np.ascontiguousarray(coeffs.transpose(2, 3, 0, 1))  # (nf, mf, 4, 3)
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
-        self.nodes = fine_positions[np.ix_(rows, cols)].copy()
-        self.normals = unit(cross(d_u[np.ix_(rows, cols)], d_v[np.ix_(rows, cols)]))
+        at_nodes = (slice(None), rows[:, None], cols[None, :])
+        self.nodes = pos_t[at_nodes].transpose(1, 2, 0).copy()
+        normal_t = cross_t(d_u[at_nodes], d_v[at_nodes])
+        normal_t /= np.sqrt((normal_t * normal_t).sum(axis=0))
+        self.normals = normal_t.transpose(1, 2, 0).copy()
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
