@@ -115,10 +115,13 @@ class Reconstructor:
         eps = np.asarray(eps, dtype=float)
         if eps.shape != (2, self.n, self.m):
             raise ValueError(f"{name} must have shape (2, {self.n}, {self.m}) for this sensor, got {eps.shape}")
-        if np.any(np.isinf(eps)):
+        if not (eps > -1.0).all():  # also false for NaN and -inf: look closer only then
+            if np.isinf(eps).any():
+                raise ValueError(f"{name} contains infinite strain; give NaN for a missing gauge")
+            if (eps <= -1.0).any():
+                raise ValueError(f"{name} contains strain <= -1 (a gauge compressed to zero length)")
+        elif np.isposinf(eps).any():
             raise ValueError(f"{name} contains infinite strain; give NaN for a missing gauge")
-        if np.any(eps <= -1.0):
-            raise ValueError(f"{name} contains strain <= -1 (a gauge compressed to zero length)")
         return eps
 
     def __call__(
@@ -176,15 +179,15 @@ class Reconstructor:
         pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         pos = _to_sensor_frame(grid, pos)
-        if not np.all(np.isfinite(pos)):
+        if not np.isfinite(pos).all():
             # Only reachable with wildly inconsistent data; a surface must still come out.
             uu, vv = np.meshgrid(grid.u, grid.v)
             pos = np.stack([uu, vv, np.zeros_like(uu)], axis=-1)
             status = "numerical failure: flat sheet returned"
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         fit = fit[valid.ravel()] if n_valid < valid.size else fit
-        residual = float(np.sqrt(np.mean(fit**2)) * self.gauge_length) if fit.size else 0.0
-        if not np.isfinite(residual):
+        residual = math.sqrt(float(fit @ fit) / fit.size) * self.gauge_length if fit.size else 0.0
+        if not math.isfinite(residual):
             residual = float("inf")
         h_u, h_l = self.h_upper, self.h_lower
         diag = Diagnostics(

@@ -178,13 +178,14 @@ class Surface:
             uv = uv[None]
         if uv.ndim != 2 or uv.shape[1] != 2:
             raise ValueError(f"uv must be material coordinates of shape (K, 2), got {uv.shape}")
-        if not np.all(np.isfinite(uv)):
-            raise ValueError("uv contains NaN or infinite coordinates")
         u0, u1, v0, v1 = self.extent
         tol = 1e-9 * max(1.0, self.pitch)
-        bad = (uv[:, 0] < u0 - tol) | (uv[:, 0] > u1 + tol) | (uv[:, 1] < v0 - tol) | (uv[:, 1] > v1 + tol)
-        if np.any(bad):
-            k = int(np.flatnonzero(bad)[0])
+        lo, hi = np.array([u0 - tol, v0 - tol]), np.array([u1 + tol, v1 + tol])
+        inside = (uv >= lo) & (uv <= hi)  # false for NaN too
+        if not inside.all():
+            if not np.isfinite(uv).all():
+                raise ValueError("uv contains NaN or infinite coordinates")
+            k = int(np.flatnonzero(~inside.all(axis=1))[0])
             raise ValueError(
                 f"uv[{k}] = {uv[k].tolist()} is off the sheet: material coordinates must lie in "
                 f"u ∈ [{u0:g}, {u1:g}], v ∈ [{v0:g}, {v1:g}] mm (half a pitch beyond the outer cells)"
