@@ -119,14 +119,18 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
 
     Without twist, Brioschi's formula asks for a shear F = F₀; a twist c adds −c²·EG to its
-    source, so F = F₀ − c² F₁.  The least-shear c² (least-squares over the cell-centre region)
-    is used only when it removes most of the shear (a uniform twist, as on a saddle, not the
-    local shear around a bump) and stands above the noise.
+    source, so F = F₀ − c² F₁.  The least-shear c² (least squares over the cell-centre region)
+    bounds the answer; it is right for a sheet whose material lines stay orthogonal, but a sheet
+    pushed out of plane (material points moving along the normal of the base plane, as a
+    membrane) shears with F² = (E − 1)(G − 1).  The c² in [0, least-shear] that best meets
+    F(c²)² = (E − 1)(G − 1) covers both: with no stretch (E = G = 1) it is the least-shear
+    value.  A twist is used only when the least-shear fit removes most of the shear (a uniform
+    twist, as on a saddle, not the local shear around a bump) and stands above the noise.
     """
     h = grid.spacing
     eg = metric.eg
     src0 = metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau0 * tau0) * eg
-    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.stack([src0, eg * eg])))
+    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.stack([src0, eg])))
     f0, f1 = f0[inner], f1[inner]
     den = float((f1 * f1).sum())
     if den <= 0.0:
@@ -137,7 +141,18 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     explained = x * x * den / max(float((f0 * f0).sum()), 1e-300)
     weight = min(max((explained - 0.5) / 0.3, 0.0), 1.0)
     significance = min(max(x / noise - 1.0, 0.0), 1.0) if noise > 0 else 1.0
-    return x * weight * significance
+    if weight * significance == 0.0:
+        return 0.0
+    # Σ ((f₀ − x f₁)² − P)² over x ∈ [0, x_ls]: a quartic; its stationary points are the roots
+    # of the cubic below (g = a x² + b x + c, cost' = 2 Σ g g')
+    a, b = f1 * f1, -2.0 * f0 * f1
+    c = f0 * f0 - ((metric.e - 1.0) * (metric.g - 1.0))[inner]
+    cubic = [2.0 * float((a * a).sum()), 3.0 * float((a * b).sum()), float((b * b + 2.0 * a * c).sum()), float((b * c).sum())]
+    roots = np.roots(cubic) if cubic[0] > 0 else np.empty(0)
+    cands = np.array([0.0, x, *(r.real for r in roots if abs(r.imag) <= 1e-12 * abs(r) and 0.0 < r.real < x)])
+    g = a[None] * cands[:, None, None] ** 2 + b[None] * cands[:, None, None] + c[None]
+    best = float(cands[np.argmin((g * g).sum(axis=(1, 2)))])
+    return best * weight * significance
 
 
 def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
