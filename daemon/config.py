@@ -6,6 +6,7 @@ so a typo never silently falls back to a default.
 """
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
@@ -197,10 +198,16 @@ def _choice(*options: str) -> Callable[[str, Any], str]:
     return check
 
 
+def _no_control_characters(key: str, value: str) -> None:
+    if any(ord(c) < 32 or ord(c) == 127 for c in value):
+        raise _fail(key, value, "must not contain control characters")
+
+
 def _string(pattern: str | None = None, what: str = "") -> Callable[[str, Any], str]:
     def check(key: str, value: Any) -> str:
         if not isinstance(value, str):
             raise _fail(key, value, "must be a string")
+        _no_control_characters(key, value)
         if pattern is not None and not re.fullmatch(pattern, value):
             raise _fail(key, value, what or f"must match {pattern}")
         return value
@@ -214,6 +221,7 @@ _KEY_SEGMENT = r"[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*"
 def _port(key: str, value: Any) -> str:
     if not isinstance(value, str) or not value.strip():
         raise _fail(key, value, "must be a serial device path (e.g. /dev/serial/by-id/…) or a pyserial URL")
+    _no_control_characters(key, value)
     if "://" in value:
         scheme = value.split("://", 1)[0]
         if scheme not in ("socket", "loop", "rfc2217", "spy", "alt", "hwgrep"):
@@ -401,6 +409,12 @@ def _cross_checks(cfg: DaemonConfig) -> None:
                         f"non-loopback endpoints are refused unless zenoh.allow_non_loopback = true "
                         f"(use tcp/127.0.0.1:PORT): {exc}",
                     ) from None
+    for key, value in (("log.directory", cfg.log.directory), ("state.directory", cfg.state.directory),
+                       ("zenoh.config_file", z.config_file)):
+        try:
+            Path(value).expanduser()
+        except RuntimeError:
+            raise _fail(key, value, "names a home directory ('~user') that does not exist") from None
     if z.config_file and not Path(cfg.resolve(z.config_file)).is_file():
         raise _fail("zenoh.config_file", z.config_file, "file does not exist")
 
@@ -456,7 +470,8 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, (int, float)):
         return repr(value)
     if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # JSON string escapes (\\ \" \n \u00XX) are valid TOML basic-string escapes.
+        return json.dumps(value, ensure_ascii=False)
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
