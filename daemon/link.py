@@ -92,6 +92,8 @@ class LinkStats:
     bytes_in: int = 0
     state: str = "starting"
     last_error: str = ""
+    frames_rejected: int = 0  # damaged frames the decoder refused (sum of its error counters)
+    last_frame_error: str = ""
     decoder: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -249,6 +251,8 @@ class ScannerLink:
                 # An unsolicited HELLO mid-stream means the device rebooted.
                 raise _Rebooted(f.msg)
         self.stats.decoder = self._decoder.counters()
+        self.stats.frames_rejected = self._rejected_frames()
+        self.stats.last_frame_error = self._decoder.last_error or ""
         return frames
 
     def _report_frame_errors(self) -> None:

@@ -39,7 +39,9 @@ __all__ = ["Gateway", "GatewayStats", "main", "pipeline_for_hello", "calibration
 
 log = logging.getLogger("skinmapd")
 
-PROCESS_QUEUE_SIZE = 2  # latest wins: a late scan is worth less than a fresh one
+PROCESS_QUEUE_SIZE = 2
+RECENT_WINDOW_S = 3.0  # status warns about damage and loss seen this recently
+MAX_CLOUD_POINTS = 40_000  # the published dense cloud is thinned beyond this (32×32 at 20/pitch is 410k)  # latest wins: a late scan is worth less than a fresh one
 
 
 def geometry_for_hello(hello: Hello, cfg: DaemonConfig) -> ArrayGeometry:
@@ -162,6 +164,7 @@ class Gateway:
         )
         self.results: collections.deque[FrameResult] = collections.deque(maxlen=4)  # for tests and the console
         self._threads: list[threading.Thread] = []
+        self._recent_marks: collections.deque = collections.deque()
 
     # -- link callbacks (link thread: enqueue only) ----------------------------------------
 
@@ -352,7 +355,14 @@ class Gateway:
     def _points(self, r: FrameResult) -> np.ndarray:
         cache = getattr(r, "_points_cache", None)
         if cache is None:
-            cache = np.asarray(r.surface.points(per_pitch=self.cfg.output.points_per_pitch)).reshape(-1, 3) if r.surface is not None else r.nodes_mm.reshape(-1, 3)
+            if r.surface is None:
+                cache = r.nodes_mm.reshape(-1, 3)
+            else:
+                g = self._pipeline.geometry if self._pipeline is not None else None
+                per_pitch = self.cfg.output.points_per_pitch
+                if g is not None:
+                    per_pitch = max(1, min(per_pitch, int(MAX_CLOUD_POINTS ** 0.5 / max(g.n, g.m))))
+                cache = np.asarray(r.surface.points(per_pitch=per_pitch)).reshape(-1, 3)
             r._points_cache = cache  # type: ignore[attr-defined]
         return cache
 
@@ -472,10 +482,28 @@ class Gateway:
         if dev is not None and dev.fault_flags:
             faults = [f.name for f in FaultFlag if f.value and dev.fault_flags & f.value]
             warnings.append("scanner reports " + ", ".join(faults))
+        # Damage and loss in the recent past (counters alone never turn a dashboard red).
+        now = time.monotonic()
+        marks = self._recent_marks
+        marks.append((now, ls.frames_rejected, ls.scans_lost, self.stats.scans_dropped_queue))
+        while len(marks) > 1 and now - marks[0][0] > RECENT_WINDOW_S:
+            marks.popleft()
+        _t0, rejected0, lost0, dropped0 = marks[0]
+        if ls.frames_rejected > rejected0:
+            warnings.append(f"{ls.frames_rejected - rejected0} damaged frame(s) from the scanner in the last "
+                            f"{RECENT_WINDOW_S:g} s (last: {ls.last_frame_error})")
+        if ls.scans_lost > lost0:
+            warnings.append(f"{ls.scans_lost - lost0} scan(s) lost on the link in the last {RECENT_WINDOW_S:g} s")
+        if self.stats.scans_dropped_queue > dropped0:
+            warnings.append(f"{self.stats.scans_dropped_queue - dropped0} scan(s) skipped by the processing "
+                            f"queue in the last {RECENT_WINDOW_S:g} s (reconstruction slower than the output rate)")
         if self.results:
-            bad = int((~self.results[-1].gauge_valid).sum())
+            last = self.results[-1]
+            bad = int((~last.gauge_valid).sum())
             if bad:
                 warnings.append(f"{bad} gauge(s) unusable in the last scan (open, saturated or implausible)")
+            if last.diagnostics.get("inconsistent"):
+                warnings.append("strains of the last scan fit no surface well; elements flagged DEGRADED")
         return {"healthy": not warnings, "warnings": warnings, "device_faults": faults}
 
     def _status_tick(self) -> None:
@@ -614,6 +642,9 @@ def limit_blas_threads() -> None:
 def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
     """Run skinmapd until SIGINT/SIGTERM (or `stop_event`); returns an exit code."""
     limit_blas_threads()
+    # The serial reader waits on select() without the GIL; a shorter switch interval hands it
+    # the GIL sooner when bytes arrive while the reconstruction runs Python code.
+    sys.setswitchinterval(0.001)
     show = cfg.output.console if console is None else console
     with open_zenoh(cfg) as session:
         gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
