@@ -71,9 +71,11 @@ class Reconstructor:
         orthogonal, F = 0).
     frame_corrections : least-squares rotation corrections after the tree integration.
     convex_solver : "factorized" (default: the least-squares field fit by its cached
-        factorisation) or "clarabel" (the same convex fit with a Huber loss on the turning data,
-        threshold ``huber_sigmas`` noise s.d., solved by Clarabel each frame: robust to a
-        glitching gauge, a few ms slower).
+        factorisation, the exact optimum) or "clarabel" (the same convex fit with a Huber loss
+        on the turning data, threshold ``huber_sigmas`` noise s.d., solved by Clarabel each
+        frame, 20-100 ms).  The fit interpolates the units' data, so residuals stay inside the
+        Huber threshold and both give the same surface, even with a glitching gauge (see
+        docs/reconstruction.md, "Solvers").
     """
 
     def __init__(

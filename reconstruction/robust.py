@@ -3,8 +3,10 @@
 The default path solves the field fit in closed form (its matrix is fixed, so the cached
 factorisation gives the least-squares optimum in a few microseconds).  This module poses the
 same convex problem to Clarabel with the squared loss replaced by Huber's (quadratic within
-``delta`` of the data, linear beyond), so that a glitching gauge pulls the fit with a bounded
-force.  With consistent data every residual stays inside ``delta`` and both paths agree.
+``delta`` of the data, linear beyond).  A residual beyond ``delta`` would pull with bounded
+force; in practice the fit interpolates the units' data (far more potential unknowns than
+data), residuals stay well inside ``delta`` even with a glitching gauge, and both paths give the
+same surface (docs/reconstruction.md, "Solvers").
 
 Huber as a QP (s: the part of the residual inside the quadratic zone, t ≥ |r − s|):
 
