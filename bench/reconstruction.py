@@ -170,6 +170,7 @@ def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.nd
     for eu, el in frames:
         t0, c0 = time.perf_counter(), time.thread_time()
         surf = rec(eu, el, previous=prev)
+        surf.nodes, surf.normals  # what the daemon publishes (computed with the surface)
         surf.locate(uv)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.thread_time() - c0)

@@ -232,12 +232,12 @@ def solve_shear(
     lam_uv = lam_u * lam_v
     f = _mixed_antiderivative((h * h) * _cell_mean(metric.source0 + (s11 * k_v / lam_v - tau * tau) * metric.eg))
     for _ in range(max(1, iterations) - 1):
-        sg = np.clip(f / lam_uv, -0.9, 0.9)
+        sg = np.minimum(np.maximum(f / lam_uv, -0.9), 0.9)  # ufuncs: np.clip's wrapper costs more
         cg2 = 1.0 - sg * sg
         s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * np.sqrt(cg2)) / cg2
         src = _brioschi_source(h, metric, f, s11 * s22 - tau * tau)
         f = _mixed_antiderivative((h * h) * _cell_mean(src))
-    return np.clip(f / lam_uv, -0.9, 0.9)
+    return np.minimum(np.maximum(f / lam_uv, -0.9), 0.9)
 
 
 def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, sin_gamma) -> tuple[np.ndarray, np.ndarray]:

@@ -63,8 +63,8 @@ def hermite_patch_eval(
     nf, mf = coeffs.shape[:2]
     x = (uv[:, 0] - u0) * (1.0 / spacing)
     y = (uv[:, 1] - v0) * (1.0 / spacing)
-    b = np.clip(x.astype(int), 0, mf - 2)  # x >= 0 on the sheet: truncation is floor
-    a = np.clip(y.astype(int), 0, nf - 2)
+    b = np.minimum(np.maximum(x.astype(int), 0), mf - 2)  # x >= 0 on the sheet: truncation is floor
+    a = np.minimum(np.maximum(y.astype(int), 0), nf - 2)
     hs, dhs = _hermite_basis(x - b)
     ht, dht = _hermite_basis(y - a)
     p = a * mf + b

@@ -70,6 +70,7 @@ def fine_sigma(
         var = var + missing * spread2
     # in-plane: each pitch crossed adds one stretch reading's error times the pitch
     sig_stretch = strain_sigma * np.hypot(h_upper, h_lower) / (h_upper + h_lower)
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    var_plane = (np.abs(uu) + np.abs(vv)) * grid.pitch * sig_stretch**2
-    return np.sqrt(var.reshape(grid.nf, grid.mf) + var_plane)
+    walk = grid.__dict__.get("_sigma_walk")
+    if walk is None:  # |u| + |v| times the pitch, the same every frame
+        walk = grid._sigma_walk = (np.abs(grid.u)[None, :] + np.abs(grid.v)[:, None]) * grid.pitch
+    return np.sqrt(var.reshape(grid.nf, grid.mf) + walk * sig_stretch**2)
