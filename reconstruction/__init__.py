@@ -171,7 +171,10 @@ class Reconstructor:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
         turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
         metric = metric_terms(grid.spacing, lam_u, lam_v)
-        tau, twist_c = solve_twist(grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric)
+        stretch_sigma = strain_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        tau, twist_c = solve_twist(
+            grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None
+        )
         if self.shear_passes:
             sin_gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
         else:

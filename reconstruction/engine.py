@@ -72,6 +72,8 @@ def solve_twist(
     twist_sign: float = 1.0,
     turning_sigma: float = 0.0,
     metric: Metric | None = None,
+    stretch_sigma: float = 0.0,
+    sign_from_data: bool = True,
 ) -> tuple[np.ndarray, float]:
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -79,9 +81,12 @@ def solve_twist(
     A positive product k_u k_v is attributed to a constant twist only in proportion to how
     little the stretch varies (a developable sheet, e.g. an oblique cylinder) and once it exceeds
     what the turning noise ``turning_sigma`` (per length, one unit) can produce; otherwise a
-    saddle turned off the grid lines is looked for (:func:`_saddle_twist`).  The sign is not
-    observable (mirror-image twists give identical strains), so ``twist_sign`` chooses it.
-    Returns (τ field, the constant).
+    saddle turned off the grid lines is looked for: first as a sheet pushed out of plane
+    (:func:`_graph_twist`, whose stretch pattern usually fixes the sign too), else from the shear
+    it needs (:func:`_saddle_twist`).  Where the sign is not observable (mirror-image twists give
+    identical strains, e.g. an oblique cylinder) ``twist_sign`` chooses it; it also overrides a
+    sign read from the data when ``sign_from_data`` is False.  ``stretch_sigma``: stretch noise
+    s.d. of one unit.  Returns (τ field, the constant).
     """
     tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
@@ -109,9 +114,76 @@ def solve_twist(
     if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
         if metric is None:
             metric = metric_terms(grid.spacing, lam_u, lam_v)
+        graph = _graph_twist(grid, k_u, k_v, tau0, inner, metric, stretch_sigma)
+        if graph is not None:
+            c, decisive = graph
+            if not decisive or not sign_from_data:
+                c = math.copysign(c, twist_sign)
+            return tau0 + c, c
         c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
     c = math.copysign(math.sqrt(c2), twist_sign)
     return tau0 + c, c
+
+
+def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
+    """Trapezoid integral of samples ``f`` (along axis 0, spacing ``h``) from index ``start``."""
+    mid = (0.5 * h) * (f[1:] + f[:-1])
+    out = np.zeros_like(f)
+    out[start + 1 :] = mid[start:].cumsum(axis=0)
+    out[:start] = -mid[:start][::-1].cumsum(axis=0)[::-1]
+    return out
+
+
+def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_sigma: float):
+    """Signed constant twist of a sheet pushed out of plane (a graph over the centre's tangent
+    plane), from its stretch pattern, or None when that model does not explain the stretch.
+
+    For a graph, E − 1 = z_u² and G − 1 = z_v²; the slopes are those of the bending potential
+    (integrated from the centre) plus the constant twist c: z_u = p + c v, z_v = q + c u.  The
+    cross terms 2c·v·p, 2c·u·q make the stretch pattern depend on the sign of c, so unlike a
+    developable twist (no stretch) the sign is observable wherever p, q do not vanish.  c
+    minimises Σ ((E − 1) − (p + c v)²)² + ((G − 1) − (q + c u)²)² (a quartic: roots of its cubic
+    derivative).  The constant the frame model needs is the twist per material length,
+    z_uv/(W λ_u λ_v), averaged over the sheet (W² = 1 + |∇z|²).  Returns (c, whether the data
+    decide its sign), or None unless the stretch stands well above its noise, the fit removes
+    most of the stretch misfit of c = 0 and what is left is small.
+    """
+    h = grid.spacing
+    a0, b0 = grid.centre
+    p = _integrate_from(tau0[:, b0], a0, h)[:, None] - _integrate_from(k_u.T, b0, h).T
+    q = _integrate_from(tau0[a0, :], b0, h)[None, :] - _integrate_from(k_v, a0, h)
+    e1, g1 = (metric.e - 1.0)[inner], (metric.g - 1.0)[inner]
+    p, q = p[inner], q[inner]
+    u = grid.u[inner[1]][None, :]
+    v = grid.v[inner[0]][:, None]
+    if float(e1.mean() + g1.mean()) <= 20.0 * stretch_sigma:
+        return None
+    # residual r = α0 + α1 c + α2 c² for each of the two terms
+    terms = [(e1 - p * p, -2.0 * p * v, -(v * v) + 0.0 * p), (g1 - q * q, -2.0 * q * u, -(u * u) + 0.0 * q)]
+    cubic = np.zeros(4)
+    for a0_, a1_, a2_ in terms:
+        cubic += [
+            2.0 * float((a2_ * a2_).sum()),
+            3.0 * float((a1_ * a2_).sum()),
+            float((2.0 * a0_ * a2_ + a1_ * a1_).sum()),
+            float((a0_ * a1_).sum()),
+        ]
+
+    def cost(c: float) -> float:
+        return sum(float(((a0_ + c * (a1_ + c * a2_)) ** 2).sum()) for a0_, a1_, a2_ in terms)
+
+    roots = [r.real for r in np.roots(cubic) if abs(r.imag) <= 1e-9 * max(abs(r), 1e-12)]
+    if not roots:
+        return None
+    c = min(roots, key=cost)
+    best, zero, mirror = cost(c), cost(0.0), cost(-c)
+    total = float((e1 * e1).sum() + (g1 * g1).sum())
+    if not (best < 0.5 * zero and best < 0.2 * total):
+        return None
+    decisive = mirror > 2.0 * best + 1e-3 * total
+    slope2 = (p + c * v) ** 2 + (q + c * u) ** 2
+    c_eff = c * float((1.0 / np.sqrt((1.0 + slope2) * metric.eg[inner])).mean())
+    return c_eff, decisive
 
 
 def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> float:
