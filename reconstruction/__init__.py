@@ -136,9 +136,11 @@ class Reconstructor:
         twist_sign: float | None = None,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
-        the smoothness prior).  A constant twist (an oblique cylinder) has two mirror-image
-        solutions with identical strains: ``twist_sign`` (+1 or −1) picks one; by default the
-        sign of ``previous`` (the last frame's surface) is kept, else +1."""
+        the smoothness prior).  A constant twist can have two mirror-image solutions with
+        identical strains (an oblique cylinder; a saddle turned by 45°): ``twist_sign`` (+1 or
+        −1) picks one; by default the sign of ``previous`` (the last frame's surface) is kept,
+        else +1.  Where the stretch pattern fixes the sign (a saddle turned off 0° and 45°) the
+        data decide unless ``twist_sign`` is given."""
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
@@ -259,7 +261,8 @@ def reconstruct(
     ``eps_upper``, ``eps_lower``: (2, N, M) engineering strain; ``[0]`` row-direction (u) gauges,
     ``[1]`` column-direction (v) gauges; NaN for a missing gauge.  ``strain_sigma``: strain-noise
     s.d. of one gauge for the uncertainty estimate.  ``previous``: the last frame's surface (keeps
-    the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly.
+    the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly (and
+    overrides a sign the stretch pattern would fix).
     Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length).
     """
     eu = np.asarray(eps_upper, dtype=float)
