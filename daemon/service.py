@@ -525,9 +525,12 @@ class Gateway:
         if r is not None:
             z = r.nodes_mm[..., 2]
             shape = f" | z {z.min():+6.2f}…{z.max():+6.2f} mm"
-            if r.element_positions_mm.shape[0]:
-                p = r.element_positions_mm[r.element_positions_mm.shape[0] // 2]
-                shape += f" | mid element ({p[0]:+6.2f}, {p[1]:+6.2f}, {p[2]:+6.2f}) mm"
+            k = r.element_positions_mm.shape[0]
+            if k:
+                # The sheet centre is the frame origin, so the end elements show the shape best.
+                for name, i in (("first", 0), ("last", k - 1)):
+                    p = r.element_positions_mm[i]
+                    shape += f" | {name} element ({p[0]:+6.2f}, {p[1]:+6.2f}, {p[2]:+6.2f}) mm"
         return (f"[{st['link_state']:>10}] scans {st['scan_rate_hz']:6.1f}/s  published {st['publish_rate_hz']:5.1f}/s  "
                 f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
                 f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
