@@ -1,6 +1,6 @@
 """Reconstruction benchmark: accuracy per shape class and time per frame.
 
-Run: .venv/bin/python bench/reconstruction.py [--quick] [--seed S] [--shapes K]
+Run: .venv/bin/python bench/reconstruction.py [--quick] [--seed S] [--shapes K] [--only accuracy|timing]
 
 Accuracy: 5×5 cells, 12 mm pitch, h = 0.2 mm, 10 mm gauges; strains from the physics forward
 model (skinmap.emulator.physics) for shapes with seeded random parameters; node error after the
@@ -230,11 +230,15 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer shapes and frames (about 20 s)")
     ap.add_argument("--seed", type=int, default=2024, help="seed of the random shape parameters and noise")
     ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
+    ap.add_argument("--only", choices=("accuracy", "timing"), default=None, help="print one part only")
     args = ap.parse_args()
     k = args.shapes or (4 if args.quick else 12)
     threadpool_limits(1)
-    accuracy_table(k, 1 if args.quick else 3, args.seed)
-    bump_grid_table(4 if args.quick else 10, args.seed)
+    if args.only != "timing":
+        accuracy_table(k, 1 if args.quick else 3, args.seed)
+        bump_grid_table(4 if args.quick else 10, args.seed)
+    if args.only == "accuracy":
+        return
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
     timing_table([5, 8, 16, 32], frames, args.seed)
 
