@@ -99,7 +99,7 @@ class GatewayStats:
     processing_errors: int = 0
     last_seq: int = -1
     last_solver_ms: float = 0.0
-    latencies_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2048))
+    latencies_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=256))  # recent only
     scan_times: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
     publish_times: collections.deque = field(default_factory=lambda: collections.deque(maxlen=4096))
 
