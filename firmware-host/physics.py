@@ -275,18 +275,27 @@ class GraphSum(GraphShape):
 
 
 class Saddle(GraphShape):
-    """Hyperbolic paraboloid z = (u² − v²) / (2R) as a graph mapping (see :class:`GraphShape`).
-    For R > 0 the sheet curves toward its upper side along u (concave, bend radius −R at the
-    centre) and away from it along v (convex, +R)."""
+    """Hyperbolic paraboloid z = (p² − q²) / (2R) as a graph mapping (see :class:`GraphShape`),
+    with principal axes p = u cos φ + v sin φ, q = −u sin φ + v cos φ turned by ``axis_angle``
+    φ (degrees, from +u towards +v; 0: z = (u² − v²) / (2R)).  For R > 0 the sheet curves toward
+    its upper side along p (concave, bend radius −R at the centre) and away from it along q
+    (convex, +R).  Turned off the grid lines (φ ≠ 0°, 90°) the material lines twist: z_uv =
+    sin 2φ / R; at ±45° the row and column gauges see no mean bend at the centre."""
 
-    def __init__(self, radius: float = 60.0):
+    def __init__(self, radius: float = 60.0, axis_angle: float = 0.0):
         self.radius = _finite_nonzero("saddle radius", radius)
+        self.axis_angle = _finite("saddle axis_angle", axis_angle)
+        phi = math.radians(self.axis_angle)
+        c, s = math.cos(phi), math.sin(phi)
+        # z = ½ uvᵀ S uv with S = Rot(φ) diag(1, −1) Rot(φ)ᵀ / R
+        c2, s2 = c * c - s * s, 2.0 * s * c
+        self._hessian = np.array([[c2, s2], [s2, -c2]]) / self.radius
 
     def height(self, uv, t):
-        return (uv[..., 0] ** 2 - uv[..., 1] ** 2) / (2.0 * self.radius)
+        return 0.5 * np.einsum("...i,ij,...j->...", uv, self._hessian, uv)
 
     def height_gradient(self, uv, t):
-        return np.stack([uv[..., 0], -uv[..., 1]], axis=-1) / self.radius
+        return uv @ self._hessian
 
 
 def _bump(uv: np.ndarray, centre: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -436,7 +445,7 @@ def _scaled(shape: Shape, amplitude: float) -> Shape:
     if isinstance(shape, SphereCap):
         return SphereCap(shape.radius / a)
     if isinstance(shape, Saddle):
-        return Saddle(shape.radius / a)
+        return Saddle(shape.radius / a, shape.axis_angle)
     if isinstance(shape, GaussianBumps):
         return GaussianBumps(bumps=[dict(height=h * a, fwhm=f, centre=c) for h, f, c in shape.bumps])
     if isinstance(shape, GraphSum):

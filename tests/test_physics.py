@@ -318,3 +318,39 @@ def test_cylinder_property_exact_strains_and_decoupling(radius, angle, h_u, h_l)
     if c2 > 0.999999:  # a pure bend along u: the paper's formula recovers the radius
         r, s = decouple_pair(eu[0], el[0], h_u, h_l)
         np.testing.assert_allclose(r, radius, rtol=1e-5)
+
+
+def test_turned_saddle_is_the_saddle_in_rotated_axes():
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-30.0, 30.0, (50, 2))
+    for phi in (15.0, -30.0, 45.0):
+        th = math.radians(phi)
+        p = uv[:, 0] * math.cos(th) + uv[:, 1] * math.sin(th)
+        q = -uv[:, 0] * math.sin(th) + uv[:, 1] * math.cos(th)
+        pos = Saddle(70.0, axis_angle=phi).position(uv)
+        np.testing.assert_allclose(pos[:, :2], uv, atol=1e-12)  # graph mapping
+        np.testing.assert_allclose(pos[:, 2], (p * p - q * q) / 140.0, atol=1e-12)
+    # default and 0° are the old saddle; 90° swaps the axes (the saddle of −R)
+    np.testing.assert_allclose(Saddle(70.0).position(uv), Saddle(70.0, axis_angle=0.0).position(uv))
+    np.testing.assert_allclose(Saddle(70.0, axis_angle=90.0).position(uv), Saddle(-70.0).position(uv), atol=1e-12)
+    with pytest.raises(ValueError, match="axis_angle"):
+        Saddle(70.0, axis_angle=float("nan"))
+
+
+def test_turned_saddle_strains_twist_and_mirror():
+    # at 45° the gauges along u and v see no mean bend at the centre, only the twist
+    eu, el = gauge_strains(Saddle(60.0, axis_angle=45.0), 5, 5)
+    kappa = (eu - el) / (2 * H)
+    assert np.abs(kappa[:, 2, 2]).max() < 1e-6
+    # at 30°: bend 1/R·cos 60° along u and its opposite along v at the centre
+    eu, el = gauge_strains(Saddle(60.0, axis_angle=30.0), 5, 5)
+    r, _ = decouple_pair(eu, el)
+    np.testing.assert_allclose(1.0 / r[:, 2, 2], [-0.5 / 60.0, 0.5 / 60.0], rtol=0.02)
+    # mirroring u → −u turns +φ into −φ: the strains are those of the mirrored grid
+    a_u, _ = gauge_strains(Saddle(60.0, axis_angle=30.0), 4, 5)
+    b_u, _ = gauge_strains(Saddle(60.0, axis_angle=-30.0), 4, 5)
+    np.testing.assert_allclose(a_u, b_u[:, :, ::-1], atol=1e-10)
+    assert np.abs(a_u - b_u).max() > 1e-3  # and differ from each other (the stretch pattern)
+    # the spec parser and amplitude scaling keep the angle
+    s = parse_shape_spec("saddle:radius=80,axis_angle=30")
+    assert isinstance(s, Saddle) and s.axis_angle == 30.0
