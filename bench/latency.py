@@ -52,14 +52,14 @@ def dir_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.glob("*") if p.is_file())
 
 
-def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path) -> dict:
-    serial_port, zenoh_port = free_port(), free_port()
-    logs = workdir / f"logs-{size}-{output_rate:g}"
-    cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
-    cfg.write_text(f"""
+def write_daemon_config(path: Path, *, device: str, serial_port: int, zenoh_port: int, logs: Path, state: Path,
+                        scan_rate: float, output_rate: float, rotate_minutes: float = 60.0,
+                        rotate_mb: float = 256.0) -> None:
+    """A skinmapd config for the benchmarks: emulator on loopback TCP, 64 elements in a row."""
+    path.write_text(f"""
 [device]
 port = "socket://127.0.0.1:{serial_port}"
-name = "bench"
+name = "{device}"
 scan_rate_hz = {scan_rate}
 [output]
 rate_hz = {output_rate}
@@ -72,9 +72,19 @@ pitch_u_mm = 0.6
 listen = ["tcp/127.0.0.1:{zenoh_port}"]
 [log]
 directory = "{logs}"
+max_file_minutes = {rotate_minutes}
+max_file_mb = {rotate_mb}
 [state]
-directory = "{workdir / 'state'}"
+directory = "{state}"
 """)
+
+
+def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path) -> dict:
+    serial_port, zenoh_port = free_port(), free_port()
+    logs = workdir / f"logs-{size}-{output_rate:g}"
+    cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
+    write_daemon_config(cfg, device="bench", serial_port=serial_port, zenoh_port=zenoh_port, logs=logs,
+                        state=workdir / "state", scan_rate=scan_rate, output_rate=output_rate)
     emulator = start_emulator(serial_port, size=size, shape="palm", rate=scan_rate)
     daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from latency import free_port, proc_cpu_seconds, proc_rss_mb  # bench/latency.py
+from latency import free_port, proc_cpu_seconds, proc_rss_mb, write_daemon_config  # bench/latency.py
 from skinmap.daemon.cli import start_emulator, stop_process
 from skinmap.daemon.client import SkinmapClient
 
@@ -134,31 +134,6 @@ class SoakResult:
         return not self.problems
 
 
-def write_config(path: Path, serial_port: int, zenoh_port: int, logs: Path, state: Path,
-                 scan_rate: float, rotate_minutes: float, rotate_mb: float) -> None:
-    path.write_text(f"""
-[device]
-port = "socket://127.0.0.1:{serial_port}"
-name = "{DEVICE}"
-scan_rate_hz = {scan_rate}
-[output]
-rate_hz = 0
-[elements]
-layout = "grid"
-rows = 1
-cols = 64
-pitch_u_mm = 0.6
-[zenoh]
-listen = ["tcp/127.0.0.1:{zenoh_port}"]
-[log]
-directory = "{logs}"
-max_file_minutes = {rotate_minutes}
-max_file_mb = {rotate_mb}
-[state]
-directory = "{state}"
-""")
-
-
 def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
     """Read every MCAP file in ``logs``; replay the smallest finished one (``replay``)."""
     from skinmap.daemon.mcapinspect import inspect
@@ -217,7 +192,8 @@ def run_soak(seconds: float, *, size: str = "5x5", scan_rate: float = 50.0, shap
                         source_at_start=source_fingerprint())
     serial_port, zenoh_port = free_port(), free_port()
     logs, state, cfg = workdir / "logs", workdir / "state", workdir / "soak.toml"
-    write_config(cfg, serial_port, zenoh_port, logs, state, scan_rate, rotate_minutes, rotate_mb)
+    write_daemon_config(cfg, device=DEVICE, serial_port=serial_port, zenoh_port=zenoh_port, logs=logs, state=state,
+                        scan_rate=scan_rate, output_rate=0, rotate_minutes=rotate_minutes, rotate_mb=rotate_mb)
 
     emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate,
                               extra=["--status-every", "0"])
