@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .leaveout import IllConditioned, LeaveOut
 from .linalg import DowndatedSolver, FixedSolver
 
 __all__ = ["FineGrid", "hat_average_weights"]
@@ -245,31 +246,92 @@ class FineGrid:
         except np.linalg.LinAlgError:
             return FixedSolver(normal_for(valid.astype(float)).tocsc())
 
+    @property
+    def dense_maps(self) -> bool:
+        """Small grids keep dense data → field maps (one product per frame); large ones solve
+        through the sparse factorisations."""
+        return self.nf * self.mf * 4 * self.n * self.m <= 4_000_000
+
     def field_maps(self, valid: np.ndarray):
         """Linear maps from unit data to the fine fields for this validity mask, cached.
 
         Returns a function (turning (2, N, M), stretch (2, N, M)) → (k_u, k_v, τ, λ_u, λ_v, fit):
         five (nf, mf) fields and the misfit of the curvature fields' gauge averages to the
-        turning data, (2·N·M,) (invalid units included; mask them).  Small grids precompute one
-        composite dense matrix (a single product per frame); large ones go through the sparse
-        factorisations.
+        turning data, (2·N·M,) (invalid units included; mask them).  The data of invalid units
+        must be zero turning and unit stretch (as :func:`engine.unit_data` gives them).  The
+        all-valid maps are built once; a mask with missing units leaves them out of the
+        all-valid fits (:mod:`.leaveout`), at the cost of a k × k inverse, and refactorises only
+        when the remaining data no longer determine the fit.
         """
         valid = np.asarray(valid, dtype=bool).reshape(2, self.n, self.m)
         key = valid.tobytes()
         fn = self._field_maps.get(key)
         if fn is not None:
             return fn
+        if valid.all():
+            fn = self._all_valid_maps()
+        else:
+            try:
+                fn = self._left_out_maps(valid)
+            except IllConditioned:
+                fn = self._build_maps(valid)
+        if len(self._field_maps) > 16:
+            self._field_maps.pop(next(iter(self._field_maps)))
+        self._field_maps[key] = fn
+        return fn
+
+    def _all_valid_maps(self):
+        if not hasattr(self, "_all_maps_fn"):
+            self._all_maps_fn = self._build_maps(np.ones((2, self.n, self.m), dtype=bool), keep=True)
+        return self._all_maps_fn
+
+    def transposed(self, fit: str, direction: int = 0) -> sp.csr_matrix:
+        """Oᵀ of a fit's all-valid data operator (CSR, cached)."""
+        key = "_obs_t_" + (fit if fit == "potential" else f"{fit}{direction}")
+        if key not in self.__dict__:
+            obs = self.potential_observation() if fit == "potential" else self.average[direction]
+            self.__dict__[key] = obs.T.tocsr()
+        return self.__dict__[key]
+
+    def leave_out(self, fit: str, direction: int = 0) -> LeaveOut:
+        """The all-valid fit ``fit`` ("potential" or "stretch" along ``direction``) prepared for
+        leaving units out."""
+        self._all_valid_maps()
+        return self._leave_outs[fit if fit == "potential" else (fit, direction)]
+
+    @property
+    def curvature_operator(self) -> sp.csr_matrix:
+        """z → (k_u, k_v, τ) stacked, (3 n_fine, n_potential)."""
+        if not hasattr(self, "_curv_ops"):
+            self._curv_ops = sp.vstack([-self.z_uu, -self.z_vv, self.z_uv]).tocsr()
+        return self._curv_ops
+
+    @property
+    def unit_average(self) -> sp.csr_matrix:
+        """(k_u, k_v) → their gauge averages per unit, (2NM, 2 n_fine)."""
+        if not hasattr(self, "_unit_average"):
+            self._unit_average = sp.block_diag(self.average).tocsr()
+        return self._unit_average
+
+    def _build_maps(self, valid: np.ndarray, keep: bool = False):
+        """Data → field maps through the factorisations for this mask; ``keep`` stores the
+        dense maps and the leave-out preparations (all-valid mask)."""
         shape = (self.nf, self.mf)
         n_fine = self.nf * self.mf
         n_units = self.n * self.m
-        curv_ops = sp.vstack([-self.z_uu, -self.z_vv, self.z_uv]).tocsr()
-        average = sp.block_diag(self.average).tocsr()  # (2NM, 2 n_fine): k_u, k_v → unit means
+        curv_ops = self.curvature_operator
+        average = self.unit_average  # (2NM, 2 n_fine): k_u, k_v → unit means
         p_solver, obs_t_w = self.potential_solver(valid)
         s_solvers = [self.field_solver(d, valid[d]) for d in (0, 1)]
-        if n_fine * 4 * n_units <= 4_000_000:
+        if self.dense_maps:
             curv = curv_ops @ p_solver.solve(obs_t_w.toarray())  # (3 n_fine, 2NM)
             stretch_maps = [sol.solve(at_w.toarray()) for sol, at_w in s_solvers]  # (n_fine, NM)
             misfit = average @ curv[: 2 * n_fine] - np.eye(2 * n_units)  # (2NM, 2NM)
+            if keep:
+                self._dense = {"curv": curv, "stretch": stretch_maps, "misfit": misfit}
+                self._leave_outs = {"potential": LeaveOut(hat=misfit + np.eye(2 * n_units))}
+                for d in (0, 1):
+                    self._leave_outs[("stretch", d)] = LeaveOut(hat=self.average[d] @ stretch_maps[d])
 
             # one dense product per block (the maps are dense; stacking them block-diagonally
             # would multiply zeros)
@@ -283,6 +345,10 @@ class FineGrid:
                 return (*k.reshape(3, *shape), lam_u.reshape(shape), lam_v.reshape(shape), misfit @ d)
 
         else:
+            if keep:
+                self._leave_outs = {"potential": LeaveOut(solver=p_solver, obs=self.potential_observation())}
+                for d in (0, 1):
+                    self._leave_outs[("stretch", d)] = LeaveOut(solver=s_solvers[d][0], obs=self.average[d])
 
             def fn(turning, stretch):
                 d = turning.ravel()
@@ -291,9 +357,67 @@ class FineGrid:
                 fit = average @ k[: 2 * n_fine] - d
                 return (*k.reshape(3, *shape), *(x.reshape(shape) for x in lam), fit)
 
-        if len(self._field_maps) > 16:
-            self._field_maps.pop(next(iter(self._field_maps)))
-        self._field_maps[key] = fn
+        return fn
+
+    def _left_out_maps(self, valid: np.ndarray):
+        """Maps for a mask with missing units: the all-valid maps, then the Woodbury correction
+        of each fit for its missing units (see :mod:`.leaveout`).  Invalid units' data are zero
+        (turning 0, stretch − 1 = 0), so the all-valid maps see no data there."""
+        self._all_valid_maps()
+        shape = (self.nf, self.mf)
+        n_fine = self.nf * self.mf
+        miss_p = np.flatnonzero(~valid.ravel())
+        miss_s = [np.flatnonzero(~valid[d].ravel()) for d in (0, 1)]
+        lo_p = self._leave_outs["potential"]
+        lo_s = [self._leave_outs[("stretch", d)] for d in (0, 1)]
+        m_p = lo_p.weights(miss_p)
+        m_s = [lo_s[d].weights(miss_s[d]) if miss_s[d].size else None for d in (0, 1)]
+        h_p = lo_p.hat_columns(miss_p)  # (2NM, k)
+        avg_miss = [self.average[d][miss_s[d]] for d in (0, 1)]  # fitted stretch at missing units
+        if self.dense_maps:
+            curv, stretch_maps, misfit = self._dense["curv"], self._dense["stretch"], self._dense["misfit"]
+            curv_miss = curv[:, miss_p]
+            stretch_miss = [stretch_maps[d][:, miss_s[d]] for d in (0, 1)]
+
+            def fn(turning, stretch):
+                d = turning.ravel()
+                fit = misfit @ d
+                w = m_p @ fit[miss_p]  # d = 0 there: the fit's own value at the missing units
+                k = curv @ d + curv_miss @ w
+                fit += h_p @ w
+                lam = []
+                for i in (0, 1):
+                    x = stretch_maps[i] @ (stretch[i].ravel() - 1.0)
+                    if m_s[i] is not None:
+                        x += stretch_miss[i] @ (m_s[i] @ (avg_miss[i] @ x))
+                    x += 1.0
+                    lam.append(x.reshape(shape))
+                return (*k.reshape(3, *shape), *lam, fit)
+
+        else:
+            curv_ops, average = self.curvature_operator, self.unit_average
+            obs = self.potential_observation()
+            obs_miss = obs[miss_p]
+            p_solver, obs_t = lo_p.solver, self.transposed("potential")
+            y_p = lo_p.solution_columns(miss_p)
+            y_s = [lo_s[d].solution_columns(miss_s[d]) for d in (0, 1)]
+            s_solvers = [(lo_s[d].solver, self.transposed("stretch", d)) for d in (0, 1)]
+
+            def fn(turning, stretch):
+                d = turning.ravel()
+                z = p_solver.solve(obs_t @ d)
+                z += y_p @ (m_p @ (obs_miss @ z))
+                k = curv_ops @ z
+                lam = []
+                for i, (sol, at) in enumerate(s_solvers):
+                    x = sol.solve(at @ (stretch[i].ravel() - 1.0))
+                    if m_s[i] is not None:
+                        x += y_s[i] @ (m_s[i] @ (avg_miss[i] @ x))
+                    x += 1.0
+                    lam.append(x.reshape(shape))
+                fit = average @ k[: 2 * n_fine] - d
+                return (*k.reshape(3, *shape), *lam, fit)
+
         return fn
 
     # --------------------------------------------------------------------------- field solve

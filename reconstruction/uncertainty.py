@@ -10,18 +10,19 @@ along the rows and columns from the centre.
 """
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 
 from .grid import FineGrid
+from .leaveout import IllConditioned
 
 __all__ = ["height_response", "fine_sigma"]
 
 
-def height_response(grid: FineGrid, valid: np.ndarray) -> np.ndarray:
-    """Linear map (nf·mf, 2·N·M) from the units' turning per length to fine-node heights in the
-    sensor frame (centre height and slopes pinned), about the flat sheet."""
-    solver, obs_t_w = grid.potential_solver(valid)
-    z_ext = solver.solve(obs_t_w.toarray())
+def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:
+    """Fine-node heights in the sensor frame (centre height and slopes pinned, mean twist
+    removed) of potential columns z_ext (n_potential, K) → (nf·mf, K); linear."""
     # the reconstruction replaces the potential's mean twist by the Gauss-equation constant
     # (zero about the flat sheet): remove it here too
     mean_twist = (grid.z_uv @ z_ext).mean(axis=0)
@@ -33,6 +34,74 @@ def height_response(grid: FineGrid, valid: np.ndarray) -> np.ndarray:
     slope_v = (z[a0 + 1, b0] - z[a0 - 1, b0]) / (2 * h)
     z = z - z[a0, b0] - grid.u[None, :, None] * slope_u - grid.v[:, None, None] * slope_v
     return z.reshape(grid.nf * grid.mf, -1)
+
+
+def height_response(grid: FineGrid, valid: np.ndarray) -> np.ndarray:
+    """Linear map (nf·mf, 2·N·M) from the units' turning per length to fine-node heights in the
+    sensor frame (centre height and slopes pinned), about the flat sheet."""
+    solver, obs_t_w = grid.potential_solver(valid)
+    return _heights(grid, solver.solve(obs_t_w.toarray()))
+
+
+def _all_valid_response(grid: FineGrid) -> dict:
+    """Row sums of squares of the all-valid height response R, and R itself on small grids."""
+    base = grid.__dict__.get("_sigma_base")
+    if base is None:
+        r = height_response(grid, np.ones((2, grid.n, grid.m), dtype=bool))
+        base = grid._sigma_base = {"rowsq": (r * r).sum(axis=1), "r": r if grid.dense_maps else None, "columns": OrderedDict()}
+    return base
+
+
+def _unit_columns(grid: FineGrid, base: dict, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R_J = R[:, J] (the all-valid height response to the missing units) and G_J = (R H)[:, J]
+    (its product with the hat matrix), (nf·mf, k) each; per unit, cached."""
+    lo = grid.leave_out("potential")
+    cols = base["columns"]
+    new = np.array([j for j in dict.fromkeys(missing.tolist()) if j not in cols], dtype=int)
+    if new.size:
+        h_new = lo.hat_columns(new)
+        if base["r"] is not None:
+            r_new, g_new = base["r"][:, new], base["r"] @ h_new
+        else:
+            # R H e_j = T A⁻¹ Oᵀ (O Y_j): one more solve with the all-valid factor
+            r_new = _heights(grid, lo.solution_columns(new))
+            g_new = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_new))
+        for c, j in enumerate(new.tolist()):
+            cols[j] = (r_new[:, c].copy(), g_new[:, c].copy())
+    for j in missing.tolist():
+        cols.move_to_end(j)
+    while len(cols) > max(256, missing.size):
+        cols.popitem(last=False)
+    return (np.stack([cols[j][0] for j in missing.tolist()], axis=1),
+            np.stack([cols[j][1] for j in missing.tolist()], axis=1))
+
+
+def _left_out_sums(grid: FineGrid, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(measured, missing) row sums for a mask with missing units, from the all-valid response
+    by the Woodbury identity (see :mod:`.leaveout`); None when that is ill-conditioned.
+
+    With B = R_J M the response over the valid columns V is R_V + B H[J, V], so its row sums of
+    squares are |R_V|² + 2 Σ B ∘ (R_V H[V, J]) + Σ (B Q_V) ∘ B, Q_V = H[J, V] H[V, J]; each
+    restricted product is the all-column one minus the J columns' part (no large cancellation:
+    B enters only multiplied)."""
+    missing_units = np.flatnonzero(~valid.ravel())
+    lo = grid.leave_out("potential")
+    try:
+        m = lo.weights(missing_units)
+    except IllConditioned:
+        return None
+    if np.abs(m).max() > 1e6:  # nearly undetermined: the product form would lose all digits
+        return None
+    base = _all_valid_response(grid)
+    r_j, g_j = _unit_columns(grid, base, missing_units)
+    h_cols = lo.hat_columns(missing_units)
+    h_jj = h_cols[missing_units]
+    b = r_j @ m
+    g_v = g_j - r_j @ h_jj
+    q_v = h_cols.T @ h_cols - h_jj @ h_jj
+    missing = (r_j * r_j).sum(axis=1)
+    measured = base["rowsq"] - missing + 2.0 * (b * g_v).sum(axis=1) + ((b @ q_v) * b).sum(axis=1)
+    return np.maximum(measured, 0.0), missing
 
 
 def fine_sigma(
@@ -50,14 +119,20 @@ def fine_sigma(
     key = valid.tobytes()
     sums = cache.get(key)
     if sums is None:
-        v = valid.ravel()
-        measured = (height_response(grid, valid)[:, v] ** 2).sum(axis=1)
-        missing = np.zeros_like(measured)
-        if not v.all():
-            missing = (height_response(grid, np.ones_like(valid))[:, ~v] ** 2).sum(axis=1)
+        if valid.all():
+            sums = (_all_valid_response(grid)["rowsq"], np.zeros(grid.nf * grid.mf))
+        else:
+            sums = _left_out_sums(grid, valid)
+        if sums is None:  # the remaining data leave the fit open: a response of its own
+            v = valid.ravel()
+            measured = (height_response(grid, valid)[:, v] ** 2).sum(axis=1)
+            r_all = _all_valid_response(grid)["r"]
+            if r_all is None:
+                r_all = height_response(grid, np.ones_like(valid))
+            sums = (measured, (r_all[:, ~v] ** 2).sum(axis=1))
         if len(cache) > 16:
             cache.pop(next(iter(cache)))
-        sums = cache[key] = (measured, missing)
+        cache[key] = sums
     measured, missing = sums
     # turning per length = (ε_u − ε_l)/(h_u + h_l): two independent gauges
     sig_turn = np.sqrt(2.0) * strain_sigma / (h_upper + h_lower)

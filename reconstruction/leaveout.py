@@ -1,0 +1,124 @@
+"""Least-squares fits with some data rows left out, from the all-valid fit alone.
+
+A fit x = A⁻¹ Oᵀ d with A = OᵀO + P (data operator O, one row per unit; prior P) loses the
+rows J of its missing units.  With Y_J = A⁻¹ O_Jᵀ and the hat matrix H = O A⁻¹ Oᵀ, the Woodbury
+identity gives the fit without them, for data d that are zero on J, as
+
+    x_J-out = x + Y_J M (O x)_J,        M = (I − H_JJ)⁻¹,
+
+so an unseen validity mask costs a k × k inverse and k columns of the all-valid fit (k missing
+units) instead of a new factorisation.  Y_J and H's columns are slices of the precomputed dense
+maps on small grids, and one cached solve per unit on large ones.  The result is the exact
+left-out fit: the data no longer enter, the prior fills the gap.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import scipy.sparse as sp
+
+from .linalg import FixedSolver
+
+__all__ = ["LeaveOut", "woodbury_weights", "IllConditioned"]
+
+# Beyond this condition number of I − H_JJ the remaining data and the prior no longer fix the
+# fit (e.g. all units of one direction missing): the caller refactorises instead.
+_MAX_CONDITION = 1e10
+
+
+class IllConditioned(np.linalg.LinAlgError):
+    """Leaving these units out leaves the fit (nearly) undetermined."""
+
+
+def woodbury_weights(h_jj: np.ndarray) -> np.ndarray:
+    """M = (I − H_JJ)⁻¹ for the hat matrix block of the missing units; raises
+    :class:`IllConditioned` when the units cannot be left out without a new factorisation."""
+    k = h_jj.shape[0]
+    cap = np.eye(k) - h_jj
+    cap = 0.5 * (cap + cap.T)  # symmetric by construction; remove rounding asymmetry
+    w = np.linalg.eigvalsh(cap)
+    if not (w[0] > 0 and w[-1] <= _MAX_CONDITION * w[0]):
+        raise IllConditioned(f"leaving {k} unit(s) out leaves the fit undetermined (condition {w[-1] / max(w[0], 1e-300):.3g})")
+    return np.linalg.inv(cap)
+
+
+class LeaveOut:
+    """Columns of one all-valid least-squares fit, for leaving units out.
+
+    Either ``hat`` (units × units, the dense hat matrix H of a small grid; the caller holds the
+    dense data → field maps whose columns are the Y_J) or ``solver`` (the all-valid
+    :class:`FixedSolver` of A) and ``obs`` (O, units × unknowns) for large grids, where the
+    columns Y_j = A⁻¹ O_jᵀ and H e_j = O Y_j are solved per unit on first use and kept for the
+    ``capacity`` most recently used units.  Cache state changes only the time taken, never the
+    numbers.
+    """
+
+    def __init__(
+        self,
+        *,
+        hat: np.ndarray | None = None,
+        solver: FixedSolver | None = None,
+        obs: sp.csr_matrix | None = None,
+        capacity: int = 256,
+    ):
+        if (hat is None) == (solver is None):
+            raise ValueError("give either the dense hat matrix or a solver and its data operator")
+        if solver is not None and obs is None:
+            raise ValueError("a solver needs its data operator obs")
+        self.hat = hat
+        self.solver = solver
+        self.obs = None if obs is None else sp.csr_matrix(obs)
+        self.units = hat.shape[0] if hat is not None else self.obs.shape[0]
+        self.capacity = int(capacity)
+        self._columns: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._weights: OrderedDict[bytes, np.ndarray] = OrderedDict()
+
+    @property
+    def dense(self) -> bool:
+        return self.hat is not None
+
+    def _fetch(self, missing: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(Y_j, H e_j) of the given units; the uncached ones in one multi-column solve."""
+        new = [j for j in dict.fromkeys(missing.tolist()) if j not in self._columns]
+        if new:
+            y = self.solver.solve(self.obs[new].toarray().T)
+            h = self.obs @ y
+            for c, j in enumerate(new):
+                self._columns[j] = (y[:, c].copy(), h[:, c].copy())
+        out = []
+        for j in missing.tolist():
+            self._columns.move_to_end(j)
+            out.append(self._columns[j])
+        while len(self._columns) > max(self.capacity, missing.size):
+            self._columns.popitem(last=False)
+        return out
+
+    def solution_columns(self, missing: np.ndarray) -> np.ndarray:
+        """Y_J = A⁻¹ O_Jᵀ, (unknowns, k) (large grids only)."""
+        if self.dense:
+            raise ValueError("dense leave-out: take Y_J from the dense field maps")
+        if missing.size == 0:
+            return np.zeros((self.solver.size, 0))
+        return np.stack([c[0] for c in self._fetch(missing)], axis=1)
+
+    def hat_columns(self, missing: np.ndarray) -> np.ndarray:
+        """H[:, J], (units, k)."""
+        if self.dense:
+            return self.hat[:, missing]
+        if missing.size == 0:
+            return np.zeros((self.units, 0))
+        return np.stack([c[1] for c in self._fetch(missing)], axis=1)
+
+    def weights(self, missing: np.ndarray) -> np.ndarray:
+        """M = (I − H_JJ)⁻¹ for the missing units J (ascending indices), cached per set."""
+        key = missing.tobytes()
+        m = self._weights.get(key)
+        if m is None:
+            m = woodbury_weights(self.hat_columns(missing)[missing])
+            self._weights[key] = m
+            if len(self._weights) > 16:
+                self._weights.popitem(last=False)
+        else:
+            self._weights.move_to_end(key)
+        return m
