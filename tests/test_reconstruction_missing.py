@@ -1,0 +1,138 @@
+"""Missing units: an unseen validity mask leaves them out of the all-valid fits (Woodbury),
+exactly as a new factorisation would, and raises the uncertainty where data are missing."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap.emulator import physics as ph
+from skinmap.reconstruction import Reconstructor
+from skinmap.reconstruction.engine import unit_data
+from skinmap.reconstruction.grid import FineGrid
+from skinmap.reconstruction.leaveout import IllConditioned, LeaveOut, woodbury_weights
+from skinmap.reconstruction.uncertainty import fine_sigma, height_response
+
+PITCH, H, G = 12.0, 0.2, 10.0
+
+
+class _SparseGrid(FineGrid):
+    """A small grid forced onto the large-grid path (per-unit solves instead of dense maps)."""
+
+    @property
+    def dense_maps(self) -> bool:
+        return False
+
+
+def _strains(n, m, shape=None):
+    shape = shape or ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
+    return ph.gauge_strains(shape, n, m, PITCH, H, H, G)
+
+
+@pytest.mark.parametrize("grid_cls", [FineGrid, _SparseGrid])
+def test_left_out_fields_and_sigma_equal_a_new_factorisation(grid_cls):
+    n, m = 4, 5
+    grid = grid_cls(n, m, PITCH, G, sub=2)
+    eu, el = _strains(n, m)
+    rng = np.random.default_rng(7)
+    for k in (1, 3, 9):
+        eu_k = eu.copy()
+        eu_k.reshape(-1)[rng.choice(eu.size, k, replace=False)] = np.nan
+        turning, stretch, valid = unit_data(eu_k, el, H, H, G)
+        left_out = grid.field_maps(valid)(turning, stretch)
+        refactorised = grid._build_maps(valid)(turning, stretch)
+        for a, b in zip(left_out[:5], refactorised[:5]):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-8 * np.abs(b).max())
+        # uncertainty: the response of the left-out fit, by its own factorisation
+        v = valid.ravel()
+        sig = fine_sigma(grid, valid, turning, 1e-4, H, H)
+        measured = (height_response(grid, valid)[:, v] ** 2).sum(axis=1)
+        missing = (height_response(grid, np.ones_like(valid))[:, ~v] ** 2).sum(axis=1)
+        sig_turn = np.sqrt(2.0) * 1e-4 / (2 * H)
+        spread2 = np.mean(turning[valid] ** 2) + (1.0 / 200.0) ** 2
+        walk = (np.abs(grid.u)[None, :] + np.abs(grid.v)[:, None]) * PITCH * (1e-4 * np.hypot(H, H) / (2 * H)) ** 2
+        expected = np.sqrt((measured * sig_turn**2 + missing * spread2).reshape(grid.nf, grid.mf) + walk)
+        np.testing.assert_allclose(sig, expected, rtol=1e-7)
+
+
+def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertainty():
+    n = m = 5
+    shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
+    eu, el = _strains(n, m, shape)
+    truth = shape.position(ph.cell_centres(n, m, PITCH))
+    rec = Reconstructor(n, m, PITCH, H, H, G)
+    clean = rec(eu, el)
+    base_sigma = clean.node_sigma
+    rng = np.random.default_rng(11)
+    prev = clean
+    raised = 0
+    for _ in range(25):
+        eu_k, el_k = eu.copy(), el.copy()
+        dead = rng.choice(2 * n * m, rng.integers(1, 5), replace=False)
+        (eu_k if rng.random() < 0.5 else el_k).reshape(-1)[dead] = np.nan
+        surf = rec(eu_k, el_k, previous=prev)
+        assert np.isfinite(surf.nodes).all() and np.isfinite(surf.normals).all()
+        sig = surf.node_sigma
+        assert np.isfinite(sig).all() and (sig >= base_sigma * (1 - 1e-9)).all()
+        # the cell of every dead unit (both of its gauges are read as one unit) gets less certain
+        cells = np.unravel_index(dead % (n * m), (n, m))
+        raised += int((sig[cells] > 1.5 * base_sigma[cells]).sum())
+        assert "missing" in surf.diagnostics.status
+        err = np.linalg.norm(surf.nodes - clean.nodes, axis=-1)
+        assert err.max() < 2.0  # a few dead gauges on a 3 mm bump: filled, not lost
+        prev = surf
+    assert raised > 0
+    # a single dead gauge barely changes the shape
+    eu_1 = eu.copy()
+    eu_1[0, 2, 3] = np.nan
+    one = rec(eu_1, el)
+    assert np.abs(one.nodes - clean.nodes).max() < 0.3
+    assert _aligned_error(one.nodes, truth) < 2.0 * _aligned_error(clean.nodes, truth) + 0.05
+
+
+def _aligned_error(nodes, truth):
+    """Mean node error after the best rigid alignment (Kabsch)."""
+    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
+    pc, qc = p.mean(0), q.mean(0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return float(np.linalg.norm((p - pc) @ r.T + qc - q, axis=1).mean())
+
+
+def test_replay_of_the_same_sequence_is_bit_identical():
+    n = m = 5
+    eu, el = _strains(n, m)
+    rng = np.random.default_rng(5)
+    frames = []
+    for _ in range(8):
+        a, b = eu + rng.normal(0, 5e-5, eu.shape), el + rng.normal(0, 5e-5, el.shape)
+        a.reshape(-1)[rng.choice(a.size, 2, replace=False)] = np.nan
+        frames.append((a, b))
+    frames += frames[:3]  # masks seen before, now from the cache
+
+    def run():
+        rec, prev, out = Reconstructor(n, m, PITCH, H, H, G), None, []
+        for a, b in frames:
+            prev = rec(a, b, previous=prev)
+            out.append((prev.nodes, prev.node_sigma))
+        return out
+
+    for (n1, s1), (n2, s2) in zip(run(), run()):
+        assert np.array_equal(n1, n2) and np.array_equal(s1, s2)
+
+
+def test_a_whole_direction_missing_falls_back_to_its_own_factorisation():
+    n = m = 4
+    eu, el = _strains(n, m)
+    eu[0] = np.nan  # no row-direction data at all: the prior alone cannot fix k_u
+    surf = Reconstructor(n, m, PITCH, H, H, G)(eu, el)
+    assert np.isfinite(surf.nodes).all() and np.isfinite(surf.node_sigma).all()
+    with pytest.raises(IllConditioned, match="undetermined"):
+        woodbury_weights(np.eye(3))
+
+
+def test_leave_out_rejects_bad_construction():
+    with pytest.raises(ValueError, match="either"):
+        LeaveOut()
+    with pytest.raises(ValueError, match="data operator"):
+        LeaveOut(solver=object())
