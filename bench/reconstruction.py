@@ -97,6 +97,15 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     ]
     classes["sphere cap |R| 40-120"] = [(ph.SphereCap(signed(40, 120)), {}) for _ in range(k)]
     classes["saddle |R| 40-120"] = [(ph.Saddle(signed(40, 120)), {}) for _ in range(k)]
+    # Turned saddles: at ±15° and ±30° the stretch pattern fixes the twist's sign; at 45° the
+    # saddle and its mirror image give identical strains, so the sign must be told (twist_sign,
+    # the sign of z_uv = sin 2φ / R) and is reported as its own row.
+    turned = [(signed(50, 120), float(rng.choice([-30.0, -15.0, 15.0, 30.0]))) for _ in range(k)]
+    classes["saddle turned +-15/30 deg, |R| 50-120"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in turned]
+    at45 = [(signed(50, 120), float(rng.choice([-45.0, 45.0]))) for _ in range(k)]
+    classes["saddle turned +-45 deg, twist_sign told"] = [
+        (ph.Saddle(r, axis_angle=a), {"twist_sign": float(np.sign(r * a))}) for r, a in at45
+    ]
     # An oblique cylinder's twist sign(R)·sign(axis angle) is not observable (its mirror image
     # gives the same strains): rows with the default sign (+1), the other sign told via
     # twist_sign, and the other sign left to the default (the mirror image is reconstructed).
@@ -178,6 +187,26 @@ def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.nd
     return np.array(wall), np.array(cpu)
 
 
+def time_unseen_masks(rec: Reconstructor, frames: list, uv: np.ndarray, rng: np.random.Generator,
+                      dead: int = 3) -> np.ndarray:
+    """CPU seconds per frame when every frame has a validity mask not seen before: ``dead``
+    random units read NaN (a flickering or rejected gauge), and the frame also takes
+    node_sigma and locate_sigma as the daemon does."""
+    cpu = []
+    prev = None
+    n_units = frames[0][0].size
+    for eu, el in frames:
+        eu = eu.copy()
+        eu.reshape(-1)[rng.choice(n_units, dead, replace=False)] = np.nan
+        c0 = time.thread_time()
+        surf = rec(eu, el, previous=prev)
+        surf.nodes, surf.normals, surf.node_sigma
+        surf.locate(uv), surf.locate_sigma(uv)
+        cpu.append(time.thread_time() - c0)
+        prev = surf
+    return np.array(cpu)
+
+
 def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> None:
     rng = np.random.default_rng(seed)
     print("\nTime per frame: reconstruct + locate(20 elements), warm, one core, one BLAS thread")
@@ -186,6 +215,7 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
     print(head)
     print("-" * len(head))
     medians = {}
+    unseen: dict[int, tuple[float, float]] = {}
     for n in sizes:
         half = 0.5 * n * PITCH
         uv = rng.uniform(-half, half, size=(20, 2))
@@ -203,6 +233,8 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
         setup = time.perf_counter() - t0
         t, cpu = time_frames(rec, frames, uv)
         medians[n] = np.median(cpu)
+        surf.node_sigma  # the all-valid uncertainty, once per geometry
+        unseen[n] = (np.median(cpu), np.median(time_unseen_masks(rec, frames, uv, rng)))
         surf.points(per_pitch=20)  # builds the cached sampling bases
         pts = []
         for _ in range(5):
@@ -222,6 +254,11 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
         lo, hi = min(medians), max(medians)
         print(f"scaling {lo}->{hi}: cpu time x{medians[hi] / medians[lo]:.1f} for cells x{(hi / lo) ** 2:.0f} "
               f"(N^3 would be x{(hi / lo) ** 3:.0f})")
+    print("\nUnseen mask each frame: 3 random dead units per frame, a new mask every frame; "
+          "reconstruct + node_sigma + locate + locate_sigma (cpu median ms)")
+    print(f"{'N x N':>7s} {'all valid':>10s} {'unseen mask':>12s} {'ratio':>6s}")
+    for n, (base, cost) in unseen.items():
+        print(f"{n:>3d}x{n:<3d} {1e3 * base:10.2f} {1e3 * cost:12.2f} {cost / base:6.2f}")
     print(f"(load average during the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
 
 

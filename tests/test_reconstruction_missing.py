@@ -136,3 +136,23 @@ def test_leave_out_rejects_bad_construction():
         LeaveOut()
     with pytest.raises(ValueError, match="data operator"):
         LeaveOut(solver=object())
+
+
+@pytest.mark.parametrize(
+    "radius, angle, kwargs, bound",
+    [
+        (50.0, 15.0, {}, 0.5),
+        (-60.0, -30.0, {}, 0.4),
+        (120.0, 30.0, {}, 0.15),
+        (80.0, -15.0, {}, 0.3),
+        # at 45° the saddle and its mirror image give identical strains: the sign is told
+        (50.0, 45.0, {"twist_sign": 1.0}, 0.2),
+        (50.0, -45.0, {"twist_sign": -1.0}, 0.2),
+    ],
+)
+def test_turned_saddles_from_the_physics_model(radius, angle, kwargs, bound):
+    n = m = 5
+    shape = ph.Saddle(radius, axis_angle=angle)
+    eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, G)
+    surf = Reconstructor(n, m, PITCH, H, H, G)(eu, el, **kwargs)
+    assert _aligned_error(surf.nodes, shape.position(ph.cell_centres(n, m, PITCH))) < bound
