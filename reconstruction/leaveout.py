@@ -51,7 +51,7 @@ class LeaveOut:
     :class:`FixedSolver` of A) and ``obs`` (O, units × unknowns) for large grids, where the
     columns Y_j = A⁻¹ O_jᵀ and H e_j = O Y_j are solved per unit on first use and kept for the
     ``capacity`` most recently used units.  Cache state changes only the time taken, never the
-    numbers.
+    numbers (each column is computed alone, whatever else is missing).
     """
 
     def __init__(
@@ -79,13 +79,13 @@ class LeaveOut:
         return self.hat is not None
 
     def _fetch(self, missing: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(Y_j, H e_j) of the given units; the uncached ones in one multi-column solve."""
-        new = [j for j in dict.fromkeys(missing.tolist()) if j not in self._columns]
-        if new:
-            y = self.solver.solve(self.obs[new].toarray().T)
-            h = self.obs @ y
-            for c, j in enumerate(new):
-                self._columns[j] = (y[:, c].copy(), h[:, c].copy())
+        """(Y_j, H e_j) of the given units, solving the uncached ones."""
+        for j in dict.fromkeys(missing.tolist()):
+            if j not in self._columns:
+                # one unit at a time: a column's digits must not depend on which other units
+                # happened to be solved with it (batched products may sum in another order)
+                y = self.solver.solve(self.obs[j].toarray().ravel())
+                self._columns[j] = (y, self.obs @ y)
         out = []
         for j in missing.tolist():
             self._columns.move_to_end(j)

@@ -57,17 +57,19 @@ def _unit_columns(grid: FineGrid, base: dict, missing: np.ndarray) -> tuple[np.n
     (its product with the hat matrix), (nf·mf, k) each; per unit, cached."""
     lo = grid.leave_out("potential")
     cols = base["columns"]
-    new = np.array([j for j in dict.fromkeys(missing.tolist()) if j not in cols], dtype=int)
-    if new.size:
-        h_new = lo.hat_columns(new)
+    for j in dict.fromkeys(missing.tolist()):
+        if j in cols:
+            continue
+        # one unit at a time, so that its digits do not depend on the other missing units
+        jj = np.array([j])
+        h_j = lo.hat_columns(jj)[:, 0]
         if base["r"] is not None:
-            r_new, g_new = base["r"][:, new], base["r"] @ h_new
+            cols[j] = (base["r"][:, j].copy(), base["r"] @ h_j)
         else:
             # R H e_j = T A⁻¹ Oᵀ (O Y_j): one more solve with the all-valid factor
-            r_new = _heights(grid, lo.solution_columns(new))
-            g_new = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_new))
-        for c, j in enumerate(new.tolist()):
-            cols[j] = (r_new[:, c].copy(), g_new[:, c].copy())
+            r_j = _heights(grid, lo.solution_columns(jj))[:, 0]
+            g_j = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_j)[:, None])[:, 0]
+            cols[j] = (r_j, g_j)
     for j in missing.tolist():
         cols.move_to_end(j)
     while len(cols) > max(256, missing.size):

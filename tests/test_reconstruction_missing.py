@@ -156,3 +156,26 @@ def test_turned_saddles_from_the_physics_model(radius, angle, kwargs, bound):
     eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, G)
     surf = Reconstructor(n, m, PITCH, H, H, G)(eu, el, **kwargs)
     assert _aligned_error(surf.nodes, shape.position(ph.cell_centres(n, m, PITCH))) < bound
+
+
+@pytest.mark.parametrize("grid_cls", [FineGrid, _SparseGrid])
+def test_cache_state_changes_no_digit(grid_cls):
+    n, m = 4, 5
+    eu, el = _strains(n, m)
+    eu[0, 1, 2] = eu[1, 3, 0] = el[0, 2, 4] = np.nan
+    turning, stretch, valid = unit_data(eu, el, H, H, G)
+    fresh = grid_cls(n, m, PITCH, G, sub=2)
+    want = fresh.field_maps(valid)(turning, stretch), fine_sigma(fresh, valid, turning, 1e-4, H, H)
+    warm = grid_cls(n, m, PITCH, G, sub=2)
+    for other in ([(0, 1, 2)], [(1, 3, 0), (0, 0, 0)], [(0, 2, 4), (0, 1, 2), (1, 1, 1)]):
+        v = np.ones_like(valid)
+        for idx in other:
+            v[idx] = False
+        t = np.where(v, turning, 0.0)
+        s = np.where(v, stretch, 1.0)
+        warm.field_maps(v)(t, s)
+        fine_sigma(warm, v, t, 1e-4, H, H)
+    got = warm.field_maps(valid)(turning, stretch), fine_sigma(warm, valid, turning, 1e-4, H, H)
+    for a, b in zip(want[0], got[0]):
+        assert np.array_equal(a, b)
+    assert np.array_equal(want[1], got[1])
