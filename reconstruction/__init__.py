@@ -155,7 +155,12 @@ class Reconstructor:
         status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
         if n_valid == 0:
             status = "no valid gauge: flat sheet assumed"
-        k_u, k_v, tau0, lam_u, lam_v, fit = grid.field_maps(valid)(turning, stretch)
+        if n_valid:
+            k_u, k_v, tau0, lam_u, lam_v, fit = grid.field_maps(valid)(turning, stretch)
+        else:  # nothing measured: the flat, unstretched sheet (no fit to build)
+            k_u, k_v, tau0 = (np.zeros((grid.nf, grid.mf)) for _ in range(3))
+            lam_u, lam_v = np.ones((grid.nf, grid.mf)), np.ones((grid.nf, grid.mf))
+            fit = np.zeros(valid.size)
         convex_info = {"status": "factorized", "iterations": 0}
         if self.convex_solver == "clarabel":
             # turning per length = (ε_u − ε_l)/(h_u + h_l); floor for noise-free use

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .leaveout import IllConditioned, LeaveOut
-from .linalg import DowndatedSolver, FixedSolver
+from .linalg import FixedSolver
 
 __all__ = ["FineGrid", "hat_average_weights"]
 
@@ -233,18 +233,16 @@ class FineGrid:
 
     def _masked_solver(self, name: tuple, normal_for, obs: sp.csr_matrix, valid: np.ndarray):
         """Solver of a fit's normal matrix with the invalid data rows removed: the all-valid
-        factorisation (built once) downdated by the missing rows, or, if that is singular
-        (too much missing), a factorisation of its own."""
+        factorisation (built once), or one of its own for a mask.  Masks normally never get
+        here (their units are left out of the all-valid fit, :mod:`.leaveout`); this serves
+        the masks that leaving out cannot handle, where a downdate would fail too."""
         full = self.__dict__.setdefault("_full_solvers", {})
         base = full.get(name)
         if base is None:
             base = full[name] = FixedSolver(normal_for(np.ones(valid.size)).tocsc())
         if valid.all():
             return base
-        try:
-            return DowndatedSolver(base, obs[~valid].toarray())
-        except np.linalg.LinAlgError:
-            return FixedSolver(normal_for(valid.astype(float)).tocsc())
+        return FixedSolver(normal_for(valid.astype(float)).tocsc())
 
     @property
     def dense_maps(self) -> bool:
@@ -370,6 +368,8 @@ class FineGrid:
         miss_s = [np.flatnonzero(~valid[d].ravel()) for d in (0, 1)]
         lo_p = self._leave_outs["potential"]
         lo_s = [self._leave_outs[("stretch", d)] for d in (0, 1)]
+        if not (lo_p.affordable(miss_p) and all(lo_s[d].affordable(miss_s[d]) for d in (0, 1))):
+            raise IllConditioned("too many new units missing at once: refactorise")
         m_p = lo_p.weights(miss_p)
         m_s = [lo_s[d].weights(miss_s[d]) if miss_s[d].size else None for d in (0, 1)]
         h_p = lo_p.hat_columns(miss_p)  # (2NM, k)

@@ -88,6 +88,8 @@ def _left_out_sums(grid: FineGrid, valid: np.ndarray) -> tuple[np.ndarray, np.nd
     B enters only multiplied)."""
     missing_units = np.flatnonzero(~valid.ravel())
     lo = grid.leave_out("potential")
+    if not lo.affordable(missing_units):
+        return None
     try:
         m = lo.weights(missing_units)
     except IllConditioned:
@@ -123,6 +125,8 @@ def fine_sigma(
     if sums is None:
         if valid.all():
             sums = (_all_valid_response(grid)["rowsq"], np.zeros(grid.nf * grid.mf))
+        elif not valid.any():  # nothing measured: every unit is unknown with the spread
+            sums = (np.zeros(grid.nf * grid.mf), _all_valid_response(grid)["rowsq"])
         else:
             sums = _left_out_sums(grid, valid)
         if sums is None:  # the remaining data leave the fit open: a response of its own
