@@ -155,8 +155,11 @@ class Reconstructor:
         status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
         if n_valid == 0:
             status = "no valid gauge: flat sheet assumed"
+        left_out = True
         if n_valid:
-            k_u, k_v, tau0, lam_u, lam_v, fit = grid.field_maps(valid)(turning, stretch)
+            maps = grid.field_maps(valid)
+            left_out = getattr(maps, "left_out", True)
+            k_u, k_v, tau0, lam_u, lam_v, fit = maps(turning, stretch)
         else:  # nothing measured: the flat, unstretched sheet (no fit to build)
             k_u, k_v, tau0 = (np.zeros((grid.nf, grid.mf)) for _ in range(3))
             lam_u, lam_v = np.ones((grid.nf, grid.mf)), np.ones((grid.nf, grid.mf))
@@ -217,7 +220,7 @@ class Reconstructor:
             fine_v=grid.v,
             fine_positions=pos,
             node_index=(grid.node_rows, grid.node_cols),
-            fine_sigma=lambda: fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l),
+            fine_sigma=lambda: fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l, left_out=left_out),
             diagnostics=diag,
         )
         diag.solve_time = time.perf_counter() - t0

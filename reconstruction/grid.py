@@ -259,7 +259,8 @@ class FineGrid:
         must be zero turning and unit stretch (as :func:`engine.unit_data` gives them).  The
         all-valid maps are built once; a mask with missing units leaves them out of the
         all-valid fits (:mod:`.leaveout`), at the cost of a k × k inverse, and refactorises only
-        when the remaining data no longer determine the fit.
+        when the remaining data no longer determine the fit or, on large grids, when more units
+        than the leave-out budget are missing for the first time; ``fn.left_out`` tells which.
         """
         valid = np.asarray(valid, dtype=bool).reshape(2, self.n, self.m)
         key = valid.tobytes()
@@ -271,8 +272,10 @@ class FineGrid:
         else:
             try:
                 fn = self._left_out_maps(valid)
+                fn.left_out = True
             except IllConditioned:
                 fn = self._build_maps(valid)
+                fn.left_out = False
         if len(self._field_maps) > 16:
             self._field_maps.pop(next(iter(self._field_maps)))
         self._field_maps[key] = fn

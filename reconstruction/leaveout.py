@@ -55,7 +55,8 @@ class LeaveOut:
     dense data → field maps whose columns are the Y_J) or ``solver`` (the all-valid
     :class:`FixedSolver` of A) and ``obs`` (O, units × unknowns) for large grids, where the
     columns Y_j = A⁻¹ O_jᵀ and H e_j = O Y_j are solved per unit on first use and kept for the
-    ``capacity`` most recently used units.  Cache state changes only the time taken, never the
+    ``capacity`` most recently used units (at most ``budget`` new ones per call, see
+    :meth:`affordable`).  Cache state changes only the time taken, never the
     numbers (each column is computed alone, whatever else is missing).
     """
 
@@ -66,6 +67,7 @@ class LeaveOut:
         solver: FixedSolver | None = None,
         obs: sp.csr_matrix | None = None,
         capacity: int = 256,
+        budget: int = 24,
     ):
         if (hat is None) == (solver is None):
             raise ValueError("give either the dense hat matrix or a solver and its data operator")
@@ -76,6 +78,7 @@ class LeaveOut:
         self.obs = None if obs is None else sp.csr_matrix(obs)
         self.units = hat.shape[0] if hat is not None else self.obs.shape[0]
         self.capacity = int(capacity)
+        self.budget = min(int(budget), self.capacity)
         self._columns: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._weights: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -101,11 +104,13 @@ class LeaveOut:
 
     def affordable(self, missing: np.ndarray) -> bool:
         """Whether leaving these units out beats a new factorisation: always on small grids;
-        on large ones while the columns still to solve fit the cache (more units than that
-        missing at once is a failing sensor, where one factorisation is cheaper)."""
+        on large ones while at most ``budget`` of them still need their columns solved (each
+        is a solve with the all-valid factor; beyond that one factorisation of the mask is
+        cheaper).  Depends on which units earlier calls left out, i.e. on the sequence of
+        masks seen, never on time."""
         if self.dense:
             return True
-        return sum(j not in self._columns for j in missing.tolist()) <= self.capacity
+        return sum(j not in self._columns for j in missing.tolist()) <= self.budget
 
     def solution_columns(self, missing: np.ndarray) -> np.ndarray:
         """Y_J = A⁻¹ O_Jᵀ, (unknowns, k) (large grids only)."""

@@ -194,3 +194,21 @@ def test_no_valid_unit_gives_the_flat_sheet_with_raised_uncertainty():
     some[0, :2] = np.nan  # half the row-direction gauges
     partial = rec(some, el)
     assert np.isfinite(partial.nodes).all() and (partial.node_sigma >= clean.node_sigma - 1e-12).all()
+
+
+def test_probe_estimate_of_a_refactorised_mask_is_close_to_the_exact_response():
+    from skinmap.reconstruction.uncertainty import _left_out_sums, _probe_sums
+
+    n, m = 5, 6
+    grid = _SparseGrid(n, m, PITCH, G, sub=2)
+    valid = np.ones((2, n, m), dtype=bool)
+    valid.reshape(-1)[np.random.default_rng(2).choice(valid.size, 12, replace=False)] = False
+    exact = _left_out_sums(grid, valid)
+    probe = _probe_sums(grid, valid)
+    assert np.array_equal(probe[0], _probe_sums(grid, valid)[0])  # seeded by the mask
+    sig_turn2, spread2 = 1e-8, 1e-4
+    var_exact = exact[0] * sig_turn2 + exact[1] * spread2
+    var_probe = probe[0] * sig_turn2 + probe[1] * spread2
+    inside = var_exact > 1e-3 * var_exact.max()  # the pinned centre has no variance at all
+    ratio = np.sqrt(var_probe[inside] / var_exact[inside])
+    assert 0.5 < ratio.min() and ratio.max() < 1.6 and abs(np.median(ratio) - 1.0) < 0.15
