@@ -360,6 +360,13 @@ class FineGrid:
 
         return fn
 
+    def _dense_transposed(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The dense curvature and stretch maps transposed (units × fields), built once."""
+        if "_dense_t" not in self.__dict__:
+            d = self._dense
+            self._dense_t = (np.ascontiguousarray(d["curv"].T), [np.ascontiguousarray(x.T) for x in d["stretch"]])
+        return self._dense_t
+
     def _left_out_maps(self, valid: np.ndarray):
         """Maps for a mask with missing units: the all-valid maps, then the Woodbury correction
         of each fit for its missing units (see :mod:`.leaveout`).  Invalid units' data are zero
@@ -379,8 +386,10 @@ class FineGrid:
         avg_miss = [self.average[d][miss_s[d]] for d in (0, 1)]  # fitted stretch at missing units
         if self.dense_maps:
             curv, stretch_maps, misfit = self._dense["curv"], self._dense["stretch"], self._dense["misfit"]
-            curv_miss = curv[:, miss_p]
-            stretch_miss = [stretch_maps[d][:, miss_s[d]] for d in (0, 1)]
+            # row gathers of the transposed maps are contiguous (column gathers are strided)
+            curv_t, stretch_t = self._dense_transposed()
+            curv_miss = curv_t[miss_p].T
+            stretch_miss = [stretch_t[d][miss_s[d]].T for d in (0, 1)]
 
             def fn(turning, stretch):
                 d = turning.ravel()

@@ -123,7 +123,7 @@ class LeaveOut:
     def hat_columns(self, missing: np.ndarray) -> np.ndarray:
         """H[:, J], (units, k)."""
         if self.dense:
-            return self.hat[:, missing]
+            return self.hat[missing].T  # symmetric: a contiguous row gather
         if missing.size == 0:
             return np.zeros((self.units, 0))
         return np.stack([c[1] for c in self._fetch(missing)], axis=1)

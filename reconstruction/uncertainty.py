@@ -55,8 +55,14 @@ def _all_valid_response(grid: FineGrid) -> dict:
 
 def _unit_columns(grid: FineGrid, base: dict, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """R_J = R[:, J] (the all-valid height response to the missing units) and G_J = (R H)[:, J]
-    (its product with the hat matrix), (nf·mf, k) each; per unit, cached."""
+    (its product with the hat matrix), (nf·mf, k) each: slices on small grids, per unit and
+    cached on large ones (each unit alone, so its digits do not depend on the others)."""
     lo = grid.leave_out("potential")
+    if base["r"] is not None:  # small grid: R and R H whole (R H once, then slices)
+        if "rh_t" not in base:  # transposed: the missing units' columns are contiguous rows
+            base["r_t"] = np.ascontiguousarray(base["r"].T)
+            base["rh_t"] = lo.hat @ base["r_t"]
+        return base["r_t"][missing].T, base["rh_t"][missing].T
     cols = base["columns"]
     for j in dict.fromkeys(missing.tolist()):
         if j in cols:
@@ -64,13 +70,10 @@ def _unit_columns(grid: FineGrid, base: dict, missing: np.ndarray) -> tuple[np.n
         # one unit at a time, so that its digits do not depend on the other missing units
         jj = np.array([j])
         h_j = lo.hat_columns(jj)[:, 0]
-        if base["r"] is not None:
-            cols[j] = (base["r"][:, j].copy(), base["r"] @ h_j)
-        else:
-            # R H e_j = T A⁻¹ Oᵀ (O Y_j): one more solve with the all-valid factor
-            r_j = _heights(grid, lo.solution_columns(jj))[:, 0]
-            g_j = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_j)[:, None])[:, 0]
-            cols[j] = (r_j, g_j)
+        # R H e_j = T A⁻¹ Oᵀ (O Y_j): one more solve with the all-valid factor
+        r_j = _heights(grid, lo.solution_columns(jj))[:, 0]
+        g_j = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_j)[:, None])[:, 0]
+        cols[j] = (r_j, g_j)
     for j in missing.tolist():
         cols.move_to_end(j)
     while len(cols) > max(256, missing.size):
