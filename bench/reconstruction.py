@@ -98,15 +98,6 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     ]
     classes["sphere cap |R| 40-120"] = [(ph.SphereCap(signed(40, 120)), {}) for _ in range(k)]
     classes["saddle |R| 40-120"] = [(ph.Saddle(signed(40, 120)), {}) for _ in range(k)]
-    # Turned saddles: at ±15° and ±30° the stretch pattern fixes the twist's sign; at 45° the
-    # saddle and its mirror image give identical strains, so the sign must be told (twist_sign,
-    # the sign of z_uv = sin 2φ / R) and is reported as its own row.
-    turned = [(signed(50, 120), float(rng.choice([-30.0, -15.0, 15.0, 30.0]))) for _ in range(k)]
-    classes["saddle turned +-15/30 deg, |R| 50-120"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in turned]
-    at45 = [(signed(50, 120), float(rng.choice([-45.0, 45.0]))) for _ in range(k)]
-    classes["saddle turned +-45 deg, twist_sign told"] = [
-        (ph.Saddle(r, axis_angle=a), {"twist_sign": float(np.sign(r * a))}) for r, a in at45
-    ]
     # An oblique cylinder's twist sign(R)·sign(axis angle) is not observable (its mirror image
     # gives the same strains): rows with the default sign (+1), the other sign told via
     # twist_sign, and the other sign left to the default (the mirror image is reconstructed).
@@ -116,6 +107,24 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
         (ph.Cylinder(r, -np.sign(r) * a), {"twist_sign": -1}) for r, a in obl
     ]
     classes["oblique cylinder, twist < 0, default sign"] = [(ph.Cylinder(r, -np.sign(r) * a), {}) for r, a in obl]
+    # Turned saddles (drawn last, so that the classes above keep their shapes): at ±15° and ±30°
+    # the stretch pattern fixes the twist's sign; at 45° the saddle and its mirror image give
+    # identical strains, so the sign must be told (twist_sign, the sign of z_uv = sin 2φ / R):
+    # rows with it told and left to the default (half of them then come out mirrored).
+    # Their own generator (spawned: the parent's stream is untouched), so that the noise draws of
+    # the classes above stay as they were.
+    rng_t = rng.spawn(1)[0]
+
+    def signed_t(lo, hi):
+        return float(np.exp(rng_t.uniform(np.log(lo), np.log(hi))) * rng_t.choice([-1.0, 1.0]))
+
+    turned = [(signed_t(50, 120), float(rng_t.choice([-30.0, -15.0, 15.0, 30.0]))) for _ in range(k)]
+    classes["saddle turned +-15/30 deg, |R| 50-120"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in turned]
+    at45 = [(signed_t(50, 120), float(rng_t.choice([-45.0, 45.0]))) for _ in range(k)]
+    classes["saddle turned +-45 deg, twist_sign told"] = [
+        (ph.Saddle(r, axis_angle=a), {"twist_sign": float(np.sign(r * a))}) for r, a in at45
+    ]
+    classes["saddle turned +-45 deg, default sign"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in at45]
     return classes
 
 

@@ -136,7 +136,8 @@ class Reconstructor:
         twist_sign: float | None = None,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
-        the smoothness prior).  A constant twist can have two mirror-image solutions with
+        the smoothness prior; a mask not seen before leaves its units out of the all-valid fits
+        instead of refactorising, see docs/reconstruction.md, "Missing units").  A constant twist can have two mirror-image solutions with
         identical strains (an oblique cylinder; a saddle turned by 45°): ``twist_sign`` (+1 or
         −1) picks one; by default the sign of ``previous`` (the last frame's surface) is kept,
         else +1.  Where the stretch pattern fixes the sign (a saddle turned off 0° and 45°) the
