@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 __all__ = [
     "diff_u", "diff_v", "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "cayley_t", "matmul_t", "cross", "cross_t", "unit",
-    "FixedSolver", "DowndatedSolver",
+    "FixedSolver",
 ]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
@@ -184,23 +184,3 @@ class FixedSolver:
         if info != 0:
             raise ValueError(f"banded solve failed: illegal argument {-info} (right-hand side shape {b.shape})")
         return x
-
-
-class DowndatedSolver:
-    """Solves (A − Oᵀ O) x = b given a :class:`FixedSolver` for A and a few rows O (k × n):
-    the normal matrix of a least-squares fit with k data rows removed (missing gauges), by the
-    Woodbury identity, so a dead gauge costs k extra solves instead of a new factorisation."""
-
-    def __init__(self, base: FixedSolver, rows: np.ndarray):
-        self.base = base
-        self.rows = np.atleast_2d(np.asarray(rows, dtype=float))
-        self.y = base.solve(self.rows.T)  # A⁻¹ Oᵀ, (n, k)
-        cap = np.eye(self.rows.shape[0]) - self.rows @ self.y
-        if np.linalg.cond(cap) > 1e10:
-            raise np.linalg.LinAlgError("removing these rows leaves the system singular")
-        self.cap_inv = np.linalg.inv(cap)
-        self.size = base.size
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        x = self.base.solve(b)
-        return x + self.y @ (self.cap_inv @ (self.rows @ x))
