@@ -113,6 +113,13 @@ class FramePipeline:
         self.warm_start = warm_start
         self._previous: Any = None
         self._last_good: FrameResult | None = None
+        # Our own reconstructor (not the module-wide cache): its state (factorisations, the masks
+        # it has seen) then depends only on the frames this pipeline processed, which is what
+        # lets replay reproduce live results bit for bit.
+        from skinmap.reconstruction import Reconstructor
+
+        self._reconstructor = Reconstructor(geometry.n, geometry.m, geometry.pitch_mm, geometry.h_upper_mm,
+                                            geometry.h_lower_mm, geometry.gauge_length_mm)
         half_u = (geometry.m - 1) / 2 * geometry.pitch_mm
         half_v = (geometry.n - 1) / 2 * geometry.pitch_mm
         cells = geometry.cell_uv().reshape(-1, 2)
@@ -123,9 +130,14 @@ class FramePipeline:
     def set_calibration(self, calibration: Calibration) -> None:
         self.calibration = calibration
 
-    def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
-        from skinmap.reconstruction import reconstruct
+    def continue_from(self, earlier: "FramePipeline | None") -> None:
+        """Take over the reconstructor and warm start of the pipeline this one replaces (after a
+        reconnect or a new HELLO) when the geometry is the same."""
+        if earlier is not None and earlier.geometry == self.geometry:
+            self._reconstructor = earlier._reconstructor
+            self._previous = earlier._previous
 
+    def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
         eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g)
@@ -133,7 +145,7 @@ class FramePipeline:
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
-        surf = reconstruct(eps_u, eps_l, pitch=g.pitch_mm, h_upper=g.h_upper_mm, h_lower=g.h_lower_mm, **kwargs)
+        surf = self._reconstructor(eps_u, eps_l, **kwargs)
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)

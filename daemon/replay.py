@@ -104,7 +104,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
     logged, config_for_seq, n_raw = _first_pass(path)
     decoder = StreamDecoder()
     pipeline: FramePipeline | None = None
-    previous_surface = None
+    earlier: FramePipeline | None = None
     hello: Hello | None = None
     active_config: tuple[str, dict] | None = None
     publisher = None
@@ -127,7 +127,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                 if isinstance(frame.msg, Hello):
                     hello = frame.msg
                     if pipeline is not None:
-                        previous_surface = pipeline._previous
+                        earlier = pipeline
                     pipeline = None
                     continue
                 if not isinstance(frame.msg, Scan) or hello is None:
@@ -144,8 +144,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                         from skinmap.daemon.service import pipeline_for_hello
 
                         pipeline = pipeline_for_hello(hello, cfg)
-                        if previous_surface is not None and (pipeline.geometry.n, pipeline.geometry.m) == (hello.n, hello.m):
-                            pipeline._previous = previous_surface
+                        pipeline.continue_from(earlier)  # as the live daemon does after a new HELLO
                     pipeline.set_calibration(_calibration_from_doc(cfg_entry[1]))
                     active_config = cfg_entry
                 result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)

@@ -212,10 +212,8 @@ class Gateway:
         if hello is None:
             return None
         if self._pipeline is None or getattr(self, "_pipeline_gen", -1) != gen:
-            same_device = self._pipeline is not None and (self._pipeline.geometry.n, self._pipeline.geometry.m) == (hello.n, hello.m)
             pipeline = pipeline_for_hello(hello, self.cfg)
-            if same_device and self._pipeline is not None:
-                pipeline._previous = self._pipeline._previous  # keep the warm start across a reconnect
+            pipeline.continue_from(self._pipeline)  # keep the warm start across a reconnect
             self._pipeline = pipeline
             self._pipeline_gen = gen
             self._tare_mtime = self._tare_file_mtime(hello)
@@ -560,6 +558,7 @@ class Gateway:
     # -- lifecycle -------------------------------------------------------------------------
 
     def start(self) -> None:
+        limit_blas_threads()  # before the first solve: replay must see the same arithmetic
         if self._logger is not None:
             t = threading.Thread(target=self._log_loop, name="skinmap-log", daemon=True)
             t.start()

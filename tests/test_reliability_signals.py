@@ -186,12 +186,9 @@ def test_reject_implausible_units_leaves_its_inputs_alone():
 
 
 def test_non_finite_solution_holds_the_last_good_frame_as_stale(warm_pipeline_factory, monkeypatch):
-    import skinmap.reconstruction as reconstruction
-
     p = warm_pipeline_factory()
     fresh = warm_pipeline_factory()
     good = p.process(GOOD, 1, 0, 0)
-    real = reconstruction.reconstruct
 
     class NanSurface:
         """The real surface with every position NaN: a solver that diverged."""
@@ -207,13 +204,15 @@ def test_non_finite_solution_holds_the_last_good_frame_as_stale(warm_pipeline_fa
         def __getattr__(self, name):
             return getattr(self._surf, name)
 
-    def nan_reconstruct(*a, **kw):
-        return NanSurface(real(*a, **kw))
+    def diverging(pipeline):
+        real_rec = pipeline._reconstructor
+        return lambda *a, **kw: NanSurface(real_rec(*a, **kw))
 
-    monkeypatch.setattr(reconstruction, "reconstruct", nan_reconstruct)
+    monkeypatch.setattr(p, "_reconstructor", diverging(p))
+    monkeypatch.setattr(fresh, "_reconstructor", diverging(fresh))
     held = p.process(GOOD, 2, 25_000, 0)
     first_ever = fresh.process(GOOD, 1, 0, 0)
-    monkeypatch.setattr(reconstruction, "reconstruct", real)
+    monkeypatch.undo()
     for res in (held, first_ever):
         check_publishable(res)
         assert (res.element_flags & STALE).all()
