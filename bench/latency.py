@@ -79,13 +79,14 @@ directory = "{state}"
 """)
 
 
-def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path) -> dict:
+def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path,
+             shape: str = "palm") -> dict:
     serial_port, zenoh_port = free_port(), free_port()
     logs = workdir / f"logs-{size}-{output_rate:g}"
     cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
     write_daemon_config(cfg, device="bench", serial_port=serial_port, zenoh_port=zenoh_port, logs=logs,
                         state=workdir / "state", scan_rate=scan_rate, output_rate=output_rate)
-    emulator = start_emulator(serial_port, size=size, shape="palm", rate=scan_rate)
+    emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate)
     daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     latencies: list[float] = []
@@ -120,13 +121,15 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--sizes", default="5x5,16x16")
     ap.add_argument("--scan-rate", type=float, default=50.0, help="emulated scans per second")
+    ap.add_argument("--shape", default="palm", help="emulated shape spec (default: the moving palm gesture)")
+    ap.add_argument("--outputs", default="10,0", help="output rates to measure, Hz (0 = every scan)")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes.split(","):
-            for output_rate in (10.0, 0.0):
+            for output_rate in (float(x) for x in args.outputs.split(",")):
                 try:
-                    rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp)))
+                    rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp), args.shape))
                 except Exception as exc:  # noqa: BLE001 - report the case and go on with the others
                     print(f"{size} output {output_rate:g} Hz: FAILED: {exc}", flush=True)
                     continue
