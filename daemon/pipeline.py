@@ -115,11 +115,9 @@ class FramePipeline:
         self._last_good: FrameResult | None = None
         # Our own reconstructor (not the module-wide cache): its state (factorisations, the masks
         # it has seen) then depends only on the frames this pipeline processed, which is what
-        # lets replay reproduce live results bit for bit.
-        from skinmap.reconstruction import Reconstructor
-
-        self._reconstructor = Reconstructor(geometry.n, geometry.m, geometry.pitch_mm, geometry.h_upper_mm,
-                                            geometry.h_lower_mm, geometry.gauge_length_mm)
+        # lets replay reproduce live results bit for bit. Built on first use (it is costly) unless
+        # taken over from the pipeline this one replaces.
+        self._reconstructor: Any = None
         half_u = (geometry.m - 1) / 2 * geometry.pitch_mm
         half_v = (geometry.n - 1) / 2 * geometry.pitch_mm
         cells = geometry.cell_uv().reshape(-1, 2)
@@ -129,6 +127,21 @@ class FramePipeline:
 
     def set_calibration(self, calibration: Calibration) -> None:
         self.calibration = calibration
+
+    @property
+    def reconstructor(self) -> Any:
+        """The reconstruction callable (a `Reconstructor` for this geometry, built on first use;
+        replaceable, e.g. by tests)."""
+        if self._reconstructor is None:
+            from skinmap.reconstruction import Reconstructor
+
+            g = self.geometry
+            self._reconstructor = Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm)
+        return self._reconstructor
+
+    @reconstructor.setter
+    def reconstructor(self, value: Any) -> None:
+        self._reconstructor = value
 
     def continue_from(self, earlier: "FramePipeline | None") -> None:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
@@ -145,7 +158,7 @@ class FramePipeline:
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
-        surf = self._reconstructor(eps_u, eps_l, **kwargs)
+        surf = self.reconstructor(eps_u, eps_l, **kwargs)
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)

@@ -205,11 +205,11 @@ def test_non_finite_solution_holds_the_last_good_frame_as_stale(warm_pipeline_fa
             return getattr(self._surf, name)
 
     def diverging(pipeline):
-        real_rec = pipeline._reconstructor
+        real_rec = pipeline.reconstructor
         return lambda *a, **kw: NanSurface(real_rec(*a, **kw))
 
-    monkeypatch.setattr(p, "_reconstructor", diverging(p))
-    monkeypatch.setattr(fresh, "_reconstructor", diverging(fresh))
+    monkeypatch.setattr(p, "reconstructor", diverging(p))
+    monkeypatch.setattr(fresh, "reconstructor", diverging(fresh))
     held = p.process(GOOD, 2, 25_000, 0)
     first_ever = fresh.process(GOOD, 1, 0, 0)
     monkeypatch.undo()
