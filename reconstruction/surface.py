@@ -14,6 +14,9 @@ __all__ = ["Surface", "Diagnostics", "hermite_patch_eval", "hermite_grid_eval"]
 
 # Points per block in locate(): the Hermite evaluation holds ~50 floats per point.
 _LOCATE_CHUNK = 16384
+# cyclic component shifts for a cross product: (a × b)_i = a_{i+1} b_{i+2} − a_{i+2} b_{i+1}
+_SHIFT1 = np.array([1, 2, 0])
+_SHIFT2 = np.array([2, 0, 1])
 
 
 @dataclass
@@ -50,6 +53,27 @@ def _hermite_basis(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # index is 2·db + qu, the v-basis index 2·da + qv.
 _IU = np.array([[0, 1, 0, 1], [2, 3, 2, 3], [0, 1, 0, 1], [2, 3, 2, 3]]).ravel()
 _IV = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 3, 3], [2, 2, 3, 3]]).ravel()
+# Rows position, ∂/∂u, ∂/∂v of the patch weights, as columns of the basis row [h (4), dh (4)]
+# of u (first) and of v (second): ∂/∂u takes dh of u, ∂/∂v dh of v.
+_W_U = np.stack([_IU, _IU + 4, _IU])
+_W_V = np.stack([_IV, _IV, _IV + 4])
+_POWERS = np.arange(4.0)
+# [1, t, t², t³] @ _HERMITE = [h00, h10, h01, h11, and their derivatives]
+_HERMITE = np.array([
+    [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0, -6.0, -4.0, 6.0, -2.0],
+    [-3.0, -2.0, 3.0, -1.0, 6.0, 3.0, -6.0, 3.0],
+    [2.0, 1.0, -2.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+])
+
+
+def _patch_cells(uv: np.ndarray, origin: np.ndarray, inv_spacing: float, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Patch (column b, row a) of every point (K, 2) and its local coordinates in [0, 1] (K, 2);
+    ``last`` = (mf − 2, nf − 2) clamps the points on the far edges into the last patch."""
+    xy = (uv - origin) * inv_spacing
+    cell = xy.astype(np.intp)  # xy >= 0 on the sheet (up to rounding): truncation is floor
+    np.minimum(np.maximum(cell, 0, out=cell), last, out=cell)
+    return cell, xy - cell
 
 
 def hermite_patch_eval(
@@ -60,21 +84,22 @@ def hermite_patch_eval(
     ``coeffs`` (nf, mf, 4, 3): value and the u, v, uv derivatives (scaled by the spacing) at each
     node.  Returns positions, ∂/∂u and ∂/∂v at ``uv`` (K, 2).
     """
-    nf, mf = coeffs.shape[:2]
-    x = (uv[:, 0] - u0) * (1.0 / spacing)
-    y = (uv[:, 1] - v0) * (1.0 / spacing)
-    b = np.minimum(np.maximum(x.astype(int), 0), mf - 2)  # x >= 0 on the sheet: truncation is floor
-    a = np.minimum(np.maximum(y.astype(int), 0), nf - 2)
-    hs, dhs = _hermite_basis(x - b)
-    ht, dht = _hermite_basis(y - a)
-    p = a * mf + b
-    corners = np.stack([p, p + 1, p + mf, p + mf + 1], axis=1)  # (K, 4)
-    c = np.take(coeffs.reshape(nf * mf, 12), corners, axis=0).reshape(-1, 16, 3)
-    wu, dwu = np.take(hs, _IU, axis=1), np.take(dhs, _IU, axis=1)  # (K, 16)
-    wv, dwv = np.take(ht, _IV, axis=1), np.take(dht, _IV, axis=1)
-    w = np.stack([wu * wv, dwu * wv * (1.0 / spacing), wu * dwv * (1.0 / spacing)], axis=1)  # (K, 3, 16)
-    out = w @ c  # (K, 3, 3): position, ∂u, ∂v
+    out = _hermite_eval(coeffs, np.array([u0, v0]), spacing, uv)
     return out[:, 0], out[:, 1], out[:, 2]
+
+
+def _hermite_eval(coeffs: np.ndarray, origin: np.ndarray, spacing: float, uv: np.ndarray) -> np.ndarray:
+    """(K, 3, 3): position, ∂/∂u, ∂/∂v of every point; a handful of array operations whatever
+    K is (the per-call overhead dominates for the few points of a frame)."""
+    nf, mf = coeffs.shape[:2]
+    cell, t = _patch_cells(uv, origin, 1.0 / spacing, np.array([mf - 2, nf - 2]))
+    basis = (t[:, :, None] ** _POWERS) @ _HERMITE  # (K, 2, 8): h and dh of u, then of v
+    basis[:, :, 4:] *= 1.0 / spacing
+    w = basis[:, 0][:, _W_U] * basis[:, 1][:, _W_V]  # (K, 3, 16)
+    p = cell[:, 1] * mf + cell[:, 0]
+    corners = p[:, None] + np.array([0, 1, mf, mf + 1])
+    c = coeffs.reshape(nf * mf, 12)[corners].reshape(-1, 16, 3)
+    return w @ c
 
 
 @lru_cache(maxsize=32)
@@ -151,6 +176,8 @@ class Surface:
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
+        self._uv_bounds: tuple[np.ndarray, np.ndarray] | None = None
+        self._origin: np.ndarray | None = None
         self.diagnostics = diagnostics
 
     # ------------------------------------------------------------------ uncertainty (lazy)
@@ -164,7 +191,7 @@ class Surface:
     def node_sigma(self) -> np.ndarray:
         """(N, M) one-s.d. position uncertainty of the nodes (mm)."""
         rows, cols = self._node_index
-        return self.fine_sigma[np.ix_(rows, cols)].copy()
+        return self.fine_sigma[rows[:, None], cols]  # fancy indexing: a fresh array
 
     # ----------------------------------------------------------------------------- queries
     @property
@@ -172,19 +199,26 @@ class Surface:
         """Material coordinate bounds (u_min, u_max, v_min, v_max) that :meth:`locate` accepts."""
         return float(self._u[0]), float(self._u[-1]), float(self._v[0]), float(self._v[-1])
 
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Accepted (u, v) range with a rounding tolerance, as two (2,) arrays (built once)."""
+        if self._uv_bounds is None:
+            u0, u1, v0, v1 = self.extent
+            tol = 1e-9 * max(1.0, self.pitch)
+            self._uv_bounds = (np.array([u0 - tol, v0 - tol]), np.array([u1 + tol, v1 + tol]))
+        return self._uv_bounds
+
     def _check_uv(self, uv) -> np.ndarray:
         uv = np.asarray(uv, dtype=float)
-        if uv.ndim == 1 and uv.shape == (2,):
-            uv = uv[None]
         if uv.ndim != 2 or uv.shape[1] != 2:
-            raise ValueError(f"uv must be material coordinates of shape (K, 2), got {uv.shape}")
-        u0, u1, v0, v1 = self.extent
-        tol = 1e-9 * max(1.0, self.pitch)
-        lo, hi = np.array([u0 - tol, v0 - tol]), np.array([u1 + tol, v1 + tol])
+            if uv.shape != (2,):
+                raise ValueError(f"uv must be material coordinates of shape (K, 2), got {uv.shape}")
+            uv = uv[None]
+        lo, hi = self._bounds()
         inside = (uv >= lo) & (uv <= hi)  # false for NaN too
         if not inside.all():
             if not np.isfinite(uv).all():
                 raise ValueError("uv contains NaN or infinite coordinates")
+            u0, u1, v0, v1 = self.extent
             k = int(np.flatnonzero(~inside.all(axis=1))[0])
             raise ValueError(
                 f"uv[{k}] = {uv[k].tolist()} is off the sheet: material coordinates must lie in "
@@ -202,21 +236,31 @@ class Surface:
         if uv.shape[0] > _LOCATE_CHUNK:  # bound the temporaries of a dense cloud
             parts = [self.locate(uv[k : k + _LOCATE_CHUNK]) for k in range(0, uv.shape[0], _LOCATE_CHUNK)]
             return np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts])
-        p, pu, pv = hermite_patch_eval(self._coeffs, self._u[0], self._v[0], self._spacing, uv)
-        return p, unit(cross(pu, pv))
+        out = _hermite_eval(self._coeffs, self._bounds_origin(), self._spacing, uv)
+        # normal = ∂u × ∂v: both cyclic shifts of the two tangents in two gathers
+        s1, s2 = out[:, 1:, _SHIFT1], out[:, 1:, _SHIFT2]
+        normal = s1[:, 0] * s2[:, 1] - s2[:, 0] * s1[:, 1]
+        normal /= np.sqrt((normal * normal).sum(axis=1))[:, None]
+        return out[:, 0], normal
+
+    def _bounds_origin(self) -> np.ndarray:
+        if self._origin is None:
+            self._origin = np.array([self._u[0], self._v[0]])
+        return self._origin
 
     def locate_sigma(self, uv) -> np.ndarray:
         """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine grid)."""
         uv = self._check_uv(uv)
         sig = self.fine_sigma
-        x = (uv[:, 0] - self._u[0]) / self._spacing
-        y = (uv[:, 1] - self._v[0]) / self._spacing
-        b = np.clip(np.floor(x).astype(int), 0, sig.shape[1] - 2)
-        a = np.clip(np.floor(y).astype(int), 0, sig.shape[0] - 2)
-        s, t = x - b, y - a
-        return (
-            (1 - s) * (1 - t) * sig[a, b] + s * (1 - t) * sig[a, b + 1] + (1 - s) * t * sig[a + 1, b] + s * t * sig[a + 1, b + 1]
-        )
+        nf, mf = sig.shape
+        cell, t = _patch_cells(uv, self._bounds_origin(), 1.0 / self._spacing, np.array([mf - 2, nf - 2]))
+        lin = np.empty(t.shape + (2,))  # (K, 2 axes, 2 ends): 1 − t, t
+        lin[:, :, 1] = t
+        np.subtract(1.0, t, out=lin[:, :, 0])
+        w = (lin[:, 1, :, None] * lin[:, 0, None, :]).reshape(-1, 4)  # corners (da, db) v-major
+        p = cell[:, 1] * mf + cell[:, 0]
+        corners = p[:, None] + np.array([0, 1, mf, mf + 1])
+        return (w * sig.reshape(-1)[corners]).sum(axis=1)
 
     def points(self, per_pitch: int = 20) -> np.ndarray:
         """Dense point cloud over the whole sheet, ``per_pitch`` points per pitch in each
