@@ -25,6 +25,8 @@ from .decouple import decouple
 from .grid import FineGrid
 from .linalg import cayley_t, diff_u_t, diff_v_t, edge_mean, exp_so3_t, matmul_t
 
+_EYE3 = np.eye(3)
+
 __all__ = [
     "unit_data",
     "solve_fields",
@@ -202,7 +204,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     h = grid.spacing
     eg = metric.eg
     src0 = metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau0 * tau0) * eg
-    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.stack([src0, eg])))
+    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.array([src0, eg])))
     f0, f1 = f0[inner], f1[inner]
     den = float((f1 * f1).sum())
     if den <= 0.0:
@@ -256,7 +258,7 @@ class Metric(NamedTuple):
 
 def metric_terms(h: float, lam_u, lam_v) -> Metric:
     """The F-independent metric terms (:class:`Metric`) from the stretch fields."""
-    e_g = np.stack([lam_u * lam_u, lam_v * lam_v])
+    e_g = np.array([lam_u * lam_u, lam_v * lam_v])
     (e_u, g_u), (e_v, g_v) = diff_u_t(e_g, h), diff_v_t(e_g, h)
     e, g = e_g
     base = 0.5 * (diff_v_t(e_v, h) + diff_u_t(g_u, h))
@@ -326,11 +328,11 @@ def rotation_rates(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau, sin_gamma) -> tu
     cg = np.sqrt(1.0 - sg * sg)
     s11 = k_u / lam_u
     s22 = (k_v / lam_v - s11 * sg * sg + 2.0 * tau * sg * cg) / (cg * cg)
-    lu_u, lv_u, f_u = diff_u_t(np.stack([lam_u, lam_v, lam_u * lam_v * sg]), h)
+    lu_u, lv_u, f_u = diff_u_t(np.array([lam_u, lam_v, lam_u * lam_v * sg]), h)
     lu_v = diff_v_t(lam_u, h)
     inv = 1.0 / (lam_u * cg)
-    w_u = np.stack([lam_u * tau, lam_u * s11, ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) * inv])
-    w_v = np.stack([lam_v * (tau * sg - s22 * cg), lam_v * (s11 * sg - tau * cg), (lv_u - sg * lu_v) * inv])
+    w_u = np.array([lam_u * tau, lam_u * s11, ((f_u - lam_u * lu_v) / lam_v - sg * lu_u) * inv])
+    w_v = np.array([lam_v * (tau * sg - s22 * cg), lam_v * (s11 * sg - tau * cg), (lv_u - sg * lu_v) * inv])
     half_h = 0.5 * h
     return (
         (half_h * (w_u[:, :, :-1] + w_u[:, :, 1:])).reshape(3, -1),
@@ -363,7 +365,7 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
     ru = edge_rot[:, :, :n_u].reshape(3, 3, nf, mf - 1)
     rv = edge_rot[:, :, n_u:].reshape(3, 3, nf - 1, mf)
     frames = np.empty((3, 3, nf, mf))
-    frames[:, :, a0, b0] = np.eye(3)
+    frames[:, :, a0, b0] = _EYE3
     # the centre is the middle node, so both halves of a line have the same length: one
     # cumulative product for the two directions (backwards: transposed, reversed)
     row = np.stack([ru[:, :, a0, b0:], ru[:, :, a0, b0 - 1 :: -1].transpose(1, 0, 2)], axis=3)  # (3, 3, L, 2)
@@ -385,10 +387,19 @@ def integrate_frames(grid: FineGrid, rot_u: np.ndarray, rot_v: np.ndarray, corre
         # the axial vector of the skew part of A = predicted · headsᵀ
         pred = matmul_t(np.take(flat, grid.edge_tails, axis=2), edge_rot)  # take: contiguous result
         a = np.einsum("ikn,jkn->ijn", pred, np.take(flat, grid.edge_heads, axis=2))
-        mis = 0.5 * np.stack([a[2, 1] - a[1, 2], a[0, 2] - a[2, 0], a[1, 0] - a[0, 1]])
+        mis = 0.5 * np.array([a[2, 1] - a[1, 2], a[0, 2] - a[2, 0], a[1, 0] - a[0, 1]])
         delta = grid.laplacian.solve(grid.divergence(mis))
         flat = matmul_t(cayley_t(delta.T), flat)
     return flat.reshape(3, 3, nf, mf).transpose(2, 3, 0, 1)
+
+
+def _chord_ratio(bend: np.ndarray) -> np.ndarray:
+    """Chord over arc length of circular arcs turning by ``bend``: sin(θ/2)/(θ/2), 1 at θ = 0
+    (np.sinc's wrapper costs more than this arithmetic on the small arrays here)."""
+    half = 0.5 * bend
+    out = np.ones_like(half)
+    np.divide(np.sin(half), half, out=out, where=half > 0)
+    return out
 
 
 def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma) -> np.ndarray:
@@ -404,8 +415,8 @@ def integrate_positions(grid: FineGrid, frames, rot_u, rot_v, lam_u, lam_v, sin_
     dir_v = t_v[:, :-1] + t_v[:, 1:]
     bend_u = np.hypot(rot_u[1], rot_u[2]).reshape(nf, mf - 1)
     bend_v = np.hypot(rot_v[0], rot_v[2]).reshape(nf - 1, mf)
-    len_u = (h * edge_mean(lam_u, 1)) * np.sinc(bend_u / (2.0 * np.pi))
-    len_v = (h * edge_mean(lam_v, 0)) * np.sinc(bend_v / (2.0 * np.pi))
+    len_u = (h * edge_mean(lam_u, 1)) * _chord_ratio(bend_u)
+    len_v = (h * edge_mean(lam_v, 0)) * _chord_ratio(bend_v)
     chord_u = dir_u * (len_u / np.sqrt(np.einsum("i...,i...->...", dir_u, dir_u)))
     chord_v = dir_v * (len_v / np.sqrt(np.einsum("i...,i...->...", dir_v, dir_v)))
     pos = grid.laplacian.solve(grid.divergence(chord_u.reshape(3, -1), chord_v.reshape(3, -1)))

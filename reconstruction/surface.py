@@ -164,8 +164,13 @@ class Surface:
         pos_t = np.ascontiguousarray(np.asarray(fine_positions, dtype=float).transpose(2, 0, 1))
         d_u = diff_u_t(pos_t, h)
         d_v = diff_v_t(pos_t, h)
-        coeffs = np.stack([pos_t, h * d_u, h * d_v, (h * h) * diff_v_t(d_u, h)])  # (4, 3, nf, mf)
-        self._coeffs = np.ascontiguousarray(coeffs.transpose(2, 3, 0, 1))  # (nf, mf, 4, 3)
+        nf, mf = pos_t.shape[1:]
+        self._coeffs = np.empty((nf, mf, 4, 3))
+        coeffs = self._coeffs.transpose(2, 3, 0, 1)  # (4, 3, nf, mf) view: written in place
+        coeffs[0] = pos_t
+        np.multiply(d_u, h, out=coeffs[1])
+        np.multiply(d_v, h, out=coeffs[2])
+        np.multiply(diff_v_t(d_u, h), h * h, out=coeffs[3])
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
         at_nodes = (slice(None), rows[:, None], cols[None, :])
