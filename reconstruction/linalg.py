@@ -39,18 +39,23 @@ def diff_u_t(f: np.ndarray, h: float) -> np.ndarray:
     """∂/∂u of fields (..., nf, mf) (u along the last axis), central differences, one-sided at
     the edges; leading axes stack several fields so one call serves them all."""
     out = np.empty_like(f)
-    out[..., 1:-1] = (f[..., 2:] - f[..., :-2]) * (0.5 / h)
-    out[..., 0] = (f[..., 1] - f[..., 0]) * (1.0 / h)
-    out[..., -1] = (f[..., -1] - f[..., -2]) * (1.0 / h)
+    # differences written in place, then each part scaled once (half as many calls)
+    np.subtract(f[..., 2:], f[..., :-2], out=out[..., 1:-1])
+    out[..., 1:-1] *= 0.5 / h
+    np.subtract(f[..., 1], f[..., 0], out=out[..., 0])
+    np.subtract(f[..., -1], f[..., -2], out=out[..., -1])
+    out[..., :: f.shape[-1] - 1] *= 1.0 / h  # the two edge columns
     return out
 
 
 def diff_v_t(f: np.ndarray, h: float) -> np.ndarray:
     """∂/∂v of fields (..., nf, mf) (v along the second-last axis), like :func:`diff_u_t`."""
     out = np.empty_like(f)
-    out[..., 1:-1, :] = (f[..., 2:, :] - f[..., :-2, :]) * (0.5 / h)
-    out[..., 0, :] = (f[..., 1, :] - f[..., 0, :]) * (1.0 / h)
-    out[..., -1, :] = (f[..., -1, :] - f[..., -2, :]) * (1.0 / h)
+    np.subtract(f[..., 2:, :], f[..., :-2, :], out=out[..., 1:-1, :])
+    out[..., 1:-1, :] *= 0.5 / h
+    np.subtract(f[..., 1, :], f[..., 0, :], out=out[..., 0, :])
+    np.subtract(f[..., -1, :], f[..., -2, :], out=out[..., -1, :])
+    out[..., :: f.shape[-2] - 1, :] *= 1.0 / h  # the two edge rows
     return out
 
 
