@@ -12,8 +12,9 @@ Timing: median and 90th percentile per frame of `reconstruct(...)` plus `locate`
 for N×N = 5, 8, 16, 32 on a slowly moving bump, warm (geometry cached, previous frame passed), on
 one core (BLAS threads limited to 1 with threadpoolctl, as in the daemon); CPU time of the
 frame's own thread; `Surface.points(per_pitch=20)`; the optional Clarabel field fit for
-comparison; and the frame (with node_sigma and locate_sigma) when every frame brings a validity
-mask not seen before (3 dead units, and 10 % of the units).
+comparison; and the frame with node_sigma and locate_sigma (the daemon's full frame), all units
+valid and when every frame brings a validity mask not seen before (3 dead units, and 10 % of
+the units).
 """
 
 from __future__ import annotations
@@ -181,9 +182,10 @@ def bump_grid_table(positions: int, seed: int) -> None:
         print(f"{height:>10.0f} " + " ".join(f"{c:>15s}" for c in cells))
 
 
-def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray, uncertainty: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Wall-clock and CPU seconds per frame (CPU time is what the frame costs this thread, and
-    stays meaningful when other processes share the cores)."""
+    stays meaningful when other processes share the cores); ``uncertainty`` adds node_sigma and
+    locate_sigma, as the daemon's full frame takes them."""
     wall, cpu = [], []
     prev = None
     for eu, el in frames:
@@ -191,6 +193,8 @@ def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray) -> tuple[np.nd
         surf = rec(eu, el, previous=prev)
         surf.nodes, surf.normals  # what the daemon publishes (computed with the surface)
         surf.locate(uv)
+        if uncertainty:
+            surf.node_sigma, surf.locate_sigma(uv)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.thread_time() - c0)
         prev = surf
@@ -245,7 +249,8 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
         medians[n] = np.median(cpu)
         surf.node_sigma  # the all-valid uncertainty, once per geometry
         many = max(1, round(0.1 * 2 * n * n))  # a failing sensor: 10 % of the units, new every frame
-        unseen[n] = (np.median(cpu), np.median(time_unseen_masks(rec, frames, uv, rng)),
+        _, cpu_sigma = time_frames(rec, frames, uv, uncertainty=True)
+        unseen[n] = (np.median(cpu_sigma), np.median(time_unseen_masks(rec, frames, uv, rng)),
                      np.median(time_unseen_masks(rec, frames[:10], uv, rng, dead=many)))
         surf.points(per_pitch=20)  # builds the cached sampling bases
         pts = []
@@ -267,7 +272,7 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
         print(f"scaling {lo}->{hi}: cpu time x{medians[hi] / medians[lo]:.1f} for cells x{(hi / lo) ** 2:.0f} "
               f"(N^3 would be x{(hi / lo) ** 3:.0f})")
     print("\nUnseen mask each frame: random dead units, a new mask every frame; "
-          "reconstruct + node_sigma + locate + locate_sigma (cpu median ms)")
+          "reconstruct + node_sigma + locate + locate_sigma (cpu median ms; all valid: the same frame without dead units)")
     print(f"{'N x N':>7s} {'all valid':>10s} {'3 dead':>8s} {'ratio':>6s} {'10 % dead':>10s} {'ratio':>6s}")
     for n, (base, cost, cost_many) in unseen.items():
         print(f"{n:>3d}x{n:<3d} {1e3 * base:10.2f} {1e3 * cost:8.2f} {cost / base:6.2f} "

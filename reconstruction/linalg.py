@@ -91,42 +91,51 @@ def exp_so3_t(w: np.ndarray) -> np.ndarray:
     Components-first layout keeps every operation on long contiguous vectors: numpy's inner
     loops over a trailing axis of length 3 cost several times the arithmetic.
     """
-    half = 0.5 * np.sqrt((w * w).sum(axis=0))
+    x, y, z = w[0], w[1], w[2]
+    half = 0.5 * np.sqrt(x * x + y * y + z * z)
     sh = np.sin(half)
     # sin(θ/2)/(θ/2) stays accurate for small θ (no cancellation), and is 1 at θ = 0
     sinc_h = np.divide(sh, half, out=np.ones_like(half), where=half > 0)
     a = sinc_h * np.cos(half)  # sin θ / θ
     b = 0.5 * sinc_h * sinc_h  # (1 − cos θ) / θ²
     c = 1.0 - 2.0 * sh * sh  # cos θ
-    return _rotation(w, a, b, c)
-
-
-# Flat (row-major 3 × 3) positions of the diagonal and of the skew part [w]× with the
-# component and sign each takes: (0,1) −z, (0,2) +y, (1,0) +z, (1,2) −x, (2,0) −y, (2,1) +x.
-_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
-_SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
-_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])[:, None]
-
-
-def _rotation(w: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """c I + b w wᵀ + a [w]× for components-first vectors w (3, ...): the common form of the
-    Rodrigues and Cayley maps, in a few whole-array operations."""
-    w3 = w.reshape(3, -1)
-    out = (b.reshape(-1) * w3)[:, None] * w3[None]  # (3, 3, K)
-    flat = out.reshape(9, -1)
-    flat[::4] += c.reshape(-1)
-    flat[_SKEW_AT] += _SKEW_SIGN * (a.reshape(-1) * w3)[_SKEW_OF]
-    return out.reshape((3, 3) + w.shape[1:])
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    out = np.empty((3, 3) + w.shape[1:])
+    out[0, 0] = c + bx * x
+    out[1, 1] = c + by * y
+    out[2, 2] = c + bz * z
+    bxy, bxz, byz = bx * y, bx * z, by * z
+    out[0, 1] = bxy - az
+    out[1, 0] = bxy + az
+    out[0, 2] = bxz + ay
+    out[2, 0] = bxz - ay
+    out[1, 2] = byz - ax
+    out[2, 1] = byz + ax
+    return out
 
 
 def cayley_t(w: np.ndarray) -> np.ndarray:
     """Rotation matrices (3, 3, ...) from small rotation vectors (3, ...) by the Cayley map
     R = (I − [w/2]×)⁻¹ (I + [w/2]×): exactly orthonormal, equal to exp(w) up to O(|w|³), and
     free of trigonometric functions (used for the small least-squares corrections)."""
-    half = 0.5 * w
-    q2 = (half * half).sum(axis=0)
+    x, y, z = 0.5 * w[0], 0.5 * w[1], 0.5 * w[2]
+    q2 = x * x + y * y + z * z
     a = 2.0 / (1.0 + q2)
-    return _rotation(half, a, a, 1.0 - a * q2)
+    ax, ay, az = a * x, a * y, a * z
+    out = np.empty((3, 3) + w.shape[1:])
+    c = 1.0 - a * q2
+    out[0, 0] = c + ax * x
+    out[1, 1] = c + ay * y
+    out[2, 2] = c + az * z
+    axy, axz, ayz = ax * y, ax * z, ay * z
+    out[0, 1] = axy - az
+    out[1, 0] = axy + az
+    out[0, 2] = axz + ay
+    out[2, 0] = axz - ay
+    out[1, 2] = ayz - ax
+    out[2, 1] = ayz + ax
+    return out
 
 
 def matmul_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
