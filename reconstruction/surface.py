@@ -241,14 +241,15 @@ class Surface:
         if uv.shape[0] > _LOCATE_CHUNK:  # bound the temporaries of a dense cloud
             parts = [self.locate(uv[k : k + _LOCATE_CHUNK]) for k in range(0, uv.shape[0], _LOCATE_CHUNK)]
             return np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts])
-        out = _hermite_eval(self._coeffs, self._bounds_origin(), self._spacing, uv)
+        out = _hermite_eval(self._coeffs, self._uv_origin(), self._spacing, uv)
         # normal = ∂u × ∂v: both cyclic shifts of the two tangents in two gathers
         s1, s2 = out[:, 1:, _SHIFT1], out[:, 1:, _SHIFT2]
         normal = s1[:, 0] * s2[:, 1] - s2[:, 0] * s1[:, 1]
         normal /= np.sqrt((normal * normal).sum(axis=1))[:, None]
         return out[:, 0], normal
 
-    def _bounds_origin(self) -> np.ndarray:
+    def _uv_origin(self) -> np.ndarray:
+        """Material coordinates (u, v) of fine node (0, 0), as a (2,) array (built once)."""
         if self._origin is None:
             self._origin = np.array([self._u[0], self._v[0]])
         return self._origin
@@ -258,7 +259,7 @@ class Surface:
         uv = self._check_uv(uv)
         sig = self.fine_sigma
         nf, mf = sig.shape
-        cell, t = _patch_cells(uv, self._bounds_origin(), 1.0 / self._spacing, np.array([mf - 2, nf - 2]))
+        cell, t = _patch_cells(uv, self._uv_origin(), 1.0 / self._spacing, np.array([mf - 2, nf - 2]))
         lin = np.empty(t.shape + (2,))  # (K, 2 axes, 2 ends): 1 − t, t
         lin[:, :, 1] = t
         np.subtract(1.0, t, out=lin[:, :, 0])
