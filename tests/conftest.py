@@ -28,3 +28,25 @@ def running_gateway(cfg: Any, **gateway_kwargs: Any) -> Iterator[Any]:
         finally:
             gw.stop()
             runner.join(timeout=20)
+
+
+class CheckedFile:
+    """A raw file for McapLogger's `open_file` whose writes first pass `check(n_bytes)`, which
+    may raise OSError: tests make storage fail on demand (disk full, read-only)."""
+
+    def __init__(self, path: str, check: Any) -> None:
+        self.raw = open(path, "xb", buffering=0)
+        self.check = check
+
+    def write(self, data: Any) -> int:
+        self.check(len(data))
+        return self.raw.write(data)
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+    def fileno(self) -> int:
+        return self.raw.fileno()
+
+    def close(self) -> None:
+        self.raw.close()

@@ -12,6 +12,7 @@ import struct
 
 import numpy as np
 import pytest
+from conftest import CheckedFile
 from mcap.reader import make_reader
 
 from skinmap.daemon.mcapinspect import (
@@ -314,27 +315,17 @@ def test_recover_default_names(tmp_path):
 # storage errors
 
 
-class FullDisk:
+class FullDisk(CheckedFile):
     """A raw file that accepts `budget` bytes, then fails like a full disk."""
 
     def __init__(self, path: str, budget: int):
-        self.raw = open(path, "xb", buffering=0)
+        super().__init__(path, self._spend)
         self.budget = budget
 
-    def write(self, data) -> int:
-        if len(data) > self.budget:
+    def _spend(self, n: int) -> None:
+        if n > self.budget:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        self.budget -= len(data)
-        return self.raw.write(data)
-
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def fileno(self) -> int:
-        return self.raw.fileno()
-
-    def close(self) -> None:
-        self.raw.close()
+        self.budget -= n
 
 
 def test_disk_full_raises_then_logging_resumes(tmp_path):

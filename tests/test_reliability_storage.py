@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port, running_gateway
+from conftest import CheckedFile, free_port, running_gateway
 from mcap.reader import make_reader
 
 from skinmap.daemon.cli import main as skinmap_main
@@ -84,25 +84,7 @@ class SwitchableStorage:
 
     def open(self, path: str):
         self._check(path)
-        return _SwitchableFile(open(path, "xb", buffering=0), path, self)
-
-
-class _SwitchableFile:
-    def __init__(self, raw, path: str, storage: SwitchableStorage) -> None:
-        self.raw, self.path, self.storage = raw, path, storage
-
-    def write(self, data) -> int:
-        self.storage._check(self.path)
-        return self.raw.write(data)
-
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def fileno(self) -> int:
-        return self.raw.fileno()
-
-    def close(self) -> None:
-        self.raw.close()
+        return CheckedFile(path, lambda _n: self._check(path))
 
 
 def test_logger_counts_what_failing_storage_lost(tmp_path):
