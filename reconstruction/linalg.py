@@ -99,9 +99,25 @@ def exp_so3_t(w: np.ndarray) -> np.ndarray:
     a = sinc_h * np.cos(half)  # sin θ / θ
     b = 0.5 * sinc_h * sinc_h  # (1 − cos θ) / θ²
     c = 1.0 - 2.0 * sh * sh  # cos θ
+    return _axis_form(c, b, a, x, y, z)
+
+
+def cayley_t(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (3, 3, ...) from small rotation vectors (3, ...) by the Cayley map
+    R = (I − [w/2]×)⁻¹ (I + [w/2]×): exactly orthonormal, equal to exp(w) up to O(|w|³), and
+    free of trigonometric functions (used for the small least-squares corrections)."""
+    x, y, z = 0.5 * w[0], 0.5 * w[1], 0.5 * w[2]
+    q2 = x * x + y * y + z * z
+    a = 2.0 / (1.0 + q2)
+    return _axis_form(1.0 - a * q2, a, a, x, y, z)
+
+
+def _axis_form(c, b, a, x, y, z) -> np.ndarray:
+    """R = c·I + b·w wᵀ + a·[w]× for w = (x, y, z), components first (3, 3, ...): the common
+    form of the Rodrigues and Cayley maps."""
     bx, by, bz = b * x, b * y, b * z
     ax, ay, az = a * x, a * y, a * z
-    out = np.empty((3, 3) + w.shape[1:])
+    out = np.empty((3, 3) + np.shape(x))
     out[0, 0] = c + bx * x
     out[1, 1] = c + by * y
     out[2, 2] = c + bz * z
@@ -112,29 +128,6 @@ def exp_so3_t(w: np.ndarray) -> np.ndarray:
     out[2, 0] = bxz - ay
     out[1, 2] = byz - ax
     out[2, 1] = byz + ax
-    return out
-
-
-def cayley_t(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (3, 3, ...) from small rotation vectors (3, ...) by the Cayley map
-    R = (I − [w/2]×)⁻¹ (I + [w/2]×): exactly orthonormal, equal to exp(w) up to O(|w|³), and
-    free of trigonometric functions (used for the small least-squares corrections)."""
-    x, y, z = 0.5 * w[0], 0.5 * w[1], 0.5 * w[2]
-    q2 = x * x + y * y + z * z
-    a = 2.0 / (1.0 + q2)
-    ax, ay, az = a * x, a * y, a * z
-    out = np.empty((3, 3) + w.shape[1:])
-    c = 1.0 - a * q2
-    out[0, 0] = c + ax * x
-    out[1, 1] = c + ay * y
-    out[2, 2] = c + az * z
-    axy, axz, ayz = ax * y, ax * z, ay * z
-    out[0, 1] = axy - az
-    out[1, 0] = axy + az
-    out[0, 2] = axz + ay
-    out[2, 0] = axz - ay
-    out[1, 2] = ayz - ax
-    out[2, 1] = ayz + ax
     return out
 
 
