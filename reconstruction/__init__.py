@@ -19,6 +19,7 @@ import numpy as np
 
 from .decouple import decouple
 from .engine import (
+    Metric,
     integrate_frames,
     metric_terms,
     integrate_positions,
@@ -70,6 +71,10 @@ class Reconstructor:
     shear_passes : fixed-point passes of the shear estimate (0 keeps the material lines
         orthogonal, F = 0).
     frame_corrections : least-squares rotation corrections after the tree integration.
+    kernels : "compiled" (default: the per-frame steps after the field fit as numba-compiled
+        loops, :mod:`.kernels`, compiled or loaded from numba's cache here rather than in the
+        first frame) or "numpy" (the reference implementation in :mod:`.engine`; also used when
+        numba is not installed).  Both give the same surface to rounding.
     convex_solver : "factorized" (default: the least-squares field fit by its cached
         factorisation, the exact optimum) or "clarabel" (the same convex fit with a Huber loss
         on the turning data, threshold ``huber_sigmas`` noise s.d., solved by Clarabel each
@@ -91,6 +96,7 @@ class Reconstructor:
         frame_corrections: int = 1,
         convex_solver: str = "factorized",
         huber_sigmas: float = 4.0,
+        kernels: str = "compiled",
     ):
         for name, val in (("n (rows)", n), ("m (columns)", m)):
             if isinstance(val, bool) or int(val) != val or int(val) < 2:
@@ -112,6 +118,19 @@ class Reconstructor:
             raise ValueError(f"convex_solver must be 'factorized' or 'clarabel', got {convex_solver!r}")
         self.convex_solver = convex_solver
         self.huber_sigmas = _positive("huber_sigmas", huber_sigmas)
+        if kernels not in ("compiled", "numpy"):
+            raise ValueError(f"kernels must be 'compiled' or 'numpy', got {kernels!r}")
+        self._compiled = None
+        if kernels == "compiled":
+            from . import kernels as compiled  # numba's import cost only where it is used
+
+            if compiled.AVAILABLE:
+                grid = self.grid
+                a0, b0 = grid.centre
+                self._band = compiled.laplacian_band(grid.incidence, a0 * grid.mf + b0, grid.laplacian.band)
+                compiled.warm_up(grid.spacing, a0, b0, self._band, self.shear_passes, self.frame_corrections)
+                self._compiled = compiled
+        self.kernels = "compiled" if self._compiled is not None else "numpy"
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -181,20 +200,26 @@ class Reconstructor:
         elif previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
         turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
-        metric = metric_terms(grid.spacing, lam_u, lam_v)
+        compiled = self._compiled
+        if compiled is not None:
+            k_u, k_v, lam_u, lam_v = compiled.as_field(k_u), compiled.as_field(k_v), compiled.as_field(lam_u), compiled.as_field(lam_v)
+            metric_stack = compiled.metric_terms(grid.spacing, lam_u, lam_v)
+            metric = Metric(*metric_stack)
+        else:
+            metric = metric_terms(grid.spacing, lam_u, lam_v)
         stretch_sigma = strain_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
         tau, twist_c = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None
         )
-        if self.shear_passes:
-            sin_gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
+        if compiled is not None:
+            # shear, rotation rates, frames, positions and the sensor frame in one call
+            pos = compiled.surface_positions(
+                grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(tau), metric_stack,
+                self.shear_passes, self.frame_corrections, self._band, *grid.centre,
+            ).transpose(1, 2, 0)
         else:
-            sin_gamma = np.zeros_like(k_u)
-        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
-        frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
-        pos = integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
+            pos = _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, tau, metric))
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
-        pos = _to_sensor_frame(grid, pos)
         if not np.isfinite(pos).all():
             # Only reachable with wildly inconsistent data; a surface must still come out.
             uu, vv = np.meshgrid(grid.u, grid.v)
@@ -213,7 +238,7 @@ class Reconstructor:
             status=status,
             twist_constant=twist_c,
             valid_units=n_valid,
-            extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"]},
+            extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"], "kernels": self.kernels},
         )
         surf = Surface(
             pitch=self.pitch,
@@ -226,6 +251,19 @@ class Reconstructor:
         )
         diag.solve_time = time.perf_counter() - t0
         return surf
+
+
+    def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric) -> np.ndarray:
+        """The reference (numpy) steps from the twist to the positions: shear, rotation rates,
+        frames, chords."""
+        grid = self.grid
+        if self.shear_passes:
+            sin_gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
+        else:
+            sin_gamma = np.zeros_like(k_u)
+        rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
+        frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
+        return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
 
 
 def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 __all__ = [
     "diff_u", "diff_v", "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "cayley_t", "matmul_t", "cross", "cross_t", "unit",
-    "FixedSolver",
+    "FixedSolver", "cholesky_band",
 ]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
@@ -141,6 +141,19 @@ def cross_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
+def cholesky_band(a: sp.spmatrix) -> np.ndarray:
+    """Upper Cholesky factor U (A = UᵀU) of a sparse symmetric positive definite matrix in
+    LAPACK's upper band storage, ab[bw + i − j, j] = U[i, j], in the matrix's own ordering
+    (grid operators in natural order have a bandwidth of a few grid rows)."""
+    coo = sp.coo_matrix(a)
+    upper = coo.col >= coo.row
+    rows, cols, vals = coo.row[upper], coo.col[upper], coo.data[upper]
+    bw = int((cols - rows).max()) if vals.size else 0
+    ab = np.zeros((bw + 1, a.shape[0]))
+    np.add.at(ab, (bw + rows - cols, cols), vals)
+    return scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
+
+
 class FixedSolver:
     """Solves A x = b for one fixed symmetric positive semi-definite sparse A (regularised by a
     tiny multiple of a null-space penalty), many right-hand sides.
@@ -164,15 +177,15 @@ class FixedSolver:
             self._lu = None
         else:
             self._pinv = None
-            coo = a.tocoo()
-            upper = coo.col >= coo.row
-            rows, cols, vals = coo.row[upper], coo.col[upper], coo.data[upper]
-            bw = int((cols - rows).max()) if vals.size else 0
-            ab = np.zeros((bw + 1, self.size))
-            np.add.at(ab, (bw + rows - cols, cols), vals)
-            self._band = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
+            self._band = cholesky_band(a)
             # LAPACK directly: scipy's wrapper re-validates its arguments on every call
             self._pbtrs = scipy.linalg.lapack.get_lapack_funcs("pbtrs", (self._band,))
+
+    @property
+    def band(self) -> np.ndarray | None:
+        """The Cholesky factor in LAPACK's upper band storage (:func:`cholesky_band`), or None
+        for a small system kept as a dense pseudo-inverse."""
+        return None if self._pinv is not None else self._band
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, dtype=float)

@@ -1,0 +1,592 @@
+"""Compiled per-frame kernels: the steps after the field fit as loops over the fine grid.
+
+The numpy implementations in :mod:`.engine` are the reference (same formulas, same order of
+operations); these kernels do the same work in two compiled calls per frame
+(:func:`metric_terms` and :func:`surface_positions`), because a 5×5 frame on its 21×21 fine
+grid is hundreds of small array operations whose per-call overhead, not arithmetic, sets the
+time.  Results agree with the reference to rounding (tested); the loops are sequential and use
+no fast-math reordering, so a frame's result is a function of its input alone.
+
+Kernels are compiled with ``cache=True``: a process finds the machine code in numba's cache
+(``NUMBA_CACHE_DIR``, else ``__pycache__`` next to this file, else the user's cache) instead of
+compiling (see docs/reconstruction.md, "Compiled kernels").  When no cache location is
+writable they are compiled in memory on each start; :func:`warm_up` (called when a
+:class:`~skinmap.reconstruction.Reconstructor` is built) compiles or loads them before the
+first frame.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import scipy.sparse as sp
+
+from .linalg import cholesky_band
+
+try:
+    import numba
+except ImportError:  # the numpy reference still works without it
+    numba = None
+
+__all__ = ["AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up"]
+
+AVAILABLE = numba is not None
+
+# Sequential loops without fast-math keep the reference's rounding order; division by zero
+# gives inf/NaN as in numpy (the caller checks the result) instead of raising; nogil lets a
+# host that runs frames on several threads use its cores.
+_OPTIONS = {"error_model": "numpy", "nogil": True}
+_KERNELS: dict[str, object] = {}
+_HELPERS: dict[str, object] = {}
+_state = {"cached": False}
+
+
+def _helper(fn):
+    """A helper of the entry points: compiled once and linked into its callers, whose cache
+    entries then hold its code too (so it needs no cache entry of its own)."""
+    if numba is None:
+        return fn
+    _HELPERS[fn.__name__] = fn
+    return numba.njit(**_OPTIONS)(fn)
+
+
+def _compiled(fn):
+    """Compile ``fn`` lazily, with an on-disk cache when numba finds a writable location for
+    it, else in memory only (a read-only install must still run)."""
+    if numba is None:
+        return fn
+    _KERNELS[fn.__name__] = fn
+    try:
+        disp = numba.njit(cache=True, **_OPTIONS)(fn)
+        _state["cached"] = True
+    except RuntimeError:  # "no locator available": nowhere writable to cache
+        disp = numba.njit(cache=False, **_OPTIONS)(fn)
+    return disp
+
+
+def _uncache_all() -> None:
+    """Replace every kernel by an in-memory compiled one (a cache write failed)."""
+    for name, fn in _KERNELS.items():
+        globals()[name] = numba.njit(cache=False, **_OPTIONS)(fn)
+        # callees are bound when a caller compiles: the new entry points reuse the helpers
+    _state["cached"] = False
+
+
+# ------------------------------------------------------------------------------ grid helpers
+@_helper
+def _diff_u(f, h, out):
+    """∂/∂u, central differences, one-sided at the edges (as linalg.diff_u_t)."""
+    nf, mf = f.shape
+    c, e = 0.5 / h, 1.0 / h
+    for a in range(nf):
+        for b in range(1, mf - 1):
+            out[a, b] = (f[a, b + 1] - f[a, b - 1]) * c
+        out[a, 0] = (f[a, 1] - f[a, 0]) * e
+        out[a, mf - 1] = (f[a, mf - 1] - f[a, mf - 2]) * e
+
+
+@_helper
+def _diff_v(f, h, out):
+    """∂/∂v, central differences, one-sided at the edges (as linalg.diff_v_t)."""
+    nf, mf = f.shape
+    c, e = 0.5 / h, 1.0 / h
+    for a in range(1, nf - 1):
+        for b in range(mf):
+            out[a, b] = (f[a + 1, b] - f[a - 1, b]) * c
+    for b in range(mf):
+        out[0, b] = (f[1, b] - f[0, b]) * e
+        out[nf - 1, b] = (f[nf - 1, b] - f[nf - 2, b]) * e
+
+
+@_helper
+def _mixed_antiderivative(src, h2, out):
+    """Least-norm F whose mixed difference over every cell equals h2 × the cell mean of
+    ``src`` (as engine._cell_mean + engine._mixed_antiderivative)."""
+    nf, mf = src.shape
+    col = np.zeros(mf - 1)  # running sums down each column (cumsum over rows)
+    for b in range(mf):
+        out[0, b] = 0.0
+    for a in range(nf - 1):
+        out[a + 1, 0] = 0.0
+        run = 0.0
+        for b in range(mf - 1):
+            s0 = src[a, b] + src[a + 1, b]
+            s1 = src[a, b + 1] + src[a + 1, b + 1]
+            col[b] += h2 * (0.25 * (s0 + s1))
+            run += col[b]
+            out[a + 1, b + 1] = run
+    # double centring: remove column means, row means, add back the grand mean
+    col_mean = np.zeros(mf)
+    for a in range(nf):
+        for b in range(mf):
+            col_mean[b] += out[a, b]
+    inv_n = 1.0 / nf
+    for b in range(mf):
+        col_mean[b] *= inv_n
+    row_mean = np.zeros(nf)
+    grand = 0.0
+    for a in range(nf):
+        s = 0.0
+        for b in range(mf):
+            s += out[a, b]
+        row_mean[a] = s * (1.0 / mf)
+        grand += row_mean[a]
+    grand *= 1.0 / nf
+    for a in range(nf):
+        for b in range(mf):
+            out[a, b] = out[a, b] - col_mean[b] - (row_mean[a] - grand)
+
+
+# ---------------------------------------------------------------------------- metric terms
+@_compiled
+def metric_terms(h, lam_u, lam_v):
+    """(9, nf, mf): E, G, E_u, E_v, G_u, G_v, E_vv/2 + G_uu/2, EG and Brioschi's source at
+    F = 0 without the curvature term (the fields of engine.Metric, in its order)."""
+    nf, mf = lam_u.shape
+    out = np.empty((9, nf, mf))
+    e, g = out[0], out[1]
+    for a in range(nf):
+        for b in range(mf):
+            e[a, b] = lam_u[a, b] * lam_u[a, b]
+            g[a, b] = lam_v[a, b] * lam_v[a, b]
+    e_u, e_v, g_u, g_v, base, eg, src0 = out[2], out[3], out[4], out[5], out[6], out[7], out[8]
+    _diff_u(e, h, e_u)
+    _diff_u(g, h, g_u)
+    _diff_v(e, h, e_v)
+    _diff_v(g, h, g_v)
+    _diff_v(e_v, h, base)
+    _diff_u(g_u, h, src0)  # scratch: G_uu
+    for a in range(nf):
+        for b in range(mf):
+            bs = 0.5 * (base[a, b] + src0[a, b])
+            base[a, b] = bs
+            ee, gg = e[a, b], g[a, b]
+            eu, ev, gu, gv = e_u[a, b], e_v[a, b], g_u[a, b], g_v[a, b]
+            eg[a, b] = ee * gg
+            q0 = -0.25 * (eu * gu * gg + ev * ee * gv + ev * ev * gg + ee * gu * gu)
+            src0[a, b] = bs + q0 / eg[a, b]
+    return out
+
+
+# ----------------------------------------------------------------------------------- shear
+@_helper
+def _clip9(x):
+    """x limited to [−0.9, 0.9]; NaN stays NaN (as np.minimum/np.maximum)."""
+    if x > 0.9:
+        return 0.9
+    if x < -0.9:
+        return -0.9
+    return x
+
+
+@_helper
+def _shear(h, k_u, k_v, lam_u, lam_v, tau, metric, passes):
+    """Sine of the shear angle (as engine.solve_shear with ``passes`` ≥ 1)."""
+    nf, mf = k_u.shape
+    e, g, e_u, e_v, g_u, g_v, base, eg, src0 = (
+        metric[0], metric[1], metric[2], metric[3], metric[4], metric[5], metric[6], metric[7], metric[8],
+    )
+    src = np.empty((nf, mf))
+    for a in range(nf):
+        for b in range(mf):
+            s11 = k_u[a, b] / lam_u[a, b]
+            t = tau[a, b]
+            src[a, b] = src0[a, b] + (s11 * k_v[a, b] / lam_v[a, b] - t * t) * eg[a, b]
+    f = np.empty((nf, mf))
+    h2 = h * h
+    _mixed_antiderivative(src, h2, f)
+    f_u = np.empty((nf, mf))
+    f_v = np.empty((nf, mf))
+    for _ in range(passes - 1):
+        _diff_u(f, h, f_u)
+        _diff_v(f, h, f_v)
+        for a in range(nf):
+            for b in range(mf):
+                lu, lv, t, ff = lam_u[a, b], lam_v[a, b], tau[a, b], f[a, b]
+                sg = _clip9(ff / (lu * lv))
+                cg2 = 1.0 - sg * sg
+                s11 = k_u[a, b] / lu
+                s22 = (k_v[a, b] / lv - s11 * sg * sg + 2.0 * t * sg * math.sqrt(cg2)) / cg2
+                k_gauss = s11 * s22 - t * t
+                # Brioschi's F_uv for this K with the current F (engine._brioschi_source)
+                ee, gg, eu, ev, gu, gv = e[a, b], g[a, b], e_u[a, b], e_v[a, b], g_u[a, b], g_v[a, b]
+                det = eg[a, b] - ff * ff
+                a12, a13 = 0.5 * eu, f_u[a, b] - 0.5 * ev
+                a21, a31 = f_v[a, b] - 0.5 * gu, 0.5 * gv
+                det_b = -0.5 * ev * (0.5 * ev * gg - 0.5 * ff * gu) + 0.5 * gu * (0.5 * ev * ff - 0.5 * ee * gu)
+                q = a12 * (a21 * gg - ff * a31) - a13 * (a21 * ff - ee * a31) + det_b
+                src[a, b] = base[a, b] + k_gauss * det + q / det
+        _mixed_antiderivative(src, h2, f)
+    for a in range(nf):
+        for b in range(mf):
+            f[a, b] = _clip9(f[a, b] / (lam_u[a, b] * lam_v[a, b]))
+    return f
+
+
+# ------------------------------------------------------------------------- rotation rates
+@_helper
+def _rotation_rates(h, k_u, k_v, lam_u, lam_v, tau, sin_gamma):
+    """Rotation vectors of every u-edge (nf, mf−1, 3) and v-edge (nf−1, mf, 3), in the tail
+    frame (as engine.rotation_rates)."""
+    nf, mf = k_u.shape
+    luv_sg = np.empty((nf, mf))
+    for a in range(nf):
+        for b in range(mf):
+            luv_sg[a, b] = lam_u[a, b] * lam_v[a, b] * sin_gamma[a, b]
+    lu_u = np.empty((nf, mf))
+    lv_u = np.empty((nf, mf))
+    f_u = np.empty((nf, mf))
+    lu_v = np.empty((nf, mf))
+    _diff_u(lam_u, h, lu_u)
+    _diff_u(lam_v, h, lv_u)
+    _diff_u(luv_sg, h, f_u)
+    _diff_v(lam_u, h, lu_v)
+    w_u = np.empty((nf, mf, 3))
+    w_v = np.empty((nf, mf, 3))
+    for a in range(nf):
+        for b in range(mf):
+            sg = sin_gamma[a, b]
+            cg = math.sqrt(1.0 - sg * sg)
+            lu, lv, t = lam_u[a, b], lam_v[a, b], tau[a, b]
+            s11 = k_u[a, b] / lu
+            s22 = (k_v[a, b] / lv - s11 * sg * sg + 2.0 * t * sg * cg) / (cg * cg)
+            inv = 1.0 / (lu * cg)
+            w_u[a, b, 0] = lu * t
+            w_u[a, b, 1] = lu * s11
+            w_u[a, b, 2] = ((f_u[a, b] - lu * lu_v[a, b]) / lv - sg * lu_u[a, b]) * inv
+            w_v[a, b, 0] = lv * (t * sg - s22 * cg)
+            w_v[a, b, 1] = lv * (s11 * sg - t * cg)
+            w_v[a, b, 2] = (lv_u[a, b] - sg * lu_v[a, b]) * inv
+    half_h = 0.5 * h
+    rot_u = np.empty((nf, mf - 1, 3))
+    rot_v = np.empty((nf - 1, mf, 3))
+    for a in range(nf):
+        for b in range(mf - 1):
+            for k in range(3):
+                rot_u[a, b, k] = half_h * (w_u[a, b, k] + w_u[a, b + 1, k])
+    for a in range(nf - 1):
+        for b in range(mf):
+            for k in range(3):
+                rot_v[a, b, k] = half_h * (w_v[a, b, k] + w_v[a + 1, b, k])
+    return rot_u, rot_v
+
+
+# ------------------------------------------------------------------------------ rotations
+@_helper
+def _axis_form(c, bb, aa, x, y, z, r):
+    """r = c·I + bb·w wᵀ + aa·[w]× for w = (x, y, z) (as linalg._axis_form)."""
+    bx, by, bz = bb * x, bb * y, bb * z
+    ax, ay, az = aa * x, aa * y, aa * z
+    r[0, 0] = c + bx * x
+    r[1, 1] = c + by * y
+    r[2, 2] = c + bz * z
+    bxy, bxz, byz = bx * y, bx * z, by * z
+    r[0, 1] = bxy - az
+    r[1, 0] = bxy + az
+    r[0, 2] = bxz + ay
+    r[2, 0] = bxz - ay
+    r[1, 2] = byz - ax
+    r[2, 1] = byz + ax
+
+
+@_helper
+def _rodrigues(w, r):
+    """r = exp([w]×) (as linalg.exp_so3_t)."""
+    x, y, z = w[0], w[1], w[2]
+    half = 0.5 * math.sqrt(x * x + y * y + z * z)
+    sh = math.sin(half)
+    sinc_h = sh / half if half > 0 else 1.0
+    _axis_form(1.0 - 2.0 * sh * sh, 0.5 * sinc_h * sinc_h, sinc_h * math.cos(half), x, y, z, r)
+
+
+@_helper
+def _mul(p, q, out):
+    """out = p q for 3×3 matrices (out must not alias p or q)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = p[i, 0] * q[0, j] + p[i, 1] * q[1, j] + p[i, 2] * q[2, j]
+
+
+@_helper
+def _mul_t(p, q, out):
+    """out = p qᵀ for 3×3 matrices."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = p[i, 0] * q[j, 0] + p[i, 1] * q[j, 1] + p[i, 2] * q[j, 2]
+
+
+# ------------------------------------------------------------------ graph Laplacian solves
+@_helper
+def _divergence(u_vals, v_vals, out):
+    """incidenceᵀ @ edge values: every node gets its incoming minus its outgoing edges' values;
+    u_vals (nf, mf−1, 3), v_vals (nf−1, mf, 3) → out (3, nf·mf), components first (as
+    FineGrid.divergence)."""
+    nf, mf1 = u_vals.shape[0], u_vals.shape[1]
+    mf = mf1 + 1
+    for k in range(3):
+        for p in range(nf * mf):
+            out[k, p] = 0.0
+    for a in range(nf):
+        for b in range(mf1):
+            p = a * mf + b
+            for k in range(3):
+                out[k, p + 1] += u_vals[a, b, k]
+                out[k, p] -= u_vals[a, b, k]
+    for a in range(nf - 1):
+        for b in range(mf):
+            p = a * mf + b
+            for k in range(3):
+                out[k, p + mf] += v_vals[a, b, k]
+                out[k, p] -= v_vals[a, b, k]
+
+
+@_helper
+def _band_solve(band, x):
+    """Solve A x = b in place for A = UᵀU, U upper banded with bandwidth bw, three right-hand
+    sides stored components first (3, n).  ``band`` (2, n, bw + 1) holds U by rows,
+    band[0, i, k] = U[i, i + k], and by columns, band[1, j, bw − k] = U[j − k, j], so that
+    both triangular solves read contiguous memory; each unknown is one dot product per
+    component (three independent sums in flight), as LAPACK's ?pbtrs forms it."""
+    n, w = band.shape[1], band.shape[2]
+    bw = w - 1
+    for j in range(n):  # Uᵀ y = b
+        s0, s1, s2 = x[0, j], x[1, j], x[2, j]
+        for i in range(max(0, j - bw), j):
+            u = band[1, j, bw + i - j]
+            s0 -= u * x[0, i]
+            s1 -= u * x[1, i]
+            s2 -= u * x[2, i]
+        d = band[1, j, bw]
+        x[0, j], x[1, j], x[2, j] = s0 / d, s1 / d, s2 / d
+    for i in range(n - 1, -1, -1):  # U x = y
+        s0, s1, s2 = x[0, i], x[1, i], x[2, i]
+        for k in range(min(bw, n - 1 - i), 0, -1):
+            u = band[0, i, k]
+            s0 -= u * x[0, i + k]
+            s1 -= u * x[1, i + k]
+            s2 -= u * x[2, i + k]
+        d = band[0, i, 0]
+        x[0, i], x[1, i], x[2, i] = s0 / d, s1 / d, s2 / d
+
+
+# ------------------------------------------------------------------------- frames, positions
+@_helper
+def _integrate_frames(rot_u, rot_v, a0, b0, corrections, band):
+    """Frames (nf, mf, 3, 3) (columns t_u, t_v, n): the tree from the centre (along the centre
+    row, then every column), then ``corrections`` least-squares rotation-averaging passes
+    (as engine.integrate_frames)."""
+    nf, mf = rot_v.shape[0] + 1, rot_v.shape[1]
+    ru = np.empty((nf, mf - 1, 3, 3))
+    rv = np.empty((nf - 1, mf, 3, 3))
+    for a in range(nf):
+        for b in range(mf - 1):
+            _rodrigues(rot_u[a, b], ru[a, b])
+    for a in range(nf - 1):
+        for b in range(mf):
+            _rodrigues(rot_v[a, b], rv[a, b])
+    fr = np.empty((nf, mf, 3, 3))
+    for i in range(3):
+        for j in range(3):
+            fr[a0, b0, i, j] = 1.0 if i == j else 0.0
+    # head = tail · R along an edge, tail = head · Rᵀ against it
+    for b in range(b0 + 1, mf):
+        _mul(fr[a0, b - 1], ru[a0, b - 1], fr[a0, b])
+    for b in range(b0 - 1, -1, -1):
+        _mul_t(fr[a0, b + 1], ru[a0, b], fr[a0, b])
+    for b in range(mf):
+        for a in range(a0 + 1, nf):
+            _mul(fr[a - 1, b], rv[a - 1, b], fr[a, b])
+        for a in range(a0 - 1, -1, -1):
+            _mul_t(fr[a + 1, b], rv[a, b], fr[a, b])
+    if corrections > 0:
+        mis_u = np.empty((nf, mf - 1, 3))
+        mis_v = np.empty((nf - 1, mf, 3))
+        delta = np.empty((3, nf * mf))
+        pred = np.empty((3, 3))
+        am = np.empty((3, 3))
+        cay = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        for _ in range(corrections):
+            # world-frame misclosure of each edge: the axial vector of the skew part of
+            # (R_tail exp(ω)) R_headᵀ
+            for a in range(nf):
+                for b in range(mf - 1):
+                    _mul(fr[a, b], ru[a, b], pred)
+                    _mul_t(pred, fr[a, b + 1], am)
+                    mis_u[a, b, 0] = 0.5 * (am[2, 1] - am[1, 2])
+                    mis_u[a, b, 1] = 0.5 * (am[0, 2] - am[2, 0])
+                    mis_u[a, b, 2] = 0.5 * (am[1, 0] - am[0, 1])
+            for a in range(nf - 1):
+                for b in range(mf):
+                    _mul(fr[a, b], rv[a, b], pred)
+                    _mul_t(pred, fr[a + 1, b], am)
+                    mis_v[a, b, 0] = 0.5 * (am[2, 1] - am[1, 2])
+                    mis_v[a, b, 1] = 0.5 * (am[0, 2] - am[2, 0])
+                    mis_v[a, b, 2] = 0.5 * (am[1, 0] - am[0, 1])
+            _divergence(mis_u, mis_v, delta)
+            _band_solve(band, delta)
+            for a in range(nf):
+                for b in range(mf):
+                    p = a * mf + b
+                    x, y, z = 0.5 * delta[0, p], 0.5 * delta[1, p], 0.5 * delta[2, p]
+                    q2 = x * x + y * y + z * z
+                    c = 2.0 / (1.0 + q2)
+                    _axis_form(1.0 - c * q2, c, c, x, y, z, cay)  # Cayley map
+                    _mul(cay, fr[a, b], tmp)
+                    for i in range(3):
+                        for j in range(3):
+                            fr[a, b, i, j] = tmp[i, j]
+    return fr
+
+
+@_helper
+def _chord_ratio(bend):
+    half = 0.5 * bend
+    return math.sin(half) / half if half > 0 else 1.0
+
+
+@_helper
+def _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band):
+    """Positions (3, nf·mf) from the chords of every edge (as engine.integrate_positions)."""
+    nf, mf = lam_u.shape
+    t_v = np.empty((nf, mf, 3))
+    for a in range(nf):
+        for b in range(mf):
+            sg = sin_gamma[a, b]
+            cg = math.sqrt(1.0 - sg * sg)
+            for k in range(3):
+                t_v[a, b, k] = fr[a, b, k, 0] * sg + fr[a, b, k, 1] * cg
+    chord_u = np.empty((nf, mf - 1, 3))
+    chord_v = np.empty((nf - 1, mf, 3))
+    for a in range(nf):
+        for b in range(mf - 1):
+            d0 = fr[a, b, 0, 0] + fr[a, b + 1, 0, 0]
+            d1 = fr[a, b, 1, 0] + fr[a, b + 1, 1, 0]
+            d2 = fr[a, b, 2, 0] + fr[a, b + 1, 2, 0]
+            bend = math.hypot(rot_u[a, b, 1], rot_u[a, b, 2])
+            length = (h * (0.5 * (lam_u[a, b] + lam_u[a, b + 1]))) * _chord_ratio(bend)
+            s = length / math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            chord_u[a, b, 0], chord_u[a, b, 1], chord_u[a, b, 2] = d0 * s, d1 * s, d2 * s
+    for a in range(nf - 1):
+        for b in range(mf):
+            d0 = t_v[a, b, 0] + t_v[a + 1, b, 0]
+            d1 = t_v[a, b, 1] + t_v[a + 1, b, 1]
+            d2 = t_v[a, b, 2] + t_v[a + 1, b, 2]
+            bend = math.hypot(rot_v[a, b, 0], rot_v[a, b, 2])
+            length = (h * (0.5 * (lam_v[a, b] + lam_v[a + 1, b]))) * _chord_ratio(bend)
+            s = length / math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            chord_v[a, b, 0], chord_v[a, b, 1], chord_v[a, b, 2] = d0 * s, d1 * s, d2 * s
+    pos = np.empty((3, nf * mf))
+    _divergence(chord_u, chord_v, pos)
+    _band_solve(band, pos)
+    return pos
+
+
+@_helper
+def _sensor_frame(pos, nf, mf, a0, b0):
+    """Positions (3, nf·mf) → components-first (3, nf, mf) in the sensor frame: centre at the origin, its
+    normal +z, its u-tangent in the xz-plane (as reconstruction._to_sensor_frame)."""
+    c = a0 * mf + b0
+    u0, u1, u2 = pos[0, c + 1] - pos[0, c - 1], pos[1, c + 1] - pos[1, c - 1], pos[2, c + 1] - pos[2, c - 1]
+    v0, v1, v2 = pos[0, c + mf] - pos[0, c - mf], pos[1, c + mf] - pos[1, c - mf], pos[2, c + mf] - pos[2, c - mf]
+    n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    s = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    n0, n1, n2 = n0 / s, n1 / s, n2 / s
+    d = n0 * u0 + n1 * u1 + n2 * u2
+    x0, x1, x2 = u0 - n0 * d, u1 - n1 * d, u2 - n2 * d
+    s = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    x0, x1, x2 = x0 / s, x1 / s, x2 / s
+    y0, y1, y2 = n1 * x2 - n2 * x1, n2 * x0 - n0 * x2, n0 * x1 - n1 * x0
+    out = np.empty((3, nf, mf))
+    o0, o1, o2 = pos[0, c], pos[1, c], pos[2, c]
+    for a in range(nf):
+        for b in range(mf):
+            p = a * mf + b
+            d0, d1, d2 = pos[0, p] - o0, pos[1, p] - o1, pos[2, p] - o2
+            out[0, a, b] = x0 * d0 + x1 * d1 + x2 * d2
+            out[1, a, b] = y0 * d0 + y1 * d1 + y2 * d2
+            out[2, a, b] = n0 * d0 + n1 * d1 + n2 * d2
+    return out
+
+
+@_compiled
+def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corrections, band, a0, b0):
+    """Fine-grid positions in the sensor frame, components first (3, nf, mf), from the fitted
+    fields, the twist τ and the metric terms: shear, rotation rates, frames, chords and their
+    least-squares positions in one call (engine.solve_shear, rotation_rates, integrate_frames,
+    integrate_positions and the sensor-frame transform)."""
+    nf, mf = k_u.shape
+    if shear_passes > 0:
+        sin_gamma = _shear(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes)
+    else:
+        sin_gamma = np.zeros((nf, mf))
+    rot_u, rot_v = _rotation_rates(h, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
+    fr = _integrate_frames(rot_u, rot_v, a0, b0, corrections, band)
+    pos = _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band)
+    return _sensor_frame(pos, nf, mf, a0, b0)
+
+
+# ------------------------------------------------------------------------ geometry, warm-up
+def as_field(x: np.ndarray) -> np.ndarray:
+    """``x`` as the kernels take it: float64, C-contiguous, writeable (another layout would be
+    a different signature, compiled in the middle of a frame).  No copy when it already is."""
+    if x.dtype == np.float64 and x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.array(x, dtype=np.float64, order="C")
+
+
+
+def laplacian_band(incidence: sp.spmatrix, pinned: int, factor: np.ndarray | None = None) -> np.ndarray:
+    """The edge graph's Laplacian with node ``pinned`` held (its null space is the constant), as
+    the Cholesky band that :func:`surface_positions` takes (see ``_band_solve``): (2, nodes,
+    bw + 1).  ``factor``: that factor in LAPACK's upper band storage if already computed (the
+    grid's own Laplacian solver keeps one).  Natural (row-major) node order keeps the
+    bandwidth at one grid row."""
+    if factor is None:
+        lap = (incidence.T @ incidence).tocsc()
+        n = lap.shape[0]
+        factor = cholesky_band(lap + sp.csc_matrix(([1.0], ([pinned], [pinned])), shape=(n, n)))
+    bw, n = factor.shape[0] - 1, factor.shape[1]
+    band = np.zeros((2, n, bw + 1))
+    band[1] = factor.T  # band[1, j, bw − k] = U[j − k, j] = ab[bw − k, j]
+    for k in range(bw + 1):  # band[0, i, k] = U[i, i + k] = ab[bw − k, i + k]
+        band[0, : n - k, k] = factor[bw - k, k:]
+    return band
+
+
+def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
+    """Compile (or load from the cache) every kernel with the argument types of a frame, on a
+    flat sheet of this grid, so that the first frame does not pay for it.  A cache that cannot
+    be written (a read-only or vanished cache directory) turns caching off and compiles in
+    memory.  Returns whether the kernels run from (or were saved to) an on-disk cache."""
+    n = band.shape[1]
+    mf = 2 * b0 + 1
+    nf = n // mf
+    zero, one = np.zeros((nf, mf)), np.ones((nf, mf))
+
+    def run() -> np.ndarray:
+        metric = globals()["metric_terms"](float(h), one, one)
+        return globals()["surface_positions"](
+            float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0)
+        )
+
+    try:
+        pos = run()
+    except OSError:
+        if not _state["cached"]:
+            raise
+        _uncache_all()
+        pos = run()
+    if not np.isfinite(pos).all():
+        raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")
+    return _state["cached"]
+
+
+if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use
+    from skinmap.reconstruction import Reconstructor
+    from skinmap.reconstruction import kernels as _installed
+
+    Reconstructor(5, 5)  # its warm-up compiles the kernels, or loads them when already cached
+    where = os.environ.get("NUMBA_CACHE_DIR") or "numba's default location"
+    print(f"reconstruction kernels {'cached in ' + where if _installed._state['cached'] else 'compiled, no writable cache'}")

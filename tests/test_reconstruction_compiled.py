@@ -1,0 +1,186 @@
+"""Compiled per-frame kernels (reconstruction/kernels.py) against the numpy reference
+(engine.py), their determinism across processes, and their cache fallback."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from skinmap.emulator import physics as ph
+from skinmap.reconstruction import Reconstructor, kernels
+from skinmap.reconstruction.engine import metric_terms, unit_data
+from skinmap.reconstruction.grid import FineGrid
+
+PITCH, H, G = 12.0, 0.2, 10.0
+NOISE = 0.0057e-2
+
+pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+
+
+def _shapes(rng: np.random.Generator, k: int) -> list:
+    """``k`` random shapes cycling through the classes whose reconstruction takes different
+    paths (no twist, a twist from the curvature product, from the stretch pattern, from the
+    shear; large bends)."""
+    def signed(lo, hi):
+        return float(rng.uniform(lo, hi) * rng.choice([-1.0, 1.0]))
+
+    makers = [
+        lambda: ph.GaussianBumps(height=signed(1, 5), fwhm=float(rng.uniform(15, 30)), centre=tuple(rng.uniform(-20, 20, 2))),
+        lambda: ph.Saddle(signed(40, 120)),
+        lambda: ph.Saddle(signed(50, 120), axis_angle=float(rng.choice([-30.0, -15.0, 15.0, 30.0, 45.0]))),
+        lambda: ph.Cylinder(signed(25, 100), axis_angle=float(rng.uniform(0, 90))),
+        lambda: ph.SphereCap(signed(40, 120)),
+        lambda: ph.Flat(),
+    ]
+    return [makers[i % len(makers)]() for i in range(k)]
+
+
+def _frames(n: int, m: int, k: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Noisy strains of random shapes; every third frame has one or two dead gauges."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, shape in enumerate(_shapes(rng, k)):
+        eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, G)
+        eu = eu + rng.normal(0, NOISE, eu.shape)
+        el = el + rng.normal(0, NOISE, el.shape)
+        if i % 3 == 2:
+            eu.reshape(-1)[rng.choice(eu.size, 1 + i % 2, replace=False)] = np.nan
+        out.append((eu, el))
+    return out
+
+
+@pytest.mark.parametrize("n, m, k", [(5, 5, 18), (8, 8, 12), (16, 16, 6), (4, 7, 12), (3, 3, 6)])
+def test_compiled_kernels_match_the_numpy_reference(n, m, k):
+    fast, ref = Reconstructor(n, m, PITCH, H, H, G), Reconstructor(n, m, PITCH, H, H, G, kernels="numpy")
+    assert fast.kernels == "compiled" and ref.kernels == "numpy"
+    prev_f = prev_r = None
+    for eu, el in _frames(n, m, k, seed=100 * n + m):
+        a = fast(eu, el, previous=prev_f)
+        b = ref(eu, el, previous=prev_r)
+        scale = np.abs(b._coeffs[..., 0, :]).max()
+        assert np.abs(a._coeffs - b._coeffs).max() <= 1e-10 * scale  # positions and derivatives
+        assert np.abs(a.normals - b.normals).max() <= 1e-10
+        assert a.diagnostics.twist_constant == pytest.approx(b.diagnostics.twist_constant, rel=1e-12, abs=1e-15)
+        assert a.diagnostics.status == b.diagnostics.status
+        assert a.diagnostics.extra["kernels"] == "compiled"
+        prev_f, prev_r = a, b
+
+
+@pytest.mark.parametrize("shear_passes, corrections", [(0, 0), (1, 2), (3, 1)])
+def test_other_pass_counts_match_the_reference(shear_passes, corrections):
+    kw = {"shear_passes": shear_passes, "frame_corrections": corrections}
+    fast, ref = Reconstructor(5, 6, **kw), Reconstructor(5, 6, kernels="numpy", **kw)
+    for eu, el in _frames(5, 6, 6, seed=shear_passes):
+        a, b = fast(eu, el), ref(eu, el)
+        assert np.abs(a.nodes - b.nodes).max() <= 1e-10 * np.abs(b.nodes).max()
+
+
+def test_metric_kernel_equals_the_reference_bit_for_bit():
+    """The twist step reads these terms and makes discrete choices from them."""
+    grid = FineGrid(5, 5, PITCH, G, sub=4)
+    eu, el = _frames(5, 5, 1, seed=3)[0]
+    turning, stretch, valid = unit_data(eu, el, H, H, G)
+    lam_u, lam_v = grid.field_maps(valid)(turning, stretch)[3:5]
+    got = kernels.metric_terms(grid.spacing, kernels.as_field(lam_u), kernels.as_field(lam_v))
+    for mine, theirs in zip(got, metric_terms(grid.spacing, lam_u, lam_v)):
+        assert np.array_equal(mine, theirs)
+
+
+def test_band_solve_matches_lapack():
+    grid = FineGrid(6, 5, PITCH, G, sub=4)
+    a0, b0 = grid.centre
+    band = kernels.laplacian_band(grid.incidence, a0 * grid.mf + b0)
+    assert np.array_equal(band, kernels.laplacian_band(grid.incidence, a0 * grid.mf + b0, grid.laplacian.band))
+    rhs = np.random.default_rng(2).normal(size=(3, grid.nf * grid.mf))
+    x = rhs.copy()
+    kernels._band_solve(band, x)
+    assert np.allclose(x.T, grid.laplacian.solve(np.ascontiguousarray(rhs.T)), rtol=1e-12, atol=1e-12)
+
+
+def test_layouts_other_than_the_compiled_one_are_converted():
+    f = np.arange(12.0).reshape(3, 4)
+    assert kernels.as_field(f) is f
+    for other in (f.T, f.astype(np.float32), np.asfortranarray(f)):
+        conv = kernels.as_field(other)
+        assert conv.flags.c_contiguous and conv.dtype == np.float64 and np.array_equal(conv, other)
+    ro = f.copy()
+    ro.flags.writeable = False
+    assert kernels.as_field(ro).flags.writeable
+
+
+def test_kernels_option_is_checked():
+    with pytest.raises(ValueError, match="kernels"):
+        Reconstructor(5, 5, kernels="fortran")
+
+
+# A fresh process reconstructs a fixed sequence of frames and prints a digest of everything a
+# frame publishes, plus whether its kernels run with an on-disk cache.
+_SCRIPT = textwrap.dedent(
+    """
+    import hashlib, os, sys
+    import numpy as np
+    sys.path.insert(0, {tests!r})
+    from test_reconstruction_compiled import _frames
+    from skinmap.reconstruction import kernels
+    if os.environ.get("BREAK_CACHE_DIR"):
+        # the cache directory disappears after import: loading and saving the code fail
+        d = os.environ["NUMBA_CACHE_DIR"]
+        os.rename(d, d + ".gone")
+        open(d, "w").close()
+    from skinmap.reconstruction import Reconstructor
+    rec = Reconstructor(5, 5)
+    digest, prev = hashlib.sha256(), None
+    for eu, el in _frames(5, 5, 12, seed=11):
+        s = rec(eu, el, previous=prev)
+        for arr in (s.nodes, s.normals, s._coeffs, *s.locate(np.array([[1.0, -7.5], [20.0, 3.0]]))):
+            digest.update(np.ascontiguousarray(arr).tobytes())
+        prev = s
+    print(rec.kernels, kernels._state["cached"], digest.hexdigest())
+    """
+)
+
+
+def _run(env_extra: dict[str, str]) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(env_extra)
+    script = _SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__)))
+    return subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _result(proc: subprocess.Popen) -> list[str]:
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    return out.split()
+
+
+@pytest.mark.slow
+def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
+    """Replay relies on a fresh process reproducing a frame sequence exactly: code loaded from
+    the cache, code compiled in memory because no cache location is writable, and code whose
+    cache vanished after import all give identical bytes (and none of them fails)."""
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    only_user_dir = {"NUMBA_CACHE_LOCATOR_CLASSES": "UserProvidedCacheLocator"}
+    procs = [
+        _run({}),  # the usual cache next to the package (or the user's)
+        _run({"NUMBA_CACHE_DIR": os.devnull + "/none", **only_user_dir}),  # nowhere writable
+        _run({"NUMBA_CACHE_DIR": str(broken), "BREAK_CACHE_DIR": "1", **only_user_dir}),
+    ]
+    results = [_result(p) for p in procs]
+    assert [r[0] for r in results] == ["compiled"] * 3
+    assert [r[1] for r in results] == ["True", "False", "False"]
+    assert len({r[2] for r in results}) == 1
+    # and the same as this process computes
+    import hashlib
+
+    rec, digest, prev = Reconstructor(5, 5), hashlib.sha256(), None
+    for eu, el in _frames(5, 5, 12, seed=11):
+        s = rec(eu, el, previous=prev)
+        for arr in (s.nodes, s.normals, s._coeffs, *s.locate(np.array([[1.0, -7.5], [20.0, 3.0]]))):
+            digest.update(np.ascontiguousarray(arr).tobytes())
+        prev = s
+    assert digest.hexdigest() == results[0][2]
