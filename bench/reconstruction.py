@@ -1,6 +1,7 @@
 """Reconstruction benchmark: accuracy per shape class and time per frame.
 
 Run: .venv/bin/python bench/reconstruction.py [--quick] [--seed S] [--shapes K] [--only accuracy|timing]
+     [--kernels compiled|numpy]
 
 Accuracy: 5×5 cells, 12 mm pitch, h = 0.2 mm, 10 mm gauges; strains from the physics forward
 model (skinmap.emulator.physics) for shapes with seeded random parameters; node error after the
@@ -221,8 +222,12 @@ def time_unseen_masks(rec: Reconstructor, frames: list, uv: np.ndarray, rng: np.
     return np.array(cpu)
 
 
-def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> None:
+def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernels: str = "compiled") -> None:
     rng = np.random.default_rng(seed)
+    t0, c0 = time.perf_counter(), time.thread_time()
+    Reconstructor(2, 2, kernels=kernels)  # loads (or compiles) the kernels once per process
+    print(f"\nKernels: {kernels}; loading them took {time.perf_counter() - t0:.2f} s "
+          f"({time.thread_time() - c0:.2f} s CPU), once per process, before the setups below")
     print("\nTime per frame: reconstruct + locate(20 elements), warm, one core, one BLAS thread")
     head = (f"{'N x N':>7s} {'fine grid':>10s} {'setup ms':>9s} {'median ms':>10s} {'p90 ms':>8s} "
             f"{'cpu median ms':>14s} {'cpu p90 ms':>11s} {'points(20) ms':>14s} {'clarabel fit median ms':>23s}")
@@ -242,7 +247,7 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
             eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
             frames.append((eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)))
         t0 = time.perf_counter()
-        rec = Reconstructor(n, n, PITCH, H, H, GAUGE)
+        rec = Reconstructor(n, n, PITCH, H, H, GAUGE, kernels=kernels)
         surf = rec(*frames[0])
         setup = time.perf_counter() - t0
         t, cpu = time_frames(rec, frames, uv)
@@ -260,7 +265,7 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int) -> Non
             pts.append(time.thread_time() - c0)
         cl = "-"
         if n <= 16:
-            rec_c = Reconstructor(n, n, PITCH, H, H, GAUGE, convex_solver="clarabel")
+            rec_c = Reconstructor(n, n, PITCH, H, H, GAUGE, convex_solver="clarabel", kernels=kernels)
             rec_c(*frames[0])
             tc, _ = time_frames(rec_c, frames[: max(5, count // 10)], uv)
             cl = f"{1e3 * np.median(tc):.1f}"
@@ -286,6 +291,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2024, help="seed of the random shape parameters and noise")
     ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
     ap.add_argument("--only", choices=("accuracy", "timing"), default=None, help="print one part only")
+    ap.add_argument("--kernels", choices=("compiled", "numpy"), default="compiled",
+                    help="per-frame kernels of the timing table (numpy: the reference implementation)")
     args = ap.parse_args()
     k = args.shapes or (4 if args.quick else 12)
     threadpool_limits(1)
@@ -295,7 +302,7 @@ def main() -> None:
     if args.only == "accuracy":
         return
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
-    timing_table([5, 8, 16, 32], frames, args.seed)
+    timing_table([5, 8, 16, 32], frames, args.seed, args.kernels)
 
 
 if __name__ == "__main__":

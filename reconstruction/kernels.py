@@ -7,12 +7,13 @@ grid is hundreds of small array operations whose per-call overhead, not arithmet
 time.  Results agree with the reference to rounding (tested); the loops are sequential and use
 no fast-math reordering, so a frame's result is a function of its input alone.
 
-Kernels are compiled with ``cache=True``: a process finds the machine code in numba's cache
-(``NUMBA_CACHE_DIR``, else ``__pycache__`` next to this file, else the user's cache) instead of
-compiling (see docs/reconstruction.md, "Compiled kernels").  When no cache location is
-writable they are compiled in memory on each start; :func:`warm_up` (called when a
+The entry points keep their machine code in numba's on-disk cache, so a process loads it
+instead of compiling: the first writable of ``NUMBA_CACHE_DIR``, ``__pycache__`` next to this
+file and the user's cache directory, else this ``__pycache__`` read-only (see
+docs/reconstruction.md, "Compiled kernels").  A cache that cannot be used only costs time: the
+kernels are then compiled in memory.  :func:`warm_up` (called when a
 :class:`~skinmap.reconstruction.Reconstructor` is built) compiles or loads them before the
-first frame.
+first frame; ``python -m skinmap.reconstruction.kernels`` fills the cache ahead of use.
 """
 from __future__ import annotations
 
@@ -37,9 +38,7 @@ AVAILABLE = numba is not None
 # gives inf/NaN as in numpy (the caller checks the result) instead of raising; nogil lets a
 # host that runs frames on several threads use its cores.
 _OPTIONS = {"error_model": "numpy", "nogil": True}
-_KERNELS: dict[str, object] = {}
-_HELPERS: dict[str, object] = {}
-_state = {"cached": False}
+_state: dict[str, object] = {"cached": False, "cache_locator": None}
 
 
 def _helper(fn):
@@ -47,30 +46,63 @@ def _helper(fn):
     entries then hold its code too (so it needs no cache entry of its own)."""
     if numba is None:
         return fn
-    _HELPERS[fn.__name__] = fn
     return numba.njit(**_OPTIONS)(fn)
 
 
+def _function_cache(fn):
+    """numba's on-disk cache for ``fn``, searched as numba does (``NUMBA_CACHE_DIR``, the
+    package's ``__pycache__``, the user's cache directory: the first writable one), then, when
+    none is writable, the package's ``__pycache__`` read-only: an install whose owner filled
+    it (``python -m skinmap.reconstruction.kernels``) serves every user without compiling.
+    Raises RuntimeError when there is nothing to use (numba's message)."""
+    from numba.core import caching
+
+    class ReadOnlyPackageCache(caching.InTreeCacheLocator):
+        def ensure_cache_path(self) -> None:
+            path = self.get_cache_path()
+            if not (os.path.isdir(path) and os.access(path, os.R_OK | os.X_OK)):
+                raise OSError(f"no readable cache in {path}")
+
+    class Impl(caching.CompileResultCacheImpl):
+        _locator_classes = [*caching.CompileResultCacheImpl._locator_classes, ReadOnlyPackageCache]
+
+    class Cache(caching.FunctionCache):
+        """A cache that can only cost time: a missing, unreadable or corrupt entry is a miss
+        (compiled instead), a failed write leaves the code in memory."""
+
+        _impl_class = Impl
+
+        def load_overload(self, sig, target_context):
+            try:
+                return super().load_overload(sig, target_context)
+            except Exception:  # noqa: BLE001 - whatever the file holds, compiling is the answer
+                _state["cached"] = False
+                return None
+
+        def save_overload(self, sig, data) -> None:
+            try:
+                super().save_overload(sig, data)
+            except OSError:
+                _state["cached"] = False
+
+    cache = Cache(fn)
+    _state["cache_locator"] = type(cache._impl.locator).__name__
+    return cache
+
+
 def _compiled(fn):
-    """Compile ``fn`` lazily, with an on-disk cache when numba finds a writable location for
-    it, else in memory only (a read-only install must still run)."""
+    """Compile ``fn`` lazily, with an on-disk cache when numba finds a location for it, else
+    in memory only (a read-only install must still run)."""
     if numba is None:
         return fn
-    _KERNELS[fn.__name__] = fn
+    disp = numba.njit(**_OPTIONS)(fn)
     try:
-        disp = numba.njit(cache=True, **_OPTIONS)(fn)
+        # what numba.njit(cache=True) does, with the read-only fallback above
+        disp._cache = _function_cache(fn)
         _state["cached"] = True
-    except RuntimeError:  # "no locator available": nowhere writable to cache
-        disp = numba.njit(cache=False, **_OPTIONS)(fn)
+    except (RuntimeError, ImportError, AttributeError):  # nowhere to cache (or another numba)
+        _state["cache_locator"] = None
     return disp
-
-
-def _uncache_all() -> None:
-    """Replace every kernel by an in-memory compiled one (a cache write failed)."""
-    for name, fn in _KERNELS.items():
-        globals()[name] = numba.njit(cache=False, **_OPTIONS)(fn)
-        # callees are bound when a caller compiles: the new entry points reuse the helpers
-    _state["cached"] = False
 
 
 # ------------------------------------------------------------------------------ grid helpers
@@ -557,30 +589,18 @@ def laplacian_band(incidence: sp.spmatrix, pinned: int, factor: np.ndarray | Non
 
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
     """Compile (or load from the cache) every kernel with the argument types of a frame, on a
-    flat sheet of this grid, so that the first frame does not pay for it.  A cache that cannot
-    be written (a read-only or vanished cache directory) turns caching off and compiles in
-    memory.  Returns whether the kernels run from (or were saved to) an on-disk cache."""
-    n = band.shape[1]
-    mf = 2 * b0 + 1
-    nf = n // mf
+    flat sheet of this grid, so that the first frame does not pay for it.  Returns whether the
+    kernels came from or went to an on-disk cache (a cache that cannot be read or written only
+    means compiling in memory)."""
+    nf, mf = band.shape[1] // (2 * b0 + 1), 2 * b0 + 1
     zero, one = np.zeros((nf, mf)), np.ones((nf, mf))
-
-    def run() -> np.ndarray:
-        metric = globals()["metric_terms"](float(h), one, one)
-        return globals()["surface_positions"](
-            float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0)
-        )
-
-    try:
-        pos = run()
-    except OSError:
-        if not _state["cached"]:
-            raise
-        _uncache_all()
-        pos = run()
+    metric = metric_terms(float(h), one, one)
+    pos = surface_positions(
+        float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0)
+    )
     if not np.isfinite(pos).all():
         raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")
-    return _state["cached"]
+    return bool(_state["cached"])
 
 
 if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use
@@ -588,5 +608,6 @@ if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the
     from skinmap.reconstruction import kernels as _installed
 
     Reconstructor(5, 5)  # its warm-up compiles the kernels, or loads them when already cached
-    where = os.environ.get("NUMBA_CACHE_DIR") or "numba's default location"
-    print(f"reconstruction kernels {'cached in ' + where if _installed._state['cached'] else 'compiled, no writable cache'}")
+    locator = _installed._state["cache_locator"]
+    where = os.environ.get("NUMBA_CACHE_DIR") if locator == "UserProvidedCacheLocator" else locator
+    print(f"reconstruction kernels {'cached (' + str(where) + ')' if _installed._state['cached'] else 'compiled, no cache'}")

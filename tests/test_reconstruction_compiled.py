@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -123,7 +124,7 @@ _SCRIPT = textwrap.dedent(
     """
     import hashlib, os, sys
     import numpy as np
-    sys.path.insert(0, {tests!r})
+    sys.path.insert(0, TESTS_DIR)
     from test_reconstruction_compiled import _frames
     from skinmap.reconstruction import kernels
     if os.environ.get("BREAK_CACHE_DIR"):
@@ -139,16 +140,20 @@ _SCRIPT = textwrap.dedent(
         for arr in (s.nodes, s.normals, s._coeffs, *s.locate(np.array([[1.0, -7.5], [20.0, 3.0]]))):
             digest.update(np.ascontiguousarray(arr).tobytes())
         prev = s
-    print(rec.kernels, kernels._state["cached"], digest.hexdigest())
+    stats = kernels.surface_positions.stats
+    print(rec.kernels, kernels._state["cached"], digest.hexdigest(), kernels._state["cache_locator"],
+          "hits" if sum(stats.cache_hits.values()) else "no-hits", f"misses={sum(stats.cache_misses.values())}")
     """
 )
 
 
-def _run(env_extra: dict[str, str]) -> subprocess.Popen:
+def _run(env_extra: dict[str, str], user: int | None = None) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     env.update(env_extra)
-    script = _SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__)))
-    return subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    script = _SCRIPT.replace("TESTS_DIR", repr(os.path.dirname(os.path.abspath(__file__))))
+    drop = [] if user is None else ["setpriv", f"--reuid={user}", f"--regid={user}", "--clear-groups"]
+    return subprocess.Popen([*drop, sys.executable, "-c", script], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd="/")
 
 
 def _result(proc: subprocess.Popen) -> list[str]:
@@ -160,17 +165,18 @@ def _result(proc: subprocess.Popen) -> list[str]:
 @pytest.mark.slow
 def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
     """Replay relies on a fresh process reproducing a frame sequence exactly: code loaded from
-    the cache, code compiled in memory because no cache location is writable, and code whose
-    cache vanished after import all give identical bytes (and none of them fails)."""
+    the cache, code compiled in memory because no cache location is writable, code whose
+    cache vanished after import, and (as root) an unprivileged user reading the package's cache
+    without writing it all give identical bytes, and none of them fails."""
     broken = tmp_path / "broken"
     broken.mkdir()
     only_user_dir = {"NUMBA_CACHE_LOCATOR_CLASSES": "UserProvidedCacheLocator"}
+    first = _result(_run({}))  # the usual cache (next to the package when writable): filled here
     procs = [
-        _run({}),  # the usual cache next to the package (or the user's)
         _run({"NUMBA_CACHE_DIR": os.devnull + "/none", **only_user_dir}),  # nowhere writable
         _run({"NUMBA_CACHE_DIR": str(broken), "BREAK_CACHE_DIR": "1", **only_user_dir}),
     ]
-    results = [_result(p) for p in procs]
+    results = [first] + [_result(p) for p in procs]
     assert [r[0] for r in results] == ["compiled"] * 3
     assert [r[1] for r in results] == ["True", "False", "False"]
     assert len({r[2] for r in results}) == 1
@@ -184,3 +190,10 @@ def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
             digest.update(np.ascontiguousarray(arr).tobytes())
         prev = s
     assert digest.hexdigest() == results[0][2]
+    package_cache = os.path.join(os.path.dirname(kernels.__file__), "__pycache__")
+    if os.geteuid() == 0 and shutil.which("setpriv") and kernels._state["cache_locator"] == "InTreeCacheLocator":
+        # the service's user cannot write the package directory: it loads what root compiled
+        nobody = _result(_run({"HOME": "/nonexistent"}, user=65534))
+        assert nobody[:2] == ["compiled", "True"] and nobody[2] == results[0][2]
+        assert nobody[3] == "ReadOnlyPackageCache" and nobody[4:] == ["hits", "misses=0"]
+        assert os.path.isdir(package_cache)
