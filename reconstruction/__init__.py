@@ -136,13 +136,11 @@ class Reconstructor:
         eps = np.asarray(eps, dtype=float)
         if eps.shape != (2, self.n, self.m):
             raise ValueError(f"{name} must have shape (2, {self.n}, {self.m}) for this sensor, got {eps.shape}")
-        if not (eps > -1.0).all():  # also false for NaN and -inf: look closer only then
+        if not ((eps > -1.0) & (eps < np.inf)).all():  # also false for NaN: look closer only then
             if np.isinf(eps).any():
                 raise ValueError(f"{name} contains infinite strain; give NaN for a missing gauge")
             if (eps <= -1.0).any():
                 raise ValueError(f"{name} contains strain <= -1 (a gauge compressed to zero length)")
-        elif np.isposinf(eps).any():
-            raise ValueError(f"{name} contains infinite strain; give NaN for a missing gauge")
         return eps
 
     def __call__(
