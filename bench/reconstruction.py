@@ -127,6 +127,26 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
         (ph.Saddle(r, axis_angle=a), {"twist_sign": float(np.sign(r * a))}) for r, a in at45
     ]
     classes["saddle turned +-45 deg, default sign"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in at45]
+    # A film pressed out of plane (graph mappings) with twist at any angle: saddles turned
+    # anywhere in 0-180 deg, general quadrics (twisted domes, bowls, saddles, troughs) and oblique
+    # troughs; the stretch pattern fixes the twist.  Their own generator, as above.
+    rng_g = rng.spawn(1)[0]
+
+    def signed_g(lo, hi):
+        return float(np.exp(rng_g.uniform(np.log(lo), np.log(hi))) * rng_g.choice([-1.0, 1.0]))
+
+    classes["saddle at any angle (graph), |R| 40-120"] = [
+        (ph.Saddle(signed_g(40, 120), axis_angle=float(rng_g.uniform(0, 180))), {}) for _ in range(k)
+    ]
+    classes["twisted quadric, |k_ij| <= 1/40 mm"] = [(ph.Quadric(*rng_g.uniform(-1 / 40, 1 / 40, 3)), {}) for _ in range(k)]
+
+    def trough(radius: float, angle: float) -> ph.Quadric:
+        d = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+        return ph.Quadric(d[0] * d[0] / radius, d[0] * d[1] / radius, d[1] * d[1] / radius)
+
+    classes["oblique trough pressed in (graph), |R| 50-120"] = [
+        (trough(signed_g(50, 120), float(rng_g.uniform(10, 80))), {}) for _ in range(k)
+    ]
     return classes
 
 

@@ -298,6 +298,25 @@ class Saddle(GraphShape):
         return uv @ self._hessian
 
 
+class Quadric(GraphShape):
+    """General quadratic graph z = ½ (k_uu u² + 2 k_uv u v + k_vv v²) (see :class:`GraphShape`):
+    a dome or bowl (k_uu k_vv > k_uv²), a saddle at any angle (< k_uv²) or a parabolic trough at
+    any angle (= k_uv²), all twisted when k_uv ≠ 0.  Curvatures in 1/mm; positive k_uu curves
+    the sheet toward its upper side along u (concave)."""
+
+    def __init__(self, k_uu: float = 0.0, k_uv: float = 0.0, k_vv: float = 0.0):
+        self.k_uu = _finite("quadric k_uu", k_uu)
+        self.k_uv = _finite("quadric k_uv", k_uv)
+        self.k_vv = _finite("quadric k_vv", k_vv)
+        self._hessian = np.array([[self.k_uu, self.k_uv], [self.k_uv, self.k_vv]])
+
+    def height(self, uv, t):
+        return 0.5 * np.einsum("...i,ij,...j->...", uv, self._hessian, uv)
+
+    def height_gradient(self, uv, t):
+        return uv @ self._hessian
+
+
 def _bump(uv: np.ndarray, centre: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """exp(-|uv - c|²/2σ²) and its gradient; ``centre`` broadcasts like ``uv``."""
     d = uv - centre
@@ -621,6 +640,7 @@ SHAPE_KINDS: dict[str, Callable[..., Shape]] = {
     "cylinder": Cylinder,
     "sphere": SphereCap,
     "saddle": Saddle,
+    "quadric": Quadric,
     "gaussian": GaussianBumps,
     "membrane": FingertipMembrane,
     "palm": PalmGesture,

@@ -30,6 +30,7 @@ from .engine import (
     unit_data,
 )
 from .grid import FineGrid
+from .graphsheet import free_part, graph_sheet_fields
 from .robust import huber_potential
 from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma
@@ -128,6 +129,7 @@ class Reconstructor:
                 grid = self.grid
                 a0, b0 = grid.centre
                 self._band = compiled.laplacian_band(grid.incidence, a0 * grid.mf + b0, grid.laplacian.band)
+                self._no_shear_target = np.zeros((grid.nf, grid.mf))
                 compiled.warm_up(grid.spacing, a0, b0, self._band, self.shear_passes, self.frame_corrections)
                 self._compiled = compiled
         self.kernels = "compiled" if self._compiled is not None else "numpy"
@@ -206,17 +208,23 @@ class Reconstructor:
         else:
             metric = metric_terms(grid.spacing, lam_u, lam_v)
         stretch_sigma = strain_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
-        tau, twist_c = solve_twist(
+        tau, twist_c, graph = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None
         )
+        shear_graph = None
+        if graph is not None:  # a sheet pushed out of plane: twist and shear from its slopes
+            fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0))
+            if fields is not None:
+                (tau, shear_graph), twist_c = fields, graph.constant
         if compiled is not None:
             # shear, rotation rates, frames, positions and the sensor frame in one call
+            target = (compiled.as_field(shear_graph), True) if shear_graph is not None else (self._no_shear_target, False)
             pos = compiled.surface_positions(
                 grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(tau), metric_stack,
-                self.shear_passes, self.frame_corrections, self._band, *grid.centre,
+                self.shear_passes, self.frame_corrections, self._band, *grid.centre, *target,
             ).transpose(1, 2, 0)
         else:
-            pos = _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, tau, metric))
+            pos = _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, tau, metric, shear_graph))
         iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
             # Only reachable with wildly inconsistent data; a surface must still come out.
@@ -251,14 +259,19 @@ class Reconstructor:
         return surf
 
 
-    def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric) -> np.ndarray:
+    def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:
         """The reference (numpy) steps from the twist to the positions: shear, rotation rates,
-        frames, chords."""
+        frames, chords.  ``shear_graph``: a graph's shear F = z_u z_v, whose part a(u) + b(v)
+        (which Brioschi's formula leaves free) replaces the least-norm one."""
         grid = self.grid
         if self.shear_passes:
             sin_gamma = solve_shear(grid, k_u, k_v, lam_u, lam_v, tau, self.shear_passes, metric)
         else:
             sin_gamma = np.zeros_like(k_u)
+        if shear_graph is not None:
+            f = sin_gamma * (lam_u * lam_v)
+            f += free_part(shear_graph - f)
+            sin_gamma = np.minimum(np.maximum(f / (lam_u * lam_v), -0.9), 0.9)
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)

@@ -34,6 +34,10 @@ __all__ = [
     "metric_terms",
     "Metric",
     "solve_twist",
+    "TwistResult",
+    "GraphTwist",
+    "graph_slopes",
+    "slope_twist_quartic",
     "solve_shear",
     "rotation_rates",
     "integrate_frames",
@@ -76,7 +80,7 @@ def solve_twist(
     metric: Metric | None = None,
     stretch_sigma: float = 0.0,
     sign_from_data: bool = True,
-) -> tuple[np.ndarray, float]:
+) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
 
@@ -88,7 +92,8 @@ def solve_twist(
     it needs (:func:`_saddle_twist`).  Where the sign is not observable (mirror-image twists give
     identical strains, e.g. an oblique cylinder) ``twist_sign`` chooses it; it also overrides a
     sign read from the data when ``sign_from_data`` is False.  ``stretch_sigma``: stretch noise
-    s.d. of one unit.  Returns (τ field, the constant).
+    s.d. of one unit.  Returns the τ field and its constant without the graph refinement, and
+    the graph model (:class:`GraphTwist`) when the stretch pattern suggests one.
     """
     tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
@@ -113,18 +118,25 @@ def solve_twist(
     # unbiased above twice the noise level, off below it, continuous in between
     significance = min(max(prod / noise - 1.0, 0.0), 1.0) if noise > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
-    if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
+    graph = None
+    if prod <= noise or weight < 1.0:
+        # not a developable sheet: a sheet pushed out of plane (a graph) may explain its twist
+        # through the stretch pattern, whatever the sign of k_u k_v (a turned saddle, a twisted
+        # dome, an oblique trough pressed into a clamped film); the caller refines it and
+        # keeps it only if the refined graph explains the stretch (graphsheet.py)
         if metric is None:
             metric = metric_terms(grid.spacing, lam_u, lam_v)
         graph = _graph_twist(grid, k_u, k_v, tau0, inner, metric, stretch_sigma)
-        if graph is not None:
-            c, decisive = graph
-            if not decisive or not sign_from_data:
-                c = math.copysign(c, twist_sign)
-            return tau0 + c, c
-        c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
+        if graph is not None and (not graph.decisive or not sign_from_data):
+            graph = graph._replace(
+                constant=math.copysign(graph.constant, twist_sign), slope_twist=math.copysign(graph.slope_twist, twist_sign)
+            )
+        if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
+            if graph is not None and graph.significant:
+                return TwistResult(tau0 + graph.constant, graph.constant, graph)
+            c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
     c = math.copysign(math.sqrt(c2), twist_sign)
-    return tau0 + c, c
+    return TwistResult(tau0 + c, c, graph)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -136,7 +148,63 @@ def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
     return out
 
 
-def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_sigma: float):
+class GraphTwist(NamedTuple):
+    """A sheet pushed out of plane, as its stretch pattern suggests: the frame model's constant
+    twist per material length, whether the data decide its sign, and the graph's own slopes
+    (z_u = p + c v, z_v = q + c u on the whole fine grid, with c = ``slope_twist``)."""
+
+    constant: float
+    decisive: bool
+    significant: bool  # the twist removes most of the stretch misfit of no twist
+    slope_twist: float
+    p: np.ndarray
+    q: np.ndarray
+
+
+class TwistResult(NamedTuple):
+    """The twist field and its constant part, and the graph model when the stretch suggests one."""
+
+    tau: np.ndarray
+    constant: float
+    graph: GraphTwist | None
+
+
+def graph_slopes(grid: FineGrid, k_u, k_v, tau0) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes p = z_u − c v, q = z_v − c u of the height z with z_uu = −k_u, z_vv = −k_v and
+    zero-mean twist ``tau0`` (integrated from the centre: along its column, then the rows)."""
+    h = grid.spacing
+    a0, b0 = grid.centre
+    p = _integrate_from(tau0[:, b0], a0, h)[:, None] - _integrate_from(k_u.T, b0, h).T
+    q = _integrate_from(tau0[a0, :], b0, h)[None, :] - _integrate_from(k_v, a0, h)
+    return p, q
+
+
+def slope_twist_quartic(p, q, e1, g1, u, v) -> tuple[float, float, float, float, float]:
+    """Coefficients (highest first) of the quartic cost(c) = Σ (e1 − (p + c v)²)² + (g1 − (q + c u)²)²."""
+    # each residual is a0 + a1 c + a2 c²
+    a0 = np.concatenate([(e1 - p * p).ravel(), (g1 - q * q).ravel()])
+    a1 = -2.0 * np.concatenate([(p * v).ravel(), (q * u).ravel()])
+    a2 = -np.concatenate([np.broadcast_to(v * v, p.shape).ravel(), np.broadcast_to(u * u, q.shape).ravel()])
+    return tuple(float(x) for x in (a2 @ a2, 2.0 * (a1 @ a2), a1 @ a1 + 2.0 * (a0 @ a2), 2.0 * (a0 @ a1), a0 @ a0))
+
+
+def quartic_value(k: tuple[float, ...], c: float) -> float:
+    k4, k3, k2, k1, k0 = k
+    return (((k4 * c + k3) * c + k2) * c + k1) * c + k0
+
+
+def _fit_slope_twist(p, q, e1, g1, u, v) -> tuple[float, float, float, float] | None:
+    """c minimising Σ (e1 − (p + c v)²)² + (g1 − (q + c u)²)²: (c, cost(c), cost(0), cost(−c)),
+    or None when the quartic has no real stationary point."""
+    k = slope_twist_quartic(p, q, e1, g1, u, v)
+    roots = [r.real for r in np.roots([4.0 * k[0], 3.0 * k[1], 2.0 * k[2], k[3]]) if abs(r.imag) <= 1e-9 * max(abs(r), 1e-12)]
+    if not roots:
+        return None
+    c = min(roots, key=lambda r: quartic_value(k, r))
+    return c, quartic_value(k, c), quartic_value(k, 0.0), quartic_value(k, -c)
+
+
+def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_sigma: float) -> GraphTwist | None:
     """Signed constant twist of a sheet pushed out of plane (a graph over the centre's tangent
     plane), from its stretch pattern, or None when that model does not explain the stretch.
 
@@ -146,46 +214,29 @@ def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_
     developable twist (no stretch) the sign is observable wherever p, q do not vanish.  c
     minimises Σ ((E − 1) − (p + c v)²)² + ((G − 1) − (q + c u)²)² (a quartic: roots of its cubic
     derivative).  The constant the frame model needs is the twist per material length,
-    z_uv/(W λ_u λ_v), averaged over the sheet (W² = 1 + |∇z|²).  Returns (c, whether the data
-    decide its sign), or None unless the stretch stands well above its noise, the fit removes
-    most of the stretch misfit of c = 0 and what is left is small.
+    z_uv/(W λ_u λ_v), averaged over the sheet (W² = 1 + |∇z|²).  Returns None unless the stretch
+    stands well above its noise and the graph explains it (what is left is small); c may then be
+    near zero (a saddle or dome on the grid lines), the graph's slopes still serve
+    :func:`graphsheet.graph_sheet_fields`.
     """
-    h = grid.spacing
-    a0, b0 = grid.centre
-    p = _integrate_from(tau0[:, b0], a0, h)[:, None] - _integrate_from(k_u.T, b0, h).T
-    q = _integrate_from(tau0[a0, :], b0, h)[None, :] - _integrate_from(k_v, a0, h)
     e1, g1 = (metric.e - 1.0)[inner], (metric.g - 1.0)[inner]
-    p, q = p[inner], q[inner]
-    u = grid.u[inner[1]][None, :]
-    v = grid.v[inner[0]][:, None]
     if float(e1.mean() + g1.mean()) <= 20.0 * stretch_sigma:
         return None
-    # residual r = α0 + α1 c + α2 c² for each of the two terms
-    terms = [(e1 - p * p, -2.0 * p * v, -(v * v) + 0.0 * p), (g1 - q * q, -2.0 * q * u, -(u * u) + 0.0 * q)]
-    cubic = np.zeros(4)
-    for a0_, a1_, a2_ in terms:
-        cubic += [
-            2.0 * float((a2_ * a2_).sum()),
-            3.0 * float((a1_ * a2_).sum()),
-            float((2.0 * a0_ * a2_ + a1_ * a1_).sum()),
-            float((a0_ * a1_).sum()),
-        ]
-
-    def cost(c: float) -> float:
-        return sum(float(((a0_ + c * (a1_ + c * a2_)) ** 2).sum()) for a0_, a1_, a2_ in terms)
-
-    roots = [r.real for r in np.roots(cubic) if abs(r.imag) <= 1e-9 * max(abs(r), 1e-12)]
-    if not roots:
+    p_full, q_full = graph_slopes(grid, k_u, k_v, tau0)
+    p, q = p_full[inner], q_full[inner]
+    u = grid.u[inner[1]][None, :]
+    v = grid.v[inner[0]][:, None]
+    fit = _fit_slope_twist(p, q, e1, g1, u, v)
+    if fit is None:
         return None
-    c = min(roots, key=cost)
-    best, zero, mirror = cost(c), cost(0.0), cost(-c)
+    c, best, zero, mirror = fit
     total = float((e1 * e1).sum() + (g1 * g1).sum())
-    if not (best < 0.5 * zero and best < 0.2 * total):
+    if not best < 0.2 * total:  # the graph leaves more than a fifth of the stretch unexplained
         return None
     decisive = mirror > 2.0 * best + 1e-3 * total
     slope2 = (p + c * v) ** 2 + (q + c * u) ** 2
     c_eff = c * float((1.0 / np.sqrt((1.0 + slope2) * metric.eg[inner])).mean())
-    return c_eff, decisive
+    return GraphTwist(c_eff, decisive, best < 0.5 * zero, c, p_full, q_full)
 
 
 def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> float:

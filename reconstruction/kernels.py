@@ -542,17 +542,42 @@ def _sensor_frame(pos, nf, mf, a0, b0):
     return out
 
 
+@_helper
+def _shear_free_part(sin_gamma, lam_u, lam_v, target):
+    """Replace the shear's part a(u) + b(v) by that of ``target`` (F of a graph; as
+    Reconstructor._positions with graphsheet.free_part)."""
+    nf, mf = sin_gamma.shape
+    f = np.empty((nf, mf))
+    col = np.zeros(mf)
+    row = np.zeros(nf)
+    for a in range(nf):
+        for b in range(mf):
+            f[a, b] = sin_gamma[a, b] * (lam_u[a, b] * lam_v[a, b])
+            d = target[a, b] - f[a, b]
+            col[b] += d
+            row[a] += d
+    col /= nf
+    row /= mf
+    mean = col.mean()
+    for a in range(nf):
+        for b in range(mf):
+            sin_gamma[a, b] = _clip9((f[a, b] + col[b] + row[a] - mean) / (lam_u[a, b] * lam_v[a, b]))
+
+
 @_compiled
-def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corrections, band, a0, b0):
+def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corrections, band, a0, b0, shear_target, use_target):
     """Fine-grid positions in the sensor frame, components first (3, nf, mf), from the fitted
     fields, the twist τ and the metric terms: shear, rotation rates, frames, chords and their
     least-squares positions in one call (engine.solve_shear, rotation_rates, integrate_frames,
-    integrate_positions and the sensor-frame transform)."""
+    integrate_positions and the sensor-frame transform).  With ``use_target`` the shear's free
+    part a(u) + b(v) comes from ``shear_target`` (a graph's F, reconstruction/graphsheet.py)."""
     nf, mf = k_u.shape
     if shear_passes > 0:
         sin_gamma = _shear(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes)
     else:
         sin_gamma = np.zeros((nf, mf))
+    if use_target:
+        _shear_free_part(sin_gamma, lam_u, lam_v, shear_target)
     rot_u, rot_v = _rotation_rates(h, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
     fr = _integrate_frames(rot_u, rot_v, a0, b0, corrections, band)
     pos = _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band)
@@ -596,7 +621,8 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     zero, one = np.zeros((nf, mf)), np.ones((nf, mf))
     metric = metric_terms(float(h), one, one)
     pos = surface_positions(
-        float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0)
+        float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0),
+        zero, False,
     )
     if not np.isfinite(pos).all():
         raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")

@@ -354,3 +354,22 @@ def test_turned_saddle_strains_twist_and_mirror():
     # the spec parser and amplitude scaling keep the angle
     s = parse_shape_spec("saddle:radius=80,axis_angle=30")
     assert isinstance(s, Saddle) and s.axis_angle == 30.0
+
+
+def test_quadric_matches_turned_saddle_and_checks_its_parameters():
+    from skinmap.emulator.physics import Quadric, parse_shape_spec
+
+    radius, angle = 70.0, 25.0
+    phi = math.radians(angle)
+    c2, s2 = math.cos(2 * phi), math.sin(2 * phi)
+    quad = Quadric(c2 / radius, s2 / radius, -c2 / radius)
+    saddle = Saddle(radius, axis_angle=angle)
+    uv = np.random.default_rng(2).uniform(-30, 30, (50, 2))
+    np.testing.assert_allclose(quad.position(uv), saddle.position(uv), atol=1e-12)
+    np.testing.assert_allclose(quad.normal(uv), saddle.normal(uv), atol=1e-12)
+    for a, b in zip(gauge_strains(quad, 4, 4), gauge_strains(saddle, 4, 4)):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    spec = parse_shape_spec("quadric:k_uu=0.01,k_uv=-0.004")
+    assert (spec.k_uu, spec.k_uv, spec.k_vv) == (0.01, -0.004, 0.0)
+    with pytest.raises(ValueError, match="k_uv"):
+        Quadric(0.0, float("nan"), 0.0)
