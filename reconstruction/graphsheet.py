@@ -13,8 +13,8 @@ least-norm shear, which are exact only for small slopes:
   τ = (M − (F/E) L) / (√E · √(G − F²/E)), L = z_uu/W, M = z_uv/W;
 * the shear F = z_u z_v supplies the part f(u) + g(v) that Brioschi's formula leaves free.
 
-On a graph-mapped saddle turned by 30° (R 60 mm) this takes the mean node error from 0.14 to
-0.03 mm; see docs/reconstruction.md, "Sheets pushed out of plane".
+On a graph-mapped saddle turned by 30° (R 50 mm) this takes the mean node error from 0.27 to
+0.026 mm; see docs/reconstruction.md, step 2b.
 """
 from __future__ import annotations
 
