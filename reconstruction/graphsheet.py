@@ -77,6 +77,11 @@ def graph_sheet_fields(
         p, q = graph_slopes(grid, k_uu, k_vv, tau_var)
         k = slope_twist_quartic(p[inner], q[inner], stretch_sq[0][inner], stretch_sq[1][inner], u[:, inner[1]], v[inner[0]])
         c = _local_minimum(k, c)
+    # A constant twist is trusted in proportion to the share of the stretch misfit it removes:
+    # fully from 80 %, not at all below 50 % (then the slopes' own errors, e.g. a bump the gauges
+    # do not resolve, could be absorbed into a small twist that bends a large sheet's far corners)
+    best, zero = quartic_value(k, c), quartic_value(k, 0.0)
+    c *= min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
     e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
     if not quartic_value(k, c) < RESIDUAL_LIMIT * float((e1 * e1).sum() + (g1 * g1).sum()):
         return None
