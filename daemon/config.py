@@ -60,6 +60,8 @@ class ReconstructionConfig:
     h_lower_mm: float = 0.0
     strain_sigma: float = 5.7e-5  # strain-noise s.d. used for uncertainty estimates
     warm_start: bool = True
+    # the field fit's solver: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md)
+    convex_solver: str = "factorized"
 
 
 @dataclass(frozen=True)
@@ -272,6 +274,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "h_lower_mm": _number(0, 10),
         "strain_sigma": _number(0, 0.01),
         "warm_start": _boolean,
+        "convex_solver": _choice("factorized", "clarabel"),
     },
     "output": {
         "rate_hz": _number(0, 2000),

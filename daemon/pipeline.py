@@ -102,6 +102,7 @@ class FramePipeline:
         *,
         strain_sigma: float = 5.7e-5,
         warm_start: bool = True,
+        convex_solver: str = "factorized",
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -111,6 +112,7 @@ class FramePipeline:
             raise ValueError("element offsets and element coordinates differ in count")
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
+        self.convex_solver = convex_solver
         self._previous: Any = None
         self._last_good: FrameResult | None = None
         # Our own reconstructor (not the module-wide cache): its state (factorisations, the masks
@@ -136,7 +138,9 @@ class FramePipeline:
             from skinmap.reconstruction import Reconstructor
 
             g = self.geometry
-            self._reconstructor = Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm)
+            self._reconstructor = Reconstructor(
+                g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm, convex_solver=self.convex_solver
+            )
         return self._reconstructor
 
     @reconstructor.setter
@@ -146,7 +150,7 @@ class FramePipeline:
     def continue_from(self, earlier: "FramePipeline | None") -> None:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
         reconnect or a new HELLO) when the geometry is the same."""
-        if earlier is not None and earlier.geometry == self.geometry:
+        if earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver:
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
 

@@ -76,6 +76,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig) -> FramePipeline:
         np.asarray(offsets, dtype=np.float64),
         strain_sigma=cfg.reconstruction.strain_sigma,
         warm_start=cfg.reconstruction.warm_start,
+        convex_solver=cfg.reconstruction.convex_solver,
     )
 
 

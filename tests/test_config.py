@@ -52,6 +52,7 @@ def test_defaults_are_loopback():
         ({"log": {"max_file_mb": 0}}, "log.max_file_mb", "> 0"),
         ({"bogus": {}}, "[bogus]", "unknown"),
         ({"log": 5}, "log", "table"),
+        ({"reconstruction": {"convex_solver": "cvxpy"}}, "reconstruction.convex_solver", "one of"),
     ],
 )
 def test_bad_values_name_key_and_rule(doc, key, fragment):

@@ -328,3 +328,20 @@ def test_wildly_inconsistent_strains_mid_stream_never_publish_nan(tmp_path):
     assert any("unusable" in w for w in phase.warnings)
     print("RELIABILITY " + json.dumps({"fault": phase.fault, "recovery_s": phase.recovery_s,
                                        "published": len(items)}))
+
+
+def test_clarabel_field_fit_gives_the_factorized_result_and_survives_a_dead_gauge():
+    """`[reconstruction] convex_solver = "clarabel"`: the same convex field fit solved by
+    Clarabel (Huber loss); with every gauge fitted exactly both solvers give one surface."""
+    fast = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
+    conic = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)), convex_solver="clarabel")
+    a, b = fast.process(GOOD, 0, 0, 0), conic.process(GOOD, 0, 0, 0)
+    assert conic.reconstructor.convex_solver == "clarabel"
+    np.testing.assert_allclose(b.element_positions_mm, a.element_positions_mm, atol=5e-3)
+    dead = GOOD.copy()
+    dead[0, 0, 2, 2] = RES_OPEN
+    check_publishable(conic.process(dead, 1, 1000, 1))
+    # a reconnect with another solver builds its own reconstructor
+    other = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
+    other.continue_from(conic)
+    assert other.reconstructor.convex_solver == "factorized"
