@@ -94,9 +94,9 @@ def graph_sheet_fields(
 
 
 def _local_minimum(k: tuple[float, ...], c: float, steps: int = 8) -> float:
-    """Newton steps on the quartic's derivative from ``c`` (the slopes barely move the minimum,
-    and staying near ``c`` keeps the sign chosen before); ``c`` itself when a step would leave
-    the basin (no positive curvature) or grow."""
+    """Newton steps on the quartic's derivative from ``c`` (the slopes barely move the minimum);
+    ``c`` itself when a step would leave the basin (no positive curvature), change the sign or
+    raise the cost."""
     k4, k3, k2, k1, _ = k
     x = c
     for _ in range(steps):
@@ -108,4 +108,5 @@ def _local_minimum(k: tuple[float, ...], c: float, steps: int = 8) -> float:
         x -= step
         if abs(step) <= 1e-12 * max(abs(x), 1e-9):
             break
-    return x if quartic_value(k, x) <= quartic_value(k, c) else c
+    # never across zero: the sign was chosen by the data's mirror test or by the caller
+    return x if x * c > 0.0 and quartic_value(k, x) <= quartic_value(k, c) else c
