@@ -560,6 +560,7 @@ class Gateway:
 
     def start(self) -> None:
         limit_blas_threads()  # before the first solve: replay must see the same arithmetic
+        prepare_reconstruction_kernels()
         if self._logger is not None:
             t = threading.Thread(target=self._log_loop, name="skinmap-log", daemon=True)
             t.start()
@@ -640,6 +641,18 @@ def limit_blas_threads() -> None:
     import skinmap.reconstruction  # noqa: F401 - load scipy's own BLAS first, so it is limited too
 
     threadpool_limits(limits=1)
+
+
+def prepare_reconstruction_kernels() -> None:
+    """Compile the reconstruction kernels, or load them from numba's cache, before the scanner
+    link opens: the first start after an install compiles for about 15 s, which must not stall
+    the first frames (nor count as dropped scans and latency)."""
+    from skinmap.reconstruction import Reconstructor
+
+    t0 = time.perf_counter()
+    log.info("preparing the reconstruction kernels (the first start after an install compiles them, about 20 s)")
+    kernels = Reconstructor(2, 2).kernels  # the warm-up covers every size: one signature
+    log.info("reconstruction kernels ready (%s) in %.1f s", kernels, time.perf_counter() - t0)
 
 
 def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
