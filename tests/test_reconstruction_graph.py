@@ -121,3 +121,19 @@ def test_a_bump_on_a_large_sheet_gets_no_spurious_constant_twist():
     eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
     err = mean_error(Reconstructor(n, n, PITCH, H, H, GAUGE)(eu, el), shape)
     assert err < 0.06, err
+
+
+def test_closed_form_cubic_roots_match_numpy():
+    """The twist fit's cubic: closed-form real roots equal numpy's eigenvalue roots, also for
+    coefficients spread over twelve decades (largest root found first, the others deflated)."""
+    from skinmap.reconstruction.engine import _cubic_real_roots
+
+    rng = np.random.default_rng(11)
+    for _ in range(3000):
+        coeffs = rng.normal(size=4) * 10.0 ** rng.uniform(-6, 6, 4)
+        expected = [r.real for r in np.roots(coeffs) if abs(r.imag) <= 1e-9 * max(abs(r), 1e-12)]
+        got = _cubic_real_roots(*coeffs)
+        for r in expected:
+            assert min(abs(r - g) for g in got) <= 1e-7 * max(abs(r), 1e-12), (coeffs, expected, got)
+    assert sorted(_cubic_real_roots(1.0, -6.0, 11.0, -6.0)) == pytest.approx([1.0, 2.0, 3.0])
+    assert _cubic_real_roots(2.0, 0.0, 0.0, -16.0) == pytest.approx([2.0])
