@@ -40,7 +40,7 @@ class Client:
         self.port.write(p.encode_frame(msg, self.seq))
         self.seq += 1
 
-    def read_until(self, pred, timeout=3.0) -> list[p.Frame]:
+    def read_until(self, pred, timeout=10.0) -> list[p.Frame]:
         end = time.monotonic() + timeout
         got: list[p.Frame] = []
         while time.monotonic() < end:
@@ -156,7 +156,7 @@ def test_disconnect_then_new_pty_behind_the_same_symlink(tmp_path):
             stale = b""
         assert stale == b""
         port.close()
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + 10.0
         while not link.exists() and time.monotonic() < deadline:
             time.sleep(0.02)
         assert link.exists() and os.readlink(link) == emu.transport.path
