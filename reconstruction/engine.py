@@ -98,7 +98,7 @@ def solve_twist(
     tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
     # bias the estimates.
-    inner = (slice(grid.node_rows[0], grid.node_rows[-1] + 1), slice(grid.node_cols[0], grid.node_cols[-1] + 1))
+    inner = grid.inner
     ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau0[inner], lam_u[inner], lam_v[inner]
     count = ku_in.size
     prod = float((ku_in * kv_in - t_in * t_in).sum()) / count

@@ -59,13 +59,11 @@ def graph_sheet_fields(
     """
     v = grid.v[:, None]
     u = grid.u[None, :]
-    inner = (slice(grid.node_rows[0], grid.node_rows[-1] + 1), slice(grid.node_cols[0], grid.node_cols[-1] + 1))
-    c = graph.slope_twist
-    p, q = graph.p, graph.q
-    k_uu = k_vv = None
-    tau_var = None
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {passes!r}")
+    inner = grid.inner
+    c = graph.slope_twist
+    p, q = graph.p, graph.q
     for _ in range(passes):
         z_u, z_v = p + c * v, q + c * u
         w = np.sqrt(1.0 + z_u * z_u + z_v * z_v)

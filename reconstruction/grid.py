@@ -245,6 +245,11 @@ class FineGrid:
         return FixedSolver(normal_for(valid.astype(float)).tocsc())
 
     @property
+    def inner(self) -> tuple[slice, slice]:
+        """Index of the region spanned by the cell centres (where differences are central)."""
+        return (slice(self.node_rows[0], self.node_rows[-1] + 1), slice(self.node_cols[0], self.node_cols[-1] + 1))
+
+    @property
     def dense_maps(self) -> bool:
         """Small grids keep dense data → field maps (one product per frame); large ones solve
         through the sparse factorisations."""
