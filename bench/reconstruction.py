@@ -150,11 +150,11 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     return classes
 
 
-def accuracy_table(k: int, noisy_draws: int, seed: int) -> None:
+def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool = False) -> None:
     rng = np.random.default_rng(seed)
     n = m = 5
     centres = ph.cell_centres(n, m, PITCH)
-    print(f"\nAccuracy, {n}x{m} cells, pitch {PITCH:g} mm, h = {H:g} mm, {GAUGE:g} mm gauges "
+    print(f"\nAccuracy{' with the graph fit (graph_fit=True)' if graph_fit else ''}, {n}x{m} cells, pitch {PITCH:g} mm, h = {H:g} mm, {GAUGE:g} mm gauges "
           f"({k} random shapes per class, seed {seed}; noisy: s.d. {100 * NOISE:.4f} % strain, {noisy_draws} draws each)")
     head = f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} {'L_r/L_g':>16s}"
     print(head)
@@ -164,12 +164,13 @@ def accuracy_table(k: int, noisy_draws: int, seed: int) -> None:
         for shape, kw in shapes:
             eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
             truth = shape.position(centres)
-            surf = reconstruct(eu, el, PITCH, H, H, **kw)
+            surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, **kw)
             e = node_errors(surf.nodes, truth)
             clean_mean.append(e.mean())
             clean_max.append(e.max())
             for _ in range(noisy_draws):
-                noisy = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, H, H, **kw)
+                noisy = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, H, H,
+                                    graph_fit=graph_fit, **kw)
                 e = node_errors(noisy.nodes, truth)
                 noisy_mean.append(e.mean())
                 noisy_max.append(e.max())
@@ -311,13 +312,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2024, help="seed of the random shape parameters and noise")
     ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
     ap.add_argument("--only", choices=("accuracy", "timing"), default=None, help="print one part only")
+    ap.add_argument("--graph-fit", action="store_true",
+                    help="reconstruct with graph_fit=True (step 0: height graph fitted to turning and stretch)")
     ap.add_argument("--kernels", choices=("compiled", "numpy"), default="compiled",
                     help="per-frame kernels of the timing table (numpy: the reference implementation)")
     args = ap.parse_args()
     k = args.shapes or (4 if args.quick else 12)
     threadpool_limits(1)
     if args.only != "timing":
-        accuracy_table(k, 1 if args.quick else 3, args.seed)
+        accuracy_table(k, 1 if args.quick else 3, args.seed, args.graph_fit)
         bump_grid_table(4 if args.quick else 10, args.seed)
     if args.only == "accuracy":
         return

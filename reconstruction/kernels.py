@@ -30,7 +30,10 @@ try:
 except ImportError:  # the numpy reference still works without it
     numba = None
 
-__all__ = ["AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up"]
+__all__ = [
+    "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
+    "graph_residuals", "graph_normal_equations",
+]
 
 AVAILABLE = numba is not None
 
@@ -612,6 +615,88 @@ def laplacian_band(incidence: sp.spmatrix, pinned: int, factor: np.ndarray | Non
     return band
 
 
+# ------------------------------------------------------------------------- graph fit
+@_helper
+def _gauge_point(da, db, daa, vals, g, q):
+    """Slope along (a) and across (b) the gauge and the second derivative along it at point q."""
+    a = 0.0
+    b = 0.0
+    aa = 0.0
+    for k in range(vals.shape[0]):
+        a += da[g, q, k] * vals[k]
+        b += db[g, q, k] * vals[k]
+        aa += daa[g, q, k] * vals[k]
+    return a, b, aa
+
+
+@_compiled
+def graph_residuals(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, res):
+    """Normalised residuals of the graph model (see :mod:`.graphfit`): res[:G] turning,
+    res[G:] stretch, G gauges."""
+    ng, nq, nl = da.shape
+    vals = np.empty(nl)
+    for g in range(ng):
+        for k in range(nl):
+            vals[k] = c[idx[g, k]]
+        t_m = 0.0
+        s_m = 0.0
+        for q in range(nq):
+            a, b, aa = _gauge_point(da, db, daa, vals, g, q)
+            lam2 = 1.0 + a * a
+            lam = math.sqrt(lam2)
+            t_m += wq[q] * (-aa / (math.sqrt(lam2 + b * b) * lam))
+            s_m += wq[q] * lam
+        res[g] = (t_m - turning[g]) * w_t[g]
+        res[ng + g] = (s_m - stretch[g]) * w_s[g]
+
+
+@_compiled
+def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix):
+    """Adds JᵀJ (lower band storage, band[d, j] = A[j + d, j]) and Jᵀr of the graph model's
+    normalised residuals to ``band`` and ``rhs`` (which hold the prior's part); only Jᵀr when
+    not ``with_matrix``."""
+    ng, nq, nl = da.shape
+    vals = np.empty(nl)
+    jt = np.empty(nl)
+    js = np.empty(nl)
+    for g in range(ng):
+        for k in range(nl):
+            vals[k] = c[idx[g, k]]
+            jt[k] = 0.0
+            js[k] = 0.0
+        t_m = 0.0
+        s_m = 0.0
+        for q in range(nq):
+            a, b, aa = _gauge_point(da, db, daa, vals, g, q)
+            lam2 = 1.0 + a * a
+            w2 = lam2 + b * b
+            lam = math.sqrt(lam2)
+            inv = 1.0 / (math.sqrt(w2) * lam)
+            t_m += wq[q] * (-aa * inv)
+            s_m += wq[q] * lam
+            d_aa = wq[q] * -inv
+            d_a = wq[q] * (aa * inv) * (a / w2 + a / lam2)
+            d_b = wq[q] * (aa * inv) * (b / w2)
+            d_s = wq[q] * (a / lam)
+            for k in range(nl):
+                jt[k] += d_aa * daa[g, q, k] + d_a * da[g, q, k] + d_b * db[g, q, k]
+                js[k] += d_s * da[g, q, k]
+        rt = (t_m - turning[g]) * w_t[g]
+        rs = (s_m - stretch[g]) * w_s[g]
+        for k in range(nl):
+            jt[k] *= w_t[g]
+            js[k] *= w_s[g]
+            rhs[idx[g, k]] += jt[k] * rt + js[k] * rs
+        if not with_matrix:
+            continue
+        for k in range(nl):
+            i = idx[g, k]
+            for l in range(nl):
+                j = idx[g, l]
+                if i >= j:
+                    band[i - j, j] += jt[k] * jt[l] + js[k] * js[l]
+
+
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
     """Compile (or load from the cache) every kernel with the argument types of a frame, on a
     flat sheet of this grid, so that the first frame does not pay for it.  Returns whether the
@@ -626,6 +711,13 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     )
     if not np.isfinite(pos).all():
         raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")
+    # the graph fit's kernels, on one gauge touching four coefficients
+    idx = np.zeros((1, 4), dtype=np.int64)
+    pts = np.zeros((1, 2, 4))
+    one_g, res = np.ones(1), np.empty(2)
+    graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
+    graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
+                           np.zeros((4, 4)), np.zeros(4), True)
     return bool(_state["cached"])
 
 

@@ -50,3 +50,15 @@ class CheckedFile:
 
     def close(self) -> None:
         self.raw.close()
+
+
+def aligned_error(nodes, truth) -> float:
+    """Mean node error after the best rigid alignment (Kabsch)."""
+    import numpy as np
+
+    p, q = np.asarray(nodes).reshape(-1, 3), np.asarray(truth).reshape(-1, 3)
+    pc, qc = p.mean(0), q.mean(0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return float(np.linalg.norm((p - pc) @ r.T + qc - q, axis=1).mean())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import aligned_error
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor
@@ -86,17 +87,7 @@ def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertaint
     eu_1[0, 2, 3] = np.nan
     one = rec(eu_1, el)
     assert np.abs(one.nodes - clean.nodes).max() < 0.3
-    assert _aligned_error(one.nodes, truth) < 2.0 * _aligned_error(clean.nodes, truth) + 0.05
-
-
-def _aligned_error(nodes, truth):
-    """Mean node error after the best rigid alignment (Kabsch)."""
-    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
-    pc, qc = p.mean(0), q.mean(0)
-    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return float(np.linalg.norm((p - pc) @ r.T + qc - q, axis=1).mean())
+    assert aligned_error(one.nodes, truth) < 2.0 * aligned_error(clean.nodes, truth) + 0.05
 
 
 def test_replay_of_the_same_sequence_is_bit_identical():
@@ -155,7 +146,7 @@ def test_turned_saddles_from_the_physics_model(radius, angle, kwargs, bound):
     shape = ph.Saddle(radius, axis_angle=angle)
     eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, G)
     surf = Reconstructor(n, m, PITCH, H, H, G)(eu, el, **kwargs)
-    assert _aligned_error(surf.nodes, shape.position(ph.cell_centres(n, m, PITCH))) < bound
+    assert aligned_error(surf.nodes, shape.position(ph.cell_centres(n, m, PITCH))) < bound
 
 
 @pytest.mark.parametrize("grid_cls", [FineGrid, _SparseGrid])

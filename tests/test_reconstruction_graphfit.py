@@ -1,0 +1,115 @@
+"""The height-graph fit (Reconstructor(..., graph_fit=True), docs/reconstruction.md step 0):
+accuracy on bumps sharper than a gauge, fallback to the general model on sheets that are not
+graphs, warm starts, bad data, and the compiled kernels against the numpy reference."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import aligned_error
+
+from skinmap.emulator import physics as ph
+from skinmap.reconstruction import Reconstructor, reconstruct
+
+PITCH, H, G = 12.0, 0.2, 10.0
+N = M = 5
+NOISE = 0.0057e-2
+CENTRES = ph.cell_centres(N, M, PITCH)
+
+
+@pytest.fixture(scope="module")
+def recs():
+    return Reconstructor(N, M, PITCH, H, H, G, graph_fit=True), Reconstructor(N, M, PITCH, H, H, G)
+
+
+# Sharp bumps (peak bend radius shorter than a gauge) at places and heights of their own
+SHARP = [(5.0, (17.0, -9.0)), (-4.6, (-21.0, 13.5)), (4.2, (3.5, 22.0)), (-5.0, (-8.0, -6.0))]
+
+
+@pytest.mark.parametrize("height, centre", SHARP)
+def test_sharp_bumps_are_resolved(recs, height, centre):
+    graph, general = recs
+    shape = ph.GaussianBumps(height=height, fwhm=15.0, centre=centre)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    truth = shape.position(CENTRES)
+    surf = graph(eu, el)
+    assert surf.diagnostics.extra["model"] == "graph"
+    e_graph, e_general = aligned_error(surf.nodes, truth), aligned_error(general(eu, el).nodes, truth)
+    assert e_graph < 0.06 and e_graph < 0.5 * e_general
+    rng = np.random.default_rng(int(abs(height) * 10))
+    noisy = graph(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape))
+    assert aligned_error(noisy.nodes, truth) < 0.12
+    assert np.isfinite(noisy.normals).all() and np.allclose(np.linalg.norm(noisy.normals, axis=-1), 1.0)
+
+
+@pytest.mark.parametrize(
+    "shape",
+    [ph.Cylinder(35.0, 0.0), ph.Cylinder(-50.0, 30.0), ph.SphereCap(55.0), ph.Flat()],
+    ids=["cylinder", "oblique cylinder", "sphere cap", "flat"],
+)
+def test_sheets_that_are_not_graphs_get_the_general_model(recs, shape):
+    graph, general = recs
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    a, b = graph(eu, el), general(eu, el)
+    assert a.diagnostics.extra["model"] == "general"
+    assert np.array_equal(a.nodes, b.nodes)
+
+
+def test_warm_start_follows_a_moving_bump(recs):
+    graph, _ = recs
+    rng = np.random.default_rng(5)
+    prev, hows, errs = None, [], []
+    for k in range(8):
+        shape = ph.GaussianBumps(height=4.5, fwhm=16.0, centre=(-6.0 + 0.4 * k, 11.0))
+        eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+        prev = graph(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), previous=prev)
+        hows.append(prev.diagnostics.extra["graph_fit"])
+        errs.append(aligned_error(prev.nodes, shape.position(CENTRES)))
+    # every frame explained by a graph; a warm start that does not converge within its two steps
+    # is followed by a cold one
+    assert hows[0] == "cold" and set(hows) <= {"warm", "cold"} and "warm" in hows
+    assert max(errs) < 0.12
+
+
+def test_a_glitching_gauge_falls_back_and_a_dead_one_still_gives_a_surface(recs):
+    graph, general = recs
+    shape = ph.GaussianBumps(height=4.0, fwhm=18.0, centre=(5.0, 4.0))
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    bad = eu.copy()
+    bad[0, 1, 2] += 0.05  # a 5 % glitch on one gauge: no graph explains it
+    surf = graph(bad, el)
+    assert surf.diagnostics.extra["model"] == "general"
+    assert np.array_equal(surf.nodes, general(bad, el).nodes)
+    dead = eu.copy()
+    dead[1, 3, 3] = np.nan
+    surf = graph(dead, el)
+    assert np.isfinite(surf.nodes).all() and surf.diagnostics.valid_units == 2 * N * M - 1
+    assert aligned_error(surf.nodes, shape.position(CENTRES)) < 0.2
+    assert surf.node_sigma[3, 3] > 0
+
+
+def test_twist_sign_against_the_graph_falls_back():
+    shape = ph.Saddle(60.0, axis_angle=30.0)  # graph twist z_uv = sin 60° / 60 > 0
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    told = reconstruct(eu, el, PITCH, graph_fit=True, twist_sign=1)
+    assert told.diagnostics.twist_constant > 0
+    contra = reconstruct(eu, el, PITCH, graph_fit=True, twist_sign=-1)
+    assert contra.diagnostics.extra["model"] == "general"
+    assert "other sign" in contra.diagnostics.extra["graph_fit"] or contra.diagnostics.extra["graph_fit"] != "cold"
+
+
+def test_compiled_graph_fit_matches_the_numpy_reference():
+    fast = Reconstructor(N, M, PITCH, H, H, G, graph_fit=True)
+    ref = Reconstructor(N, M, PITCH, H, H, G, graph_fit=True, kernels="numpy")
+    shape = ph.GaussianBumps(height=-4.0, fwhm=17.0, centre=(-10.0, 7.0))
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    a, b = fast(eu, el), ref(eu, el)
+    assert a.diagnostics.extra["model"] == b.diagnostics.extra["model"] == "graph"
+    # different factorisations (banded vs dense) of the same normal equations
+    assert np.abs(a.nodes - b.nodes).max() < 1e-5
+
+
+def test_graph_fit_arguments_are_checked():
+    with pytest.raises(ValueError, match="graph_fit must be True or False"):
+        Reconstructor(5, 5, graph_fit="yes")
+    with pytest.raises(ValueError, match="up to 64 cells"):
+        Reconstructor(9, 9, graph_fit=True)
