@@ -44,8 +44,6 @@ __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics",
 DEFAULT_STRAIN_SIGMA = 0.0057e-2
 # The graph fit needs most units (a graph is judged by all of its gauges' misfit).
 _GRAPH_MIN_UNITS = 0.8
-# A graph twist (mean z_uv, 1/mm) smaller than this has no sign worth contradicting twist_sign.
-_TWIST_SIGN_FLOOR = 1e-4
 
 
 def _positive(name: str, value: float) -> float:
@@ -201,14 +199,19 @@ class Reconstructor:
         if twist_sign is not None and twist_sign not in (1, -1, 1.0, -1.0):
             raise ValueError(f"twist_sign must be +1 or -1, got {twist_sign!r}")
         graph = None
+        general = None
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
             sig_t = np.sqrt(2.0) * sigma / (self.h_upper + self.h_lower)
             sig_s = sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+            data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             warm = getattr(previous, "_graph_start", None) if previous is not None else None
-            graph = self._graph.fit(turning, stretch, valid, sig_t, sig_s, start=warm)
-            if graph.accepted and twist_sign is not None and graph.twist * float(twist_sign) < -_TWIST_SIGN_FLOOR:
-                graph = graph._replace(accepted=False, how="the graph's twist has the other sign than twist_sign")
+            if warm is not None:
+                graph = self._graph.fit_warm(data, warm, twist_sign)
+            if graph is None or not graph.accepted:
+                # cold: the general model first (a start for the fit, and the answer if no graph fits)
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign)
+                graph = self._graph.fit_cold(data, general[0], twist_sign)
         left_out = True
         if graph is not None and graph.accepted:
             pos = _to_sensor_frame(grid, self._graph.fine_positions(graph.coeffs))
@@ -219,9 +222,9 @@ class Reconstructor:
             if n_valid < valid.size:
                 left_out = getattr(grid.field_maps(valid), "left_out", True)
         else:
-            pos, twist_c, fit, convex_info, left_out = self._general(
-                turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign
-            )
+            if general is None:
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign)
+            pos, twist_c, fit, convex_info, left_out = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
             # Only reachable with wildly inconsistent data; a surface must still come out.

@@ -34,7 +34,7 @@ import numpy as np
 import scipy.linalg
 from scipy.interpolate import BSpline
 
-__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS"]
+__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS", "TWIST_SIGN_FLOOR"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
 #: noise variance.  Measured (5×5, noise s.d. 0.0057 %): converged graphs 0.3-3 (noise-free
@@ -44,15 +44,19 @@ __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS"]
 ACCEPT_CHI2 = 4.0
 #: Size limit (cells) of the graph fit: a 5×5 sheet has 324 unknowns, 8×8 729.
 MAX_CELLS = 64
+#: A graph twist (mean w_uv, 1/mm) smaller than this has no sign worth contradicting twist_sign.
+TWIST_SIGN_FLOOR = 1e-4
 _KNOTS_PER_PITCH = 3
 _QUADRATURE = (4, 2)  # Gauss-Legendre nodes per panel, panels per gauge
 _PRIOR_WEIGHTS = ((3, 0, 1.0), (2, 1, 3.0), (1, 2, 3.0), (0, 3, 1.0))  # ∫|∇³w|², isotropic
-_PRIOR_SCALE = 1.0  # (mm units) the data dominate wherever gauges are; 1-3000 measured alike
+_PRIOR_SCALE = 300.0  # (mm units) far below the data where gauges are; it keeps the in-between modes stiff enough for Gauss-Newton (1: steps overshoot by 10⁶)
 _RIDGE = 1e-6  # keeps the normal equations definite along modes no datum sees
 _MAX_STEPS = 10  # from the linear fit
 _GIVE_UP_CHI2 = 50.0 * ACCEPT_CHI2  # after _GIVE_UP_AFTER steps: not a graph, stop paying
 _GIVE_UP_AFTER = 4
 _WARM_STEPS = 2  # from the previous frame
+_WARM_CURVATURE = (1.0, 1.0)
+_COLD_CURVATURE = (0.0, 0.0)
 _SCREEN_SIGMAS = 2.0  # implied mean stretch below this many noise s.d.: small slopes, no fit
 _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 4.0)  # measured / implied stretch outside: not a graph
@@ -70,8 +74,20 @@ class GraphResult(NamedTuple):
     iterations: int
     twist: float  # mean w_uv over the cell-centre region (1/mm): the sign of a mirror pair
     turning_rms: float  # RMS turning misfit per length (1/mm)
-    how: str  # "warm" (from the previous frame), "cold" (from the linear fit), or why not accepted
+    how: str  # "warm" (previous frame), "linear" / "general" (cold start), or why not accepted
     factor: object  # the last Gauss-Newton matrix factorised (the next frame starts with it)
+    objective: float  # the minimised objective (data misfit and prior), to rank cold starts
+
+
+def _rotation(g) -> np.ndarray:
+    """Rotation matrix of the rotation vector g (Rodrigues)."""
+    g = np.asarray(g, dtype=float)
+    angle = float(np.linalg.norm(g))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = g / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
 
 
 def _basis_1d(lo: float, hi: float, intervals: int) -> tuple[np.ndarray, int]:
@@ -156,8 +172,8 @@ class GraphFit:
         gv = [_gram(kv, nbv, d) for d in range(4)]
         prior = _PRIOR_SCALE * sum(wt * np.kron(gv[b], gu[a]) for a, b, wt in _PRIOR_WEIGHTS)
         prior[np.diag_indices(nc)] += _RIDGE
-        self._pin = (nbv // 2) * nbu + nbu // 2
-        prior[self._pin, self._pin] += 1.0
+        self.pin = (nbv // 2) * nbu + nbu // 2
+        prior[self.pin, self.pin] += 1.0
         self.prior = prior
         nz_i, nz_j = np.nonzero(np.abs(prior) > 0)
         self.bandwidth = int(max(self.bandwidth, np.max(np.abs(nz_i - nz_j))))
@@ -174,6 +190,10 @@ class GraphFit:
         self._fu = [_design(ku, nbu, np.asarray(fine_u, float), d) for d in range(2)]
         self._fv = [_design(kv, nbv, np.asarray(fine_v, float), d) for d in range(2)]
         self._twist = np.kron(self._fv[1][inner[0]].mean(0), self._fu[1][inner[1]].mean(0))
+        # Least-squares projection of fine-grid heights onto the basis (separable).
+        self._project_u = np.linalg.pinv(self._fu[0])
+        self._project_v = np.linalg.pinv(self._fv[0])
+        self._fine_uv = np.stack(np.broadcast_arrays(self._fine_u[None, :], self._fine_v[:, None]), axis=-1).reshape(-1, 2)
 
     # ---------------------------------------------------------------- per frame
     def _start(self, turning: np.ndarray, valid: np.ndarray, sigma_t: float) -> np.ndarray:
@@ -225,7 +245,7 @@ class GraphFit:
             rt, rs = (tm - turning) * w_t, (sm - stretch) * w_s
         return 0.5 * float(rt @ rt + rs @ rs + c @ (self.prior @ c)), rt, rs
 
-    def _linearise(self, c, turning, stretch, w_t, w_s, with_matrix: bool):
+    def _linearise(self, c, turning, stretch, w_t, w_s, with_matrix: bool, curvature=(0.0, 0.0)):
         """Gradient Jᵀr + Pc of the objective at c and, ``with_matrix``, the Cholesky factor of
         the Gauss-Newton matrix JᵀJ + P (None when it is not positive definite)."""
         rhs = self.prior @ c
@@ -233,7 +253,8 @@ class GraphFit:
         if self._compiled is not None:
             band = self.prior_band.copy() if with_matrix else self._no_band
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
-                                                  stretch, w_t, w_s, band, rhs, with_matrix)
+                                                  stretch, w_t, w_s, band, rhs, with_matrix,
+                                                  np.asarray(curvature, dtype=float))
             if with_matrix:
                 try:
                     factor = ("band", scipy.linalg.cholesky_banded(band, lower=True, check_finite=False))
@@ -249,8 +270,15 @@ class GraphFit:
         np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
         rhs += j.T @ np.concatenate([rt, rs])
         if with_matrix:
+            # r ∂²r of the stretch residuals r > 0 (see kernels.graph_normal_equations)
+            a = np.einsum("gql,gl->gq", self.da, c[self.idx])
+            cr = np.where(rs > 0.0, curvature[0] * rs, -curvature[1] * rs)
+            cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
+            blocks = np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da)
+            curv = np.zeros((self.size, self.size))
+            np.add.at(curv, (self.idx[:, :, None], self.idx[:, None, :]), blocks)
             try:
-                factor = ("dense", scipy.linalg.cho_factor(j.T @ j + self.prior, lower=True, check_finite=False))
+                factor = ("dense", scipy.linalg.cho_factor(j.T @ j + curv + self.prior, lower=True, check_finite=False))
             except (np.linalg.LinAlgError, ValueError):
                 factor = None
         return rhs, factor
@@ -262,7 +290,8 @@ class GraphFit:
             return scipy.linalg.cho_solve_banded((f, True), rhs, check_finite=False)
         return scipy.linalg.cho_solve(f, rhs, check_finite=False)
 
-    def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, factor=None):
+    def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, factor=None,
+                 curvature=(0.0, 0.0)):
         """Gauss-Newton with a backtracking line search; the factorised matrix is reused while
         the steps keep shrinking fast (it changes little near the optimum) and refreshed
         otherwise; ``factor``: one to start with (the previous frame's).  Returns (c, rt, rs,
@@ -273,7 +302,7 @@ class GraphFit:
         tol = _TOLERANCE * n_valid
         while steps < max_steps:
             if factor is None:
-                rhs, factor = self._linearise(c, turning, stretch, w_t, w_s, True)
+                rhs, factor = self._linearise(c, turning, stretch, w_t, w_s, True, curvature)
                 if factor is None:
                     break
                 fresh = True
@@ -303,35 +332,94 @@ class GraphFit:
             if t < 1.0 or drop > _REUSE_RATIO * last:
                 factor = None
             last = drop
-        return c, rt, rs, steps, factor
+        return c, rt, rs, steps, factor, f0
 
-    def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
-            start: np.ndarray | None = None) -> GraphResult:
-        """Fit w to the unit data (2, N, M) (``engine.unit_data``) with noise s.d. ``sigma_t``
-        (turning per length, 1/mm) and ``sigma_s`` (stretch); ``start``: coefficients of the
-        previous frame's accepted graph and its factorised matrix, (coeffs, factor), tried first;
-        then the linear fit of the turning data."""
+    def prepare(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float,
+                sigma_s: float) -> tuple:
+        """The unit data (2, N, M) (``engine.unit_data``) as the fits take them, with noise s.d.
+        ``sigma_t`` (turning per length, 1/mm) and ``sigma_s`` (stretch)."""
         turning = np.ascontiguousarray(turning, dtype=float).ravel()
         stretch = np.ascontiguousarray(stretch, dtype=float).ravel()
         valid = np.asarray(valid, dtype=bool).ravel()
-        w_t = valid / sigma_t
-        w_s = valid / sigma_s
-        turning = np.where(valid, turning, 0.0)
-        stretch = np.where(valid, stretch, 1.0)
-        n_valid = max(int(valid.sum()), 1)
-        best = None
-        if start is not None and np.shape(start[0]) == (self.size,):
-            best = self._result(*self._descend(np.array(start[0], dtype=float), turning, stretch, w_t, w_s, n_valid,
-                                               _WARM_STEPS, start[1]), n_valid, sigma_t, "warm")
-            if best.accepted:
-                return best
-        c = self._start(turning, valid, sigma_t)
-        reason = self._screen(c, stretch, valid, sigma_s)
-        if reason:
-            return best if best is not None else self._result(c, None, None, 0, None, n_valid, sigma_t, reason)
-        res = self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS), n_valid, sigma_t,
-                           "cold")
-        return res if best is None or res.accepted or not best.accepted and res.chi2_stretch < best.chi2_stretch else best
+        return (np.where(valid, turning, 0.0), np.where(valid, stretch, 1.0), valid / sigma_t, valid / sigma_s,
+                valid, max(int(valid.sum()), 1), float(sigma_t), float(sigma_s))
+
+    def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None) -> GraphResult:
+        """A few Gauss-Newton steps from the previous frame's accepted graph, ``start`` =
+        (coeffs, factor) (``GraphResult.coeffs`` and ``.factor``)."""
+        turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
+        if np.shape(start[0]) != (self.size,):
+            raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")
+        out = self._descend(np.array(start[0], dtype=float), turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, start[1],
+                            _WARM_CURVATURE)
+        return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
+
+    def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None) -> GraphResult:
+        """Fit from the linear fit of the turning data and, given ``general`` (the general
+        model's fine-grid positions (nf, mf, 3), any rigid frame), from that surface as well;
+        the accepted fit with the lower objective wins.  The two starts fail differently: the
+        linear one has no twist (steep twisted quadrics can end in a wrong basin), the general
+        model's smooths sub-gauge features (sharp bumps can end in a wrong basin)."""
+        turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
+        starts = [("linear", self._start(turning, valid, sigma_t))]
+        if general is not None:
+            c = self.coeffs_from_positions(general)
+            if np.isfinite(c).all():
+                starts.append(("general", c))
+        reasons = [self._screen(c, stretch, valid, sigma_s) for _, c in starts]
+        if all(reasons):
+            return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[-1], None, math.inf)
+        results = [self._judge(self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
+                                                           curvature=_COLD_CURVATURE),
+                                            n_valid, sigma_t, how), twist_sign)
+                   for (how, c), why in zip(starts, reasons) if not why]
+        accepted = [r for r in results if r.accepted]
+        if accepted:
+            return min(accepted, key=lambda r: r.objective)
+        closest = min(results, key=lambda r: r.chi2_stretch)
+        screened = [f"{how}: {why}" for (how, _), why in zip(starts, reasons) if why]
+        return closest._replace(how="; ".join([r.how for r in results] + screened))
+
+    def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
+            start: tuple | None = None, general: np.ndarray | None = None,
+            twist_sign: float | None = None) -> GraphResult:
+        """Fit w to the unit data (2, N, M) (``engine.unit_data``): from ``start`` (the previous
+        frame's (coeffs, factor)) first, then cold (:meth:`fit_cold`)."""
+        data = self.prepare(turning, stretch, valid, sigma_t, sigma_s)
+        if start is not None:
+            warm = self.fit_warm(data, start, twist_sign)
+            if warm.accepted:
+                return warm
+        return self.fit_cold(data, general, twist_sign)
+
+    def coeffs_from_positions(self, pos: np.ndarray, passes: int = 4) -> np.ndarray:
+        """Coefficients of the graph closest to a surface given by its fine-grid positions (nf,
+        mf, 3) in any rigid frame.  The base frame is the one that puts every node over its own
+        material point (u, v): alternating the rigid fit (Kabsch) of the nodes to (u, v, ẑ) and
+        ẑ ← the nodes' heights in that frame (the heights are free, so each pass lowers the
+        in-plane misfit alone); then the heights projected onto the basis."""
+        p = np.asarray(pos, dtype=float).reshape(-1, 3)
+        p = p - p.mean(axis=0)
+        target = np.empty_like(p)
+        target[:, :2] = self._fine_uv - self._fine_uv.mean(axis=0)
+        target[:, 2] = 0.0  # first pass: the best plane
+        moved = p
+        for _ in range(passes):
+            target[:, 2] -= target[:, 2].mean()
+            u, _, vt = np.linalg.svd(p.T @ target)
+            d = np.sign(np.linalg.det(u @ vt))
+            rot = (u * np.array([1.0, 1.0, d])) @ vt  # p @ rot ≈ target
+            moved = p @ rot
+            target[:, 2] = moved[:, 2]
+        z = moved[:, 2].reshape(len(self._fine_v), len(self._fine_u))
+        c = (self._project_v @ z @ self._project_u.T).ravel()
+        return c - c[self.pin]
+
+    @staticmethod
+    def _judge(res: GraphResult, twist_sign: float | None) -> GraphResult:
+        if res.accepted and twist_sign is not None and res.twist * float(twist_sign) < -TWIST_SIGN_FLOOR:
+            return res._replace(accepted=False, how=f"{res.how}: the graph's twist has the other sign than twist_sign")
+        return res
 
     def _screen(self, c: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_s: float) -> str:
         """Why the sheet cannot be a graph ('' when it may be): in a graph no gauge shortens
@@ -356,14 +444,15 @@ class GraphFit:
             return f"stretch {ratio:.2f} x the graph's"
         return ""
 
-    def _result(self, c, rt, rs, steps: int, factor, n_valid: int, sigma_t: float, how: str) -> GraphResult:
+    def _result(self, c, rt, rs, steps: int, factor, objective: float, n_valid: int, sigma_t: float,
+                how: str) -> GraphResult:
         if rt is None:
-            return GraphResult(False, c, math.inf, math.inf, 0, 0.0, math.inf, how, None)
+            return GraphResult(False, c, math.inf, math.inf, 0, 0.0, math.inf, how, None, math.inf)
         chi_t, chi_s = float(rt @ rt) / n_valid, float(rs @ rs) / n_valid
         accepted = bool(chi_t <= ACCEPT_CHI2 and chi_s <= ACCEPT_CHI2 and np.isfinite(c).all())
         return GraphResult(accepted, c, chi_t, chi_s, steps, float(self._twist @ c), math.sqrt(chi_t) * sigma_t,
                            how if accepted else f"{how}: misfit chi2 {chi_t:.3g} (turning), {chi_s:.3g} (stretch)",
-                           factor)
+                           factor, float(objective))
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

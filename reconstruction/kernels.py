@@ -651,10 +651,12 @@ def graph_residuals(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, res):
 
 
 @_compiled
-def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix):
+def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature):
     """Adds JᵀJ (lower band storage, band[d, j] = A[j + d, j]) and Jᵀr of the graph model's
     normalised residuals to ``band`` and ``rhs`` (which hold the prior's part); only Jᵀr when
-    not ``with_matrix``."""
+    not ``with_matrix``.  ``curvature`` = (p, n): the matrix also takes p·r ∂²r of every
+    stretch residual r > 0 and n·|r| ∂²r of every r < 0 (∂²r ≥ 0): plain Gauss-Newton sees no
+    stretch where a slope is small, and overshoots there (see :mod:`.graphfit`)."""
     ng, nq, nl = da.shape
     vals = np.empty(nl)
     jt = np.empty(nl)
@@ -695,6 +697,19 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
                 j = idx[g, l]
                 if i >= j:
                     band[i - j, j] += jt[k] * jt[l] + js[k] * js[l]
+        cr = curvature[0] * rs if rs > 0.0 else -curvature[1] * rs
+        if cr > 0.0:
+            for q in range(nq):
+                a, b, aa = _gauge_point(da, db, daa, vals, g, q)
+                lam = math.sqrt(1.0 + a * a)
+                cw = cr * w_s[g] * wq[q] / (lam * lam * lam)
+                for k in range(nl):
+                    i = idx[g, k]
+                    dk = cw * da[g, q, k]
+                    for l in range(nl):
+                        j = idx[g, l]
+                        if i >= j:
+                            band[i - j, j] += dk * da[g, q, l]
 
 
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
@@ -717,7 +732,7 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     one_g, res = np.ones(1), np.empty(2)
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
-                           np.zeros((4, 4)), np.zeros(4), True)
+                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2))
     return bool(_state["cached"])
 
 

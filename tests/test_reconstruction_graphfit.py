@@ -64,9 +64,10 @@ def test_warm_start_follows_a_moving_bump(recs):
         prev = graph(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), previous=prev)
         hows.append(prev.diagnostics.extra["graph_fit"])
         errs.append(aligned_error(prev.nodes, shape.position(CENTRES)))
-    # every frame explained by a graph; a warm start that does not converge within its two steps
-    # is followed by a cold one
-    assert hows[0] == "cold" and set(hows) <= {"warm", "cold"} and "warm" in hows
+    # every frame explained by a graph; a warm start that does not converge within its steps is
+    # followed by a cold one (from the linear fit or from the general model, the better wins)
+    cold = {"linear", "general"}
+    assert hows[0] in cold and set(hows) <= cold | {"warm"} and "warm" in hows
     assert max(errs) < 0.12
 
 
@@ -94,7 +95,39 @@ def test_twist_sign_against_the_graph_falls_back():
     assert told.diagnostics.twist_constant > 0
     contra = reconstruct(eu, el, PITCH, graph_fit=True, twist_sign=-1)
     assert contra.diagnostics.extra["model"] == "general"
-    assert "other sign" in contra.diagnostics.extra["graph_fit"] or contra.diagnostics.extra["graph_fit"] != "cold"
+    # the graph with the data's twist is refused, or (from the mirrored general model) none fits
+    why = contra.diagnostics.extra["graph_fit"]
+    assert "other sign" in why or ("general: misfit" in why and "linear" in why)
+
+
+@pytest.mark.parametrize("k_uu, k_uv, k_vv", [(0.022, -0.018, 0.012), (-0.008, 0.0125, -0.0195), (0.0045, 0.0117, 0.0303)])
+def test_steep_twisted_graphs_get_the_right_twist(k_uu, k_uv, k_vv):
+    # twisted quadrics whose corner slopes reach 0.5-1 (the last one an oblique trough): a fit
+    # from the linear start alone can end with the wrong twist; the general model's start finds it
+    shape = ph.Quadric(k_uu, k_uv, k_vv)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    surf = reconstruct(eu, el, PITCH, graph_fit=True)
+    assert surf.diagnostics.extra["model"] == "graph"
+    assert np.sign(surf.diagnostics.twist_constant) == np.sign(k_uv)
+    assert aligned_error(surf.nodes, shape.position(CENTRES)) < 0.01
+    rng = np.random.default_rng(11)
+    noisy = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, graph_fit=True)
+    assert aligned_error(noisy.nodes, shape.position(CENTRES)) < 0.05
+
+
+def test_graph_start_from_positions_recovers_the_coefficients():
+    fit = Reconstructor(N, M, PITCH, H, H, G, graph_fit=True)._graph
+    # a graph symmetric about the sheet's centre (its best plane is the base plane): a dome and
+    # a saddle, projected onto the basis
+    uu, vv = np.meshgrid(fit._fine_u, fit._fine_v)
+    heights = 4.0 * np.exp(-(uu**2 + vv**2) / 300.0) + 0.004 * (uu**2 - vv**2) + 0.003 * uu * vv
+    coeffs = (fit._project_v @ heights @ fit._project_u.T).ravel()
+    coeffs -= coeffs[fit.pin]
+    pos = fit.fine_positions(coeffs)
+    # in another rigid frame: turned by a rotation vector of 0.4 rad and moved
+    from skinmap.reconstruction.graphfit import _rotation
+    moved = pos @ _rotation((0.25, -0.2, 0.23)).T + np.array([3.0, -1.0, 7.0])
+    assert np.abs(fit.coeffs_from_positions(moved) - coeffs).max() < 1e-3
 
 
 def test_compiled_graph_fit_matches_the_numpy_reference():
