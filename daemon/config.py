@@ -62,6 +62,9 @@ class ReconstructionConfig:
     warm_start: bool = True
     # the field fit's solver: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md)
     convex_solver: str = "factorized"
+    # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
+    # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md
+    graph_fit: bool = False
 
 
 @dataclass(frozen=True)
@@ -275,6 +278,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "strain_sigma": _number(0, 0.01),
         "warm_start": _boolean,
         "convex_solver": _choice("factorized", "clarabel"),
+        "graph_fit": _boolean,
     },
     "output": {
         "rate_hz": _number(0, 2000),

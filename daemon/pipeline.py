@@ -103,6 +103,7 @@ class FramePipeline:
         strain_sigma: float = 5.7e-5,
         warm_start: bool = True,
         convex_solver: str = "factorized",
+        graph_fit: bool = False,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -113,6 +114,7 @@ class FramePipeline:
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
         self.convex_solver = convex_solver
+        self.graph_fit = bool(graph_fit)
         self._previous: Any = None
         self._last_good: FrameResult | None = None
         # Our own reconstructor (not the module-wide cache): its state (factorisations, the masks
@@ -135,11 +137,14 @@ class FramePipeline:
         """The reconstruction callable (a `Reconstructor` for this geometry, built on first use;
         replaceable, e.g. by tests)."""
         if self._reconstructor is None:
-            from skinmap.reconstruction import Reconstructor
+            from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
 
             g = self.geometry
+            # the graph fit is offered for small sheets only; larger ones keep the general model
+            graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
             self._reconstructor = Reconstructor(
-                g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm, convex_solver=self.convex_solver
+                g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm, convex_solver=self.convex_solver,
+                graph_fit=graph_fit,
             )
         return self._reconstructor
 
@@ -150,7 +155,8 @@ class FramePipeline:
     def continue_from(self, earlier: "FramePipeline | None") -> None:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
         reconnect or a new HELLO) when the geometry is the same."""
-        if earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver:
+        if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
+                and earlier.graph_fit == self.graph_fit):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
 

@@ -77,6 +77,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig) -> FramePipeline:
         strain_sigma=cfg.reconstruction.strain_sigma,
         warm_start=cfg.reconstruction.warm_start,
         convex_solver=cfg.reconstruction.convex_solver,
+        graph_fit=cfg.reconstruction.graph_fit,
     )
 
 

@@ -37,7 +37,8 @@ from .robust import huber_potential
 from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma
 
-__all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA"]
+__all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
+           "GRAPH_FIT_MAX_CELLS"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.

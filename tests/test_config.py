@@ -53,6 +53,7 @@ def test_defaults_are_loopback():
         ({"bogus": {}}, "[bogus]", "unknown"),
         ({"log": 5}, "log", "table"),
         ({"reconstruction": {"convex_solver": "cvxpy"}}, "reconstruction.convex_solver", "one of"),
+        ({"reconstruction": {"graph_fit": "yes"}}, "reconstruction.graph_fit", "true or false"),
     ],
 )
 def test_bad_values_name_key_and_rule(doc, key, fragment):
@@ -110,3 +111,8 @@ def test_tls_on_loopback_needs_the_same_opt_in_as_the_session():
     # make_session_config refuses anything but tcp on loopback by default; --check must agree.
     with pytest.raises(ConfigError, match="zenoh.listen"):
         parse_config({"zenoh": {"listen": ["tls/127.0.0.1:7447"]}})
+
+
+def test_graph_fit_is_off_unless_asked_for():
+    assert parse_config({}).reconstruction.graph_fit is False
+    assert parse_config({"reconstruction": {"graph_fit": True}}).reconstruction.graph_fit is True

@@ -345,3 +345,27 @@ def test_clarabel_field_fit_gives_the_factorized_result_and_survives_a_dead_gaug
     other = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
     other.continue_from(conic)
     assert other.reconstructor.convex_solver == "factorized"
+
+
+def test_graph_fit_option_reaches_the_reconstructor_and_large_sheets_keep_the_general_model():
+    """`[reconstruction] graph_fit = true`: a sharp bump is fitted as a height graph; a sheet
+    beyond the graph fit's size keeps the general model instead of failing."""
+    shape = make_shape("gaussian", height=5.0, fwhm=15.0, u0=-14.0, v0=11.0)
+    good = resistances(*gauge_strains(shape, N, M, pitch=PITCH))
+    plain = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
+    graph = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)), graph_fit=True)
+    a, b = plain.process(good, 0, 0, 0), graph.process(good, 0, 0, 0)
+    assert graph.reconstructor.graph_fit and not plain.reconstructor.graph_fit
+    check_publishable(b)
+    truth = shape.position(ELEMENT_UV)
+    err = [np.linalg.norm(r.element_positions_mm - r.element_positions_mm[4] - (truth - truth[4]), axis=1).max()
+           for r in (a, b)]
+    assert err[1] < err[0]  # the graph resolves the sharp bump the general model smooths
+    # a reconnect with the other setting builds its own reconstructor
+    other = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
+    other.continue_from(graph)
+    assert not other.reconstructor.graph_fit
+    big = ArrayGeometry(9, 9, PITCH, 0.2, 0.2)
+    large = FramePipeline(big, Calibration(np.full((2, 2, 9, 9), 1.24), np.full((2, 2, 9, 9), 6.55)), ELEMENT_UV,
+                          np.zeros(len(ELEMENT_UV)), graph_fit=True)
+    assert not large.reconstructor.graph_fit
