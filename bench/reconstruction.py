@@ -33,7 +33,7 @@ from scipy import ndimage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.emulator import physics as ph  # noqa: E402
-from skinmap.reconstruction import Reconstructor, reconstruct  # noqa: E402
+from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, reconstruct  # noqa: E402
 
 PITCH, H, GAUGE = 12.0, 0.2, 10.0
 NOISE = 0.0057e-2
@@ -243,13 +243,15 @@ def time_unseen_masks(rec: Reconstructor, frames: list, uv: np.ndarray, rng: np.
     return np.array(cpu)
 
 
-def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernels: str = "compiled") -> None:
+def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernels: str = "compiled",
+                 graph_fit: bool = False) -> None:
     rng = np.random.default_rng(seed)
     t0, c0 = time.perf_counter(), time.thread_time()
     Reconstructor(2, 2, kernels=kernels)  # loads (or compiles) the kernels once per process
     print(f"\nKernels: {kernels}; loading them took {time.perf_counter() - t0:.2f} s "
           f"({time.thread_time() - c0:.2f} s CPU), once per process, before the setups below")
-    print("\nTime per frame: reconstruct + locate(20 elements), warm, one core, one BLAS thread")
+    print("\nTime per frame: reconstruct + locate(20 elements), warm, one core, one BLAS thread"
+          + (f"; graph fit on up to {GRAPH_FIT_MAX_CELLS} cells" if graph_fit else ""))
     head = (f"{'N x N':>7s} {'fine grid':>10s} {'setup ms':>9s} {'median ms':>10s} {'p90 ms':>8s} "
             f"{'cpu median ms':>14s} {'cpu p90 ms':>11s} {'points(20) ms':>14s} {'clarabel fit median ms':>23s}")
     print(head)
@@ -268,7 +270,8 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernel
             eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
             frames.append((eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)))
         t0 = time.perf_counter()
-        rec = Reconstructor(n, n, PITCH, H, H, GAUGE, kernels=kernels)
+        rec = Reconstructor(n, n, PITCH, H, H, GAUGE, kernels=kernels,
+                            graph_fit=graph_fit and n * n <= GRAPH_FIT_MAX_CELLS)
         surf = rec(*frames[0])
         setup = time.perf_counter() - t0
         t, cpu = time_frames(rec, frames, uv)
@@ -325,7 +328,7 @@ def main() -> None:
     if args.only == "accuracy":
         return
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
-    timing_table([5, 8, 16, 32], frames, args.seed, args.kernels)
+    timing_table([5, 8, 16, 32], frames, args.seed, args.kernels, args.graph_fit)
 
 
 if __name__ == "__main__":

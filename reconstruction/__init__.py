@@ -201,10 +201,11 @@ class Reconstructor:
             raise ValueError(f"twist_sign must be +1 or -1, got {twist_sign!r}")
         graph = None
         general = None
+        warm = None
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
-            sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
-            sig_t = np.sqrt(2.0) * sigma / (self.h_upper + self.h_lower)
-            sig_s = sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+            fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
+            sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
+            sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             warm = getattr(previous, "_graph_start", None) if previous is not None else None
             if warm is not None:
@@ -254,16 +255,28 @@ class Reconstructor:
         if graph is not None:
             diag.extra.update(graph_fit=graph.how, graph_steps=graph.iterations,
                               graph_chi2=(round(graph.chi2_turning, 4), round(graph.chi2_stretch, 4)))
+        def general_sigma() -> np.ndarray:
+            return fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l, left_out=left_out)
+
+        if fit is None:  # the graph's own scatter; a missing unit's region as the general model has it
+            def surface_sigma() -> np.ndarray:
+                sigma = self._graph.fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
+                                                      grid.spacing)
+                return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
+        else:
+            surface_sigma = general_sigma
         surf = Surface(
             pitch=self.pitch,
             fine_u=grid.u,
             fine_v=grid.v,
             fine_positions=pos,
             node_index=(grid.node_rows, grid.node_cols),
-            fine_sigma=lambda: fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l, left_out=left_out),
+            fine_sigma=surface_sigma,
             diagnostics=diag,
         )
-        surf._graph_start = (graph.coeffs, graph.factor) if fit is None else None  # the next frame's start
+        # the next frame's start: this graph and the one before it (a moving shape is predicted)
+        earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
+        surf._graph_start = (graph.coeffs, earlier) if fit is None else None
         diag.solve_time = time.perf_counter() - t0
         return surf
 

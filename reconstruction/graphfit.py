@@ -33,6 +33,8 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 from scipy.interpolate import BSpline
+from scipy.linalg.lapack import dpbtrf as _pbtrf
+from scipy.linalg.lapack import dpbtrs as _pbtrs
 
 __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS", "TWIST_SIGN_FLOOR"]
 
@@ -49,17 +51,21 @@ TWIST_SIGN_FLOOR = 1e-4
 _KNOTS_PER_PITCH = 3
 _QUADRATURE = (4, 2)  # Gauss-Legendre nodes per panel, panels per gauge
 _PRIOR_WEIGHTS = ((3, 0, 1.0), (2, 1, 3.0), (1, 2, 3.0), (0, 3, 1.0))  # ∫|∇³w|², isotropic
-_PRIOR_SCALE = 300.0  # (mm units) far below the data where gauges are; it keeps the in-between modes stiff enough for Gauss-Newton (1: steps overshoot by 10⁶)
+_PRIOR_SCALE = 1000.0  # (mm units) far below the data where gauges are; stiff enough for Gauss-Newton between them (at 1 steps overshoot by 10⁶) and for a modest scatter at the corners
 _RIDGE = 1e-6  # keeps the normal equations definite along modes no datum sees
 _MAX_STEPS = 10  # from the linear fit
 _GIVE_UP_CHI2 = 50.0 * ACCEPT_CHI2  # after _GIVE_UP_AFTER steps: not a graph, stop paying
 _GIVE_UP_AFTER = 4
-_WARM_STEPS = 2  # from the previous frame
+_WARM_STEPS = 4  # from the previous frame
 _WARM_CURVATURE = (1.0, 1.0)
+_WARM_REUSE = 1.0
+_SIGMA_CURV = True
+_PREDICT_ALWAYS = False
 _COLD_CURVATURE = (0.0, 0.0)
 _SCREEN_SIGMAS = 2.0  # implied mean stretch below this many noise s.d.: small slopes, no fit
 _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 4.0)  # measured / implied stretch outside: not a graph
+_MORE_STRETCH = "stretch above:"
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
 _REUSE_RATIO = 0.3  # keep the factorised matrix while each drop is below this share of the last
 
@@ -75,7 +81,6 @@ class GraphResult(NamedTuple):
     twist: float  # mean w_uv over the cell-centre region (1/mm): the sign of a mirror pair
     turning_rms: float  # RMS turning misfit per length (1/mm)
     how: str  # "warm" (previous frame), "linear" / "general" (cold start), or why not accepted
-    factor: object  # the last Gauss-Newton matrix factorised (the next frame starts with it)
     objective: float  # the minimised objective (data misfit and prior), to rank cold starts
 
 
@@ -245,32 +250,34 @@ class GraphFit:
             rt, rs = (tm - turning) * w_t, (sm - stretch) * w_s
         return 0.5 * float(rt @ rt + rs @ rs + c @ (self.prior @ c)), rt, rs
 
-    def _linearise(self, c, turning, stretch, w_t, w_s, with_matrix: bool, curvature=(0.0, 0.0)):
-        """Gradient Jᵀr + Pc of the objective at c and, ``with_matrix``, the Cholesky factor of
-        the Gauss-Newton matrix JᵀJ + P (None when it is not positive definite)."""
-        rhs = self.prior @ c
+    def _evaluate(self, c, turning, stretch, w_t, w_s, with_matrix: bool, curvature=(0.0, 0.0)):
+        """At c: the objective, its gradient Jᵀr + Pc, the normalised residuals (turning then
+        stretch) and, ``with_matrix``, the factorised Gauss-Newton matrix JᵀJ + P (plus the
+        stretch curvature, see kernels.graph_normal_equations; None when not positive definite)."""
+        pc = self.prior @ c
+        rhs = pc.copy()
         factor = None
+        g = len(turning)
         if self._compiled is not None:
             band = self.prior_band.copy() if with_matrix else self._no_band
+            res = np.empty(2 * g)
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                   stretch, w_t, w_s, band, rhs, with_matrix,
-                                                  np.asarray(curvature, dtype=float))
+                                                  np.asarray(curvature, dtype=float), res)
             if with_matrix:
-                try:
-                    factor = ("band", scipy.linalg.cholesky_banded(band, lower=True, check_finite=False))
-                except (np.linalg.LinAlgError, ValueError):
-                    factor = None
-            return rhs, factor
+                f, info = _pbtrf(band, lower=1)
+                factor = ("band", f) if info == 0 else None
+            return 0.5 * float(res @ res + c @ pc), rhs, res, factor
         tm, sm, jt, js = self._model(c, True)
         rt, rs = (tm - turning) * w_t, (sm - stretch) * w_s
-        g = len(turning)
         j = np.zeros((2 * g, self.size))
         rows = np.repeat(np.arange(g), self.idx.shape[1])
         np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
         np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
-        rhs += j.T @ np.concatenate([rt, rs])
+        res = np.concatenate([rt, rs])
+        rhs += j.T @ res
         if with_matrix:
-            # r ∂²r of the stretch residuals r > 0 (see kernels.graph_normal_equations)
+            # the stretch residuals' own curvature (see kernels.graph_normal_equations)
             a = np.einsum("gql,gl->gq", self.da, c[self.idx])
             cr = np.where(rs > 0.0, curvature[0] * rs, -curvature[1] * rs)
             cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
@@ -281,58 +288,55 @@ class GraphFit:
                 factor = ("dense", scipy.linalg.cho_factor(j.T @ j + curv + self.prior, lower=True, check_finite=False))
             except (np.linalg.LinAlgError, ValueError):
                 factor = None
-        return rhs, factor
+        return 0.5 * float(res @ res + c @ pc), rhs, res, factor
 
     @staticmethod
     def _solve(factor, rhs: np.ndarray) -> np.ndarray:
         kind, f = factor
         if kind == "band":
-            return scipy.linalg.cho_solve_banded((f, True), rhs, check_finite=False)
+            return _pbtrs(f, rhs, lower=1)[0]
         return scipy.linalg.cho_solve(f, rhs, check_finite=False)
 
-    def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, factor=None,
-                 curvature=(0.0, 0.0)):
-        """Gauss-Newton with a backtracking line search; the factorised matrix is reused while
-        the steps keep shrinking fast (it changes little near the optimum) and refreshed
-        otherwise; ``factor``: one to start with (the previous frame's).  Returns (c, rt, rs,
-        steps, the last factor computed)."""
-        f0, rt, rs = self._objective(c, turning, stretch, w_t, w_s)
-        fresh, last = False, math.inf
+    def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, curvature=(0.0, 0.0),
+                 reuse: float = _REUSE_RATIO):
+        """Gauss-Newton with a backtracking line search.  The factorised matrix is reused for the
+        next step while the steps keep shrinking (by at least the factor ``reuse``: it changes
+        little near the optimum) and refreshed otherwise or when a step with it fails.  Returns
+        (c, rt, rs, steps, the objective)."""
+        g = len(turning)
+        f0, grad, res, factor = self._evaluate(c, turning, stretch, w_t, w_s, True, curvature)
+        fresh, last = True, math.inf
         steps = 0
         tol = _TOLERANCE * n_valid
-        while steps < max_steps:
-            if factor is None:
-                rhs, factor = self._linearise(c, turning, stretch, w_t, w_s, True, curvature)
-                if factor is None:
-                    break
-                fresh = True
-            else:
-                rhs, _ = self._linearise(c, turning, stretch, w_t, w_s, False)
-                fresh = False
-            dc = self._solve(factor, rhs)
+        while steps < max_steps and factor is not None:
+            dc = self._solve(factor, grad)
             t = 1.0
-            f1, rt1, rs1 = self._objective(c - dc, turning, stretch, w_t, w_s)
+            f1, grad1, res1, _ = self._evaluate(c - dc, turning, stretch, w_t, w_s, False)
             if not f1 < f0:
-                if not fresh:
-                    factor = None  # stale matrix: linearise again before damping
+                if not fresh:  # the reused matrix failed: linearise here again
+                    f0, grad, res, factor = self._evaluate(c, turning, stretch, w_t, w_s, True, curvature)
+                    fresh = True
                     continue
                 while not f1 < f0 and t > 1e-3:
                     t *= 0.5
-                    f1, rt1, rs1 = self._objective(c - t * dc, turning, stretch, w_t, w_s)
+                    f1, grad1, res1, _ = self._evaluate(c - t * dc, turning, stretch, w_t, w_s, False)
                 if not f1 < f0:
                     break
             c = c - t * dc
-            rt, rs = rt1, rs1
+            grad, res = grad1, res1
             steps += 1
             drop, f0 = f0 - f1, f1
             if drop <= tol:
                 break
-            if steps >= _GIVE_UP_AFTER and float(rs @ rs) / n_valid > _GIVE_UP_CHI2:
+            if steps >= _GIVE_UP_AFTER and float(res[g:] @ res[g:]) / n_valid > _GIVE_UP_CHI2:
                 break
-            if t < 1.0 or drop > _REUSE_RATIO * last:
-                factor = None
+            if steps < max_steps and (t < 1.0 or drop > reuse * last):
+                f0, grad, res, factor = self._evaluate(c, turning, stretch, w_t, w_s, True, curvature)
+                fresh = True
+            else:
+                fresh = False
             last = drop
-        return c, rt, rs, steps, factor, f0
+        return c, res[:g], res[g:], steps, f0
 
     def prepare(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float,
                 sigma_s: float) -> tuple:
@@ -345,13 +349,19 @@ class GraphFit:
                 valid, max(int(valid.sum()), 1), float(sigma_t), float(sigma_s))
 
     def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None) -> GraphResult:
-        """A few Gauss-Newton steps from the previous frame's accepted graph, ``start`` =
-        (coeffs, factor) (``GraphResult.coeffs`` and ``.factor``)."""
+        """A few Gauss-Newton steps from the previous frame's accepted graph: ``start`` =
+        (its coefficients, those of the graph before it or None).  For a shape in motion the
+        linear prediction from the two is tried first."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
             raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")
-        out = self._descend(np.array(start[0], dtype=float), turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, start[1],
-                            _WARM_CURVATURE)
+        c = np.array(start[0], dtype=float)
+        if start[1] is not None:
+            # a shape in motion: the linear prediction from the last two graphs, if it fits better
+            predicted = 2.0 * c - start[1]
+            if _PREDICT_ALWAYS or self._objective(predicted, turning, stretch, w_t, w_s)[0] < self._objective(c, turning, stretch, w_t, w_s)[0]:
+                c = predicted
+        out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
 
     def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None) -> GraphResult:
@@ -362,13 +372,17 @@ class GraphFit:
         model's smooths sub-gauge features (sharp bumps can end in a wrong basin)."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
         starts = [("linear", self._start(turning, valid, sigma_t))]
-        if general is not None:
+        reasons = [self._screen(starts[0][1], stretch, valid, sigma_s)]
+        # a gauge that shortens, slopes within the noise or too little stretch for the slopes
+        # the turning implies rule out every graph; more stretch than that may be twist, which
+        # the linear start lacks and the general model's has
+        if general is not None and (not reasons[0] or reasons[0].startswith(_MORE_STRETCH)):
             c = self.coeffs_from_positions(general)
             if np.isfinite(c).all():
                 starts.append(("general", c))
-        reasons = [self._screen(c, stretch, valid, sigma_s) for _, c in starts]
+                reasons.append(self._screen(c, stretch, valid, sigma_s))
         if all(reasons):
-            return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[-1], None, math.inf)
+            return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[-1], math.inf)
         results = [self._judge(self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
                                                            curvature=_COLD_CURVATURE),
                                             n_valid, sigma_t, how), twist_sign)
@@ -383,8 +397,8 @@ class GraphFit:
     def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
             start: tuple | None = None, general: np.ndarray | None = None,
             twist_sign: float | None = None) -> GraphResult:
-        """Fit w to the unit data (2, N, M) (``engine.unit_data``): from ``start`` (the previous
-        frame's (coeffs, factor)) first, then cold (:meth:`fit_cold`)."""
+        """Fit w to the unit data (2, N, M) (``engine.unit_data``): from ``start`` (see
+        :meth:`fit_warm`) first, then cold (:meth:`fit_cold`)."""
         data = self.prepare(turning, stretch, valid, sigma_t, sigma_s)
         if start is not None:
             warm = self.fit_warm(data, start, twist_sign)
@@ -436,23 +450,66 @@ class GraphFit:
             implied = self._model(c, False)[1][valid] - 1.0
         measured = stretch[valid] - 1.0
         if not implied.size or implied.mean() < _SCREEN_SIGMAS * sigma_s:
+            if measured.size and measured.mean() >= _SCREEN_SIGMAS * sigma_s:
+                return f"{_MORE_STRETCH} small slopes"  # stretch without slopes: twist, perhaps
             return "small slopes"
         if measured.min() < -_SCREEN_SHORT * sigma_s:
             return "a gauge shortens"
         ratio = measured.sum() / implied.sum()
-        if not _SCREEN_RATIO[0] <= ratio <= _SCREEN_RATIO[1]:
+        if ratio < _SCREEN_RATIO[0]:
             return f"stretch {ratio:.2f} x the graph's"
+        if ratio > _SCREEN_RATIO[1]:
+            return f"{_MORE_STRETCH} {ratio:.2f} x the graph's"
         return ""
 
-    def _result(self, c, rt, rs, steps: int, factor, objective: float, n_valid: int, sigma_t: float,
+    def _result(self, c, rt, rs, steps: int, objective: float, n_valid: int, sigma_t: float,
                 how: str) -> GraphResult:
         if rt is None:
-            return GraphResult(False, c, math.inf, math.inf, 0, 0.0, math.inf, how, None, math.inf)
+            return GraphResult(False, c, math.inf, math.inf, 0, 0.0, math.inf, how, math.inf)
         chi_t, chi_s = float(rt @ rt) / n_valid, float(rs @ rs) / n_valid
         accepted = bool(chi_t <= ACCEPT_CHI2 and chi_s <= ACCEPT_CHI2 and np.isfinite(c).all())
         return GraphResult(accepted, c, chi_t, chi_s, steps, float(self._twist @ c), math.sqrt(chi_t) * sigma_t,
                            how if accepted else f"{how}: misfit chi2 {chi_t:.3g} (turning), {chi_s:.3g} (stretch)",
-                           factor, float(objective))
+                           float(objective))
+
+    def fine_height_sigma(self, c: np.ndarray, data: tuple, noise_ratio: float, centre: tuple[int, int],
+                          spacing: float) -> np.ndarray:
+        """One-s.d. height error (nf, mf) mm of every fine node in the sensor frame (the height
+        over the tangent plane at the centre node ``centre``, tangents by central differences
+        of ``spacing`` as the frame is built), by linear propagation through the Gauss-Newton
+        normal equations at the solution c: δc = −H⁻¹Jᵀδr with H = JᵀJ + P, the residuals δr
+        normalised by the fit's noise and scattering with s.d. ``noise_ratio`` (the actual noise
+        over the fit's).  The prior's pull is part of H, so where the data say little (between
+        gauges, beyond the outer ones) the fit follows the prior and the scatter stays small."""
+        turning, stretch, w_t, w_s = data[:4]
+        g = len(turning)
+        tm, sm, jt, js = self._model(c, True)
+        j = np.zeros((2 * g, self.size))
+        rows = np.repeat(np.arange(g), self.idx.shape[1])
+        np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
+        np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
+        h = j.T @ j + self.prior
+        if _SIGMA_CURV:
+            rs = (sm - stretch) * w_s
+            a = np.einsum("gql,gl->gq", self.da, c[self.idx])
+            cw = (np.abs(rs) * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
+            blocks = np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da)
+            np.add.at(h, (self.idx[:, :, None], self.idx[:, None, :]), blocks)
+        try:
+            resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
+                                          check_finite=False)
+        except np.linalg.LinAlgError:
+            resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
+        nf, mf = len(self._fine_v), len(self._fine_u)
+        k = resp.shape[1]
+        # fine heights per datum: Fv · A_k · Fuᵀ, all data at once
+        t = (self._fv[0] @ resp.reshape(self.nbv, self.nbu * k)).reshape(nf, self.nbu, k)
+        w = np.einsum("auk,bu->abk", t, self._fu[0])
+        a0, b0 = centre
+        slope_u = (w[a0, b0 + 1] - w[a0, b0 - 1]) / (2.0 * spacing)
+        slope_v = (w[a0 + 1, b0] - w[a0 - 1, b0]) / (2.0 * spacing)
+        w = (w - w[a0, b0] - self._fine_u[None, :, None] * slope_u - self._fine_v[:, None, None] * slope_v)
+        return noise_ratio * np.sqrt((w * w).sum(axis=2))
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

@@ -651,16 +651,19 @@ def graph_residuals(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, res):
 
 
 @_compiled
-def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature):
+def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature, res):
     """Adds JᵀJ (lower band storage, band[d, j] = A[j + d, j]) and Jᵀr of the graph model's
     normalised residuals to ``band`` and ``rhs`` (which hold the prior's part); only Jᵀr when
-    not ``with_matrix``.  ``curvature`` = (p, n): the matrix also takes p·r ∂²r of every
-    stretch residual r > 0 and n·|r| ∂²r of every r < 0 (∂²r ≥ 0): plain Gauss-Newton sees no
-    stretch where a slope is small, and overshoots there (see :mod:`.graphfit`)."""
+    not ``with_matrix``; the normalised residuals to ``res`` (turning, then stretch).
+    ``curvature`` = (p, n): the matrix also takes p·r ∂²r of every stretch residual r > 0 and
+    n·|r| ∂²r of every r < 0 (∂²r ≥ 0): plain Gauss-Newton sees no stretch where a slope is
+    small, and overshoots there (see :mod:`.graphfit`)."""
     ng, nq, nl = da.shape
     vals = np.empty(nl)
     jt = np.empty(nl)
     js = np.empty(nl)
+    lam_q = np.empty(nq)
+    block = np.empty((nl, nl))
     for g in range(ng):
         for k in range(nl):
             vals[k] = c[idx[g, k]]
@@ -673,6 +676,7 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
             lam2 = 1.0 + a * a
             w2 = lam2 + b * b
             lam = math.sqrt(lam2)
+            lam_q[q] = lam
             inv = 1.0 / (math.sqrt(w2) * lam)
             t_m += wq[q] * (-aa * inv)
             s_m += wq[q] * lam
@@ -685,31 +689,39 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
                 js[k] += d_s * da[g, q, k]
         rt = (t_m - turning[g]) * w_t[g]
         rs = (s_m - stretch[g]) * w_s[g]
+        res[g] = rt
+        res[ng + g] = rs
         for k in range(nl):
             jt[k] *= w_t[g]
             js[k] *= w_s[g]
             rhs[idx[g, k]] += jt[k] * rt + js[k] * rs
         if not with_matrix:
             continue
+        # this gauge's block (lower triangle), then added to the band at its indices
         for k in range(nl):
-            i = idx[g, k]
-            for l in range(nl):
-                j = idx[g, l]
-                if i >= j:
-                    band[i - j, j] += jt[k] * jt[l] + js[k] * js[l]
+            for l in range(k + 1):
+                block[k, l] = jt[k] * jt[l] + js[k] * js[l]
         cr = curvature[0] * rs if rs > 0.0 else -curvature[1] * rs
         if cr > 0.0:
             for q in range(nq):
-                a, b, aa = _gauge_point(da, db, daa, vals, g, q)
-                lam = math.sqrt(1.0 + a * a)
+                lam = lam_q[q]
                 cw = cr * w_s[g] * wq[q] / (lam * lam * lam)
                 for k in range(nl):
-                    i = idx[g, k]
                     dk = cw * da[g, q, k]
-                    for l in range(nl):
-                        j = idx[g, l]
-                        if i >= j:
-                            band[i - j, j] += dk * da[g, q, l]
+                    for l in range(k + 1):
+                        block[k, l] += dk * da[g, q, l]
+        for k in range(nl):
+            i = idx[g, k]
+            for l in range(k + 1):
+                j = idx[g, l]
+                if i > j:
+                    band[i - j, j] += block[k, l]
+                elif j > i:
+                    band[j - i, i] += block[k, l]
+                elif k == l:
+                    band[0, i] += block[k, l]
+                else:  # padding repeats a real index: the pair counts on both sides
+                    band[0, i] += 2.0 * block[k, l]
 
 
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
@@ -732,7 +744,7 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     one_g, res = np.ones(1), np.empty(2)
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
-                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2))
+                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res)
     return bool(_state["cached"])
 
 

@@ -146,3 +146,30 @@ def test_graph_fit_arguments_are_checked():
         Reconstructor(5, 5, graph_fit="yes")
     with pytest.raises(ValueError, match="up to 64 cells"):
         Reconstructor(9, 9, graph_fit=True)
+
+
+@pytest.mark.parametrize("shape", [ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-5.0, 8.0)),
+                                   ph.Quadric(0.015, -0.008, 0.012)], ids=["bump", "quadric"])
+def test_graph_uncertainty_matches_monte_carlo(shape):
+    # node_sigma of a graph-fitted surface comes from the graph fit's own normal equations
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=True)
+    assert base.diagnostics.extra["model"] == "graph"
+    assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
+    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=True)
+    # twice the noise (the fit weighs the data by it): more scatter, at most twice as much (the
+    # prior, now relatively stiffer, holds more of the surface)
+    grow = np.delete((double.node_sigma / np.maximum(base.node_sigma, 1e-12)).ravel(), N * M // 2)
+    assert 1.05 < grow.min() and grow.max() < 2.05
+    rng = np.random.default_rng(21)
+    runs = []
+    for _ in range(40):
+        surf = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH,
+                           graph_fit=True)
+        assert surf.diagnostics.extra["model"] == "graph"
+        runs.append(surf.nodes)
+    runs = np.array(runs)
+    scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
+    ratio = np.delete(scatter.ravel(), N * M // 2) / np.delete(base.node_sigma.ravel(), N * M // 2)
+    assert 0.6 < np.median(ratio) < 1.8
+    assert 0.3 < ratio.min() and ratio.max() < 2.5
