@@ -82,11 +82,12 @@ class Reconstructor:
         first frame) or "numpy" (the reference implementation in :mod:`.engine`; also used when
         numba is not installed).  Both give the same surface to rounding.
     graph_fit : fit the sheet as a height graph to every gauge's turning and stretch first
-        (step 0 in docs/reconstruction.md; its surface is used when it explains the data within
-        the noise, else the general model's).  Off by default: it resolves bumps sharper than a
-        gauge (5 mm / FWHM 15 mm: 0.19 → 0.015 mm mean error) at 1-2 ms more per 5×5 frame, and
-        the uncertainty estimate is still the general model's, which understates the graph
-        fit's scatter at the sheet's corners (up to 3× on gentle shapes).  Up to 64 cells.
+        (step 0 in docs/reconstruction.md; its surface, and its own uncertainty, are used when
+        it explains the data within the noise, else the general model's).  It resolves bumps
+        sharper than a gauge (5 mm / FWHM 15 mm: 0.19 → 0.02 mm mean error) and twisted
+        sheets pressed out of plane.  None (default): on for sheets of up to 64 cells
+        (:data:`GRAPH_FIT_MAX_CELLS`; its unknowns grow as (3N + 3)(3M + 3)), off above; True
+        asks for it (an error above 64 cells), False for the general model alone.
     convex_solver : "factorized" (default: the least-squares field fit by its cached
         factorisation, the exact optimum) or "clarabel" (the same convex fit with a Huber loss
         on the turning data, threshold ``huber_sigmas`` noise s.d., solved by Clarabel each
@@ -109,7 +110,7 @@ class Reconstructor:
         convex_solver: str = "factorized",
         huber_sigmas: float = 4.0,
         kernels: str = "compiled",
-        graph_fit: bool = False,
+        graph_fit: bool | None = None,
     ):
         for name, val in (("n (rows)", n), ("m (columns)", m)):
             if isinstance(val, bool) or int(val) != val or int(val) < 2:
@@ -145,8 +146,10 @@ class Reconstructor:
                 compiled.warm_up(grid.spacing, a0, b0, self._band, self.shear_passes, self.frame_corrections)
                 self._compiled = compiled
         self.kernels = "compiled" if self._compiled is not None else "numpy"
+        if graph_fit is None:
+            graph_fit = self.n * self.m <= GRAPH_FIT_MAX_CELLS
         if not isinstance(graph_fit, (bool, np.bool_)):
-            raise ValueError(f"graph_fit must be True or False, got {graph_fit!r}")
+            raise ValueError(f"graph_fit must be True, False or None (by size), got {graph_fit!r}")
         if graph_fit and self.n * self.m > GRAPH_FIT_MAX_CELLS:
             raise ValueError(f"graph_fit is for sheets of up to {GRAPH_FIT_MAX_CELLS} cells "
                              f"(its unknowns grow as (3N + 3)(3M + 3)), got {self.n}x{self.m}")
@@ -388,7 +391,7 @@ def reconstruct(
     strain_sigma: float = DEFAULT_STRAIN_SIGMA,
     previous: Surface | None = None,
     twist_sign: float | None = None,
-    graph_fit: bool = False,
+    graph_fit: bool | None = None,
 ) -> Surface:
     """Reconstruct the sheet's surface from one frame of strains.
 
@@ -397,7 +400,7 @@ def reconstruct(
     s.d. of one gauge for the uncertainty estimate.  ``previous``: the last frame's surface (keeps
     the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly (and
     overrides a sign the stretch pattern would fix).  ``graph_fit``: try the height-graph fit
-    first (see :class:`Reconstructor`).
+    first (None, the default: on for sheets of up to 64 cells; see :class:`Reconstructor`).
     Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length, graph_fit).
     """
     eu = np.asarray(eps_upper, dtype=float)

@@ -51,23 +51,26 @@ TWIST_SIGN_FLOOR = 1e-4
 _KNOTS_PER_PITCH = 3
 _QUADRATURE = (4, 2)  # Gauss-Legendre nodes per panel, panels per gauge
 _PRIOR_WEIGHTS = ((3, 0, 1.0), (2, 1, 3.0), (1, 2, 3.0), (0, 3, 1.0))  # ∫|∇³w|², isotropic
-_PRIOR_SCALE = 1000.0  # (mm units) far below the data where gauges are; stiff enough for Gauss-Newton between them (at 1 steps overshoot by 10⁶) and for a modest scatter at the corners
+_PRIOR_SCALE = 1000.0  # (mm units) far below the data where gauges are; stiff enough between
+# them for Gauss-Newton (at 1, steps overshoot by 10⁶) and for a modest scatter at the corners
 _RIDGE = 1e-6  # keeps the normal equations definite along modes no datum sees
-_MAX_STEPS = 10  # from the linear fit
+_MAX_STEPS = 10  # from a cold start
 _GIVE_UP_CHI2 = 50.0 * ACCEPT_CHI2  # after _GIVE_UP_AFTER steps: not a graph, stop paying
 _GIVE_UP_AFTER = 4
-_WARM_STEPS = 4  # from the previous frame
+_WARM_STEPS = 4  # from the previous frame (or its prediction), on one factorised matrix
+# The stretch residuals' own curvature in the matrix, for r > 0 and r < 0 (see
+# kernels.graph_normal_equations): damps the steps where a slope is small, at the price of
+# slower progress from far away, so the warm steps (near the optimum) and the uncertainty take
+# it and the cold fits do not.
 _WARM_CURVATURE = (1.0, 1.0)
-_WARM_REUSE = 1.0
-_SIGMA_CURV = True
-_PREDICT_ALWAYS = False
 _COLD_CURVATURE = (0.0, 0.0)
+_WARM_REUSE = 1.0  # warm: reuse the factorised matrix until a step with it fails
+_REUSE_RATIO = 0.3  # cold: keep the factorised matrix while each drop is below this share of the last
 _SCREEN_SIGMAS = 2.0  # implied mean stretch below this many noise s.d.: small slopes, no fit
 _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 4.0)  # measured / implied stretch outside: not a graph
-_MORE_STRETCH = "stretch above:"
+_MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
-_REUSE_RATIO = 0.3  # keep the factorised matrix while each drop is below this share of the last
 
 
 class GraphResult(NamedTuple):
@@ -359,7 +362,8 @@ class GraphFit:
         if start[1] is not None:
             # a shape in motion: the linear prediction from the last two graphs, if it fits better
             predicted = 2.0 * c - start[1]
-            if _PREDICT_ALWAYS or self._objective(predicted, turning, stretch, w_t, w_s)[0] < self._objective(c, turning, stretch, w_t, w_s)[0]:
+            if (self._objective(predicted, turning, stretch, w_t, w_s)[0]
+                    < self._objective(c, turning, stretch, w_t, w_s)[0]):
                 c = predicted
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
@@ -489,7 +493,7 @@ class GraphFit:
         np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
         np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
         h = j.T @ j + self.prior
-        if _SIGMA_CURV:
+        if _WARM_CURVATURE[0] or _WARM_CURVATURE[1]:  # as the warm steps (which end the tracking)
             rs = (sm - stretch) * w_s
             a = np.einsum("gql,gl->gq", self.da, c[self.idx])
             cw = (np.abs(rs) * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5

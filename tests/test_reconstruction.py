@@ -199,7 +199,13 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     assert surf.diagnostics.valid_units == 2 * N * M - 1 and "missing" in surf.diagnostics.status
     assert aligned_errors(surf.nodes, shape.position(CENTRES)).mean() < 0.3
     raised = surf.node_sigma - full.node_sigma
-    assert np.all(raised >= -1e-12) and raised[1, 4] > 5 * full.node_sigma[1, 4]
+    # (the graph fit's scatter is that of another nonlinear fit: a node may move a little either way)
+    assert surf.diagnostics.extra["model"] == "graph"
+    assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] > 5 * full.node_sigma[1, 4]
+    # the general model's linear propagation: never lower anywhere
+    full_g = reconstruct(eu, el, PITCH, graph_fit=False)
+    raised_g = reconstruct(eu_dead, el, PITCH, graph_fit=False).node_sigma - full_g.node_sigma
+    assert np.all(raised_g >= -1e-12) and raised_g[1, 4] > 5 * full_g.node_sigma[1, 4]
 
 
 def test_all_gauges_missing_still_gives_a_surface():
@@ -210,16 +216,17 @@ def test_all_gauges_missing_still_gives_a_surface():
 
 
 def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
+    # the general model (the graph fit's own: test_reconstruction_graphfit.py)
     shape = ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0))
     eu, el = strains(shape)
-    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE)
-    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE)
+    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False)
+    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
     assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
     assert np.allclose(double.node_sigma, 2 * base.node_sigma, rtol=1e-9)
     assert np.allclose(base.locate_sigma(CENTRES.reshape(-1, 2)), base.node_sigma.ravel())
     rng = np.random.default_rng(2)
     runs = np.array(
-        [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH).nodes for _ in range(40)]
+        [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, graph_fit=False).nodes for _ in range(40)]
     )
     # empirical one-s.d. scatter of the corner nodes (all runs share the sensor frame)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
@@ -249,8 +256,9 @@ def test_bad_input_is_rejected_with_clear_errors():
 def test_clarabel_fit_agrees_with_the_factorised_fit_on_consistent_data():
     shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
     eu, el = strains(shape)
-    fast = Reconstructor(N, M, PITCH)
-    robust = Reconstructor(N, M, PITCH, convex_solver="clarabel")
+    # the field fit of the general model (a graph fit needs no convex step)
+    fast = Reconstructor(N, M, PITCH, graph_fit=False)
+    robust = Reconstructor(N, M, PITCH, convex_solver="clarabel", graph_fit=False)
     a, b = fast(eu, el), robust(eu, el)
     assert np.abs(a.nodes - b.nodes).max() < 1e-4
     assert b.diagnostics.extra["convex_status"] == "Solved"

@@ -18,7 +18,7 @@ CENTRES = ph.cell_centres(N, M, PITCH)
 
 @pytest.fixture(scope="module")
 def recs():
-    return Reconstructor(N, M, PITCH, H, H, G, graph_fit=True), Reconstructor(N, M, PITCH, H, H, G)
+    return Reconstructor(N, M, PITCH, H, H, G, graph_fit=True), Reconstructor(N, M, PITCH, H, H, G, graph_fit=False)
 
 
 # Sharp bumps (peak bend radius shorter than a gauge) at places and heights of their own
@@ -142,7 +142,7 @@ def test_compiled_graph_fit_matches_the_numpy_reference():
 
 
 def test_graph_fit_arguments_are_checked():
-    with pytest.raises(ValueError, match="graph_fit must be True or False"):
+    with pytest.raises(ValueError, match="graph_fit must be True, False or None"):
         Reconstructor(5, 5, graph_fit="yes")
     with pytest.raises(ValueError, match="up to 64 cells"):
         Reconstructor(9, 9, graph_fit=True)
