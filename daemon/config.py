@@ -63,10 +63,8 @@ class ReconstructionConfig:
     # the field fit's solver: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md)
     convex_solver: str = "factorized"
     # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
-    # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md.
-    # Off by default here: its warm-started frames depend on the frames before them, so a log
-    # file that starts mid-stream would replay within the fit's tolerance, not bit for bit.
-    graph_fit: bool = False
+    # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md
+    graph_fit: bool = True
 
 
 @dataclass(frozen=True)

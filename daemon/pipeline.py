@@ -90,6 +90,17 @@ class OutputDecimator:
         return False
 
 
+#: The graph fit's warm start depends on the frames before it, so the pipeline restarts it cold
+#: at the first scan of every block of this many sample indices: a log replays bit for bit from
+#: the first restart in it (``skinmap replay``), at the cost of one cold fit per block.
+GRAPH_RESTART_SCANS = 64
+
+
+def graph_restart(previous_seq: int | None, seq: int) -> bool:
+    """Whether the scan ``seq`` starts the graph fit cold, given the last processed scan."""
+    return previous_seq is None or seq // GRAPH_RESTART_SCANS != previous_seq // GRAPH_RESTART_SCANS
+
+
 class FramePipeline:
     """Calibrated strains → reconstruction → element coordinates, with warm start."""
 
@@ -103,7 +114,7 @@ class FramePipeline:
         strain_sigma: float = 5.7e-5,
         warm_start: bool = True,
         convex_solver: str = "factorized",
-        graph_fit: bool = False,
+        graph_fit: bool = True,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -116,6 +127,7 @@ class FramePipeline:
         self.convex_solver = convex_solver
         self.graph_fit = bool(graph_fit)
         self._previous: Any = None
+        self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
         # Our own reconstructor (not the module-wide cache): its state (factorisations, the masks
         # it has seen) then depends only on the frames this pipeline processed, which is what
@@ -159,6 +171,7 @@ class FramePipeline:
                 and earlier.graph_fit == self.graph_fit):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
+            self._previous_seq = earlier._previous_seq
 
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
@@ -168,6 +181,8 @@ class FramePipeline:
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
+            if graph_restart(self._previous_seq, seq) and getattr(self.reconstructor, "graph_fit", False):
+                kwargs["graph_warm"] = False
         surf = self.reconstructor(eps_u, eps_l, **kwargs)
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
@@ -201,6 +216,7 @@ class FramePipeline:
             # Never publish NaN: hold the last good frame and say so.
             return self._stale(seq, device_time_us, host_time_ns, eps_u, eps_l, valid, solve_s)
         self._previous = surf
+        self._previous_seq = seq
         result = FrameResult(
             seq=seq,
             device_time_us=device_time_us,

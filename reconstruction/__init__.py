@@ -178,6 +178,7 @@ class Reconstructor:
         strain_sigma: float = DEFAULT_STRAIN_SIGMA,
         previous: Surface | None = None,
         twist_sign: float | None = None,
+        graph_warm: bool = True,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
         the smoothness prior; a mask not seen before leaves its units out of the all-valid fits
@@ -185,7 +186,9 @@ class Reconstructor:
         identical strains (an oblique cylinder; a saddle turned by 45°): ``twist_sign`` (+1 or
         −1) picks one; by default the sign of ``previous`` (the last frame's surface) is kept,
         else +1.  Where the stretch pattern fixes the sign (a saddle turned off 0° and 45°) the
-        data decide unless ``twist_sign`` is given."""
+        data decide unless ``twist_sign`` is given.  ``graph_warm=False``: the graph fit starts
+        cold although ``previous`` holds a graph (a warm fit depends on the frames before it;
+        skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there)."""
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
@@ -210,7 +213,7 @@ class Reconstructor:
             sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
             sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
-            warm = getattr(previous, "_graph_start", None) if previous is not None else None
+            warm = getattr(previous, "_graph_start", None) if previous is not None and graph_warm else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
             if graph is None or not graph.accepted:

@@ -11,18 +11,23 @@ are exact functionals of the height w (a = the gauge's direction, b = across it,
 
 The stretch is what the curvature-field model (steps 1-5) can only smooth: its pattern carries
 the sub-gauge distribution of slope, so a bump whose peak bend radius is shorter than a gauge is
-resolved here (5 mm / FWHM 15 mm bumps: 0.19 → 0.015 mm mean error).  w is a bicubic B-spline
+resolved here (5 mm / FWHM 15 mm bumps: 0.19 → 0.02 mm mean error).  w is a bicubic B-spline
 with knots every pitch/3 over the whole sheet; the fit minimises
 
-    Σ_gauges ((Θ/g)_model − Θ/g)²/σ_Θ² + ((L/g)_model − L/g)²/σ_L² + ∫∫ |∇³w|² du dv
+    ½ Σ_gauges ((Θ/g)_model − Θ/g)²/σ_Θ² + ((L/g)_model − L/g)²/σ_L² + ½ s ∫∫ |∇³w|² du dv
 
-by Gauss-Newton with a backtracking line search, from the linear (small-slope) fit of the
-turning data alone or from the previous frame's graph.  The fit is *accepted* only when it
-explains the data to within the sensor's noise (mean squared normalised residual of the
-turning and of the stretch each at most :data:`ACCEPT_CHI2`); otherwise the sheet is not a graph
-(laid on isometrically, stretched in its plane, a glitching gauge, ...) and the general model
-takes over.  Small problems only: the unknowns grow with the cells, (3N + 3)(3M + 3), so the
-fit is offered up to :data:`MAX_CELLS` cells (``Reconstructor(..., graph_fit=True)``).
+by Gauss-Newton with a backtracking line search.  A cold frame starts twice, from the linear
+(small-slope) fit of the turning data and from the general model's surface, and keeps the
+accepted fit with the lower objective (each start has basins it misses).  A warm frame starts
+from the previous frame's graph, or its linear prediction for a moving shape, and takes a few
+steps on one factorised matrix that also holds the stretch residuals' own curvature (damping
+the steps where a slope is small).  The fit is *accepted* only when it explains the data to
+within the sensor's noise (mean squared normalised residual of the turning and of the stretch
+each at most :data:`ACCEPT_CHI2`); otherwise the sheet is not a graph (laid on isometrically,
+stretched in its plane, a glitching gauge, ...) and the general model takes over.  The
+uncertainty is propagated through the fit's own normal equations (:meth:`GraphFit.fine_height_sigma`).
+Small problems only: the unknowns grow with the cells, (3N + 3)(3M + 3), so the fit is offered
+up to :data:`MAX_CELLS` cells (the default there, see ``Reconstructor``).
 """
 from __future__ import annotations
 
@@ -192,6 +197,7 @@ class GraphFit:
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
+        self._no_jacobian = np.zeros((0, 0))
         self._starts: OrderedDict[bytes, np.ndarray] = OrderedDict()
         # Fine-grid evaluation w, w_u, w_v (separable) and the mean twist over the inner region.
         self._fine_u, self._fine_v = np.asarray(fine_u, float), np.asarray(fine_v, float)
@@ -266,7 +272,7 @@ class GraphFit:
             res = np.empty(2 * g)
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                   stretch, w_t, w_s, band, rhs, with_matrix,
-                                                  np.asarray(curvature, dtype=float), res)
+                                                  np.asarray(curvature, dtype=float), res, self._no_jacobian)
             if with_matrix:
                 f, info = _pbtrf(band, lower=1)
                 factor = ("band", f) if info == 0 else None
@@ -292,6 +298,18 @@ class GraphFit:
             except (np.linalg.LinAlgError, ValueError):
                 factor = None
         return 0.5 * float(res @ res + c @ pc), rhs, res, factor
+
+    def _dense(self, band: np.ndarray) -> np.ndarray:
+        """The symmetric matrix of lower band storage ``band`` (band[d, j] = A[j + d, j])."""
+        if not hasattr(self, "_band_index"):
+            d, j = np.nonzero(np.ones_like(band, dtype=bool))
+            keep = j + d < self.size
+            self._band_index = (d[keep], j[keep])
+        d, j = self._band_index
+        a = np.zeros((self.size, self.size))
+        a[j + d, j] = band[d, j]
+        a[j, j + d] = band[d, j]
+        return a
 
     @staticmethod
     def _solve(factor, rhs: np.ndarray) -> np.ndarray:
@@ -487,28 +505,41 @@ class GraphFit:
         gauges, beyond the outer ones) the fit follows the prior and the scatter stays small."""
         turning, stretch, w_t, w_s = data[:4]
         g = len(turning)
-        tm, sm, jt, js = self._model(c, True)
-        j = np.zeros((2 * g, self.size))
-        rows = np.repeat(np.arange(g), self.idx.shape[1])
-        np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
-        np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
-        h = j.T @ j + self.prior
-        if _WARM_CURVATURE[0] or _WARM_CURVATURE[1]:  # as the warm steps (which end the tracking)
+        if self._compiled is not None:  # H in band form and J dense from one kernel call
+            band = self.prior_band.copy()
+            j = np.zeros((2 * g, self.size))
+            self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning, stretch,
+                                                  w_t, w_s, band, np.zeros(self.size), True,
+                                                  np.asarray(_WARM_CURVATURE, dtype=float), np.empty(2 * g), j)
+            h = self._dense(band)  # dense: its many right-hand sides run as level-3 BLAS, 3x faster
+            try:
+                resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
+                                              check_finite=False)
+            except np.linalg.LinAlgError:
+                resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
+        else:
+            tm, sm, jt, js = self._model(c, True)
+            j = np.zeros((2 * g, self.size))
+            rows = np.repeat(np.arange(g), self.idx.shape[1])
+            np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
+            np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
+            h = j.T @ j + self.prior
+            # the stretch residuals' own curvature, as the warm steps (which end the tracking) have it
             rs = (sm - stretch) * w_s
+            cr = np.where(rs > 0.0, _WARM_CURVATURE[0] * rs, -_WARM_CURVATURE[1] * rs)
             a = np.einsum("gql,gl->gq", self.da, c[self.idx])
-            cw = (np.abs(rs) * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
-            blocks = np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da)
-            np.add.at(h, (self.idx[:, :, None], self.idx[:, None, :]), blocks)
-        try:
-            resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
-                                          check_finite=False)
-        except np.linalg.LinAlgError:
-            resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
+            cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
+            np.add.at(h, (self.idx[:, :, None], self.idx[:, None, :]), np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da))
+            try:
+                resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
+                                              check_finite=False)
+            except np.linalg.LinAlgError:
+                resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
         nf, mf = len(self._fine_v), len(self._fine_u)
         k = resp.shape[1]
         # fine heights per datum: Fv · A_k · Fuᵀ, all data at once
         t = (self._fv[0] @ resp.reshape(self.nbv, self.nbu * k)).reshape(nf, self.nbu, k)
-        w = np.einsum("auk,bu->abk", t, self._fu[0])
+        w = self._fu[0] @ t  # (nf, mf, k): one product per fine row
         a0, b0 = centre
         slope_u = (w[a0, b0 + 1] - w[a0, b0 - 1]) / (2.0 * spacing)
         slope_v = (w[a0 + 1, b0] - w[a0 - 1, b0]) / (2.0 * spacing)

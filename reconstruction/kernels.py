@@ -651,10 +651,12 @@ def graph_residuals(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, res):
 
 
 @_compiled
-def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature, res):
+def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature, res,
+                           jac):
     """Adds JᵀJ (lower band storage, band[d, j] = A[j + d, j]) and Jᵀr of the graph model's
     normalised residuals to ``band`` and ``rhs`` (which hold the prior's part); only Jᵀr when
-    not ``with_matrix``; the normalised residuals to ``res`` (turning, then stretch).
+    not ``with_matrix``; the normalised residuals to ``res`` (turning, then stretch) and, when
+    ``jac`` has rows, the normalised Jacobian to ``jac`` (2G, coefficients).
     ``curvature`` = (p, n): the matrix also takes p·r ∂²r of every stretch residual r > 0 and
     n·|r| ∂²r of every r < 0 (∂²r ≥ 0): plain Gauss-Newton sees no stretch where a slope is
     small, and overshoots there (see :mod:`.graphfit`)."""
@@ -695,6 +697,10 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
             jt[k] *= w_t[g]
             js[k] *= w_s[g]
             rhs[idx[g, k]] += jt[k] * rt + js[k] * rs
+        if jac.shape[0] == 2 * ng:  # the normalised Jacobian itself, dense (the uncertainty needs it)
+            for k in range(nl):
+                jac[g, idx[g, k]] += jt[k]
+                jac[ng + g, idx[g, k]] += js[k]
         if not with_matrix:
             continue
         # this gauge's block (lower triangle), then added to the band at its indices
@@ -744,7 +750,7 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     one_g, res = np.ones(1), np.empty(2)
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
-                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res)
+                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res, np.zeros((2, 4)))
     return bool(_state["cached"])
 
 

@@ -113,6 +113,6 @@ def test_tls_on_loopback_needs_the_same_opt_in_as_the_session():
         parse_config({"zenoh": {"listen": ["tls/127.0.0.1:7447"]}})
 
 
-def test_graph_fit_is_off_in_the_gateway_unless_asked_for():
-    assert parse_config({}).reconstruction.graph_fit is False
-    assert parse_config({"reconstruction": {"graph_fit": True}}).reconstruction.graph_fit is True
+def test_graph_fit_is_on_unless_turned_off():
+    assert parse_config({}).reconstruction.graph_fit is True
+    assert parse_config({"reconstruction": {"graph_fit": False}}).reconstruction.graph_fit is False

@@ -173,3 +173,14 @@ def test_graph_uncertainty_matches_monte_carlo(shape):
     ratio = np.delete(scatter.ravel(), N * M // 2) / np.delete(base.node_sigma.ravel(), N * M // 2)
     assert 0.6 < np.median(ratio) < 1.8
     assert 0.3 < ratio.min() and ratio.max() < 2.5
+
+
+def test_graph_uncertainty_is_the_same_with_compiled_and_numpy_assembly():
+    shape = ph.GaussianBumps(height=-3.5, fwhm=19.0, centre=(9.0, -4.0))
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    fast = Reconstructor(N, M, PITCH, H, H, G)(eu, el)
+    ref = Reconstructor(N, M, PITCH, H, H, G, kernels="numpy")(eu, el)
+    assert fast.diagnostics.extra["model"] == ref.diagnostics.extra["model"] == "graph"
+    np.testing.assert_allclose(fast.node_sigma, ref.node_sigma, rtol=1e-4, atol=1e-6)
+    uv = np.array([[-29.0, 29.0], [3.0, -7.5], [28.0, 0.0]])
+    np.testing.assert_allclose(fast.locate_sigma(uv), ref.locate_sigma(uv), rtol=1e-4, atol=1e-6)
