@@ -5,7 +5,9 @@ receive time), the config and calibration it used (`/config`), and the strains o
 processed (`/strains`, carrying the scan's sample index). Replay feeds the raw frames through
 the same decoder and `FramePipeline`, processes exactly the scans the live run processed, with
 the calibration in force at the time, and compares the element messages byte for byte.
-Cut (`.mcap.active`) files are read in file order up to the cut.
+Cut (`.mcap.active`) files are read in file order up to the cut.  The graph fit is warm-started
+from the scans before (pipeline.graph_restart), so in a file that starts mid-stream the scans
+before its first cold restart may differ from the live ones: they are counted as not comparable.
 """
 from __future__ import annotations
 
