@@ -135,7 +135,7 @@ class SoakResult:
 
 
 def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
-    """Read every MCAP file in ``logs``; replay the smallest finished one (``replay``)."""
+    """Read every MCAP file in ``logs``; replay one finished file (``replay``)."""
     from skinmap.daemon.mcapinspect import inspect
     from skinmap.daemon.replay import replay_log
     from skinmap.daemon.service import limit_blas_threads
@@ -162,14 +162,21 @@ def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
             if not report.end.complete:
                 result.problems.append(f"{path.name} not finished: {report.end.reason}")
             elif report.topics.get("/raw") is not None:
-                finished.append(path)
+                finished.append((path, report.topics["/raw"].count))
         result.files.append(entry)
     if replay and finished:
-        target = min(finished, key=lambda p: p.stat().st_size)  # bounded replay time
+        # The smallest file (bounded replay time) with room for a few restarts of the graph fit
+        # (the scans before the first restart in a file are not comparable), else the largest.
+        from skinmap.daemon.pipeline import GRAPH_RESTART_SCANS
+
+        roomy = [path for path, raw in finished if raw >= 4 * GRAPH_RESTART_SCANS]
+        target = (min(roomy, key=lambda p: p.stat().st_size) if roomy
+                  else max((path for path, _ in finished), key=lambda p: p.stat().st_size))
         t0 = time.monotonic()
         rep = replay_log(target)
         same_code = source_fingerprint() == result.source_at_start
         result.replay = {"file": target.name, "identical": rep.identical, "compared": rep.compared,
+                         "not_comparable": rep.unsynced,
                          "mismatched": len(rep.mismatched), "seconds": time.monotonic() - t0,
                          "max_position_diff_m": rep.max_position_diff_m, "same_code": same_code}
         if not rep.identical:
@@ -312,6 +319,7 @@ def format_report(r: SoakResult) -> str:
         rp = r.replay
         lines.append(f"  replay of {rp['file']}: {'IDENTICAL' if rp['identical'] else 'DIFFERENT'} "
                      f"({rp['compared']} element messages compared, {rp['mismatched']} mismatched, "
+                     f"{rp.get('not_comparable', 0)} before the graph fit's first restart in the file, "
                      f"max difference {rp['max_position_diff_m'] * 1e3:.3g} mm, {rp['seconds']:.1f} s"
                      + ("" if rp["same_code"] else "; sources changed during the run") + ")")
     lines.append("  result: " + ("OK" if r.ok else "PROBLEMS: " + "; ".join(r.problems)))
