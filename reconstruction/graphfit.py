@@ -92,17 +92,6 @@ class GraphResult(NamedTuple):
     objective: float  # the minimised objective (data misfit and prior), to rank cold starts
 
 
-def _rotation(g) -> np.ndarray:
-    """Rotation matrix of the rotation vector g (Rodrigues)."""
-    g = np.asarray(g, dtype=float)
-    angle = float(np.linalg.norm(g))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = g / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
-
-
 def _basis_1d(lo: float, hi: float, intervals: int) -> tuple[np.ndarray, int]:
     knots = np.concatenate([[lo] * 3, np.linspace(lo, hi, intervals + 1), [hi] * 3])
     return knots, len(knots) - 4
@@ -194,6 +183,8 @@ class GraphFit:
         self.prior_band = np.zeros((bw + 1, nc))
         for d in range(bw + 1):
             self.prior_band[d, : nc - d] = np.diagonal(prior, -d)
+        d, j = np.nonzero(np.ones((bw + 1, nc), dtype=bool))
+        self._band_index = (d[j + d < nc], j[j + d < nc])  # the band's entries, for _dense
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
@@ -277,34 +268,38 @@ class GraphFit:
                 f, info = _pbtrf(band, lower=1)
                 factor = ("band", f) if info == 0 else None
             return 0.5 * float(res @ res + c @ pc), rhs, res, factor
-        tm, sm, jt, js = self._model(c, True)
-        rt, rs = (tm - turning) * w_t, (sm - stretch) * w_s
-        j = np.zeros((2 * g, self.size))
-        rows = np.repeat(np.arange(g), self.idx.shape[1])
-        np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
-        np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
-        res = np.concatenate([rt, rs])
+        j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
         rhs += j.T @ res
         if with_matrix:
-            # the stretch residuals' own curvature (see kernels.graph_normal_equations)
-            a = np.einsum("gql,gl->gq", self.da, c[self.idx])
-            cr = np.where(rs > 0.0, curvature[0] * rs, -curvature[1] * rs)
-            cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
-            blocks = np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da)
-            curv = np.zeros((self.size, self.size))
-            np.add.at(curv, (self.idx[:, :, None], self.idx[:, None, :]), blocks)
             try:
-                factor = ("dense", scipy.linalg.cho_factor(j.T @ j + curv + self.prior, lower=True, check_finite=False))
+                factor = ("dense", scipy.linalg.cho_factor(self._numpy_matrix(c, j, res[g:], w_s, curvature),
+                                                           lower=True, check_finite=False))
             except (np.linalg.LinAlgError, ValueError):
                 factor = None
         return 0.5 * float(res @ res + c @ pc), rhs, res, factor
 
+    def _numpy_jacobian(self, c, turning, stretch, w_t, w_s) -> tuple[np.ndarray, np.ndarray]:
+        """Numpy reference: the normalised Jacobian (2G, coefficients), dense, and residuals."""
+        tm, sm, jt, js = self._model(c, True)
+        g = len(turning)
+        j = np.zeros((2 * g, self.size))
+        rows = np.repeat(np.arange(g), self.idx.shape[1])
+        np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
+        np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
+        return j, np.concatenate([(tm - turning) * w_t, (sm - stretch) * w_s])
+
+    def _numpy_matrix(self, c, j, rs, w_s, curvature) -> np.ndarray:
+        """Numpy reference: JᵀJ + P plus the stretch residuals' own curvature (see
+        kernels.graph_normal_equations), dense."""
+        h = j.T @ j + self.prior
+        a = np.einsum("gql,gl->gq", self.da, c[self.idx])
+        cr = np.where(rs > 0.0, curvature[0] * rs, -curvature[1] * rs)
+        cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
+        np.add.at(h, (self.idx[:, :, None], self.idx[:, None, :]), np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da))
+        return h
+
     def _dense(self, band: np.ndarray) -> np.ndarray:
         """The symmetric matrix of lower band storage ``band`` (band[d, j] = A[j + d, j])."""
-        if not hasattr(self, "_band_index"):
-            d, j = np.nonzero(np.ones_like(band, dtype=bool))
-            keep = j + d < self.size
-            self._band_index = (d[keep], j[keep])
         d, j = self._band_index
         a = np.zeros((self.size, self.size))
         a[j + d, j] = band[d, j]
@@ -416,18 +411,6 @@ class GraphFit:
         screened = [f"{how}: {why}" for (how, _), why in zip(starts, reasons) if why]
         return closest._replace(how="; ".join([r.how for r in results] + screened))
 
-    def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
-            start: tuple | None = None, general: np.ndarray | None = None,
-            twist_sign: float | None = None) -> GraphResult:
-        """Fit w to the unit data (2, N, M) (``engine.unit_data``): from ``start`` (see
-        :meth:`fit_warm`) first, then cold (:meth:`fit_cold`)."""
-        data = self.prepare(turning, stretch, valid, sigma_t, sigma_s)
-        if start is not None:
-            warm = self.fit_warm(data, start, twist_sign)
-            if warm.accepted:
-                return warm
-        return self.fit_cold(data, general, twist_sign)
-
     def coeffs_from_positions(self, pos: np.ndarray, passes: int = 4) -> np.ndarray:
         """Coefficients of the graph closest to a surface given by its fine-grid positions (nf,
         mf, 3) in any rigid frame.  The base frame is the one that puts every node over its own
@@ -512,29 +495,14 @@ class GraphFit:
                                                   w_t, w_s, band, np.zeros(self.size), True,
                                                   np.asarray(_WARM_CURVATURE, dtype=float), np.empty(2 * g), j)
             h = self._dense(band)  # dense: its many right-hand sides run as level-3 BLAS, 3x faster
-            try:
-                resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
-                                              check_finite=False)
-            except np.linalg.LinAlgError:
-                resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
         else:
-            tm, sm, jt, js = self._model(c, True)
-            j = np.zeros((2 * g, self.size))
-            rows = np.repeat(np.arange(g), self.idx.shape[1])
-            np.add.at(j, (rows, self.idx.ravel()), (jt * w_t[:, None]).ravel())
-            np.add.at(j, (rows + g, self.idx.ravel()), (js * w_s[:, None]).ravel())
-            h = j.T @ j + self.prior
-            # the stretch residuals' own curvature, as the warm steps (which end the tracking) have it
-            rs = (sm - stretch) * w_s
-            cr = np.where(rs > 0.0, _WARM_CURVATURE[0] * rs, -_WARM_CURVATURE[1] * rs)
-            a = np.einsum("gql,gl->gq", self.da, c[self.idx])
-            cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5
-            np.add.at(h, (self.idx[:, :, None], self.idx[:, None, :]), np.einsum("gq,gqk,gql->gkl", cw, self.da, self.da))
-            try:
-                resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
-                                              check_finite=False)
-            except np.linalg.LinAlgError:
-                resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
+            j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
+            h = self._numpy_matrix(c, j, res[g:], w_s, _WARM_CURVATURE)
+        try:
+            resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
+                                          check_finite=False)
+        except np.linalg.LinAlgError:
+            resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
         nf, mf = len(self._fine_v), len(self._fine_u)
         k = resp.shape[1]
         # fine heights per datum: Fv · A_k · Fuᵀ, all data at once

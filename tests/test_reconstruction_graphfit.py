@@ -125,8 +125,8 @@ def test_graph_start_from_positions_recovers_the_coefficients():
     coeffs -= coeffs[fit.pin]
     pos = fit.fine_positions(coeffs)
     # in another rigid frame: turned by a rotation vector of 0.4 rad and moved
-    from skinmap.reconstruction.graphfit import _rotation
-    moved = pos @ _rotation((0.25, -0.2, 0.23)).T + np.array([3.0, -1.0, 7.0])
+    from skinmap.reconstruction.linalg import exp_so3
+    moved = pos @ exp_so3(np.array([0.25, -0.2, 0.23])).T + np.array([3.0, -1.0, 7.0])
     assert np.abs(fit.coeffs_from_positions(moved) - coeffs).max() < 1e-3
 
 
