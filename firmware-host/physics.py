@@ -37,8 +37,10 @@ __all__ = [
     "SHAPE_KINDS",
     "make_shape",
     "parse_shape_spec",
+    "split_shape_spec",
     "cell_centres",
     "gauge_layer_strains",
+    "quadrature_layer_strains",
     "gauge_strains",
     "ground_truth",
     "decouple_pair",
@@ -125,6 +127,20 @@ class Shape:
         x_u = self.position(uv + du, t) - self.position(uv - du, t)
         x_v = self.position(uv + dv, t) - self.position(uv - dv, t)
         return _normalise(np.cross(x_u, x_v))
+
+    def layer_strains(
+        self,
+        centres: np.ndarray,
+        directions: np.ndarray,
+        offsets: np.ndarray,
+        gauge_length: float,
+        t: np.ndarray,
+        samples: int,
+        panels: int,
+    ) -> np.ndarray:
+        """Strains (L, K) of straight gauges on the layers at ``offsets`` (checked arguments, see
+        :func:`gauge_layer_strains`); shapes with a faster exact route override it."""
+        return quadrature_layer_strains(self, centres, directions, offsets, gauge_length, t, samples, panels)
 
     def __repr__(self) -> str:
         fields = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.startswith("_"))
@@ -678,20 +694,16 @@ def _parse_value(key: str, text: str):
         raise ValueError(f"shape parameter {key!r}: {text!r} is not a number") from None
 
 
-def parse_shape_spec(spec: str) -> Shape:
-    """Parse a compact shape spec: ``kind[:key=value,key=value...]``, pairs as ``3/-2``.
-
-    Graph shapes can be summed with ``+``, e.g.
-    ``"gaussian:height=4,fwhm=18,u0=3,v0=-2 + gaussian:height=-3,u0=-15"`` or ``"saddle:radius=80+gaussian"``.
-    """
+def split_shape_spec(spec: str) -> list[tuple[str, dict]]:
+    """The terms of a compact shape spec ``kind[:key=value,...][+ ...]`` as (kind, parameters),
+    pairs such as ``centre=3/-2`` as tuples; nothing is built yet."""
     if not isinstance(spec, str) or not spec.strip():
         raise ValueError(f"empty shape spec {spec!r}")
-    terms = [s.strip() for s in spec.split("+")]
-    shapes = []
-    for term in terms:
+    terms = []
+    for term in (s.strip() for s in spec.split("+")):
         kind, _, rest = term.partition(":")
         kind = kind.strip().lower()
-        params = {}
+        params: dict = {}
         for item in filter(None, (p.strip() for p in rest.split(","))):
             key, eq, value = item.partition("=")
             if not eq or not key.strip():
@@ -699,7 +711,17 @@ def parse_shape_spec(spec: str) -> Shape:
             params[key.strip()] = _parse_value(key.strip(), value)
         if kind == "membrane" and "fingers" in params:
             params["fingers"] = int(params["fingers"])
-        shapes.append(make_shape(kind, **params))
+        terms.append((kind, params))
+    return terms
+
+
+def parse_shape_spec(spec: str) -> Shape:
+    """Parse a compact shape spec: ``kind[:key=value,key=value...]``, pairs as ``3/-2``.
+
+    Graph shapes can be summed with ``+``, e.g.
+    ``"gaussian:height=4,fwhm=18,u0=3,v0=-2 + gaussian:height=-3,u0=-15"`` or ``"saddle:radius=80+gaussian"``.
+    """
+    shapes = [make_shape(kind, **params) for kind, params in split_shape_spec(spec)]
     if len(shapes) == 1:
         return shapes[0]
     try:
@@ -773,7 +795,24 @@ def gauge_layer_strains(
     t = np.asarray(t, dtype=float)
     if t.ndim not in (0, 1) or (t.ndim == 1 and t.shape[0] != centres.shape[0]):
         raise ValueError(f"t must be a scalar or one time per gauge ({centres.shape[0]}), got {t.shape}")
-    nodes, weights = _gauss_legendre_panels(int(samples), int(panels))
+    return shape.layer_strains(centres, directions, offsets, length, t, int(samples), int(panels))
+
+
+def quadrature_layer_strains(
+    shape: Shape,
+    centres: np.ndarray,
+    directions: np.ndarray,
+    offsets: np.ndarray,
+    length: float,
+    t: np.ndarray,
+    samples: int,
+    panels: int,
+) -> np.ndarray:
+    """The quadrature behind :func:`gauge_layer_strains` (arguments already checked): the length
+    of ``x + h·n`` over each gauge by composite Gauss–Legendre, tangents by fourth-order central
+    differences; (L, K)."""
+    t = np.asarray(t, dtype=float)
+    nodes, weights = _gauss_legendre_panels(samples, panels)
     # points (K, Q, 2) along each gauge, then the 4-point stencil around each
     s = nodes * length
     pts = centres[:, None, :] + s[None, :, None] * directions[:, None, :]

@@ -1,0 +1,560 @@
+"""Elastic scenes: the emulator's shapes with real mechanics behind them.
+
+Every kinematic shape kind of :mod:`skinmap.emulator.physics` has an elastic form here, solved
+with :mod:`skinmap.emulator.mechanics` and returned as a :class:`~skinmap.emulator.physics.Shape`,
+so the gauges, the ground truth and the emulator use it unchanged:
+
+| kind | elastic scene |
+|---|---|
+| `flat`, `cylinder`, `sphere`, `saddle`, `quadric`, `gaussian` (and sums) | the film laminated on a rigid mold of that height, sliding without friction (or with ``friction``), optionally pre-stretched in a frame (``prestretch``, ``prestretch_u``, ``prestretch_v``) or bonded from the centre outwards (``bonding=1``) |
+| `membrane` | the film clamped on all four edges, indented by one or two rigid spherical fingertips (``finger_radius`` 8 mm) that press, release and slide |
+| `balloon` | the film taped at its perimeter (``tape`` 5 mm) onto a pressurised balloon (``balloon_radius`` 80, wall ``tension`` 0.1 N/mm), indented by a rigid dome (``dome_radius`` 50, ``depth`` 7) or pressed against a wall relief (``indenter=1``: a ridge ``relief`` 4 mm high) |
+| `palm` | the film laminated on a moving mold whose height morphs flat → cylinder → bump → saddle |
+
+Time-varying scenes are solved at key frames over one cycle (each warm-started from the previous
+one) and interpolated in time per node and per gauge by monotone cubic (PCHIP) interpolation, so
+holds stay exactly still and a 5×5 moving scene streams at hundreds of scans per second.  Solves
+are cached on disk by their parameters (``$SKINMAP_CACHE_DIR``, default
+``~/.cache/skinmap/mechanics``).
+
+Elastic-only parameters (all kinds): ``poisson`` (0.48), ``youngs`` (0.562 N/mm²),
+``thickness`` (1 mm), ``bending`` (0.083 N·mm), ``mesh`` (1.5 mm), ``margin`` (half a pitch of
+film beyond the outer cells), ``keyframes`` (time-varying scenes).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, Mapping
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator, RectBivariateSpline
+
+from skinmap.emulator import mechanics as mc
+from skinmap.emulator import physics as ph
+
+__all__ = [
+    "Mechanics",
+    "SheetShape",
+    "KeyframedSheet",
+    "ELASTIC_PARAMETERS",
+    "make_scene",
+    "parse_scene_spec",
+    "cache_directory",
+]
+
+Mechanics = Literal["kinematic", "elastic"]
+
+# Bumped whenever a change of the mechanics changes solutions (invalidates the disk cache).
+SOLVER_VERSION = 1
+
+#: Parameters only the elastic form knows, with their defaults.
+ELASTIC_PARAMETERS: dict[str, float | None] = {
+    "poisson": 0.48,
+    "youngs": 0.562,
+    "thickness": 1.0,
+    "bending": 0.083,
+    "mesh": 1.5,
+    "margin": None,
+    "keyframes": None,
+    # molds
+    "prestretch": None,
+    "prestretch_u": None,
+    "prestretch_v": None,
+    "friction": 0.0,
+    "bonding": 0.0,
+    # membrane
+    "finger_radius": 8.0,
+    # balloon
+    "tension": 0.1,
+    "tape": 5.0,
+    "indenter": 0.0,
+    "relief": 4.0,
+    "relief_width": 15.0,
+    "relief_angle": 0.0,
+}
+
+_MOLD_KINDS = ("flat", "cylinder", "sphere", "saddle", "quadric", "gaussian")
+# A numerical anchor for the rotation of a film that only its centre pins (N/mm³ · Y/L²): small
+# enough to change no strain by more than ~1e-6 of itself.
+_ANCHOR = 1e-6
+
+
+def cache_directory() -> Path:
+    """Where solved scenes are kept: ``$SKINMAP_CACHE_DIR`` or ``~/.cache/skinmap/mechanics``."""
+    env = os.environ.get("SKINMAP_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "skinmap" / "mechanics"
+
+
+# --------------------------------------------------------------------------- shapes
+
+
+class SheetShape(ph.Shape):
+    """A solved sheet as a shape: the node positions (nv, nu, 3) on the material grid,
+    interpolated by bicubic splines; normals from the splines' tangents."""
+
+    def __init__(self, grid: mc.SheetGrid, positions: np.ndarray, label: str = "elastic sheet"):
+        positions = np.asarray(positions, float)
+        if positions.shape != (grid.nv, grid.nu, 3):
+            raise ValueError(f"sheet positions must be {(grid.nv, grid.nu, 3)}, got {positions.shape}")
+        self.grid = grid
+        self.positions = positions
+        self.label = label
+        self._splines = [RectBivariateSpline(grid.v, grid.u, positions[..., c], kx=3, ky=3, s=0) for c in range(3)]
+
+    def _eval(self, uv: np.ndarray, du: int, dv: int) -> np.ndarray:
+        flat = uv.reshape(-1, 2)
+        out = np.stack([s.ev(flat[:, 1], flat[:, 0], dx=dv, dy=du) for s in self._splines], axis=-1)
+        return out.reshape(uv.shape[:-1] + (3,))
+
+    def position(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        return self._eval(ph._as_uv(uv), 0, 0)
+
+    def normal(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        uv = ph._as_uv(uv)
+        return ph._normalise(np.cross(self._eval(uv, 1, 0), self._eval(uv, 0, 1)))
+
+    def position_and_normal(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        uv = ph._as_uv(uv)
+        return self._eval(uv, 0, 0), ph._normalise(np.cross(self._eval(uv, 1, 0), self._eval(uv, 0, 1)))
+
+    def __repr__(self) -> str:
+        return f"SheetShape({self.label}, {self.grid.nv}x{self.grid.nu} nodes)"
+
+
+class _PeriodicPchip:
+    """Monotone cubic interpolation of samples over one period, wrapped."""
+
+    def __init__(self, times: np.ndarray, values: np.ndarray, period: float):
+        self.t0 = float(times[0])
+        self.period = float(period)
+        t = np.concatenate([[times[-1] - period], times, [times[0] + period, times[1] + period]])
+        v = np.concatenate([values[-1:], values, values[:2]], axis=0)
+        self._p = PchipInterpolator(t, v, axis=0)
+
+    def __call__(self, t: np.ndarray | float) -> np.ndarray:
+        tt = self.t0 + np.mod(np.asarray(t, float) - self.t0, self.period)
+        return self._p(tt)
+
+
+class KeyframedSheet(ph.Shape):
+    """A moving solved sheet: positions (K, nv, nu, 3) at key-frame times (K,) over one cycle
+    of ``period`` s, interpolated in time per node by monotone cubics; gauge readings are computed
+    exactly at every key frame and interpolated the same way (no re-solve between frames)."""
+
+    time_varying = True
+
+    def __init__(self, grid: mc.SheetGrid, times: np.ndarray, positions: np.ndarray, period: float,
+                 label: str = "elastic scene"):
+        times = np.asarray(times, float)
+        positions = np.asarray(positions, float)
+        if positions.shape != (times.size, grid.nv, grid.nu, 3) or times.size < 2:
+            raise ValueError(f"key frames must be (K >= 2, {grid.nv}, {grid.nu}, 3), got {positions.shape}")
+        if np.any(np.diff(times) <= 0) or times[-1] - times[0] >= period:
+            raise ValueError("key-frame times must increase within one period")
+        self.grid = grid
+        self.times = times
+        self.positions = positions
+        self.period = float(period)
+        self.label = label
+        self._nodes = _PeriodicPchip(times, positions, period)
+        self._frames = [SheetShape(grid, p, f"{label} @ {t:g} s") for t, p in zip(times, positions)]
+        self._tables: dict[tuple, _PeriodicPchip] = {}
+
+    def frame(self, t: float) -> SheetShape:
+        """The sheet at time ``t`` as a static shape."""
+        return SheetShape(self.grid, self._nodes(float(t)), f"{self.label} @ {float(t):g} s")
+
+    def _per_instant(self, uv: ph.ArrayLike, t: ph.ArrayLike, method: str):
+        uv = ph._as_uv(uv)
+        t = np.asarray(t, float)
+        if t.ndim == 0:
+            return getattr(self.frame(float(t)), method)(uv)
+        t = ph._as_t(t, uv)
+        flat_uv = uv.reshape(-1, 2)
+        times, inverse = np.unique(t.reshape(-1), return_inverse=True)
+        outs: tuple[np.ndarray, ...] | None = None
+        for k, tk in enumerate(times):
+            idx = np.flatnonzero(inverse == k)
+            res = getattr(self.frame(float(tk)), method)(flat_uv[idx])
+            res = res if isinstance(res, tuple) else (res,)
+            if outs is None:
+                outs = tuple(np.empty((flat_uv.shape[0], 3)) for _ in res)
+            for o, r in zip(outs, res):
+                o[idx] = r
+        assert outs is not None
+        shaped = tuple(o.reshape(uv.shape[:-1] + (3,)) for o in outs)
+        return shaped if method == "position_and_normal" else shaped[0]
+
+    def position(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        return self._per_instant(uv, t, "position")
+
+    def normal(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        return self._per_instant(uv, t, "normal")
+
+    def position_and_normal(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return self._per_instant(uv, t, "position_and_normal")
+
+    def layer_strains(self, centres, directions, offsets, gauge_length, t, samples, panels) -> np.ndarray:
+        key = (centres.tobytes(), directions.tobytes(), offsets.tobytes(), float(gauge_length), samples, panels)
+        table = self._tables.get(key)
+        if table is None:
+            frames = np.stack([
+                ph.quadrature_layer_strains(f, centres, directions, offsets, gauge_length, np.asarray(0.0), samples, panels)
+                for f in self._frames
+            ])  # (K, L, G)
+            table = self._tables[key] = _PeriodicPchip(self.times, frames, self.period)
+        t = np.asarray(t, float)
+        if t.ndim == 0:
+            return table(float(t))
+        # each gauge at its own instant: evaluate at the distinct instants, pick each gauge's
+        times, inverse = np.unique(t, return_inverse=True)
+        values = table(times)  # (T, L, G)
+        return values[inverse, :, np.arange(t.size)].T
+
+    def __repr__(self) -> str:
+        return f"KeyframedSheet({self.label}, {self.times.size} key frames over {self.period:g} s)"
+
+
+# --------------------------------------------------------------------------- scene solving
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What every scene shares: the array, the film and its mesh."""
+
+    n: int
+    m: int
+    pitch: float
+    material: mc.SheetMaterial
+    grid: mc.SheetGrid
+
+
+def _mold_height(kind: str, params: Mapping[str, Any]) -> tuple[mc.HeightField, ph.Shape]:
+    """The mold's height field and the kinematic shape of the same kind (the start)."""
+    shape = ph.make_shape(kind, **params) if kind != "sum" else params["shape"]
+    if isinstance(shape, ph.Flat):
+        return mc.FlatHeight(), shape
+    if isinstance(shape, ph.Cylinder):
+        return mc.CylinderHeight(shape.radius, shape.axis_angle), shape
+    if isinstance(shape, ph.SphereCap):
+        return mc.SphereHeight(shape.radius), shape
+    if isinstance(shape, ph.GraphShape):
+        graph = shape
+        return mc.FunctionHeight(lambda xy, t: graph.height_and_gradient(xy, np.zeros(xy.shape[0])), repr(graph)), shape
+    raise ValueError(f"shape {kind!r} cannot be a mold")
+
+
+def _on_mold(height: mc.HeightField, xy: np.ndarray, t: float = 0.0) -> np.ndarray:
+    f, _, _ = height(xy.reshape(-1, 2), t)
+    return np.concatenate([xy, f.reshape(xy.shape[:-1])[..., None]], axis=-1)
+
+
+def _mold_problem(setup: _Setup, height: mc.HeightField, el: Mapping[str, Any], t: float = 0.0,
+                  placement: Callable[[np.ndarray], np.ndarray] | None = None):
+    """Problem and start of a film laminated on a mold.  ``placement`` maps material points to
+    where a kinematic lay-up would put them in xy (the kind's own map; default the identity): the
+    start, the friction's first-contact points and, with a pre-stretch, the frame that holds the
+    edges (rollers: the u-edges' x, the v-edges' y) all follow it at the stretched coordinates."""
+    grid = setup.grid
+    uv = grid.uv()
+    su, sv = el.get("prestretch_u"), el.get("prestretch_v")
+    if el.get("prestretch") is not None:
+        su = el["prestretch"] if su is None else su
+        sv = el["prestretch"] if sv is None else sv
+    for name, value in (("prestretch_u", su), ("prestretch_v", sv)):
+        if value is not None and not (0.0 <= float(value) <= 0.5):
+            raise ValueError(f"{name} must be a strain between 0 and 0.5, got {value!r}")
+    stretched = uv * np.array([1.0 + float(su or 0.0), 1.0 + float(sv or 0.0)])
+    ref = stretched if placement is None else placement(stretched)
+    fixed = np.zeros((grid.nv, grid.nu, 3), bool)
+    if su is not None:
+        fixed[:, [0, -1], 0] = True
+    if sv is not None:
+        fixed[[0, -1], :, 1] = True
+    anchor = _ANCHOR * setup.material.membrane_stiffness / max(grid.half_u, grid.half_v) ** 2
+    friction = float(el.get("friction") or 0.0)
+    if friction < 0 or not math.isfinite(friction):
+        raise ValueError(f"friction must be a finite stiffness >= 0 (N/mm³), got {friction!r}")
+    # frictionless films keep their mean position: along the edges no frame holds, and turning
+    # unless a frame holds both pairs of edges
+    hold = () if friction else tuple(
+        mode for mode, free in (("x", su is None), ("y", sv is None), ("turn", su is None or sv is None)) if free)
+    problem = mc.SheetProblem(
+        grid, setup.material, mold=height, fixed=fixed, foundation=max(friction, anchor if hold else 0.0),
+        reference=ref, time=t, hold_rigid=hold,
+    )
+    return problem, _on_mold(height, ref, t)
+
+
+def _solve_mold(setup: _Setup, kind: str, params: Mapping[str, Any], el: Mapping[str, Any]) -> np.ndarray:
+    height, kinematic = _mold_height(kind, params)
+    problem, x0 = _mold_problem(setup, height, el, placement=lambda q: kinematic.position(q)[..., :2])
+    x = mc.solve(problem, x0).positions
+    if not el.get("bonding"):
+        return x
+    # bonded from the centre outwards: rings of material, each held where it lay when reached
+    grid = setup.grid
+    rho = np.linalg.norm(grid.uv(), axis=-1)
+    step = 3.0 * grid.spacing
+    for r in np.arange(step, rho.max() + step, step):
+        fixed = problem.fixed.copy()
+        fixed[rho <= r, :2] = True
+        if fixed[..., :2].all():
+            break
+        problem = mc.SheetProblem(grid, setup.material, mold=height, fixed=fixed,
+                                  foundation=problem.foundation, reference=problem.reference)
+        x = mc.solve(problem, x).positions
+    return x
+
+
+def _keyframe_times(period: float, count: int) -> np.ndarray:
+    return np.arange(count) * (period / count)
+
+
+def _solve_membrane(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, Any]):
+    kin = ph.FingertipMembrane(**params)
+    grid = setup.grid
+    mat = setup.material
+    radius = float(el["finger_radius"]) + 0.5 * mat.thickness
+    s = float(el.get("prestretch") or 0.0)
+    fixed = np.zeros((grid.nv, grid.nu, 3), bool)
+    fixed[[0, -1], :, :] = True
+    fixed[:, [0, -1], :] = True
+    x = grid.flat() * np.array([1.0 + s, 1.0 + s, 1.0])
+    cycle = 2.0 * kin.period  # the press repeats every period, the slide every two
+    count = int(el.get("keyframes") or 48)
+    times = _keyframe_times(cycle, count)
+
+    def finger(k: int) -> Callable[[float], np.ndarray]:
+        def centre(t: float) -> np.ndarray:
+            d, c = list(kin._fingers(np.asarray(t, float)))[k]
+            return np.array([float(c[0]), float(c[1]), radius - float(d)])
+        return centre
+
+    contacts = [mc.SphereContact(finger(k), radius) for k in range(kin.fingers)]
+    frames = []
+    for t in times:
+        problem = mc.SheetProblem(grid, mat, contacts=contacts, fixed=fixed, time=float(t))
+        x = mc.solve(problem, x).positions
+        frames.append(x)
+    # second pass over the first frames: the cycle's start is then warm from its end
+    return times, np.stack(frames), cycle
+
+
+class _Ridge:
+    """A wall relief: a straight ridge of height ``height`` and width ``width`` (flat top,
+    smooth flanks) at ``angle`` degrees from +u, hanging from a wall at z = top(t)."""
+
+    def __init__(self, height: float, width: float, angle: float, top: Callable[[float], float]):
+        self.height, self.width, self.top = height, width, top
+        a = math.radians(angle)
+        self._across = np.array([-math.sin(a), math.cos(a)])
+
+    def height_and_gradient(self, xy: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        p = xy @ self._across / (0.5 * self.width)
+        prof = np.exp(-p**4)
+        dprof = -4.0 * p**3 * prof / (0.5 * self.width)
+        z = self.top(t) - self.height * prof
+        return z, (-self.height * dprof)[:, None] * self._across
+
+
+def _solve_balloon(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, Any]):
+    kin = ph.BalloonDome(**params)
+    grid = setup.grid
+    mat = setup.material
+    rb = kin.balloon_radius
+    # 1. the film laid on the inflated balloon (frictionless), 2. its perimeter taped there
+    sphere = mc.SphereHeight(rb)
+    cap = ph.SphereCap(rb)
+    problem, x0 = _mold_problem(setup, sphere, {}, placement=lambda q: cap.position(q)[..., :2])
+    x = mc.solve(problem, x0).positions
+    uv = grid.uv()
+    tape = float(el["tape"])
+    taped = (np.abs(uv[..., 0]) >= grid.half_u - tape - 1e-9) | (np.abs(uv[..., 1]) >= grid.half_v - tape - 1e-9)
+    fixed = np.repeat(taped[..., None], 3, axis=-1)
+    balloon = mc.Balloon(float(el["tension"]), rb, (0.0, 0.0, -rb))
+    half = 0.5 * mat.thickness
+    if el.get("indenter"):
+        ridge = _Ridge(float(el["relief"]), float(el["relief_width"]), float(el["relief_angle"]),
+                       lambda t: float(el["relief"]) + half - float(kin.press_depth(t)))
+        contacts: list[mc.GapField] = [mc.WallContact(mc.FunctionHeight(ridge.height_and_gradient, "ridge wall"))]
+    else:
+        rd = kin.dome_radius + half
+        contacts = [mc.SphereContact(lambda t: np.array([0.0, 0.0, rd - float(kin.press_depth(t))]), rd)]
+    if kin.time_varying:
+        count = int(el.get("keyframes") or 32)
+        times = _keyframe_times(kin.period, count)
+        period = kin.period
+    else:
+        times, period = np.array([0.0]), math.inf
+    frames = []
+    # press gradually to the first frame's depth (a static full press would start deep inside)
+    for t in times:
+        problem = mc.SheetProblem(grid, mat, contacts=contacts, fixed=fixed, balloon=balloon, time=float(t))
+        x = mc.solve(problem, x).positions
+        frames.append(x)
+    return times, np.stack(frames), period
+
+
+def _palm_heights(params: Mapping[str, Any]) -> tuple[ph.PalmGesture, list[mc.HeightField]]:
+    palm = ph.PalmGesture(**params)
+    heights = [_mold_height("sum", {"shape": k})[0] for k in palm.keys]
+    return palm, heights
+
+
+class _MorphHeight:
+    """Mold height between key shapes: each held, then blended by a C² smoothstep."""
+
+    def __init__(self, palm: ph.PalmGesture, heights: list[mc.HeightField]):
+        self.palm, self.heights = palm, heights
+
+    def weights(self, t: float) -> tuple[int, int, float]:
+        p = self.palm
+        seg_len = p.hold + p.transition
+        phase = float(np.mod(t, p.cycle))
+        seg = int(phase // seg_len) % len(p.keys)
+        x = (phase - seg * seg_len - p.hold) / p.transition
+        w = float(ph._smoothstep(np.asarray(x))) if x > 0 else 0.0
+        return seg, (seg + 1) % len(p.keys), w
+
+    def __call__(self, xy: np.ndarray, t: float = 0.0):
+        a, b, w = self.weights(t)
+        fa = self.heights[a](xy, t)
+        if w == 0.0:
+            return fa
+        fb = self.heights[b](xy, t)
+        return tuple((1.0 - w) * va + w * vb for va, vb in zip(fa, fb))
+
+
+def _solve_palm(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, Any]):
+    palm, heights = _palm_heights(params)
+    morph = _MorphHeight(palm, heights)
+    count = int(el.get("keyframes") or 8 * len(palm.keys))
+    times = _keyframe_times(palm.cycle, count)
+    grid = setup.grid
+    x = None
+    frames = []
+    for t in times:
+        problem, x0 = _mold_problem(setup, morph, el, float(t))
+        if x is not None:  # warm: the last frame's film, dropped onto this frame's mold
+            x0 = _on_mold(morph, x[..., :2], float(t))
+        x = mc.solve(problem, x0).positions
+        frames.append(x)
+    return times, np.stack(frames), palm.cycle
+
+
+def _material(el: Mapping[str, Any]) -> mc.SheetMaterial:
+    return mc.SheetMaterial(youngs_modulus=float(el["youngs"]), thickness=float(el["thickness"]),
+                            poisson=float(el["poisson"]), bending_stiffness=float(el["bending"]))
+
+
+def _cache_key(kind: str, params: Mapping[str, Any], el: Mapping[str, Any], setup: _Setup) -> str:
+    doc = {
+        "version": SOLVER_VERSION, "kind": kind, "params": params, "elastic": el,
+        "array": [setup.n, setup.m, setup.pitch], "grid": asdict(setup.grid),
+    }
+    text = json.dumps(doc, sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _load(path: Path) -> dict[str, np.ndarray] | None:
+    try:
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, KeyError):
+        return None  # absent or damaged: solve again
+
+
+def _store(path: Path, **arrays: np.ndarray) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only or full disk only costs the next run a solve
+
+
+def make_scene(kind: str, n: int, m: int, pitch: float = 12.0, *, cache: bool = True,
+               cache_dir: str | os.PathLike[str] | None = None, **params: Any) -> ph.Shape:
+    """The elastic form of a shape kind (see the module's table) for an N×M array at ``pitch``:
+    a :class:`SheetShape` (static) or :class:`KeyframedSheet` (moving).  ``params`` are the
+    kinematic kind's parameters plus the elastic ones in :data:`ELASTIC_PARAMETERS`.  Graph
+    shapes summed with ``+`` come as ``kind="sum", shape=<GraphSum>``."""
+    n, m = ph._grid_size(n, m)
+    pitch = ph._finite_positive("pitch", pitch)
+    el = {k: params.pop(k, d) for k, d in ELASTIC_PARAMETERS.items()}
+    margin = None if el["margin"] is None else float(el["margin"])
+    material = _material(el)
+    if kind == "membrane":
+        kin = ph.FingertipMembrane(**{k: v for k, v in params.items()})
+        grid = mc.SheetGrid(kin.half_u, kin.half_v, float(el["mesh"]))
+    else:
+        grid = mc.SheetGrid.for_array(n, m, pitch, float(el["mesh"]), margin)
+    setup = _Setup(n, m, pitch, material, grid)
+    if kind in _MOLD_KINDS or kind == "sum":
+        ph.make_shape(kind, **params) if kind != "sum" else None  # parameter errors first
+        if kind == "sum":
+            key_params: dict[str, Any] = {"shape": repr(params["shape"])}
+        else:
+            key_params = dict(params)
+        solver: Callable[[], tuple[np.ndarray, np.ndarray, float]] = lambda: (
+            np.array([0.0]), _solve_mold(setup, kind, params, el)[None], math.inf)
+    elif kind == "membrane":
+        key_params = dict(params)
+        solver = lambda: _solve_membrane(setup, params, el)
+    elif kind == "balloon":
+        ph.BalloonDome(**params)
+        key_params = dict(params)
+        solver = lambda: _solve_balloon(setup, params, el)
+    elif kind == "palm":
+        ph.PalmGesture(**params)
+        key_params = dict(params)
+        solver = lambda: _solve_palm(setup, params, el)
+    else:
+        raise ValueError(f"unknown shape kind {kind!r}; known kinds: {', '.join(ph.SHAPE_KINDS)}")
+    label = f"elastic {kind} " + ",".join(f"{k}={v}" for k, v in sorted(key_params.items()))
+    path = Path(cache_dir) if cache_dir is not None else cache_directory()
+    path = path / f"{_cache_key(kind, key_params, el, setup)}.npz"
+    data = _load(path) if cache else None
+    if data is None:
+        times, frames, period = solver()
+        if cache:
+            _store(path, times=times, frames=frames, period=np.array(period))
+    else:
+        times, frames, period = data["times"], data["frames"], float(data["period"])
+    if times.size == 1:
+        return SheetShape(grid, frames[0], label)
+    return KeyframedSheet(grid, times, frames, period, label)
+
+
+def parse_scene_spec(spec: str, mechanics: Mechanics, n: int, m: int, pitch: float = 12.0, **kw: Any) -> ph.Shape:
+    """A shape spec (``kind[:key=value,...]``, graph shapes summed with ``+``) in either form:
+    ``kinematic`` is :func:`skinmap.emulator.physics.parse_shape_spec`; ``elastic`` solves the
+    scene (:func:`make_scene`; elastic parameters may follow the first term's)."""
+    if mechanics not in ("kinematic", "elastic"):
+        raise ValueError(f"mechanics must be 'kinematic' or 'elastic', got {mechanics!r}")
+    terms = ph.split_shape_spec(spec)
+    elastic = {k: v for _, params in terms for k, v in params.items() if k in ELASTIC_PARAMETERS}
+    if mechanics == "kinematic":
+        if elastic:
+            raise ValueError(
+                f"shape spec {spec!r}: {', '.join(sorted(elastic))} only apply with elastic mechanics "
+                "(--mechanics elastic)")
+        return ph.parse_shape_spec(spec)
+    cleaned = [(kind, {k: v for k, v in p.items() if k not in ELASTIC_PARAMETERS}) for kind, p in terms]
+    if len(cleaned) == 1:
+        kind, params = cleaned[0]
+        return make_scene(kind, n, m, pitch, **params, **elastic, **kw)
+    shape = ph.GraphSum([ph.make_shape(k, **p) for k, p in cleaned])
+    return make_scene("sum", n, m, pitch, shape=shape, **elastic, **kw)
