@@ -8,6 +8,11 @@ device dropped), and the share of scans lost.
 
     .venv/bin/python bench/emulator_rate.py            # 5x5, 16x16, 32x32, static shape
     .venv/bin/python bench/emulator_rate.py --shape palm --window 2
+    .venv/bin/python bench/emulator_rate.py --mechanics elastic --shape membrane --sizes 5x5
+
+With ``--mechanics elastic`` the scene is solved (or loaded from the solve cache) before the
+first rate is measured; a moving elastic scene streams from its key frames (per-gauge monotone
+cubic interpolation in time), which is what is measured.
 """
 from __future__ import annotations
 
@@ -76,22 +81,28 @@ def main() -> None:
     ap.add_argument("--shape", default="gaussian:height=4,fwhm=18,u0=3,v0=-2")
     ap.add_argument("--window", type=float, default=1.5, help="seconds measured per rate")
     ap.add_argument("--rates", type=float, nargs="*", default=RATES)
+    ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic")
+    ap.add_argument("--sizes", default=",".join(f"{n}x{m}" for n, m in SIZES),
+                    help="arrays to measure, e.g. 5x5,16x16")
     args = ap.parse_args()
+    sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes.split(",")]
 
-    print(f"emulator scan rate over a pty, shape {args.shape!r}, {args.window:g} s per point, "
+    print(f"emulator scan rate over a pty, shape {args.shape!r} ({args.mechanics}), {args.window:g} s per point, "
           "full electrical model (noise, hysteresis, drift, ADC)")
     print(f"{'array':>6} {'requested/s':>12} {'delivered/s':>12} {'acquired/s':>11} {'lost':>6} {'MB/s':>7}")
-    for n, m in SIZES:
+    for n, m in sizes:
         with tempfile.TemporaryDirectory() as tmp:
             link = Path(tmp) / "tty"
             proc = subprocess.Popen(
                 [sys.executable, "-m", "skinmap.emulator.cli", "--size", f"{n}x{m}", "--shape", args.shape,
-                 "--link", str(link), "--max-step-rate", str(STEP_LIMIT), "--status-every", "0"],
+                 "--link", str(link), "--max-step-rate", str(STEP_LIMIT), "--status-every", "0",
+                 "--mechanics", args.mechanics],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             )
             try:
-                for _ in range(2):
-                    proc.stdout.readline()
+                while "serving" not in (line := proc.stdout.readline()):
+                    if not line:
+                        raise RuntimeError(f"the emulator exited: {proc.stderr.read()}")
                 best = 0.0
                 with serial.Serial(str(link), timeout=0.02) as port:
                     for k, rate in enumerate(args.rates):

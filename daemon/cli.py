@@ -48,14 +48,16 @@ def _wait_for_tcp(host: str, port: int, timeout: float, proc: subprocess.Popen |
 
 
 def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: float = 50.0,
-                   extra: list[str] | None = None) -> subprocess.Popen:
+                   mechanics: str = "kinematic", extra: list[str] | None = None) -> subprocess.Popen:
     """The emulator as a child process serving socket://127.0.0.1:PORT (a fresh interpreter,
-    never a fork of one that may hold a Zenoh session)."""
+    never a fork of one that may hold a Zenoh session).  An elastic scene not yet in the solve
+    cache is solved before the port opens (up to minutes for a moving scene), so it is waited
+    for longer."""
     cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
-           "--shape", shape, "--rate", str(rate), *(extra or [])]
+           "--shape", shape, "--rate", str(rate), "--mechanics", mechanics, *(extra or [])]
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
     try:
-        _wait_for_tcp("127.0.0.1", port, 15.0, proc)
+        _wait_for_tcp("127.0.0.1", port, 15.0 if mechanics == "kinematic" else 1800.0, proc)
     except Exception:
         stop_process(proc)
         raise
@@ -87,8 +89,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"skinmap demo: {exc}", file=sys.stderr)
         return 2
     port = int(cfg.device.port.rsplit(":", 1)[1]) if cfg.device.port.startswith("socket://") else 7600
-    print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}') on socket://127.0.0.1:{port}", flush=True)
-    emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz)
+    print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}', {args.mechanics} mechanics) "
+          f"on socket://127.0.0.1:{port}", flush=True)
+    emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz,
+                              mechanics=args.mechanics)
     try:
         print(f"skinmap demo: skinmapd publishing on {', '.join(cfg.zenoh.listen)} under '{cfg.zenoh.prefix}/{cfg.device.name or '<serial>'}', "
               f"logging to {cfg.resolve(cfg.log.directory)}; Ctrl-C stops", flush=True)
@@ -271,6 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--config", help="use this config instead of the embedded demo config")
     d.add_argument("--size", default="5x5", help="emulated array, e.g. 5x5 or 16x16")
     d.add_argument("--shape", default="palm", help="emulated shape spec (see skinmap-emulator --help)")
+    d.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
+                   help="the emulated film's physics (see skinmap-emulator --help)")
     d.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
     d.add_argument("--verbose", "-v", action="store_true")
     d.set_defaults(func=cmd_demo)

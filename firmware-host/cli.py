@@ -2,6 +2,7 @@
 
     skinmap-emulator --size 5x5 --shape "gaussian:height=4,fwhm=18,u0=3,v0=-2" --rate 10
     skinmap-emulator --size 16x16 --shape palm --tcp 5799 --truth-file truth.jsonl
+    skinmap-emulator --shape "gaussian:height=4,fwhm=18,u0=3" --mechanics elastic
     skinmap-emulator --shape cylinder:radius=40 --garbage-rate 2 --bit-flip-rate 1e-5 \\
         --disconnect-every 20 --disconnect-for 3 --dead-gauge upper,row,2,3
 """
@@ -20,7 +21,9 @@ from skinmap.emulator.device import DeviceConfig
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.emulator.emulator import Emulator, FaultSchedule
 from skinmap.emulator.link import LinkFaults
-from skinmap.emulator.physics import SHAPE_KINDS, parse_shape_spec
+from skinmap.emulator.mechanics import MechanicsError
+from skinmap.emulator.physics import SHAPE_KINDS
+from skinmap.emulator.scenes import cache_directory, parse_scene_spec
 from skinmap.emulator.transport import DEFAULT_LINK, PtyTransport, TcpTransport
 
 _LAYERS = {"upper": 0, "u": 0, "0": 0, "lower": 1, "l": 1, "1": 1}
@@ -75,7 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--pitch", type=float, default=12.0, help="cell pitch, mm (default 12)")
     g.add_argument("--shape", default="flat",
                    help=f"shape spec kind[:key=value,...], kinds: {', '.join(SHAPE_KINDS)}; "
-                        "graph shapes add with '+' (default flat)")
+                        "graph shapes add with '+' (default flat); with --mechanics elastic also "
+                        "poisson, friction, prestretch, prestretch_u/_v, mesh, keyframes, "
+                        "finger_radius, tension, tape, indenter, relief (firmware-host/README.md)")
+    g.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
+                   help="kinematic: the shape's closed-form map (default); elastic: the film solved as an "
+                        "elastic sheet on the mold / under the indenters (solved once, cached in "
+                        f"{cache_directory()})")
     g.add_argument("--rate", type=float, default=10.0, help="scan rate at boot, scans/s (default 10)")
     g.add_argument("--max-step-rate", type=float, default=4000.0,
                    help="DAQ TDM step-rate limit, steps/s (max scan rate = this / 2·min(N,M))")
@@ -151,14 +160,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cfg, dead, saturated = config_from_args(args, parser)
     try:
-        shape = parse_shape_spec(args.shape)
+        if args.mechanics == "elastic":
+            print(f"skinmap-emulator: solving the elastic scene {args.shape!r} "
+                  f"(cached in {cache_directory()})", flush=True)
+        shape = parse_scene_spec(args.shape, args.mechanics, cfg.n, cfg.m, cfg.pitch_mm)
         faults = LinkFaults(garbage_rate_hz=args.garbage_rate, bit_flip_rate=args.bit_flip_rate,
                             drop_rate=args.drop_rate)
         schedule = FaultSchedule(stall_every_s=args.stall_every, stall_for_s=args.stall_for,
                                  disconnect_every_s=args.disconnect_every,
                                  disconnect_for_s=args.disconnect_for, reboot_every_s=args.reboot_every)
         transport = TcpTransport(args.tcp) if args.tcp is not None else PtyTransport(args.link)
-    except ValueError as exc:
+    except (ValueError, MechanicsError) as exc:
         parser.error(str(exc))
     if args.duration is not None and not args.duration > 0:
         parser.error(f"--duration must be > 0 s, got {args.duration}")

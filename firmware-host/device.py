@@ -159,6 +159,9 @@ class Device:
         self.last_strain: np.ndarray | None = None
         #: called with the ScanRecord of every scan sent (ground-truth logging)
         self.on_scan: Callable[[ScanRecord], None] | None = None
+        # the first evaluation may build tables (key-framed elastic scenes): do it before the
+        # scanner boots, not while the first scan falls due
+        self.strains(0.0)
         self._boot(now_s, watchdog=False)
 
     # ------------------------------------------------------------------ state and clocks
