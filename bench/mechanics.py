@@ -13,6 +13,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 
 from skinmap.emulator import mechanics as mc  # noqa: E402
@@ -52,7 +53,9 @@ def main() -> None:
     mc.solve = counting  # count the Newton steps of every solve the scene makes
     try:
         for n in sizes:
-            for spec in MOLDS + (MOVING if args.moving and n <= 5 else []):
+            scale = max(1.0, n / 5.0)
+            molds = [re.sub(r"\{(\d+)\}", lambda mt: f"{float(mt.group(1)) * scale:g}", spec) for spec in MOLDS]
+            for spec in molds + (MOVING if args.moving and n <= 5 else []):
                 calls.clear()
                 t0 = time.perf_counter()
                 shape = parse_scene_spec(spec, "elastic", n, n, 12.0, cache=False)

@@ -380,6 +380,10 @@ class Solution:
     iterations: int
     residual: float  # largest free force component at the end (N)
     seconds: float
+    # the last sparse factor and the free set it belongs to: a preconditioner for the next,
+    # nearby solve of the same problem (a moving scene's next key frame)
+    preconditioner: "_Factor | None" = field(default=None, repr=False, compare=False)
+    free: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 # Bilinear element on [0, hu] × [0, hv]; local corners in the order (0,0), (0,1), (1,1), (1,0)
@@ -509,6 +513,7 @@ class _Energy:
         self.kb = _bending_operator(problem.grid, mat, self.asm.has_film)
         h = min(problem.grid.hu, problem.grid.hv)
         self.penalty = problem.penalty if problem.penalty is not None else 1e2 * mat.membrane_stiffness / h**2
+        self.onset = 1e-3  # mm: the unilateral penalty's smoothing band (contact forces start 1 µm out)
         ref = problem.reference if problem.reference is not None else problem.grid.uv()
         self.reference = np.asarray(ref, float).reshape(-1, 2)
 
@@ -589,12 +594,14 @@ class _Energy:
         hess = np.zeros((x.shape[0], 3, 3)) if hessian else None
         for body in self.p.contacts:
             g, dg = body.gap(x, self.p.time)
-            act = np.ones_like(g, bool) if body.bilateral else g < 0
-            ga = np.where(act, g, 0.0) * area
-            energy += 0.5 * k * float(np.sum(ga * np.where(act, g, 0.0)))
-            grad += (k * ga)[:, None] * dg
+            if body.bilateral:
+                e, de, dde = 0.5 * g * g, g, np.ones_like(g)
+            else:
+                e, de, dde = _onset(g, self.onset)
+            energy += k * float(np.sum(area * e))
+            grad += (k * area * de)[:, None] * dg
             if hessian:
-                hess += (k * area * act)[:, None, None] * dg[:, :, None] * dg[:, None, :]
+                hess += (k * area * dde)[:, None, None] * dg[:, :, None] * dg[:, None, :]
         if self.p.foundation > 0:
             kt = self.p.foundation * area
             d = x[:, :2] - self.reference
@@ -628,6 +635,19 @@ class _Energy:
         if not hessian:
             return energy, g, None
         return energy, g, self.asm.matrix(ke, hc) + self.kb
+
+
+def _onset(g: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A unilateral penalty per unit stiffness that is twice differentiable: its curvature rises
+    linearly from 0 at a gap of ``delta`` to 1 at contact and stays 1 inside (so Newton does not
+    chatter on nodes at the edge of a contact patch); value, slope and curvature at gaps g."""
+    inside = g < 0
+    band = (g >= 0) & (g < delta)
+    r = np.where(band, delta - g, 0.0)
+    e = np.where(inside, delta * delta / 6 - 0.5 * delta * g + 0.5 * g * g, r**3 / (6 * delta))
+    de = np.where(inside, g - 0.5 * delta, -r * r / (2 * delta))
+    dde = np.where(inside, 1.0, r / delta)
+    return e, de, dde
 
 
 def _positive_part_2x2(s: np.ndarray) -> np.ndarray:
@@ -781,10 +801,11 @@ class _Coordinates:
 
 
 def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_iter: int = 200,
-          log: Callable[[str], None] | None = None) -> Solution:
+          log: Callable[[str], None] | None = None, warm: Solution | None = None) -> Solution:
     """Minimise the sheet's energy from the start ``x0`` (nv, nu, 3); degrees of freedom marked in
     ``problem.fixed`` keep ``x0``'s values (on a mold only x and y can be fixed: z follows the
-    mold).  Raises :class:`MechanicsError` when the largest free force does not fall below ``tol``
+    mold).  ``warm``, the solution of a nearby problem with the same free degrees of freedom,
+    lends its last factor as the first preconditioner.  Raises :class:`MechanicsError` when the largest free force does not fall below ``tol``
     (default 1e-9·Y·h, N) within ``max_iter`` Newton steps.
 
     Each Newton system is solved by conjugate gradients preconditioned with a sparse factor of an
@@ -857,8 +878,11 @@ def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_i
     shift = 0.0
     diag_scale = scale / h  # a stiffness (N/mm) per degree of freedom
     factor: _Factor | None = None
+    if warm is not None and warm.free is not None and np.array_equal(warm.free, free):
+        factor = warm.preconditioner
     fresh = False  # the factor is of this very matrix (the step is an exact Newton step)
     previous = math.inf
+    stalled = 0
     it = 0
     for it in range(1, max_iter + 1):
         gf = g[free]
@@ -871,6 +895,11 @@ def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_i
         if gmax > 0.25 * previous:
             # slow progress: soft modes (sliding, rotation) need the exact Newton step
             factor = None
+            stalled += 1
+            if stalled >= 20 and gmax < 100.0 * tol:
+                break  # round-off floor: forces of ~1e-7·Y·h move no point by 1e-8 mm
+        else:
+            stalled = 0
         previous = gmax
         hff = hmat[free][:, free].tocsr()
         accepted = False
@@ -927,4 +956,5 @@ def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_i
             f"{np.max(np.abs(g[free])):.3g} N > {tol:.3g} N"
         )
     x = coords.lift(y).reshape(grid.nv, grid.nu, 3)
-    return Solution(grid, x, energy, it, float(np.max(np.abs(g[free]))), time.perf_counter() - started)
+    return Solution(grid, x, energy, it, float(np.max(np.abs(g[free]))), time.perf_counter() - started,
+                    factor, free)

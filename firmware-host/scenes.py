@@ -78,6 +78,8 @@ ELASTIC_PARAMETERS: dict[str, float | None] = {
     "relief_angle": 0.0,
 }
 
+# Steepest mold slope a film may be laid on (a height field cannot wrap past 90°): 70°.
+_MAX_SLOPE = math.tan(math.radians(70.0))
 _MOLD_KINDS = ("flat", "cylinder", "sphere", "saddle", "quadric", "gaussian")
 # A numerical anchor for the rotation of a film that only its centre pins (N/mm³ · Y/L²): small
 # enough to change no strain by more than ~1e-6 of itself.
@@ -298,6 +300,13 @@ def _mold_problem(setup: _Setup, height: mc.HeightField, el: Mapping[str, Any], 
         grid, setup.material, mold=height, fixed=fixed, foundation=max(friction, anchor if hold else 0.0),
         reference=ref, time=t, hold_rigid=hold,
     )
+    _, slope, _ = height(ref.reshape(-1, 2), t)
+    steepest = float(np.sqrt(np.max(np.sum(slope * slope, axis=-1))))
+    if steepest > _MAX_SLOPE:
+        raise ValueError(
+            f"the film ({2 * grid.half_u:g} × {2 * grid.half_v:g} mm) reaches {math.degrees(math.atan(steepest)):.0f}° "
+            f"of slope on this mold ({height!r}); a mold is a height field z = f(x, y), usable to "
+            f"{math.degrees(math.atan(_MAX_SLOPE)):.0f}°: use a larger radius or a smaller array")
     return problem, _on_mold(height, ref, t)
 
 
@@ -333,9 +342,11 @@ def _solve_membrane(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, A
 
     contacts = [mc.SphereContact(finger(k), radius) for k in range(kin.fingers)]
     frames: list[np.ndarray] = []
+    last: mc.Solution | None = None
     for t in times:
         problem = mc.SheetProblem(grid, mat, contacts=contacts, fixed=fixed, time=float(t))
-        frames.append(mc.solve(problem, _predict(frames, x)).positions)
+        last = mc.solve(problem, _predict(frames, x), warm=last)
+        frames.append(last.positions)
     return times, np.stack(frames), cycle
 
 
@@ -408,9 +419,11 @@ def _solve_balloon(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, An
             staged = _balloon_contacts(stage, el, half)
             x = mc.solve(mc.SheetProblem(grid, mat, contacts=staged, fixed=fixed, balloon=balloon), x).positions
     frames: list[np.ndarray] = []
+    last: mc.Solution | None = None
     for t in times:
         problem = mc.SheetProblem(grid, mat, contacts=contacts, fixed=fixed, balloon=balloon, time=float(t))
-        frames.append(mc.solve(problem, _predict(frames, x)).positions)
+        last = mc.solve(problem, _predict(frames, x), warm=last)
+        frames.append(last.positions)
     return times, np.stack(frames), period
 
 
