@@ -278,9 +278,6 @@ def _mold_problem(setup: _Setup, height: mc.HeightField, el: Mapping[str, Any], 
     if el.get("prestretch") is not None:
         su = el["prestretch"] if su is None else su
         sv = el["prestretch"] if sv is None else sv
-    for name, value in (("prestretch_u", su), ("prestretch_v", sv)):
-        if value is not None and not (0.0 <= float(value) <= 0.5):
-            raise ValueError(f"{name} must be a strain between 0 and 0.5, got {value!r}")
     stretched = uv * np.array([1.0 + float(su or 0.0), 1.0 + float(sv or 0.0)])
     ref = stretched if placement is None else placement(stretched)
     fixed = np.zeros((grid.nv, grid.nu, 3), bool)
@@ -290,8 +287,6 @@ def _mold_problem(setup: _Setup, height: mc.HeightField, el: Mapping[str, Any], 
         fixed[[0, -1], :, 1] = True
     anchor = _ANCHOR * setup.material.membrane_stiffness / max(grid.half_u, grid.half_v) ** 2
     friction = float(el.get("friction") or 0.0)
-    if friction < 0 or not math.isfinite(friction):
-        raise ValueError(f"friction must be a finite stiffness >= 0 (N/mm³), got {friction!r}")
     # frictionless films keep their mean position: along the edges no frame holds, and turning
     # unless a frame holds both pairs of edges
     hold = () if friction else tuple(
@@ -351,13 +346,10 @@ def _solve_membrane(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, A
 
 
 def _predict(frames: list[np.ndarray], start: np.ndarray) -> np.ndarray:
-    """Warm start of the next key frame: the last two extrapolated linearly (the solver then
-    moves any point a body now overlaps onto its surface)."""
-    if not frames:
-        return start
-    if len(frames) == 1:
-        return frames[-1]
-    return 2.0 * frames[-1] - frames[-2]
+    """Warm start of the next key frame: the last one (the solver then moves any point a body
+    now overlaps onto its surface).  Not extrapolated: after a release the extrapolation rises
+    through the next fingertip and would start the film on the wrong side of it."""
+    return frames[-1] if frames else start
 
 
 class _Ridge:
@@ -507,44 +499,81 @@ def _store(path: Path, **arrays: np.ndarray) -> None:
         pass  # a read-only or full disk only costs the next run a solve
 
 
+_COMMON = {"poisson", "youngs", "thickness", "bending", "mesh"}
+_FRAME = {"prestretch", "prestretch_u", "prestretch_v", "friction"}
+#: Which elastic parameters each scene uses (any other is an error, not silently ignored).
+APPLICABLE: dict[str, set[str]] = {
+    "mold": _COMMON | {"margin"} | _FRAME,
+    "membrane": _COMMON | {"keyframes", "finger_radius", "prestretch"},
+    "balloon": _COMMON | {"margin", "keyframes", "tension", "tape", "indenter", "relief", "relief_width",
+                          "relief_angle"},
+    "palm": _COMMON | {"margin", "keyframes"} | _FRAME,
+}
+
+
+def _check_elastic(kind: str, given: Mapping[str, Any]) -> None:
+    """Every elastic parameter given applies to this scene and has a sensible value."""
+    scene = "mold" if kind in _MOLD_KINDS or kind == "sum" else kind
+    extra = sorted(set(given) - APPLICABLE[scene])
+    if extra:
+        raise ValueError(f"elastic {kind!r}: {', '.join(extra)} do(es) not apply; it takes "
+                         f"{', '.join(sorted(APPLICABLE[scene]))}")
+    for name, value in given.items():
+        if value is None:
+            continue
+        v = float(value)
+        if not math.isfinite(v):
+            raise ValueError(f"elastic parameter {name} must be finite, got {value!r}")
+        if name.startswith("prestretch") and not 0.0 <= v <= 0.5:
+            raise ValueError(f"{name} must be a strain between 0 and 0.5, got {value!r}")
+        if name in ("mesh", "finger_radius", "tension", "relief", "relief_width", "youngs", "thickness",
+                    "bending") and v <= 0:
+            raise ValueError(f"elastic parameter {name} must be > 0, got {value!r}")
+        if name in ("friction", "tape", "margin") and v < 0:
+            raise ValueError(f"elastic parameter {name} must be >= 0, got {value!r}")
+        if name == "keyframes" and (v != int(v) or v < 2):
+            raise ValueError(f"keyframes must be a whole number >= 2, got {value!r}")
+
+
 def make_scene(kind: str, n: int, m: int, pitch: float = 12.0, *, cache: bool = True,
                cache_dir: str | os.PathLike[str] | None = None, **params: Any) -> ph.Shape:
     """The elastic form of a shape kind (see the module's table) for an N×M array at ``pitch``:
     a :class:`SheetShape` (static) or :class:`KeyframedSheet` (moving).  ``params`` are the
-    kinematic kind's parameters plus the elastic ones in :data:`ELASTIC_PARAMETERS`.  Graph
-    shapes summed with ``+`` come as ``kind="sum", shape=<GraphSum>``."""
+    kinematic kind's parameters plus the elastic ones in :data:`ELASTIC_PARAMETERS` that apply
+    to the scene (:data:`APPLICABLE`).  Graph shapes summed with ``+`` come as
+    ``kind="sum", shape=<GraphSum>``.  Raises ValueError naming a bad parameter, and
+    :class:`~skinmap.emulator.mechanics.MechanicsError` when the film finds no equilibrium."""
     n, m = ph._grid_size(n, m)
     pitch = ph._finite_positive("pitch", pitch)
-    el = {k: params.pop(k, d) for k, d in ELASTIC_PARAMETERS.items()}
+    if kind not in ph.SHAPE_KINDS and kind != "sum":
+        raise ValueError(f"unknown shape kind {kind!r}; known kinds: {', '.join(ph.SHAPE_KINDS)}")
+    given = {k: params.pop(k) for k in list(params) if k in ELASTIC_PARAMETERS}
+    _check_elastic(kind, given)
+    el = {**ELASTIC_PARAMETERS, **given}
+    if kind == "sum":
+        if not isinstance(params.get("shape"), ph.GraphShape) or set(params) != {"shape"}:
+            raise ValueError("kind 'sum' takes exactly shape=<a GraphShape>")
+        key_params: dict[str, Any] = {"shape": repr(params["shape"])}
+    else:
+        ph.make_shape(kind, **params)  # the kinematic parameters' errors first, by name
+        key_params = dict(params)
     margin = None if el["margin"] is None else float(el["margin"])
     material = _material(el)
     if kind == "membrane":
-        kin = ph.FingertipMembrane(**{k: v for k, v in params.items()})
+        kin = ph.FingertipMembrane(**params)
         grid = mc.SheetGrid(kin.half_u, kin.half_v, float(el["mesh"]))
     else:
         grid = mc.SheetGrid.for_array(n, m, pitch, float(el["mesh"]), margin)
     setup = _Setup(n, m, pitch, material, grid)
+    solver: Callable[[], tuple[np.ndarray, np.ndarray, float]]
     if kind in _MOLD_KINDS or kind == "sum":
-        ph.make_shape(kind, **params) if kind != "sum" else None  # parameter errors first
-        if kind == "sum":
-            key_params: dict[str, Any] = {"shape": repr(params["shape"])}
-        else:
-            key_params = dict(params)
-        solver: Callable[[], tuple[np.ndarray, np.ndarray, float]] = lambda: (
-            np.array([0.0]), _solve_mold(setup, kind, params, el)[None], math.inf)
+        solver = lambda: (np.array([0.0]), _solve_mold(setup, kind, params, el)[None], math.inf)
     elif kind == "membrane":
-        key_params = dict(params)
         solver = lambda: _solve_membrane(setup, params, el)
     elif kind == "balloon":
-        ph.BalloonDome(**params)
-        key_params = dict(params)
         solver = lambda: _solve_balloon(setup, params, el)
-    elif kind == "palm":
-        ph.PalmGesture(**params)
-        key_params = dict(params)
-        solver = lambda: _solve_palm(setup, params, el)
     else:
-        raise ValueError(f"unknown shape kind {kind!r}; known kinds: {', '.join(ph.SHAPE_KINDS)}")
+        solver = lambda: _solve_palm(setup, params, el)
     changed = {k: v for k, v in el.items() if v != ELASTIC_PARAMETERS[k]}
     label = f"elastic {kind} " + ",".join(f"{k}={v}" for k, v in sorted({**key_params, **changed}.items()))
     path = Path(cache_dir) if cache_dir is not None else cache_directory()

@@ -87,3 +87,26 @@ def test_cli_names_a_bad_elastic_parameter(capsys):
 def test_scene_spec_mechanics_must_be_named():
     with pytest.raises(ValueError, match="mechanics"):
         parse_scene_spec("flat", "rigid", 5, 5)  # type: ignore[arg-type]
+
+
+def test_balloon_centre_turns_from_convex_to_concave_under_the_dome_and_back(cache):
+    # the paper's balloon: a unit inside the array switches from convex (the balloon) to concave
+    # (the dome's imprint) during the press and back on release
+    shape = make_scene("balloon", 5, 5, 12.0, period=4.0, mesh=2.0, keyframes=8, cache_dir=cache)
+    bend = {}
+    for t in (0.0, 2.0, 4.0):
+        eu, el = gauge_strains(shape, 5, 5, 12.0, t=t)
+        bend[t] = 0.5 * (eu - el)[:, 2, 2]  # h·κ along u and v at the centre cell
+    h = 0.2
+    assert np.all(bend[0.0] > 0.6 * h / 80.0)  # convex, about the balloon's 1/80 mm⁻¹
+    assert np.all(bend[2.0] < -0.6 * h / 50.0)  # concave, about the dome's 1/50 mm⁻¹
+    np.testing.assert_allclose(bend[4.0], bend[0.0], atol=1e-9)  # released: one period later
+
+
+def test_palm_mold_holds_still_during_a_hold_and_moves_between_keys(cache):
+    shape = make_scene("palm", 3, 3, 12.0, hold=1.0, transition=1.0, mesh=2.0, keyframes=16, cache_dir=cache)
+    a = np.stack(gauge_strains(shape, 3, 3, 12.0, t=2.1))
+    b = np.stack(gauge_strains(shape, 3, 3, 12.0, t=2.9))  # both inside the cylinder's hold
+    np.testing.assert_allclose(a, b, atol=1e-12)
+    c = np.stack(gauge_strains(shape, 3, 3, 12.0, t=3.5))  # morphing toward the bump
+    assert np.abs(c - a).max() > 1e-4
