@@ -513,7 +513,7 @@ class _Energy:
         self.kb = _bending_operator(problem.grid, mat, self.asm.has_film)
         h = min(problem.grid.hu, problem.grid.hv)
         self.penalty = problem.penalty if problem.penalty is not None else 1e2 * mat.membrane_stiffness / h**2
-        self.onset = 1e-3  # mm: the unilateral penalty's smoothing band (contact forces start 1 µm out)
+        self.onset = 1e-2  # mm: the unilateral penalty's smoothing band (contact forces start 10 µm out)
         ref = problem.reference if problem.reference is not None else problem.grid.uv()
         self.reference = np.asarray(ref, float).reshape(-1, 2)
 

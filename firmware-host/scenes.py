@@ -156,7 +156,8 @@ class _PeriodicPchip:
 class KeyframedSheet(ph.Shape):
     """A moving solved sheet: positions (K, nv, nu, 3) at key-frame times (K,) over one cycle
     of ``period`` s, interpolated in time per node by monotone cubics; gauge readings are computed
-    exactly at every key frame and interpolated the same way (no re-solve between frames)."""
+    exactly at every key frame (``key_frames``, each a :class:`SheetShape`) and interpolated the
+    same way (no re-solve between frames)."""
 
     time_varying = True
 
@@ -174,7 +175,7 @@ class KeyframedSheet(ph.Shape):
         self.period = float(period)
         self.label = label
         self._nodes = _PeriodicPchip(times, positions, period)
-        self._frames = [SheetShape(grid, p, f"{label} @ {t:g} s") for t, p in zip(times, positions)]
+        self.key_frames = [SheetShape(grid, p, f"{label} @ {t:g} s") for t, p in zip(times, positions)]
         self._tables: dict[tuple, _PeriodicPchip] = {}
 
     def frame(self, t: float) -> SheetShape:
@@ -217,7 +218,7 @@ class KeyframedSheet(ph.Shape):
         if table is None:
             frames = np.stack([
                 f.layer_strains(centres, directions, offsets, gauge_length, np.asarray(0.0), samples, panels)
-                for f in self._frames
+                for f in self.key_frames
             ])  # (K, L, G)
             table = self._tables[key] = _PeriodicPchip(self.times, frames, self.period)
         t = np.asarray(t, float)

@@ -60,7 +60,7 @@ def test_moving_elastic_scene_is_sampled_at_each_units_tdm_step(cache):
 def test_keyframed_readings_are_exact_at_key_frames_and_continuous_between(cache):
     shape = make_scene("membrane", 5, 5, 12.0, fingers=1, period=1.0, mesh=3.0, keyframes=8, cache_dir=cache)
     t_k = float(shape.times[3])
-    exact = np.stack(gauge_strains(shape._frames[3], 5, 5))
+    exact = np.stack(gauge_strains(shape.key_frames[3], 5, 5))
     np.testing.assert_allclose(np.stack(gauge_strains(shape, 5, 5, t=t_k)), exact, atol=1e-12)
     # a whole cycle later it is the same frame; just after, the readings move a little
     np.testing.assert_allclose(np.stack(gauge_strains(shape, 5, 5, t=t_k + shape.period)), exact, atol=1e-9)

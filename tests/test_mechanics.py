@@ -372,10 +372,10 @@ def test_membrane_readings_are_the_key_frames_exact_quadrature_zero_unpressed_an
     print(f"\nmembrane: |readings| at rest {np.abs(rest).max():.1e}; at the deepest press (t={deepest:g} s) "
           f"centre stretch along u {stretch[0, 2, 2]:.4f}, along v {stretch[1, 2, 2]:.4f}, "
           f"largest reading {np.abs(pressed).max():.4f}")
-    # unpressed, the fingertip only touches: its unilateral penalty starts 1 µm out (a smooth
-    # onset), so the film sits up to 1 µm below it and reads well under a microstrain
+    # unpressed, the fingertip only touches: its unilateral penalty starts 10 µm out (a smooth
+    # onset), so the film sits a few µm below it and reads well under ten microstrain
     assert np.abs(rest).max() < 1e-5
-    assert shape.positions[0][..., 2].min() > -2e-3
+    assert shape.positions[0][..., 2].min() > -1.5e-2
     # the fingertip (at (0, travel) then) stretches the membrane under and around it
     assert stretch[:, 2, 2].min() > 1e-3
     assert stretch[:, 1:4, 1:4].mean() > stretch[:, [0, -1], :].mean()
