@@ -10,6 +10,7 @@ HERE = Path(__file__).resolve().parent
 RUNS = [
     ["decode_rate.py"],
     ["emulator_rate.py"],
+    ["mechanics.py", "--sizes", "5"],
     ["reconstruction.py", "--quick"],
     ["latency.py", "--seconds", "15"],
     ["soak.py", "--seconds", "60"],
