@@ -113,6 +113,13 @@ class SheetShape(ph.Shape):
 
     def _eval(self, uv: np.ndarray, du: int, dv: int) -> np.ndarray:
         flat = uv.reshape(-1, 2)
+        outside = (np.abs(flat[:, 0]) > self.grid.half_u + 1e-9) | (np.abs(flat[:, 1]) > self.grid.half_v + 1e-9)
+        if outside.any():
+            u, v = flat[np.flatnonzero(outside)[0]]
+            raise ValueError(
+                f"material point ({u:g}, {v:g}) mm lies outside the solved film "
+                f"(±{self.grid.half_u:g} × ±{self.grid.half_v:g} mm): a larger film (margin, or the "
+                "membrane's half_u/half_v) is needed for gauges or elements there")
         out = np.stack([s.ev(flat[:, 1], flat[:, 0], dx=dv, dy=du) for s in self._splines], axis=-1)
         return out.reshape(uv.shape[:-1] + (3,))
 

@@ -110,3 +110,27 @@ def test_palm_mold_holds_still_during_a_hold_and_moves_between_keys(cache):
     np.testing.assert_allclose(a, b, atol=1e-12)
     c = np.stack(gauge_strains(shape, 3, 3, 12.0, t=3.5))  # morphing toward the bump
     assert np.abs(c - a).max() > 1e-4
+
+
+def test_points_outside_the_solved_film_are_refused_not_clamped(cache):
+    shape = make_scene("sphere", 3, 3, 12.0, radius=60.0, cache_dir=cache)
+    shape.position(np.array([[24.0, -24.0]]))  # the film's corner
+    with pytest.raises(ValueError, match="outside the solved film"):
+        shape.position(np.array([[30.0, 0.0]]))
+    with pytest.raises(ValueError, match="outside the solved film"):
+        ground_truth(shape, 3, 3, 12.0, element_uv=[[0.0, 25.0]])
+
+
+def test_balloon_pressed_on_a_wall_ridge_stays_below_the_wall_and_dips_under_the_crest(cache):
+    shape = make_scene("balloon", 5, 5, 12.0, indenter=1, depth=5.0, period=4.0, mesh=2.0, keyframes=4,
+                       cache_dir=cache)
+    rest, pressed = shape.key_frames[0], shape.key_frames[2]  # t = 0 (touching), t = 2 s (5 mm)
+    centre = np.array([[0.0, 0.0]])
+    # touching only: the film's own lamination tension dents the balloon a little
+    assert rest.position(centre)[0, 2] > -0.5
+    assert pressed.position(centre)[0, 2] < -2.0  # the crest pushed the balloon in
+    # the crest runs along u: across it (along v) the film wraps the crest, concave (bend < 0),
+    # and more sharply than along it
+    eu, el = gauge_strains(pressed, 5, 5, 12.0)
+    bend = 0.5 * (eu - el)[:, 2, 2]
+    assert bend[1] < 0 and abs(bend[1]) > abs(bend[0])
