@@ -164,6 +164,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skinmap-emulator: solving the elastic scene {args.shape!r} "
                   f"(cached in {cache_directory()})", flush=True)
         shape = parse_scene_spec(args.shape, args.mechanics, cfg.n, cfg.m, cfg.pitch_mm)
+        if args.elements is not None:
+            shape.position(args.elements)  # an element off the film is an error now, not mid-run
         faults = LinkFaults(garbage_rate_hz=args.garbage_rate, bit_flip_rate=args.bit_flip_rate,
                             drop_rate=args.drop_rate)
         schedule = FaultSchedule(stall_every_s=args.stall_every, stall_for_s=args.stall_for,

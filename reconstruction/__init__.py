@@ -31,11 +31,12 @@ from .engine import (
 )
 from .grid import FineGrid
 from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
-from .graphfit import GraphFit
+from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
+from .graphfit import GraphFit, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .robust import huber_potential
 from .surface import Diagnostics, Surface
-from .uncertainty import fine_sigma
+from .uncertainty import fine_sigma, resolution_sigma
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS"]
@@ -208,6 +209,7 @@ class Reconstructor:
         graph = None
         general = None
         warm = None
+        graph_sigma: dict = {}
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
             sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
@@ -217,9 +219,11 @@ class Reconstructor:
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
             if graph is None or not graph.accepted:
-                # cold: the general model first (a start for the fit, and the answer if no graph fits)
+                # cold: the general model first (a start for the fit, the surface an accepted
+                # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign)
-                graph = self._graph.fit_cold(data, general[0], twist_sign)
+                agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
+                graph = self._graph.fit_cold(data, general[0], twist_sign, agree)
         left_out = True
         if graph is not None and graph.accepted:
             pos = _to_sensor_frame(grid, self._graph.fine_positions(graph.coeffs))
@@ -261,13 +265,19 @@ class Reconstructor:
         if graph is not None:
             diag.extra.update(graph_fit=graph.how, graph_steps=graph.iterations,
                               graph_chi2=(round(graph.chi2_turning, 4), round(graph.chi2_stretch, 4)))
+            if math.isfinite(graph.agreement):
+                diag.extra["graph_agreement"] = round(graph.agreement, 3)
         def general_sigma() -> np.ndarray:
             return fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l, left_out=left_out)
 
         if fit is None:  # the graph's own scatter; a missing unit's region as the general model has it
             def surface_sigma() -> np.ndarray:
-                sigma = self._graph.fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
-                                                      grid.spacing)
+                known = graph_sigma.get(graph.coeffs.tobytes())  # from the agreement test, at the fit's noise
+                if known is not None:
+                    sigma = known * (strain_sigma / fit_sigma)
+                else:
+                    sigma = self._graph.fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
+                                                          grid.spacing)
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
         else:
             surface_sigma = general_sigma
@@ -286,6 +296,34 @@ class Reconstructor:
         diag.solve_time = time.perf_counter() - t0
         return surf
 
+
+    def _agreement(self, general, turning, valid, data, fit_sigma):
+        """The test an accepted graph must pass on a cold frame (graphfit.AGREE_SIGMAS): its
+        surface and the general model's ``general`` agree, after the best rigid alignment, over
+        most of the sheet within their combined uncertainty at the fit's noise level ``fit_sigma``
+        (at least the sensor's): the general model's noise s.d., its resolution
+        (uncertainty.resolution_sigma: what the turning pattern's structure at the gauge scale
+        leaves open) and, only when those alone do not suffice, the graph's own s.d. (3-4 ms on
+        5×5; kept in the returned dict, keyed by the coefficients, for the surface's
+        node_sigma).  Returns (the test: coefficients → median distance in s.d., that dict)."""
+        grid = self.grid
+        pos, left_out = general[0], general[4]
+        h_u, h_l = self.h_upper, self.h_lower
+        sig_turn = math.sqrt(2.0) * fit_sigma / (h_u + h_l)
+        tol_sq = fine_sigma(grid, valid, turning, fit_sigma, h_u, h_l, left_out=left_out) ** 2
+        tol_sq = tol_sq + resolution_sigma(grid, valid, turning, sig_turn) ** 2
+        graph_sigma: dict = {}
+
+        def agree(coeffs: np.ndarray) -> float:
+            surface = self._graph.fine_positions(coeffs)
+            ratio = disagreement(surface, pos, np.sqrt(tol_sq))
+            if ratio <= GRAPH_AGREE_SIGMAS:
+                return ratio  # the graph's own scatter could only widen the tolerance
+            sigma = self._graph.fine_height_sigma(coeffs, data, 1.0, grid.centre, grid.spacing)
+            graph_sigma[coeffs.tobytes()] = sigma
+            return disagreement(surface, pos, np.sqrt(tol_sq + sigma**2))
+
+        return agree, graph_sigma
 
     def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign):
         """Steps 1-5 of the model (any sheet): fields, twist, shear, frames, positions."""

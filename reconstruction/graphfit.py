@@ -41,7 +41,7 @@ from scipy.interpolate import BSpline
 from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
 
-__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS", "TWIST_SIGN_FLOOR"]
+__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
 #: noise variance.  Measured (5×5, noise s.d. 0.0057 %): converged graphs 0.3-3 (noise-free
@@ -49,6 +49,13 @@ __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "MAX_CELLS", "TWIST_SIGN_FL
 #: bumps) 300 and above; troughs stopped short of convergence 5-15 (with errors up to 0.4 mm:
 #: hence 4, not more).
 ACCEPT_CHI2 = 4.0
+#: Agreement with the general model (cold frames): the median over the fine nodes of the distance
+#: between the two surfaces (after the best rigid alignment) in units of their combined s.d.
+#: (noise of both, and the general model's resolution, see uncertainty.resolution_sigma) at
+#: most this.  Measured (5×5, noise-free and noisy): graphs up to 1.1; sheets stretched in their
+#: plane that a graph mimics with folds hidden between the gauges 12 and above (a 1 % pre-stretch
+#: on a sphere of R 120 mm) to 100.
+AGREE_SIGMAS = 3.0
 #: Size limit (cells) of the graph fit: a 5×5 sheet has 324 unknowns, 8×8 729.
 MAX_CELLS = 64
 #: A graph twist (mean w_uv, 1/mm) smaller than this has no sign worth contradicting twist_sign.
@@ -90,6 +97,29 @@ class GraphResult(NamedTuple):
     turning_rms: float  # RMS turning misfit per length (1/mm)
     how: str  # "warm" (previous frame), "linear" / "general" (cold start), or why not accepted
     objective: float  # the minimised objective (data misfit and prior), to rank cold starts
+    agreement: float = math.nan  # median distance to the general model in combined s.d. (cold frames)
+
+
+def disagreement(graph_pos: np.ndarray, general_pos: np.ndarray, tolerance: np.ndarray) -> float:
+    """The median over the fine nodes of the distance between two surfaces (fine-grid positions
+    (nf, mf, 3) each), the first moved by the best rigid motion onto the second, in units of
+    ``tolerance`` (nf, mf), the combined one-s.d. uncertainty; nodes of zero tolerance (the
+    sensor frame's origin, where both are pinned) are left out.  The median: the general model
+    may be off around a feature it cannot resolve, and the noise-propagated s.d. of either
+    surface is a sensor-frame estimate that is loose near the centre, so agreement is asked of
+    the sheet as a whole (half of its nodes), not of every node."""
+    p = np.asarray(graph_pos, dtype=float).reshape(-1, 3)
+    q = np.asarray(general_pos, dtype=float).reshape(-1, 3)
+    tol = np.asarray(tolerance, dtype=float).reshape(-1)
+    pc, qc = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(u @ vt))
+    rot = (u * np.array([1.0, 1.0, d])) @ vt  # (p − pc) @ rot ≈ q − qc
+    dist = np.sqrt((((p - pc) @ rot + qc - q) ** 2).sum(axis=1))
+    keep = tol > 0.0
+    if not keep.any() or not np.isfinite(dist).all():
+        return math.inf
+    return float(np.median(dist[keep] / tol[keep]))
 
 
 def _basis_1d(lo: float, hi: float, intervals: int) -> tuple[np.ndarray, int]:
@@ -381,12 +411,16 @@ class GraphFit:
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
 
-    def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None) -> GraphResult:
+    def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None,
+                 agree=None) -> GraphResult:
         """Fit from the linear fit of the turning data and, given ``general`` (the general
         model's fine-grid positions (nf, mf, 3), any rigid frame), from that surface as well;
         the accepted fit with the lower objective wins.  The two starts fail differently: the
         linear one has no twist (steep twisted quadrics can end in a wrong basin), the general
-        model's smooths sub-gauge features (sharp bumps can end in a wrong basin)."""
+        model's smooths sub-gauge features (sharp bumps can end in a wrong basin).  ``agree``
+        (coefficients → the median distance to the general model in combined s.d., see
+        :data:`AGREE_SIGMAS`): an accepted fit must also pass it, in the order of the
+        objective."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
         starts = [("linear", self._start(turning, valid, sigma_t))]
         reasons = [self._screen(starts[0][1], stretch, valid, sigma_s)]
@@ -404,6 +438,19 @@ class GraphFit:
                                                            curvature=_COLD_CURVATURE),
                                             n_valid, sigma_t, how), twist_sign)
                    for (how, c), why in zip(starts, reasons) if not why]
+        if agree is not None:
+            checked = []
+            for r in sorted(results, key=lambda r: r.objective):
+                if r.accepted:
+                    ratio = float(agree(r.coeffs))
+                    r = r._replace(agreement=ratio)
+                    if not ratio <= AGREE_SIGMAS:
+                        r = r._replace(accepted=False, how=f"{r.how}: not the general model's surface (median "
+                                                           f"{ratio:.3g} s.d. away)")
+                    else:
+                        return r
+                checked.append(r)
+            results = checked
         accepted = [r for r in results if r.accepted]
         if accepted:
             return min(accepted, key=lambda r: r.objective)

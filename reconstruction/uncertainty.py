@@ -18,7 +18,7 @@ import numpy as np
 from .grid import FineGrid
 from .leaveout import IllConditioned
 
-__all__ = ["height_response", "fine_sigma"]
+__all__ = ["height_response", "fine_sigma", "resolution_sigma"]
 
 
 def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:
@@ -123,6 +123,42 @@ def _probe_sums(grid: FineGrid, valid: np.ndarray, probes: int = 32) -> tuple[np
     measured = _heights(grid, solver.solve(obs_t @ np.where(v[:, None], xi, 0.0)))
     missing = _heights(grid, grid.leave_out("potential").solver.solve(obs_t @ np.where(v[:, None], 0.0, xi)))
     return (measured * measured).mean(axis=1), (missing * missing).mean(axis=1)
+
+
+def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, turning_sigma: float) -> np.ndarray:
+    """How far (one s.d., (nf, mf) mm) the general model's heights may be off because the sheet
+    has structure at the gauge scale, which its fields cannot resolve.
+
+    The fields reproduce a turning pattern that is affine across the sheet exactly (a gauge
+    average of a linear field is its value at the gauge's centre); of any departure from that
+    pattern the gauges give only averages, and how it is distributed within and between them
+    the fields must guess.  So each measured unit's departure from the affine fit of its
+    direction's turning, beyond the noise (``turning_sigma``, per length), is taken as an
+    uncertainty of that unit's turning and propagated like the noise, through the height
+    response about the flat sheet: zero on spheres, cylinders and saddles of constant
+    curvature, about the feature's own height around a bump (a generous bound: the general
+    model's actual error there is a tenth or less of it).  Dense-map grids only (the response
+    is held whole); computed from the cached all-valid response, missing units left out."""
+    base = _all_valid_response(grid)
+    rsq = base.get("r_sq")
+    if rsq is None:
+        r = base["r"] if base["r"] is not None else height_response(grid, np.ones((2, grid.n, grid.m), dtype=bool))
+        rsq = base["r_sq"] = r * r
+    valid = np.asarray(valid, dtype=bool).reshape(2, grid.n, grid.m)
+    turning = np.asarray(turning, dtype=float).reshape(2, grid.n, grid.m)
+    uc = (np.arange(grid.m) - 0.5 * (grid.m - 1)) * grid.pitch
+    vc = (np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
+    design = np.stack(np.broadcast_arrays(1.0, uc[None, :], vc[:, None]), axis=-1).reshape(-1, 3)
+    excess = np.zeros((2, grid.n * grid.m))
+    for k in range(2):
+        v = valid[k].ravel()
+        if v.sum() < 3:
+            continue
+        t = turning[k].ravel()[v]
+        coef = np.linalg.lstsq(design[v], t, rcond=None)[0]
+        dev = t - design[v] @ coef
+        excess[k, v] = np.maximum(dev * dev - turning_sigma**2, 0.0)
+    return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
 
 
 def fine_sigma(
