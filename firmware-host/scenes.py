@@ -78,8 +78,8 @@ ELASTIC_PARAMETERS: dict[str, float | None] = {
     "relief_angle": 0.0,
 }
 
-# Steepest mold slope a film may be laid on (a height field cannot wrap past 90°): 70°.
-_MAX_SLOPE = math.tan(math.radians(70.0))
+# Steepest mold slope a film may be laid on (a height field cannot wrap past 90°): 80°.
+_MAX_SLOPE = math.tan(math.radians(80.0))
 _MOLD_KINDS = ("flat", "cylinder", "sphere", "saddle", "quadric", "gaussian")
 # A numerical anchor for the rotation of a film that only its centre pins (N/mm³ · Y/L²): small
 # enough to change no strain by more than ~1e-6 of itself.

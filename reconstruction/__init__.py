@@ -310,7 +310,9 @@ class Reconstructor:
         pos, left_out = general[0], general[4]
         h_u, h_l = self.h_upper, self.h_lower
         sig_turn = math.sqrt(2.0) * fit_sigma / (h_u + h_l)
-        tol_sq = fine_sigma(grid, valid, turning, fit_sigma, h_u, h_l, left_out=left_out) ** 2
+        # the general model's noise from the measured units (a missing unit's own share is
+        # part of its resolution: unknown with the measured units' departures from the pattern)
+        tol_sq = fine_sigma(grid, valid, turning, fit_sigma, h_u, h_l, left_out=left_out, missing_spread=0.0) ** 2
         tol_sq = tol_sq + resolution_sigma(grid, valid, turning, sig_turn) ** 2
         graph_sigma: dict = {}
 

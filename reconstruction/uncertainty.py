@@ -137,8 +137,9 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
     uncertainty of that unit's turning and propagated like the noise, through the height
     response about the flat sheet: zero on spheres, cylinders and saddles of constant
     curvature, about the feature's own height around a bump (a generous bound: the general
-    model's actual error there is a tenth or less of it).  Dense-map grids only (the response
-    is held whole); computed from the cached all-valid response, missing units left out."""
+    model's actual error there is a tenth or less of it).  A missing unit's departure is unknown
+    with the mean excess of the measured ones.  Dense-map grids only (the response is held
+    whole, from the cached all-valid one)."""
     base = _all_valid_response(grid)
     rsq = base.get("r_sq")
     if rsq is None:
@@ -150,14 +151,18 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
     vc = (np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
     design = np.stack(np.broadcast_arrays(1.0, uc[None, :], vc[:, None]), axis=-1).reshape(-1, 3)
     excess = np.zeros((2, grid.n * grid.m))
+    fitted = np.zeros((2, grid.n * grid.m), dtype=bool)
     for k in range(2):
         v = valid[k].ravel()
-        if v.sum() < 3:
-            continue
+        if v.sum() <= design.shape[1]:
+            continue  # too few units for a pattern: their departures stay unknown (below)
         t = turning[k].ravel()[v]
         coef = np.linalg.lstsq(design[v], t, rcond=None)[0]
         dev = t - design[v] @ coef
         excess[k, v] = np.maximum(dev * dev - turning_sigma**2, 0.0)
+        fitted[k] = v
+    if not fitted.all():
+        excess[~fitted] = excess[fitted].mean() if fitted.any() else 0.0
     return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
 
 
@@ -169,11 +174,13 @@ def fine_sigma(
     h_upper: float,
     h_lower: float,
     left_out: bool = True,
+    missing_spread: float | None = None,
 ) -> np.ndarray:
     """One-s.d. position uncertainty (nf, mf) mm of every fine node.  ``left_out``: the fields
     of this frame left the missing units out of the all-valid fit (else they refactorised the
     mask, and a large grid estimates the response with random probes instead of one solve per
-    missing unit)."""
+    missing unit).  ``missing_spread``: the s.d. of a missing unit's turning per length (default
+    the spread of the measured ones, at least a 200 mm bend radius)."""
     all_valid = valid.all()
     if all_valid:  # the usual frame: the result depends on the noise level alone
         done = grid.__dict__.setdefault("_sigma_all_valid", {})
@@ -211,6 +218,8 @@ def fine_sigma(
         # a missing unit's turning is unknown with the spread of the measured ones
         # (floor: a 200 mm bend radius)
         spread2 = (np.mean(known**2) if known.size else 0.0) + (1.0 / 200.0) ** 2
+        if missing_spread is not None:
+            spread2 = float(missing_spread) ** 2
         var = var + missing * spread2
     # in-plane: each pitch crossed adds one stretch reading's error times the pitch
     sig_stretch = strain_sigma * np.hypot(h_upper, h_lower) / (h_upper + h_lower)
