@@ -19,13 +19,16 @@ import time  # noqa: E402
 from skinmap.emulator import mechanics as mc  # noqa: E402
 from skinmap.emulator.scenes import parse_scene_spec  # noqa: E402
 
+# radii {in braces} are for 5×5 and grow as N/5: a mold is a height field, so a larger film
+# needs a flatter mold (the same bend angle across it)
 MOLDS = [
     "flat:prestretch=0.05",
-    "cylinder:radius=40,axis_angle=30",
-    "sphere:radius=60",
-    "sphere:radius=60,prestretch=0.05",
+    "cylinder:radius={40},axis_angle=30",
+    "sphere:radius={60}",
+    "sphere:radius={60},prestretch=0.05",
     "gaussian:height=4,fwhm=18,u0=3,v0=-2",
-    "saddle:radius=60,axis_angle=20",
+    "gaussian:height=4,fwhm=18,u0=30,v0=-20 + gaussian:height=-3,fwhm=20,u0=-25,v0=15",
+    "saddle:radius={60},axis_angle=20",
 ]
 MOVING = [
     "membrane:fingers=1",
