@@ -39,7 +39,7 @@ from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
-           "GRAPH_FIT_MAX_CELLS"]
+           "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
