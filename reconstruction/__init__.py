@@ -84,7 +84,8 @@ class Reconstructor:
         numba is not installed).  Both give the same surface to rounding.
     graph_fit : fit the sheet as a height graph to every gauge's turning and stretch first
         (step 0 in docs/reconstruction.md; its surface, and its own uncertainty, are used when
-        it explains the data within the noise, else the general model's).  It resolves bumps
+        it explains the data within the noise and, on a cold frame, agrees with the general
+        model's surface within their combined uncertainty, else the general model's).  It resolves bumps
         sharper than a gauge (5 mm / FWHM 15 mm: 0.19 → 0.02 mm mean error) and twisted
         sheets pressed out of plane.  None (default): on for sheets of up to 64 cells
         (:data:`GRAPH_FIT_MAX_CELLS`; its unknowns grow as (3N + 3)(3M + 3)), off above; True
