@@ -85,9 +85,9 @@ class Reconstructor:
     graph_fit : fit the sheet as a height graph to every gauge's turning and stretch first
         (step 0 in docs/reconstruction.md; its surface, and its own uncertainty, are used when
         it explains the data within the noise and, on a cold frame, agrees with the general
-        model's surface within their combined uncertainty, else the general model's).  It resolves bumps
-        sharper than a gauge (5 mm / FWHM 15 mm: 0.19 → 0.02 mm mean error) and twisted
-        sheets pressed out of plane.  None (default): on for sheets of up to 64 cells
+        model's surface within their combined uncertainty, else the general model's).  It
+        resolves bumps sharper than a gauge (5 mm / FWHM 15 mm: 0.19 → 0.02 mm mean error) and
+        twisted sheets pressed out of plane.  None (default): on for sheets of up to 64 cells
         (:data:`GRAPH_FIT_MAX_CELLS`; its unknowns grow as (3N + 3)(3M + 3)), off above; True
         asks for it (an error above 64 cells), False for the general model alone.
     convex_solver : "factorized" (default: the least-squares field fit by its cached
@@ -304,7 +304,7 @@ class Reconstructor:
         most of the sheet within their combined uncertainty at the fit's noise level ``fit_sigma``
         (at least the sensor's): the general model's noise s.d., its resolution
         (uncertainty.resolution_sigma: what the turning pattern's structure at the gauge scale
-        leaves open) and, only when those alone do not suffice, the graph's own s.d. (3-4 ms on
+        leaves open) and, only when those alone do not suffice, the graph's own s.d. (4-5 ms on
         5×5; kept in the returned dict, keyed by the coefficients, for the surface's
         node_sigma).  Returns (the test: coefficients → median distance in s.d., that dict)."""
         grid = self.grid

@@ -1,0 +1,189 @@
+"""Elastic scenes (films laminated on molds, skinmap.emulator.scenes) through the reconstruction,
+and when the height-graph fit may answer (docs/reconstruction.md, step 0, "Acceptance"): only
+where it explains the data within the noise *and* its surface is the general model's within
+their combined uncertainty.  A film pre-stretched in its frame and laminated on a sphere or a
+cylinder is not a height graph over its material coordinates, yet a graph with folds hidden
+between the gauges explains its strains; the general model must answer it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import aligned_error
+
+from skinmap.emulator import physics as ph
+from skinmap.emulator.scenes import parse_scene_spec
+from skinmap.reconstruction import GRAPH_AGREE_SIGMAS, Reconstructor
+from skinmap.reconstruction.engine import unit_data
+from skinmap.reconstruction.graphfit import disagreement
+from skinmap.reconstruction.uncertainty import resolution_sigma
+
+PITCH, H, G = 12.0, 0.2, 10.0
+N = M = 5
+NOISE = 0.0057e-2
+CENTRES = ph.cell_centres(N, M, PITCH)
+SIG_TURN = np.sqrt(2.0) * NOISE / (2 * H)  # one unit's turning per length, one s.d.
+NOT_THE_GENERAL_MODEL = "not the general model's surface"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("mechanics-cache")
+
+
+@pytest.fixture(scope="module")
+def recs():
+    """The default reconstruction (graph fit first on 5×5) and the general model alone."""
+    return Reconstructor(N, M, PITCH, H, H, G), Reconstructor(N, M, PITCH, H, H, G, graph_fit=False)
+
+
+def elastic(spec: str, cache, noise_seed: int | None = None):
+    shape = parse_scene_spec(spec, "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    if noise_seed is not None:
+        rng = np.random.default_rng(noise_seed)
+        eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+    return eu, el, ph.ground_truth(shape, N, M, PITCH).nodes
+
+
+def noisy(shape, seed: int):
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    rng = np.random.default_rng(seed)
+    return (eu, el), (eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape))
+
+
+# 5 % pre-stretch on a convex sphere (the reported case: the graph fit gave 0.709 mm, node_sigma
+# 0.011 mm) and a concave one, and 1 % on a flatter sphere (a weaker in-plane strain)
+PRESTRETCHED_SPHERES = ["sphere:radius=61.2,prestretch=0.05", "sphere:radius=-70,prestretch=0.05",
+                        "sphere:radius=120,prestretch=0.01"]
+
+
+@pytest.mark.parametrize("noise_seed", [None, 3], ids=["clean", "noisy"])
+@pytest.mark.parametrize("spec", PRESTRETCHED_SPHERES)
+def test_prestretched_elastic_sphere_5x5_is_within_0_05mm_mean_after_rigid_alignment_and_not_answered_by_the_graph_fit(
+        recs, cache, spec, noise_seed):
+    rec, general = recs
+    eu, el, truth = elastic(spec, cache, noise_seed)
+    surf = rec(eu, el)
+    assert surf.diagnostics.extra["model"] == "general"
+    # a graph explained the strains within the noise; the comparison with the general model refused it
+    assert NOT_THE_GENERAL_MODEL in surf.diagnostics.extra["graph_fit"]
+    assert surf.diagnostics.extra["graph_agreement"] > GRAPH_AGREE_SIGMAS
+    assert np.array_equal(surf.nodes, general(eu, el).nodes)
+    assert aligned_error(surf.nodes, truth) < 0.05
+
+
+def test_prestretched_elastic_cylinder_5x5_is_not_answered_by_the_graph_fit_and_is_the_general_models_surface(
+        recs, cache):
+    # the reported oblique case (the graph fit gave 1.30 mm); the general model's own accuracy on
+    # it is a separate matter, this asserts only who answers
+    rec, general = recs
+    for seed in (None, 4):
+        eu, el, _ = elastic("cylinder:radius=-54.4,axis_angle=78.9,prestretch=0.05", cache, seed)
+        surf = rec(eu, el)
+        assert surf.diagnostics.extra["model"] == "general"
+        assert NOT_THE_GENERAL_MODEL in surf.diagnostics.extra["graph_fit"]
+        assert np.array_equal(surf.nodes, general(eu, el).nodes)
+
+
+def test_prestretched_elastic_sphere_with_a_dead_gauge_or_after_a_graph_frame_is_within_0_05mm_and_not_graph_fitted(
+        recs, cache):
+    rec, _ = recs
+    eu, el, truth = elastic("sphere:radius=61.2,prestretch=0.05", cache)
+    dead = eu.copy()
+    dead[1, 3, 3] = np.nan  # the missing unit's share of the comparison is no licence for a fold
+    surf = rec(dead, el)
+    assert surf.diagnostics.extra["model"] == "general" and aligned_error(surf.nodes, truth) < 0.05
+    # a previous frame answered by a graph (a bump): this frame is checked again
+    bump = ph.GaussianBumps(height=4.5, fwhm=16.0, centre=(-6.0, 11.0))
+    prev = rec(*ph.gauge_strains(bump, N, M, PITCH, H, H, G))
+    assert prev.diagnostics.extra["model"] == "graph"
+    surf = rec(eu, el, previous=prev)
+    assert surf.diagnostics.extra["model"] == "general" and aligned_error(surf.nodes, truth) < 0.05
+    # noise-free use (strain_sigma=0) compares at the sensor's noise level, not at zero
+    surf = rec(eu, el, strain_sigma=0.0)
+    assert surf.diagnostics.extra["model"] == "general" and aligned_error(surf.nodes, truth) < 0.05
+
+
+# sharp bumps (the spec corner, |h| 5 mm / FWHM 15 mm) and gentler ones, at places of their own
+BUMPS = [(5.0, 15.0, (17.0, -9.0)), (-5.0, 15.0, (-8.0, -6.0)), (-5.0, 15.0, (-15.0, 18.0)),
+         (2.5, 22.0, (4.0, -13.0)), (-1.5, 28.0, (-15.0, 3.0))]
+
+
+@pytest.mark.parametrize("height, fwhm, centre", BUMPS)
+def test_kinematic_bumps_are_still_answered_by_the_graph_fit_at_under_half_the_general_error_and_0_08mm_noisy(
+        recs, height, fwhm, centre):
+    rec, general = recs
+    shape = ph.GaussianBumps(height=height, fwhm=fwhm, centre=centre)
+    truth = shape.position(CENTRES)
+    (eu, el), (nu, nl) = noisy(shape, int(10 * abs(height) + fwhm))
+    surf = rec(eu, el)
+    assert surf.diagnostics.extra["model"] == "graph"
+    assert surf.diagnostics.extra["graph_agreement"] <= GRAPH_AGREE_SIGMAS
+    assert aligned_error(surf.nodes, truth) < 0.5 * aligned_error(general(eu, el).nodes, truth)
+    surf = rec(nu, nl)
+    assert surf.diagnostics.extra["model"] == "graph"
+    assert aligned_error(surf.nodes, truth) < 0.08
+    # noise-free use still takes the graph (the comparison is made at the sensor's noise level)
+    assert rec(eu, el, strain_sigma=0.0).diagnostics.extra["model"] == "graph"
+
+
+def _trough(radius: float, angle: float) -> ph.Quadric:
+    d = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+    return ph.Quadric(d[0] * d[0] / radius, d[0] * d[1] / radius, d[1] * d[1] / radius)
+
+
+@pytest.mark.parametrize("shape", [ph.Saddle(60.0, axis_angle=30.0), ph.Saddle(-45.0), ph.Quadric(0.022, -0.018, 0.012),
+                                   _trough(-70.0, 35.0)], ids=["turned saddle", "saddle", "twisted quadric", "trough"])
+def test_kinematic_graphs_of_smooth_curvature_are_still_answered_by_the_graph_fit_within_0_001mm_clean_0_02mm_noisy(
+        recs, shape):
+    # smooth turning patterns leave the general model no resolution allowance: the graph agrees
+    # with it within the noise (median about 0.1-0.4 s.d.) and is the more accurate of the two
+    rec, _ = recs
+    truth = shape.position(CENTRES)
+    for i, (eu, el) in enumerate(noisy(shape, 7)):
+        surf = rec(eu, el)
+        assert surf.diagnostics.extra["model"] == "graph"
+        assert surf.diagnostics.extra["graph_agreement"] <= GRAPH_AGREE_SIGMAS
+        assert aligned_error(surf.nodes, truth) < (0.001 if i == 0 else 0.02)
+
+
+def test_resolution_sigma_is_zero_for_an_affine_turning_pattern_and_bounds_the_general_models_error_on_a_bump(recs):
+    rec, general = recs
+    grid = rec.grid
+    valid = np.ones((2, N, M), dtype=bool)
+    uc = (np.arange(M) - (M - 1) / 2) * PITCH
+    vc = (np.arange(N) - (N - 1) / 2) * PITCH
+    affine = np.stack([0.012 + 1e-4 * uc[None, :] - 2e-4 * vc[:, None], -0.004 + 3e-4 * vc[:, None] + 0 * uc[None, :]])
+    assert np.abs(resolution_sigma(grid, valid, affine, SIG_TURN)).max() < 1e-9
+    rng = np.random.default_rng(1)  # noise alone: departures within the noise add (almost) nothing
+    jitter = resolution_sigma(grid, valid, affine + rng.normal(0, SIG_TURN, affine.shape), SIG_TURN)
+    assert np.median(jitter) < 0.03
+    # a spec-corner bump: the general model's error after the best rigid alignment is well inside
+    # the bound over most of the sheet (the bound is generous: about the bump's own height)
+    shape = ph.GaussianBumps(height=5.0, fwhm=15.0, centre=(-8.0, -6.0))
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    turning, _, _ = unit_data(eu, el, H, H, G)
+    bound = resolution_sigma(grid, valid, turning, SIG_TURN)
+    uv = np.stack(np.broadcast_arrays(grid.u[None, :], grid.v[:, None]), axis=-1).reshape(-1, 2)
+    truth = shape.position(uv).reshape(grid.nf, grid.mf, 3)
+    fine = general(eu, el)._coeffs[:, :, 0, :]  # the general model's fine-grid positions
+    assert disagreement(fine, truth, bound) < 0.5 and bound.max() < 3 * 5.0
+    # a missing unit's departure is unknown with the measured units' spread: the bound stays finite
+    gap = valid.copy()
+    gap[0, 2, 2] = False
+    assert np.isfinite(resolution_sigma(grid, gap, np.where(gap, turning, 0.0), SIG_TURN)).all()
+
+
+def test_disagreement_is_the_median_distance_in_sigma_after_the_best_rigid_motion():
+    rng = np.random.default_rng(2)
+    uu, vv = np.meshgrid(np.linspace(-30, 30, 21), np.linspace(-30, 30, 21))
+    surf = np.stack([uu, vv, 3.0 * np.exp(-(uu**2 + vv**2) / 200.0)], axis=-1)
+    angle = 0.3
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    moved = surf @ rot.T + np.array([1.0, -2.0, 5.0])
+    tol = np.full(uu.shape, 0.01)
+    assert disagreement(moved, surf, tol) < 1e-6  # a rigid motion is no disagreement
+    shaken = surf + rng.normal(0, 0.01, surf.shape)  # 0.01 mm per coordinate: |d| / 0.01 ~ chi(3)
+    assert 1.2 < disagreement(shaken, surf, tol) < 1.9
+    tol[10, 10] = 0.0  # a node of zero tolerance (the sensor frame's origin) is left out
+    assert np.isfinite(disagreement(shaken, surf, tol))
