@@ -880,7 +880,6 @@ def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_i
     factor: _Factor | None = None
     if warm is not None and warm.free is not None and np.array_equal(warm.free, free):
         factor = warm.preconditioner
-    fresh = False  # the factor is of this very matrix (the step is an exact Newton step)
     previous = math.inf
     stalled = 0
     it = 0

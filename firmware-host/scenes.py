@@ -462,7 +462,6 @@ def _solve_palm(setup: _Setup, params: Mapping[str, Any], el: Mapping[str, Any])
     morph = _MorphHeight(palm, heights)
     count = int(el.get("keyframes") or 8 * len(palm.keys))
     times = _keyframe_times(palm.cycle, count)
-    grid = setup.grid
     x = None
     frames = []
     for t in times:
