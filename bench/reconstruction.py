@@ -231,9 +231,17 @@ def bump_grid_table(positions: int, seed: int) -> None:
         print(f"{height:>10.0f} " + " ".join(f"{c:>15s}" for c in cells))
 
 
-def _over(e: np.ndarray, surf) -> bool:
-    """Overconfident: some node's error exceeds 3 of the surface's own node_sigma + 0.05 mm."""
-    return bool(np.any(e > 3.0 * surf.node_sigma.reshape(-1) + 0.05))
+def _over(e: np.ndarray, surf, truth: np.ndarray | None = None) -> bool:
+    """Overconfident: some node's error exceeds 3 of the surface's own node_sigma + 0.05 mm.
+    A surface that says it is ambiguous (``surf.mirror``) is overconfident only when neither
+    of its two answers is within that bound."""
+    sigma = surf.node_sigma.reshape(-1)
+    if not np.any(e > 3.0 * sigma + 0.05):
+        return False
+    mirror = getattr(surf, "mirror", None)
+    if mirror is None or truth is None:
+        return True
+    return bool(np.any(node_errors(mirror.nodes, truth) > 3.0 * sigma + 0.05))
 
 
 def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None) -> None:
@@ -243,7 +251,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"h = {H:g} mm, {GAUGE:g} mm gauges ({k} random scenes per class, seed {seed}; noisy: s.d. "
           f"{100 * NOISE:.4f} % strain, {noisy_draws} draws each, the same draws on both forms)")
     head = (f"{'elastic scene class':46s} {'clean mean':>10s} {'clean max':>9s} {'noisy mean':>10s} {'noisy max':>9s} "
-            f"{'sigma':>6s} {'over':>5s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} | {'graph':>5s}")
+            f"{'sigma':>6s} {'over':>5s} {'amb':>3s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} {'kamb':>4s} | {'graph':>5s}")
     print(head)
     print("-" * len(head))
     solved, cached = [], []
@@ -263,14 +271,15 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
             noise = [ed.noise_draw(plan, d, NOISE, forms[0][0].shape) for d in range(noisy_draws)]
             cases.append((plan, forms, noise))
         for name, default_sign in rows:
-            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "sig", "over", "kc", "kn", "kover", "graph")}
+            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "sig", "over", "amb", "kc", "kn", "kover", "kamb", "graph")}
             for plan, forms, noise in cases:
                 kw = {} if default_sign or plan.twist_sign is None else {"twist_sign": plan.twist_sign}
                 for f, (eu, el, truth) in enumerate(forms):
                     prefix = "" if f == 0 else "k"
                     surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, **kw)
                     e = node_errors(surf.nodes, truth)
-                    stats["over" if f == 0 else "kover"].append(_over(e, surf))
+                    stats["over" if f == 0 else "kover"].append(_over(e, surf, truth))
+                    stats["amb" if f == 0 else "kamb"].append(surf.mirror is not None)
                     if f == 0:
                         stats["cm"].append(e.mean())
                         stats["cx"].append(e.max())
@@ -280,7 +289,8 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                     for du, dl in noise:
                         surf = reconstruct(eu + du, el + dl, PITCH, H, H, graph_fit=graph_fit, **kw)
                         e = node_errors(surf.nodes, truth)
-                        stats[prefix + "over"].append(_over(e, surf))
+                        stats[prefix + "over"].append(_over(e, surf, truth))
+                        stats[prefix + "amb"].append(surf.mirror is not None)
                         if f == 0:
                             stats["nm"].append(e.mean())
                             stats["nx"].append(e.max())
@@ -290,13 +300,14 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                             stats["kn"].append(e.mean())
             over = f"{sum(stats['over'])}/{len(stats['over'])}"
             kover = f"{sum(stats['kover'])}/{len(stats['kover'])}"
+            amb, kamb = f"{sum(stats['amb'])}", f"{sum(stats['kamb'])}"
             print(f"{name:46s} {np.mean(stats['cm']):10.4f} {np.max(stats['cx']):9.4f} {np.mean(stats['nm']):10.4f} "
-                  f"{np.max(stats['nx']):9.4f} {np.mean(stats['sig']):6.3f} {over:>5s} | {np.mean(stats['kc']):9.4f} "
-                  f"{np.mean(stats['kn']):9.4f} {kover:>8s} | {100 * np.mean(stats['graph']):4.0f}%")
+                  f"{np.max(stats['nx']):9.4f} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
+                  f"{np.mean(stats['kn']):9.4f} {kover:>8s} {kamb:>4s} | {100 * np.mean(stats['graph']):4.0f}%")
     scale = f"x{n / 5:g} on this sheet" if n > 5 else "as given"
     print(f"(mm; mean = mean over scenes of the mean node error after the best rigid alignment, max = largest "
           f"node error of any scene; sigma: mean node_sigma of the noisy reconstructions; over: reconstructions "
-          f"(clean and noisy) with some node error > 3 node_sigma + 0.05 mm; kin: the same shapes in kinematic "
+          f"(clean and noisy) with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "
           f"{scale}; oblique cylinders get their twist_sign except in the default-sign row)")
     print(f"(scenes: {len(solved)} solved in {sum(solved):.1f} s, {len(cached)} loaded from the solver's cache "

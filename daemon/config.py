@@ -65,6 +65,10 @@ class ReconstructionConfig:
     # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
     # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md
     graph_fit: bool = True
+    # the sign of a constant twist the gauges cannot observe (mirror-image shapes such as an
+    # oblique cylinder): "auto" reports both (AMBIGUOUS), "positive"/"negative" fix it for a
+    # sheet whose mounting is known (docs/reconstruction.md, "Mirror images")
+    twist_sign: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -279,6 +283,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "warm_start": _boolean,
         "convex_solver": _choice("factorized", "clarabel"),
         "graph_fit": _boolean,
+        "twist_sign": _choice("auto", "positive", "negative"),
     },
     "output": {
         "rate_hz": _number(0, 2000),

@@ -61,6 +61,7 @@ class ElementFlag(enum.IntFlag):
     EXTRAPOLATED = 0x02  # element lies outside the hull of the sensing cells
     DEGRADED = 0x04  # estimate made with missing or rejected gauge data nearby
     STALE = 0x08  # held over from an earlier scan (no fresh solution this frame)
+    AMBIGUOUS = 0x10  # the strains fit a mirror-image shape as well (set on every element)
 
 
 class GaugeFlag(enum.IntFlag):

@@ -115,6 +115,7 @@ class FramePipeline:
         warm_start: bool = True,
         convex_solver: str = "factorized",
         graph_fit: bool = True,
+        twist_sign: int | None = None,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -126,6 +127,9 @@ class FramePipeline:
         self.warm_start = warm_start
         self.convex_solver = convex_solver
         self.graph_fit = bool(graph_fit)
+        if twist_sign not in (None, 1, -1):
+            raise ValueError(f"twist_sign must be None, +1 or -1, got {twist_sign!r}")
+        self.twist_sign = twist_sign
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -168,7 +172,7 @@ class FramePipeline:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
         reconnect or a new HELLO) when the geometry is the same."""
         if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
-                and earlier.graph_fit == self.graph_fit):
+                and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq
@@ -179,6 +183,8 @@ class FramePipeline:
         eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g)
         t0 = time.perf_counter()
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
+        if self.twist_sign is not None:
+            kwargs["twist_sign"] = self.twist_sign
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
             if graph_restart(self._previous_seq, seq) and getattr(self.reconstructor, "graph_fit", False):
@@ -203,6 +209,9 @@ class FramePipeline:
             measured_cells = (valid[0] & valid[1]).any(axis=0).ravel()
             unmeasured = ~self._neighbour_cells[:, measured_cells].any(axis=1)
             flags[unmeasured] = (flags[unmeasured] & (0xFF ^ int(ElementFlag.VALID))) | int(ElementFlag.DEGRADED)
+        if getattr(surf, "mirror", None) is not None:
+            # the gauges cannot tell this shape from its mirror image (Surface.mirror)
+            flags |= int(ElementFlag.AMBIGUOUS)
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
         residual = diagnostics.get("residual", 0.0)

@@ -78,6 +78,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig) -> FramePipeline:
         warm_start=cfg.reconstruction.warm_start,
         convex_solver=cfg.reconstruction.convex_solver,
         graph_fit=cfg.reconstruction.graph_fit,
+        twist_sign={"positive": 1, "negative": -1}.get(cfg.reconstruction.twist_sign),
     )
 
 

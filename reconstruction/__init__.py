@@ -21,6 +21,9 @@ from .decouple import decouple
 from .engine import (
     Metric,
     integrate_frames,
+    least_shear_twists,
+    least_shear_value,
+    stretch_supports_curvature,
     metric_terms,
     integrate_positions,
     potential_curvatures,
@@ -35,6 +38,7 @@ from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .robust import huber_potential
+from .forward import GaugeLayout, misfit, surface_strains
 from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
@@ -44,6 +48,17 @@ __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics",
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
 DEFAULT_STRAIN_SIGMA = 0.0057e-2
+# The least-shear twist replaces the model's own when it needs less than this share of the
+# latter's shear; mirror-image minima within this factor of each other are one choice.
+LEAST_SHEAR_GAIN, LEAST_SHEAR_TIE = 0.5, 1.2
+# A defect-correction pass is kept only if it lowers the χ² below this share of the last.
+DEFECT_GAIN = 0.99
+# Posterior check (Reconstructor._posterior): a χ² difference below this many units (times the
+# misfit's Birge ratio) does not tell two answers apart (2 s.d. of one parameter).
+MIRROR_CHI2 = 4.0
+# Two mirror images are reported only where they differ by more than this many combined noise
+# s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
+MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # The graph fit needs most units (a graph is judged by all of its gauges' misfit).
 _GRAPH_MIN_UNITS = 0.8
 
@@ -113,7 +128,13 @@ class Reconstructor:
         huber_sigmas: float = 4.0,
         kernels: str = "compiled",
         graph_fit: bool | None = None,
+        least_shear: bool = True,
+        defect_steps: int = 2,
     ):
+        self.least_shear = bool(least_shear)
+        if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
+            raise ValueError(f"defect_steps must be an integer >= 0, got {defect_steps!r}")
+        self.defect_steps = int(defect_steps)
         for name, val in (("n (rows)", n), ("m (columns)", m)):
             if isinstance(val, bool) or int(val) != val or int(val) < 2:
                 raise ValueError(f"{name} must be an integer >= 2, got {val!r}")
@@ -160,6 +181,8 @@ class Reconstructor:
             self._graph = GraphFit(self.n, self.m, self.pitch, self.gauge_length, self.grid.u, self.grid.v,
                                    self.grid.inner, compiled=self._compiled)
         self.graph_fit = bool(graph_fit)
+        self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
+        self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -222,7 +245,7 @@ class Reconstructor:
             if graph is None or not graph.accepted:
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
-                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign)
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
                 agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
                 graph = self._graph.fit_cold(data, general[0], twist_sign, agree)
         left_out = True
@@ -232,12 +255,15 @@ class Reconstructor:
             convex_info = {"status": "not needed (graph fit)", "iterations": 0}
             iterations = graph.iterations
             fit = None
+            positions_at = None
             if n_valid < valid.size:
                 left_out = getattr(grid.field_maps(valid), "left_out", True)
         else:
             if general is None:
-                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign)
-            pos, twist_c, fit, convex_info, left_out = general
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
+            if n_valid and self.defect_steps:
+                general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign)
+            pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
             # Only reachable with wildly inconsistent data; a surface must still come out.
@@ -282,21 +308,129 @@ class Reconstructor:
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
         else:
             surface_sigma = general_sigma
-        surf = Surface(
-            pitch=self.pitch,
-            fine_u=grid.u,
-            fine_v=grid.v,
-            fine_positions=pos,
-            node_index=(grid.node_rows, grid.node_cols),
-            fine_sigma=surface_sigma,
-            diagnostics=diag,
-        )
+        surf = self._surface(pos, surface_sigma, diag)
+        if n_valid:
+            def graph_mirror(sign: float) -> np.ndarray:
+                """The graph fitted again with the opposite twist sign, from the general model's
+                answer with that sign (no agreement test: it is only weighed against the data)."""
+                general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
+                fit_m = self._graph.fit_cold(data, general_m[0], sign)
+                if fit_m.accepted:
+                    return _to_sensor_frame(grid, self._graph.fine_positions(fit_m.coeffs))
+                return general_m[0]
+
+            surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf._graph_start = (graph.coeffs, earlier) if fit is None else None
         diag.solve_time = time.perf_counter() - t0
         return surf
 
+
+    def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign):
+        """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
+        strains the answer would read are compared with those measured, the difference is added
+        to the model's input and the model runs again (defect correction; its fixed point is an
+        answer that reads exactly what was measured).  The model's own linearisations (small
+        slopes in the potential, the first-order Gauss and Codazzi terms, chords) are then
+        corrected where the data see them; what the data cannot see stays the prior's.  At
+        most ``defect_steps`` passes, each kept only if it fits the measured strains better,
+        and none once the answer fits within the noise.  The constant twist keeps its sign."""
+        sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
+        layout = self._layout
+        chi, dof, _ = misfit(self._surface(general[0], None, None), layout, eu, el, sigma_f)
+        du, dl = eu, el
+        sign = twist_sign
+        if sign is None and general[1] != 0.0:
+            sign = math.copysign(1.0, general[1])
+        steps = 0
+        for _ in range(self.defect_steps):
+            if chi <= dof:
+                break
+            fu, fl = surface_strains(self._surface(general[0], None, None), layout)
+            du, dl = du + (eu - fu), dl + (el - fl)
+            # (np.maximum keeps a missing gauge's NaN)
+            turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
+                                            self.gauge_length)
+            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el))
+            chi_t, _, _ = misfit(self._surface(trial[0], None, None), layout, eu, el, sigma_f)
+            # a pass must gain clearly (1 %): a decision at the rounding level would make the
+            # answer depend on how the arithmetic was ordered (replay needs the same bytes)
+            if not (chi_t < DEFECT_GAIN * chi) or not np.isfinite(trial[0]).all():
+                break
+            # the fields' misfit stays that of the measured data (the consistency check's input)
+            general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1}, trial[4], trial[5])
+            chi = chi_t
+            steps += 1
+        return general
+
+    def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics) -> Surface:
+        grid = self.grid
+        return Surface(pitch=self.pitch, fine_u=grid.u, fine_v=grid.v, fine_positions=pos,
+                       node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=diag)
+
+    def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror) -> Surface:
+        """The posterior check (docs/reconstruction.md): the answer's own gauge readings
+        against the measured ones (:mod:`.forward`), which
+
+        - widens the uncertainty by the misfit (χ² per gauge above 1 is misfit the noise
+          cannot explain: Birge's ratio);
+        - tries the mirror image (the opposite constant twist): when it explains the data as
+          well, the answer is ambiguous and :attr:`Surface.mirror` holds the other one; when it
+          explains them clearly better, it becomes the answer.
+        """
+        diag = surf.diagnostics
+        sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
+        layout = self._layout
+        chi0, dof, _ = misfit(surf, layout, eu, el, sigma_f)
+        birge = max(1.0, chi0 / max(dof, 1))
+        # χ² differences of this size are what the data can still tell apart (2 s.d., scaled by
+        # the misfit the model leaves)
+        tell = MIRROR_CHI2 * birge
+        c0 = diag.twist_constant
+        info = {"chi2_per_gauge": round(chi0 / max(dof, 1), 3)}
+        mirror = None
+        noise_sigma = _memo(surf._fine_sigma_fn)
+        surf._fine_sigma_fn = noise_sigma
+        # a twist c bends the far corners out of the untwisted shape by about c·ρ²/2 (ρ the
+        # half-diagonal): below the mirror floor the two images are one answer
+        if abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None:
+            if positions_at is not None:
+                pos_m = positions_at(-2.0 * c0)
+            else:  # a graph answered: its mirror is the graph refitted with the opposite sign
+                pos_m = graph_mirror(-math.copysign(1.0, c0))
+            diag_m = Diagnostics(**{**diag.__dict__, "extra": dict(diag.extra), "twist_constant": -c0})
+            cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m)
+            chi_m, _, _ = misfit(cand, layout, eu, el, sigma_f)
+            info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+            if chi_m < chi0 - tell:  # the data prefer the mirror: it is the answer
+                surf, cand, chi0, chi_m = cand, surf, chi_m, chi0
+                diag = surf.diagnostics
+                info["mirror_swapped"] = True
+            if chi_m - chi0 < tell and _differs(surf, cand):
+                mirror = cand
+        diag.extra.update(info)
+        diag.extra["ambiguous"] = mirror is not None
+        surf.mirror = mirror
+        scale = math.sqrt(birge)
+
+        # no position is less certain than "somewhere on the sheet's own extent"
+        ceiling = math.sqrt(self._half_diagonal2)
+
+        def sigma() -> np.ndarray:
+            base = noise_sigma()
+            if scale == 1.0 and float(base.max()) <= ceiling:
+                return base  # the shared, read-only noise map (computed once per mask and noise)
+            out = np.minimum(base * scale, ceiling)
+            out.flags.writeable = False
+            return out
+
+        surf._fine_sigma_fn = sigma
+        if mirror is not None:
+            mirror._fine_sigma_fn = sigma
+            mirror.diagnostics.extra.update(diag.extra)
+            mirror.mirror = None
+        return surf
 
     def _agreement(self, general, turning, valid, data, fit_sigma):
         """The test an accepted graph must pass on a cold frame (graphfit.AGREE_SIGMAS): its
@@ -328,7 +462,7 @@ class Reconstructor:
 
         return agree, graph_sigma
 
-    def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign):
+    def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, strains=None):
         """Steps 1-5 of the model (any sheet): fields, twist, shear, frames, positions."""
         grid = self.grid
         left_out = True
@@ -348,11 +482,13 @@ class Reconstructor:
             convex_info["iterations"] = int(convex_info["iterations"])
             k_u, k_v, tau0 = potential_curvatures(grid, z)
             fit = np.concatenate([grid.average[0] @ k_u.ravel(), grid.average[1] @ k_v.ravel()]) - turning.ravel()
-        sign = 1.0
+        sign, sign_known = 1.0, True
         if twist_sign is not None:
             sign = float(twist_sign)
         elif previous is not None and previous.diagnostics.twist_constant != 0.0:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
+        else:
+            sign_known = False
         turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
         compiled = self._compiled
         if compiled is not None:
@@ -370,16 +506,49 @@ class Reconstructor:
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0))
             if fields is not None:
                 (tau, shear_graph), twist_c = fields, graph.constant
-        if compiled is not None:
-            # shear, rotation rates, frames, positions and the sensor frame in one call
-            target = (compiled.as_field(shear_graph), True) if shear_graph is not None else (self._no_shear_target, False)
-            pos = compiled.surface_positions(
-                grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(tau), metric_stack,
-                self.shear_passes, self.frame_corrections, self._band, *grid.centre, *target,
-            ).transpose(1, 2, 0)
-        else:
-            pos = _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, tau, metric, shear_graph))
-        return pos, twist_c, fit, convex_info, left_out
+        shift0 = 0.0
+        if shear_graph is None and self.least_shear:
+            # the prior for the twist the gauges leave open: the least-shear sheet among those
+            # the data allow, when it needs clearly less shear than the model's own pick
+            tau_mean = float(tau.sum()) / tau.size
+            options = least_shear_twists(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric)
+            here = least_shear_value(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric, tau_mean)
+            options = [(c, val) for c, val in options if val < LEAST_SHEAR_GAIN * here]
+            if options and stretch_supports_curvature(grid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma):
+                options = []  # the stretch pattern is what the model's doubly curved sheet needs
+            if options:  # mirror-image minima are one choice: the requested, kept or default (+) sign
+                tied = [opt for opt in options if opt[1] <= LEAST_SHEAR_TIE * options[0][1] or sign_known]
+                options = [opt for opt in tied if opt[0] * sign > 0.0] or options
+            if options:
+                shift0 = options[0][0] - tau_mean
+
+        def positions_at(shift: float) -> np.ndarray:
+            """The sheet with its twist constant moved by ``shift`` (1/mm), all else kept: the
+            one direction the gauges leave open (docs/reconstruction.md, "Posterior check")."""
+            shift = shift + shift0
+            twist = tau if shift == 0.0 else tau + shift
+            if compiled is not None:
+                # shear, rotation rates, frames, positions and the sensor frame in one call
+                target = (compiled.as_field(shear_graph), True) if shear_graph is not None else (self._no_shear_target, False)
+                return compiled.surface_positions(
+                    grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(twist), metric_stack,
+                    self.shear_passes, self.frame_corrections, self._band, *grid.centre, *target,
+                ).transpose(1, 2, 0)
+            return _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
+
+        pos = positions_at(0.0)
+        if shift0 != 0.0 and strains is not None:
+            # the prior only chooses among answers the data cannot tell apart
+            pos_own = positions_at(-shift0)
+            sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
+            chi_new, dof, _ = misfit(self._surface(pos, None, None), self._layout, *strains, sigma_f)
+            chi_own, _, _ = misfit(self._surface(pos_own, None, None), self._layout, *strains, sigma_f)
+            if chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)):
+                shift0, pos = 0.0, pos_own
+        if shift0 != 0.0:
+            twist_c = twist_c + shift0
+            convex_info["least_shear_shift"] = shift0
+        return pos, twist_c, fit, convex_info, left_out, positions_at
 
     def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:
         """The reference (numpy) steps from the twist to the positions: shear, rotation rates,
@@ -399,12 +568,40 @@ class Reconstructor:
         return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
 
 
+def _memo(fn):
+    """``fn`` evaluated once, on first call."""
+    box: list = []
+
+    def once():
+        if not box:
+            box.append(fn())
+        return box[0]
+
+    return once
+
+
+def _differs(a: Surface, b: Surface) -> bool:
+    """Two answers that differ by more than their noise anywhere, after the best rigid
+    alignment (a rigid motion of the whole sheet is not a different shape)."""
+    p, q = a.nodes.reshape(-1, 3), b.nodes.reshape(-1, 3)
+    pc, qc = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    gap = np.sqrt((((p - pc) @ r.T + qc - q) ** 2).sum(axis=1))
+    noise = a._fine_sigma_fn()
+    rows, cols = a._node_index
+    tol = MIRROR_SIGMAS * np.sqrt(2.0) * noise[rows[:, None], cols].ravel() + MIRROR_FLOOR_MM
+    return bool((gap > tol).any())
+
+
 def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x).
     Returns (nf, mf, 3), a view of a components-first array."""
     a0, b0 = grid.centre
-    x_u = (pos[a0, b0 + 1] - pos[a0, b0 - 1]).tolist()
-    x_v = (pos[a0 + 1, b0] - pos[a0 - 1, b0]).tolist()
+    # the centre's tangents by the fourth-order differences the surface's patches use
+    x_u = (8.0 * (pos[a0, b0 + 1] - pos[a0, b0 - 1]) - (pos[a0, b0 + 2] - pos[a0, b0 - 2])).tolist()
+    x_v = (8.0 * (pos[a0 + 1, b0] - pos[a0 - 1, b0]) - (pos[a0 + 2, b0] - pos[a0 - 2, b0])).tolist()
     nz = np.array(_cross3(x_u, x_v))
     nz /= math.sqrt(nz @ nz)
     ex = np.array(x_u) - nz * (nz @ x_u)

@@ -99,16 +99,13 @@ def solve_twist(
     # Only the region spanned by the cell centres: one-sided differences at the border would
     # bias the estimates.
     inner = grid.inner
-    ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau0[inner], lam_u[inner], lam_v[inner]
+    ku_in, kv_in = k_u[inner], k_v[inner]
     count = ku_in.size
-    prod = float((ku_in * kv_in - t_in * t_in).sum()) / count
     # A doubly curved sheet (K ≠ 0) cannot be laid flat without stretching by about K ρ²/12
     # over a half-size ρ; a developable one needs none.  Attribute positive k_u k_v to a constant
     # twist only in proportion to how little the stretch varies.
-    rho2 = 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
-    need = abs(prod) * rho2 / 12.0
-    lu_dev, lv_dev = lu_in - lu_in.sum() / count, lv_in - lv_in.sum() / count
-    dev = math.sqrt(0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count)
+    prod, need, dev2 = _stretch_need(grid, k_u, k_v, tau0, lam_u, lam_v)
+    dev = math.sqrt(dev2)
     ratio = dev / need if need > 0 else math.inf
     weight = min(max(1.5 - 3.0 * ratio, 0.0), 1.0)
     # three s.d. of the mean product when each unit's turning carries independent noise
@@ -387,6 +384,75 @@ def _cell_mean(f: np.ndarray) -> np.ndarray:
     """Mean of the four corners of every grid cell, over the last two axes."""
     s = f[..., :-1, :] + f[..., 1:, :]
     return 0.25 * (s[..., :-1] + s[..., 1:])
+
+
+def least_shear_twists(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, metric: Metric) -> list[tuple[float, float]]:
+    """Constant twists c that locally minimise the in-plane shear the sheet needs, with their
+    shear: [(c, mean F² over the cells' region)], lowest first.
+
+    The gauges fix the stretch along the material lines (E, G) and the normal curvatures, not
+    the shear F nor a constant twist c; each c gives a sheet that matches the data, with the
+    shear that Gauss's equation then demands (Brioschi, one pass from F = 0: F is exactly
+    F_a + c F_b + c² F_c since K carries −(τ₀ + c)²).  For fixed stretches the membrane energy
+    of a film changes with c only through its shear term 2μ E_uv² = μ F²/2, whatever its Young's
+    modulus and Poisson's ratio, so the least-shear twist is the least-energy sheet among those
+    the data allow: the prior for the one parameter the data leave open.  ``tau0``: the
+    zero-mean twist of the potential."""
+    h = grid.spacing
+    s11 = k_u / lam_u
+    cell = lambda src: _mixed_antiderivative((h * h) * _cell_mean(src))[grid.inner]  # noqa: E731
+    f_a = cell(metric.source0 + (s11 * k_v / lam_v - tau0 * tau0) * metric.eg)
+    f_b = cell(-2.0 * tau0 * metric.eg)
+    f_c = cell(-metric.eg)
+    # mean (f_a + c f_b + c² f_c)² = q4 c⁴ + q3 c³ + q2 c² + q1 c + q0
+    dot = lambda x, y: float((x * y).sum()) / x.size  # noqa: E731
+    q4, q3 = dot(f_c, f_c), 2.0 * dot(f_b, f_c)
+    q2, q1, q0 = dot(f_b, f_b) + 2.0 * dot(f_a, f_c), 2.0 * dot(f_a, f_b), dot(f_a, f_a)
+    if q4 <= 0.0:
+        return [(0.0, q0)]
+    value = lambda c: (((q4 * c + q3) * c + q2) * c + q1) * c + q0  # noqa: E731
+    roots = _cubic_real_roots(4.0 * q4, 3.0 * q3, 2.0 * q2, q1)
+    minima = [c for c in roots if 12.0 * q4 * c * c + 6.0 * q3 * c + 2.0 * q2 > 0.0]
+    return sorted(((c, value(c)) for c in minima), key=lambda t: t[1])
+
+
+def _stretch_need(grid: FineGrid, k_u, k_v, tau, lam_u, lam_v) -> tuple[float, float, float]:
+    """Over the cells' region: the mean Gaussian curvature k_u k_v − τ², the stretch variation
+    it needs to be laid out (|K| ρ²/12, ρ² the mean squared half-size) and the measured
+    stretch's variance."""
+    inner = grid.inner
+    ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau[inner], lam_u[inner], lam_v[inner]
+    count = ku_in.size
+    gauss = float((ku_in * kv_in - t_in * t_in).sum()) / count
+    rho2 = 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
+    lu_dev, lv_dev = lu_in - lu_in.sum() / count, lv_in - lv_in.sum() / count
+    dev2 = 0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count
+    return gauss, abs(gauss) * rho2 / 12.0, dev2
+
+
+def stretch_supports_curvature(grid: FineGrid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma: float = 0.0) -> bool:
+    """Whether the measured stretch varies as much as the Gaussian curvature of the sheet with
+    twist field ``tau`` needs (at least half of it): a surface of curvature K over a half-size ρ
+    cannot be laid out without stretch variations of about |K| ρ²/12, and a film is stretched
+    no more than its shape forces (``stretch_sigma``: the noise s.d. of one unit's stretch,
+    whose share of the variation is removed; variation of more than twice the need is
+    attributed to loads and is no evidence either way).  A twist that trades that curvature for shear is then no
+    better an answer (a sphere's gauges also fit a cylinder at 45°, with shear)."""
+    _, need, dev2 = _stretch_need(grid, k_u, k_v, tau, lam_u, lam_v)
+    dev = math.sqrt(max(dev2 - stretch_sigma**2, 0.0))  # the noise's own share removed
+    # far more variation than the curvature needs has another cause (edge loads, a frame's
+    # pre-stretch) and says nothing about the curvature
+    return 0.5 * need <= dev <= 2.0 * need
+
+
+def least_shear_value(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, metric: Metric, c: float) -> float:
+    """Mean F² over the cells' region of the sheet with zero-mean twist ``tau0`` plus ``c``
+    (the measure :func:`least_shear_twists` minimises)."""
+    h = grid.spacing
+    tau = tau0 + c
+    f = _mixed_antiderivative((h * h) * _cell_mean(metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau * tau) * metric.eg))
+    f = f[grid.inner]
+    return float((f * f).sum()) / f.size
 
 
 def solve_shear(

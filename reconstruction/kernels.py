@@ -523,8 +523,14 @@ def _sensor_frame(pos, nf, mf, a0, b0):
     """Positions (3, nf·mf) → components-first (3, nf, mf) in the sensor frame: centre at the origin, its
     normal +z, its u-tangent in the xz-plane (as reconstruction._to_sensor_frame)."""
     c = a0 * mf + b0
-    u0, u1, u2 = pos[0, c + 1] - pos[0, c - 1], pos[1, c + 1] - pos[1, c - 1], pos[2, c + 1] - pos[2, c - 1]
-    v0, v1, v2 = pos[0, c + mf] - pos[0, c - mf], pos[1, c + mf] - pos[1, c - mf], pos[2, c + mf] - pos[2, c - mf]
+    # the centre's tangents by the fourth-order differences the surface's patches use
+    w = mf + mf
+    u0 = 8.0 * (pos[0, c + 1] - pos[0, c - 1]) - (pos[0, c + 2] - pos[0, c - 2])
+    u1 = 8.0 * (pos[1, c + 1] - pos[1, c - 1]) - (pos[1, c + 2] - pos[1, c - 2])
+    u2 = 8.0 * (pos[2, c + 1] - pos[2, c - 1]) - (pos[2, c + 2] - pos[2, c - 2])
+    v0 = 8.0 * (pos[0, c + mf] - pos[0, c - mf]) - (pos[0, c + w] - pos[0, c - w])
+    v1 = 8.0 * (pos[1, c + mf] - pos[1, c - mf]) - (pos[1, c + w] - pos[1, c - w])
+    v2 = 8.0 * (pos[2, c + mf] - pos[2, c - mf]) - (pos[2, c + w] - pos[2, c - w])
     n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
     s = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     n0, n1, n2 = n0 / s, n1 / s, n2 / s

@@ -158,15 +158,33 @@ def test_doubly_curved_and_oblique_within_0_5_mm(shape, bound):
     assert mean_error(shape) < bound
 
 
-def test_mirror_image_twist_is_chosen_by_twist_sign():
-    shape = ph.Cylinder(40.0, axis_angle=-30.0)
-    # identical strains to the +30° cylinder's mirror image: the default sign picks that one
-    assert mean_error(shape) > 1.0
-    assert mean_error(shape, twist_sign=-1) < 0.05
+@pytest.mark.parametrize("angle", [-30.0, 30.0, 45.0, -45.0])
+def test_mirror_image_twist_is_said_aloud_and_chosen_by_twist_sign(angle):
+    shape = ph.Cylinder(40.0, axis_angle=angle)
+    truth = shape.position(CENTRES)
     eu, el = strains(shape)
-    prev = reconstruct(eu, el, PITCH, twist_sign=-1)
-    follow = reconstruct(eu, el, PITCH, previous=prev)  # the sign carries over frame to frame
-    assert np.allclose(follow.nodes, prev.nodes)
+    # the strains are (nearly) those of the mirror-image cylinder too: one answer, and the
+    # other as its mirror, one of the two the truth
+    surf = reconstruct(eu, el, PITCH)
+    assert surf.mirror is not None and surf.diagnostics.extra["ambiguous"]
+    errors = sorted(aligned_errors(s.nodes, truth).mean() for s in (surf, surf.mirror))
+    assert errors[0] < 0.05 and errors[1] > 1.0
+    assert surf.mirror.mirror is None
+    right = surf if aligned_errors(surf.nodes, truth).mean() < 0.05 else surf.mirror
+    told = reconstruct(eu, el, PITCH, twist_sign=np.sign(right.diagnostics.twist_constant))
+    assert aligned_errors(told.nodes, truth).mean() < 0.05
+    assert told.mirror is None and not told.diagnostics.extra["ambiguous"]
+    follow = reconstruct(eu, el, PITCH, previous=told)  # the sign carries over frame to frame
+    assert np.allclose(follow.nodes, told.nodes)
+
+
+@pytest.mark.parametrize("shape", [ph.Cylinder(40.0, axis_angle=0.0), ph.SphereCap(60.0),
+                                   ph.GaussianBumps(height=4.0, fwhm=18.0, centre=(3.0, -2.0)), ph.Saddle(60.0)],
+                         ids=["aligned-cylinder", "sphere", "bump", "aligned-saddle"])
+def test_shapes_without_a_mirror_twin_are_not_called_ambiguous(shape):
+    eu, el = strains(shape)
+    surf = reconstruct(eu, el, PITCH)
+    assert surf.mirror is None and not surf.diagnostics.extra["ambiguous"]
 
 
 def test_noisy_bump_within_0_2_mm():
@@ -217,10 +235,12 @@ def test_all_gauges_missing_still_gives_a_surface():
 
 def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     # the general model (the graph fit's own: test_reconstruction_graphfit.py)
-    shape = ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0))
+    # a bump the model explains within the noise (χ² per gauge below 1: no misfit to add)
+    shape = ph.GaussianBumps(height=1.0, fwhm=30.0, centre=(0.0, 0.0))
     eu, el = strains(shape)
     base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False)
     double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
+    assert base.diagnostics.extra["chi2_per_gauge"] < 1.0
     assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
     assert np.allclose(double.node_sigma, 2 * base.node_sigma, rtol=1e-9)
     assert np.allclose(base.locate_sigma(CENTRES.reshape(-1, 2)), base.node_sigma.ravel())
@@ -232,6 +252,31 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
     for corner in ((0, 0), (0, M - 1), (N - 1, 0), (N - 1, M - 1)):
         assert 0.4 < scatter[corner] / base.node_sigma[corner] < 2.5
+
+
+def test_uncertainty_grows_with_the_misfit_the_noise_cannot_explain():
+    # without defect correction the general model leaves a 2 mm bump of FWHM 24 mm misfitted
+    # by several noise s.d.: its node_sigma grows by the misfit's Birge ratio
+    rec = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0)
+    eu, el = strains(ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0)))
+    fits = rec(eu, el)
+    chi2 = fits.diagnostics.extra["chi2_per_gauge"]
+    assert chi2 > 4.0
+    eu2, el2 = strains(ph.GaussianBumps(height=1.0, fwhm=30.0, centre=(0.0, 0.0)))
+    calm = rec(eu2, el2)
+    assert calm.diagnostics.extra["chi2_per_gauge"] < 1.0
+    # same noise map about the flat sheet, so the ratio is the misfit's Birge ratio
+    assert np.allclose(fits.node_sigma, calm.node_sigma * np.sqrt(chi2), rtol=2e-3)
+
+
+def test_defect_correction_fits_the_gauges_within_the_noise_and_lowers_the_error():
+    shape = ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0))
+    eu, el = strains(shape)
+    plain = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0)(eu, el)
+    corrected = Reconstructor(N, M, PITCH, graph_fit=False)(eu, el)
+    assert corrected.diagnostics.extra["chi2_per_gauge"] < 1.0 < plain.diagnostics.extra["chi2_per_gauge"]
+    truth = shape.position(CENTRES)
+    assert aligned_errors(corrected.nodes, truth).mean() < 0.8 * aligned_errors(plain.nodes, truth).mean()
 
 
 # ---------------------------------------------------------------------- API and solvers

@@ -52,7 +52,7 @@ def check_publishable(result) -> None:
     """What the gateway publishes from a result is finite, and flags hold only known bits."""
     for name in ("nodes_mm", "normals", "node_sigma_mm", "element_positions_mm", "element_normals", "element_sigma_mm"):
         assert np.isfinite(getattr(result, name)).all(), name
-    assert not (result.element_flags & ~np.uint8(VALID | EXTRAPOLATED | DEGRADED | STALE)).any()
+    assert not (result.element_flags & ~np.uint8(VALID | EXTRAPOLATED | DEGRADED | STALE | ElementFlag.AMBIGUOUS)).any()
     # a VALID element's uncertainty is a real estimate, not the 1 m placeholder
     assert (result.element_sigma_mm[(result.element_flags & VALID) != 0] < 1e3).all()
 

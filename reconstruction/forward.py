@@ -1,0 +1,77 @@
+"""The gauges' own forward model applied to a reconstructed surface: what each gauge would read
+on it, and how far that is from what it did read.
+
+This is the check every answer passes through (docs/reconstruction.md, "Posterior check"): the
+surface is taken as it will be published (its bicubic interpolant), each gauge's two layer
+curves x ± h n are traced along its material line, and their lengths are compared with the
+measured strains.  It assumes nothing the model assumed (no decoupling into turning and
+stretch, no small slopes, no circular arcs), so a misfit here is a misfit of the answer.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["GaugeLayout", "surface_strains", "misfit"]
+
+# Chords per gauge of the coarse polyline; the fine one has twice as many and Richardson's rule
+# removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).
+_SEGMENTS = 6
+
+
+@dataclass(frozen=True)
+class GaugeLayout:
+    """Where the gauges are: the sample points of every gauge's material line, built once per
+    geometry.  Unit (d, i, j): direction d (0 along the rows, u; 1 along the columns, v), cell
+    (i, j) centred at u_j = (j − (M−1)/2)·a, v_i = (i − (N−1)/2)·a."""
+
+    n: int
+    m: int
+    gauge_length: float
+    h_upper: float
+    h_lower: float
+    uv: np.ndarray  # (2 dirs · N · M · (S + 1 + 2S + 1), 2) sample points, both polylines
+    split: int  # points per gauge on the coarse polyline (S + 1)
+
+    @classmethod
+    def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float) -> "GaugeLayout":
+        u_c = (np.arange(m) - (m - 1) / 2.0) * pitch
+        v_c = (np.arange(n) - (n - 1) / 2.0) * pitch
+        t = np.concatenate([np.linspace(-0.5, 0.5, _SEGMENTS + 1), np.linspace(-0.5, 0.5, 2 * _SEGMENTS + 1)])
+        t = t * gauge_length
+        vv, uu, tt = np.meshgrid(v_c, u_c, t, indexing="ij")  # (N, M, points)
+        along_u = np.stack([uu + tt, vv], axis=-1)
+        along_v = np.stack([uu, vv + tt], axis=-1)
+        uv = np.stack([along_u, along_v]).reshape(-1, 2)
+        return cls(n, m, float(gauge_length), float(h_upper), float(h_lower), uv, _SEGMENTS + 1)
+
+
+def surface_strains(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Upper- and lower-layer strains (2, N, M) each that the gauges would read on ``surface``
+    (anything with ``locate(uv) → (positions, normals)``)."""
+    pos, nrm = surface.locate(layout.uv)
+    k = layout.split
+    per = pos.shape[0] // (2 * layout.n * layout.m)
+    pos = pos.reshape(2, layout.n, layout.m, per, 3)
+    nrm = nrm.reshape(2, layout.n, layout.m, per, 3)
+    out = []
+    for h in (layout.h_upper, -layout.h_lower):
+        layer = pos + h * nrm
+        seg = np.sqrt((np.diff(layer, axis=3) ** 2).sum(axis=4))  # (2, N, M, per − 1)
+        coarse = seg[..., : k - 1].sum(axis=3)
+        fine = seg[..., k:].sum(axis=3)  # skips the jump from the coarse line's end to the fine one's start
+        length = (4.0 * fine - coarse) / 3.0
+        out.append(length / layout.gauge_length - 1.0)
+    return out[0], out[1]
+
+
+def misfit(surface, layout: GaugeLayout, eps_upper: np.ndarray, eps_lower: np.ndarray, strain_sigma: float) -> tuple[float, int, np.ndarray]:
+    """χ² of the measured strains against those the surface predicts, with independent noise of
+    s.d. ``strain_sigma`` on every gauge; NaN gauges are left out.  Returns (χ², gauges counted,
+    per-gauge normalised residuals (2 layers, 2, N, M), NaN where left out)."""
+    fu, fl = surface_strains(surface, layout)
+    r = np.stack([fu - eps_upper, fl - eps_lower]) / strain_sigma
+    counted = np.isfinite(r)
+    chi2 = float(np.square(r[counted]).sum())
+    return chi2, int(counted.sum()), r

@@ -1,0 +1,56 @@
+"""Mirror images said aloud: where the gauges cannot tell a shape from its mirror image, the
+surface carries the other answer, skinmapd flags every element AMBIGUOUS, and a user who
+knows the mounting fixes the sign in the config."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap.daemon.calibration import Calibration
+from skinmap.daemon.config import ConfigError, parse_config
+from skinmap.daemon.messages import ElementFlag
+from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
+from skinmap.emulator import physics as ph
+
+N = M = 5
+PITCH = 12.0
+GEOMETRY = ArrayGeometry(N, M, PITCH, 0.2, 0.2)
+ELEMENT_UV = np.array([[u, v] for v in (-12.0, 0.0, 12.0) for u in (-18.0, 0.0, 18.0)])
+GF = np.full((2, 2, N, M), 1.24)
+R0 = np.full((2, 2, N, M), 6.55)
+
+
+def resistances(shape) -> np.ndarray:
+    eu, el = ph.gauge_strains(shape, N, M, pitch=PITCH)
+    return R0 * (1.0 + GF * np.stack([eu, el]))
+
+
+def pipeline(**kw) -> FramePipeline:
+    return FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)), **kw)
+
+
+def test_an_oblique_cylinder_flags_every_element_ambiguous():
+    result = pipeline().process(resistances(ph.Cylinder(50.0, axis_angle=30.0)), 0, 0, 0)
+    assert ((result.element_flags & int(ElementFlag.AMBIGUOUS)) != 0).all()
+    assert ((result.element_flags & int(ElementFlag.VALID)) != 0).all()
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_twist_sign_from_the_config_settles_it(sign):
+    truth = ph.Cylinder(50.0, axis_angle=30.0)
+    result = pipeline(twist_sign=sign).process(resistances(truth), 0, 0, 0)
+    assert not ((result.element_flags & int(ElementFlag.AMBIGUOUS)) != 0).any()
+
+
+def test_a_shape_without_a_mirror_twin_is_not_flagged():
+    result = pipeline().process(resistances(ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))), 0, 0, 0)
+    assert not ((result.element_flags & int(ElementFlag.AMBIGUOUS)) != 0).any()
+
+
+def test_config_twist_sign_is_checked_by_name():
+    assert parse_config({"reconstruction": {"twist_sign": "negative"}}).reconstruction.twist_sign == "negative"
+    assert parse_config({}).reconstruction.twist_sign == "auto"
+    with pytest.raises(ConfigError, match="twist_sign"):
+        parse_config({"reconstruction": {"twist_sign": "up"}})
+    with pytest.raises(ValueError, match="twist_sign"):
+        pipeline(twist_sign=2)
