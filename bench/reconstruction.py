@@ -180,17 +180,19 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
     print(f"\nAccuracy of {model}, {n}x{m} cells, pitch {PITCH:g} mm, h = {H:g} mm, {GAUGE:g} mm gauges "
           f"({k} random shapes per class, seed {seed}; noisy: s.d. {100 * NOISE:.4f} % strain, {noisy_draws} draws each)")
     head = (f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} "
-            f"{'L_r/L_g':>16s} {'graph':>6s}")
+            f"{'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
     print(head)
     print("-" * len(head))
     for name, shapes in shape_classes(rng, k).items():
         clean_mean, clean_max, noisy_mean, noisy_max, fid, graphs = [], [], [], [], [], []
+        ambiguous, either = [], []  # flagged ambiguous; of those, the answer or its mirror right (0.05 mm)
         for shape, kw in shapes:
             eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
             truth = shape.position(centres)
             surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, **kw)
             e = node_errors(surf.nodes, truth)
             graphs.append(surf.diagnostics.extra["model"] == "graph")
+            _ambiguity(surf, e, truth, ambiguous, either)
             clean_mean.append(e.mean())
             clean_max.append(e.max())
             for _ in range(noisy_draws):
@@ -198,15 +200,25 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
                                     graph_fit=graph_fit, **kw)
                 e = node_errors(noisy.nodes, truth)
                 graphs.append(noisy.diagnostics.extra["model"] == "graph")
+                _ambiguity(noisy, e, truth, ambiguous, either)
                 noisy_mean.append(e.mean())
                 noisy_max.append(e.max())
             if isinstance(shape, ph.GaussianBumps):
                 fid.append(bump_fidelity(shape, surf, n, m))
         f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
         print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
-              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {f:>16s} {100 * np.mean(graphs):5.0f}%")
+              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {f:>16s} {100 * np.mean(graphs):5.0f}% "
+              f"{sum(ambiguous):>2d}/{len(ambiguous):<2d} {sum(either):>3d}/{sum(ambiguous):<3d}")
     print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; "
-          "graph: share of reconstructions the height-graph fit answered, the rest the general model)")
+          "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
+          "reconstructions flagged ambiguous (Surface.mirror set), either: of those, how many have the answer or "
+          "its mirror within 0.05 mm mean of the truth)")
+
+
+def _ambiguity(surf, e: np.ndarray, truth: np.ndarray, ambiguous: list, either: list) -> None:
+    ambiguous.append(surf.mirror is not None)
+    if surf.mirror is not None:
+        either.append(min(e.mean(), node_errors(surf.mirror.nodes, truth).mean()) < 0.05)
 
 
 def bump_grid_table(positions: int, seed: int) -> None:
@@ -312,6 +324,45 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"{scale}; oblique cylinders get their twist_sign except in the default-sign row)")
     print(f"(scenes: {len(solved)} solved in {sum(solved):.1f} s, {len(cached)} loaded from the solver's cache "
           f"in {sum(cached):.1f} s)")
+
+
+def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | None = None) -> None:
+    """σ calibration on the elastic scenes and their kinematic form: the Monte-Carlo scatter of
+    every node over ``draws`` noisy frames (sensor frame, as node_sigma is) divided by the mean
+    node_sigma of those frames, its median over the nodes (the centre node, the frame's origin,
+    left out), and the largest error over the draws in units of 3σ + 0.05 mm."""
+    print(f"\nUncertainty calibration, {n}x{n} cells ({k} scenes per class, {draws} noisy draws each, s.d. "
+          f"{100 * NOISE:.4f} % strain): median over nodes of Monte-Carlo scatter / node_sigma")
+    head = f"{'elastic scene class':46s} {'elastic':>8s} {'kinematic':>10s}   {'worst err/(3s+0.05)':>19s}"
+    print(head)
+    print("-" * len(head))
+    ratios_all = []
+    for key, title, _, _ in ed.CLASSES:
+        cells = {0: [], 1: []}
+        worst = 0.0
+        for plan in ed.class_plans(key, seed, k, n):
+            shape, _, _ = ed.solve_scene(plan)
+            kw = {} if plan.twist_sign is None else {"twist_sign": plan.twist_sign}
+            for f, form in enumerate((shape, ed.kinematic_shape(plan))):
+                eu, el = ph.gauge_strains(form, n, n, PITCH, H, H, GAUGE)
+                truth = ph.ground_truth(form, n, n, PITCH).nodes
+                nodes, sigmas = [], []
+                for d in range(draws):
+                    du, dl = ed.noise_draw(plan, d, NOISE, eu.shape)
+                    surf = reconstruct(eu + du, el + dl, PITCH, H, H, graph_fit=graph_fit, **kw)
+                    nodes.append(surf.nodes.reshape(-1, 3))
+                    sigmas.append(surf.node_sigma.reshape(-1))
+                    e = node_errors(surf.nodes, truth)
+                    worst = max(worst, float(np.max(e / (3.0 * sigmas[-1] + 0.05))))
+                nodes_a, sig = np.array(nodes), np.mean(sigmas, axis=0)
+                scatter = np.sqrt(((nodes_a - nodes_a.mean(axis=0)) ** 2).sum(axis=2).mean(axis=0))
+                keep = sig > 0
+                cells[f].append(float(np.median(scatter[keep] / sig[keep])))
+        ratios_all.extend(cells[0])
+        print(f"{title:46s} {np.median(cells[0]):8.2f} {np.median(cells[1]):10.2f}   {worst:19.2f}")
+    inside = np.mean([(0.7 <= r <= 1.5) for r in ratios_all])
+    print(f"(elastic scenes with the median ratio in [0.7, 1.5]: {100 * inside:.0f} %; worst err/(3s+0.05) > 1 means "
+          f"some node of some noisy frame was off by more than 3 node_sigma + 0.05 mm)")
 
 
 def time_frames(rec: Reconstructor, frames: list, uv: np.ndarray, uncertainty: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -451,6 +502,8 @@ def main() -> None:
         k_el = args.elastic_shapes or (1 if args.quick else 2)
         for n in elastic_sizes:
             elastic_table(n, k_el, 1 if args.quick else 3, args.seed, False if args.general else None)
+        for n in elastic_sizes:
+            calibration_table(n, k_el, 8 if args.quick else 20, args.seed, False if args.general else None)
     if args.only in ("accuracy", "elastic"):
         return
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}

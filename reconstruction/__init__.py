@@ -56,6 +56,7 @@ DEFECT_GAIN = 0.99
 # Posterior check (Reconstructor._posterior): a χ² difference below this many units (times the
 # misfit's Birge ratio) does not tell two answers apart (2 s.d. of one parameter).
 MIRROR_CHI2 = 4.0
+MIRROR_SHARE = 0.25
 # Two mirror images are reported only where they differ by more than this many combined noise
 # s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
@@ -289,6 +290,9 @@ class Reconstructor:
             extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"], "kernels": self.kernels,
                    "model": "graph" if fit is None else "general"},
         )
+        for key in ("least_shear_shift", "undecided_twist", "defect_steps"):
+            if key in convex_info:
+                diag.extra[key] = convex_info[key]
         if graph is not None:
             diag.extra.update(graph_fit=graph.how, graph_steps=graph.iterations,
                               graph_chi2=(round(graph.chi2_turning, 4), round(graph.chi2_stretch, 4)))
@@ -319,13 +323,45 @@ class Reconstructor:
                     return _to_sensor_frame(grid, self._graph.fine_positions(fit_m.coeffs))
                 return general_m[0]
 
-            surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror)
+            surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf._graph_start = (graph.coeffs, earlier) if fit is None else None
         diag.solve_time = time.perf_counter() - t0
         return surf
 
+
+    def _twist_noise(self, positions_at, base_shift: float, c0: float, turning, valid, strain_sigma: float,
+                     undecided: float = 0.0):
+        """A function giving the fine-grid position s.d. (mm) that the turning noise causes
+        through the constant twist, or None where there is none to speak of.  The twist comes
+        from the mean curvature product k_u k_v, whose s.d. from independent noise on every
+        unit's turning is (σ_t κ_rms + σ_t²)/√units; c = √(product) then has the s.d. of that over
+        2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  An
+        ``undecided`` shift (a less-sheared twist within the noise, which the model did not
+        take) adds half the distance to that answer: 3 s.d. then reach past it."""
+        if positions_at is None:
+            return lambda: None
+        if undecided != 0.0:
+            def other() -> np.ndarray:
+                gap = positions_at(base_shift + undecided) - positions_at(base_shift)
+                return 0.5 * np.sqrt((gap * gap).sum(axis=2))
+
+            return _memo(other)
+        if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
+            return lambda: None
+        sig_t = math.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
+        t = turning[valid]
+        kappa = math.sqrt(float((t * t).mean())) if t.size else 0.0
+        sigma_product = (sig_t * kappa + sig_t * sig_t) / math.sqrt(max(int(valid.sum()) / 2, 1))
+        sigma_c = min(sigma_product / (2.0 * abs(c0)), math.sqrt(sigma_product))
+
+        def spread() -> np.ndarray:
+            step = 0.05 * abs(c0)
+            response = positions_at(base_shift + step) - positions_at(base_shift - step)
+            return np.sqrt((response * response).sum(axis=2)) * (sigma_c / (2.0 * step))
+
+        return _memo(spread)
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
@@ -369,12 +405,17 @@ class Reconstructor:
         return Surface(pitch=self.pitch, fine_u=grid.u, fine_v=grid.v, fine_positions=pos,
                        node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=diag)
 
-    def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror) -> Surface:
+    def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
+                   valid) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
         - widens the uncertainty by the misfit (χ² per gauge above 1 is misfit the noise
           cannot explain: Birge's ratio);
+        - carries the noise through the constant twist, which the model estimates from products
+          of curvatures (Gauss's equation, the least-shear prior): its s.d. times the sheet's
+          response to it is added to ``node_sigma`` (the linear map about the flat sheet
+          cannot see it, and on an oblique cylinder it is most of the scatter);
         - tries the mirror image (the opposite constant twist): when it explains the data as
           well, the answer is ambiguous and :attr:`Surface.mirror` holds the other one; when it
           explains them clearly better, it becomes the answer.
@@ -386,8 +427,11 @@ class Reconstructor:
         birge = max(1.0, chi0 / max(dof, 1))
         # χ² differences of this size are what the data can still tell apart (2 s.d., scaled by
         # the misfit the model leaves)
-        tell = MIRROR_CHI2 * birge
+        # nor can a difference below a share of the misfit the model leaves anyway: that misfit
+        # is systematic, and two mirror images carry nearly the same
+        tell = max(MIRROR_CHI2 * birge, MIRROR_SHARE * chi0)
         c0 = diag.twist_constant
+        base_shift = 0.0  # where the answer sits on positions_at's family
         info = {"chi2_per_gauge": round(chi0 / max(dof, 1), 3)}
         mirror = None
         noise_sigma = _memo(surf._fine_sigma_fn)
@@ -406,6 +450,7 @@ class Reconstructor:
             if chi_m < chi0 - tell:  # the data prefer the mirror: it is the answer
                 surf, cand, chi0, chi_m = cand, surf, chi_m, chi0
                 diag = surf.diagnostics
+                base_shift = -2.0 * c0
                 info["mirror_swapped"] = True
             if chi_m - chi0 < tell and _differs(surf, cand):
                 mirror = cand
@@ -417,11 +462,18 @@ class Reconstructor:
         # no position is less certain than "somewhere on the sheet's own extent"
         ceiling = math.sqrt(self._half_diagonal2)
 
+        twist = self._twist_noise(positions_at, base_shift, c0, turning, valid, strain_sigma,
+                                  diag.extra.get("undecided_twist", 0.0))
+
         def sigma() -> np.ndarray:
             base = noise_sigma()
-            if scale == 1.0 and float(base.max()) <= ceiling:
+            spread = twist()
+            if spread is None and scale == 1.0 and float(base.max()) <= ceiling:
                 return base  # the shared, read-only noise map (computed once per mask and noise)
-            out = np.minimum(base * scale, ceiling)
+            out = base * scale
+            if spread is not None:
+                out = np.sqrt(out * out + spread * spread)
+            out = np.minimum(out, ceiling)
             out.flags.writeable = False
             return out
 
@@ -507,18 +559,32 @@ class Reconstructor:
             if fields is not None:
                 (tau, shear_graph), twist_c = fields, graph.constant
         shift0 = 0.0
+        undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
         if shear_graph is None and self.least_shear:
             # the prior for the twist the gauges leave open: the least-shear sheet among those
             # the data allow, when it needs clearly less shear than the model's own pick
             tau_mean = float(tau.sum()) / tau.size
             options = least_shear_twists(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric)
             here = least_shear_value(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric, tau_mean)
+            # a twist whose square the turning noise could produce is no evidence (three s.d. of
+            # the mean curvature product, as solve_twist judges the Gauss equation's)
+            inner = grid.inner
+            curv_rms = math.sqrt(float((k_u[inner] ** 2).sum() + (k_v[inner] ** 2).sum()) / k_u[inner].size)
+            noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(self.n * self.m)
             options = [(c, val) for c, val in options if val < LEAST_SHEAR_GAIN * here]
+            if sign_known:
+                options = [opt for opt in options if opt[0] * sign > 0.0]
+            within_noise = [opt for opt in options if abs(opt[0] ** 2 - tau_mean**2) <= noise]
+            options = [opt for opt in options if abs(opt[0] ** 2 - tau_mean**2) > noise]
+            if within_noise and not options:
+                # a less-sheared twist the noise cannot rule out: kept as the answer's spread
+                undecided = within_noise[0][0] - tau_mean
             if options and stretch_supports_curvature(grid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma):
                 options = []  # the stretch pattern is what the model's doubly curved sheet needs
             if options:  # mirror-image minima are one choice: the requested, kept or default (+) sign
                 tied = [opt for opt in options if opt[1] <= LEAST_SHEAR_TIE * options[0][1] or sign_known]
-                options = [opt for opt in tied if opt[0] * sign > 0.0] or options
+                same_sign = [opt for opt in tied if opt[0] * sign > 0.0]
+                options = same_sign if (same_sign or sign_known) else options
             if options:
                 shift0 = options[0][0] - tau_mean
 
@@ -548,6 +614,8 @@ class Reconstructor:
         if shift0 != 0.0:
             twist_c = twist_c + shift0
             convex_info["least_shear_shift"] = shift0
+        if undecided != 0.0 and shift0 == 0.0:
+            convex_info["undecided_twist"] = undecided
         return pos, twist_c, fit, convex_info, left_out, positions_at
 
     def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:
