@@ -112,6 +112,10 @@ class Reconstructor:
         frame, 20-100 ms).  The fit interpolates the units' data, so residuals stay inside the
         Huber threshold and both give the same surface, even with a glitching gauge (see
         docs/reconstruction.md, "Solvers").
+    least_shear : take the least-shear constant twist among those the data allow, as the prior
+        for the one parameter the gauges leave open (docs/reconstruction.md, "Posterior check").
+    defect_steps : passes of defect correction through the gauges' exact forward model on
+        general-model answers that misfit (0: none).
     """
 
     def __init__(
@@ -350,10 +354,7 @@ class Reconstructor:
             return _memo(other)
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
             return lambda: None
-        sig_t = math.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
-        t = turning[valid]
-        kappa = math.sqrt(float((t * t).mean())) if t.size else 0.0
-        sigma_product = (sig_t * kappa + sig_t * sig_t) / math.sqrt(max(int(valid.sum()) / 2, 1))
+        sigma_product = _product_sigma(turning, valid, strain_sigma, self.h_upper, self.h_lower)
         sigma_c = min(sigma_product / (2.0 * abs(c0)), math.sqrt(sigma_product))
 
         def spread() -> np.ndarray:
@@ -437,8 +438,10 @@ class Reconstructor:
         noise_sigma = _memo(surf._fine_sigma_fn)
         surf._fine_sigma_fn = noise_sigma
         # a twist c bends the far corners out of the untwisted shape by about c·ρ²/2 (ρ the
-        # half-diagonal): below the mirror floor the two images are one answer
-        if abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None:
+        # half-diagonal): below the mirror floor the two images are one answer; and a twist
+        # within what the turning noise makes of the curvature product is no twist to mirror
+        if (abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None
+                and abs(c0) > MIRROR_SIGMAS * math.sqrt(_product_sigma(turning, valid, sigma_f, self.h_upper, self.h_lower))):
             if positions_at is not None:
                 pos_m = positions_at(-2.0 * c0)
             else:  # a graph answered: its mirror is the graph refitted with the opposite sign
@@ -634,6 +637,15 @@ class Reconstructor:
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
+
+
+def _product_sigma(turning: np.ndarray, valid: np.ndarray, strain_sigma: float, h_upper: float, h_lower: float) -> float:
+    """S.d. of the sheet-mean curvature product k_u k_v from independent noise on every unit's
+    turning (σ_t per length): (σ_t κ_rms + σ_t²)/√(units per direction)."""
+    sig_t = math.sqrt(2.0) * strain_sigma / (h_upper + h_lower)
+    t = turning[valid]
+    kappa = math.sqrt(float((t * t).mean())) if t.size else 0.0
+    return (sig_t * kappa + sig_t * sig_t) / math.sqrt(max(int(valid.sum()) / 2, 1))
 
 
 def _memo(fn):
