@@ -176,7 +176,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.publish:
         from skinmap.daemon.zenoh_io import make_session_config, open_session
 
-        publisher_ctx = open_session(make_session_config([args.listen], []))
+        publisher_ctx = open_session(make_session_config([args.listen], [],
+                                                         deny_remote_writes=f"{args.prefix}/**"))
     try:
         session = publisher_ctx.__enter__() if publisher_ctx else None
         report = replay_log(args.log, session=session, prefix=args.prefix, speed=args.speed,

@@ -187,3 +187,228 @@ def test_replay_without_a_usable_config_says_so_in_one_line(bad_configs, capsys,
     lines = [line for line in captured.out.splitlines() if "unusable /config" in line]
     assert len(lines) == 1 and reason in lines[0]
     assert f"{report.unconfigured} processed scans not replayed: no usable /config before them" in captured.out
+
+
+# ------------------------------------------------------------------------------------------
+# forged data on the gateway's key space
+
+
+def _demo_config(endpoint: str, **zenoh_keys):
+    """The embedded demo config, listening on `endpoint` (loopback, free port)."""
+    import dataclasses
+    import tomllib
+
+    from skinmap.daemon.config import DEMO_CONFIG, parse_config
+
+    cfg = parse_config(tomllib.loads(DEMO_CONFIG), source="<demo>", text=DEMO_CONFIG)
+    return dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, listen=(endpoint,), **zenoh_keys))
+
+
+def _elements(seq: int, k: int = 8, *, nan: bool = False) -> bytes:
+    import numpy as np
+
+    from skinmap.daemon import messages as msg
+
+    pos = np.full((k, 3), np.nan) if nan else np.arange(3 * k, dtype=np.float64).reshape(k, 3) * 1e-3
+    return msg.encode_elements(seq, seq, 10**18 + seq, pos, np.tile([0.0, 0.0, 1.0], (k, 1)),
+                               np.full(k, 1e-4), np.full(k, msg.ElementFlag.VALID, np.uint8))
+
+
+def _wait_until(predicate, timeout: float = 5.0) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+class _ForgeryRun:
+    """The gateway's Zenoh session (as skinmapd opens it from the config) publishing real
+    elements, a watcher subscribing with a plain Zenoh session, and a foreign client-mode
+    session on the same loopback endpoint putting forged elements and serving forged info."""
+
+    def __init__(self, cfg) -> None:
+        import zenoh
+
+        from conftest import free_port  # noqa: F401 - the endpoint is in cfg already
+        from skinmap.daemon.service import open_zenoh
+        from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config
+
+        self.endpoint = cfg.zenoh.listen[0]
+        self._gateway_ctx = open_zenoh(cfg)
+        self.gateway = self._gateway_ctx.__enter__()
+        self.publisher = SkinmapPublisher(self.gateway, "skinmap", "demo")
+        self.publisher.set_info({"device": "demo", "rows": 2, "cols": 2, "pitch_m": 0.01,
+                                 "elements": {"count": 8}, "calibration": {}, "versions": {}})
+        client_cfg = lambda: make_session_config([], [self.endpoint], mode="client")  # noqa: E731
+        self.watcher = zenoh.open(client_cfg())
+        self.forger = zenoh.open(client_cfg())
+        self.seen = {"forged": 0, "real": 0}
+        self.forged = _elements(7, nan=True)
+        self._sub = self.watcher.declare_subscriber("skinmap/demo/elements", self._count)
+        self._fake_info = self.forger.declare_queryable(
+            "skinmap/demo/info", lambda q: q.reply("skinmap/demo/info", b'{"forged": true}'))
+
+    def _count(self, sample) -> None:
+        self.seen["forged" if sample.payload.to_bytes() == self.forged else "real"] += 1
+
+    def publish_until_seen(self, seq: int) -> bool:
+        return _wait_until(lambda: (self.publisher.publish_elements(_elements(seq)), self.seen["real"] > 0)[1])
+
+    def forge(self, n: int) -> None:
+        import time
+
+        for _ in range(n):
+            self.forger.put("skinmap/demo/elements", self.forged)
+            time.sleep(0.002)
+        self.forger.delete("skinmap/demo/elements")
+
+    def close(self) -> None:
+        self._fake_info.undeclare()
+        self._sub.undeclare()
+        self.forger.close()
+        self.watcher.close()
+        self.publisher.close()
+        self._gateway_ctx.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("guard", [True, False])
+def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
+    """With the demo config a foreign session's forged elements never reach a subscriber; with
+    `deny_remote_writes = false` they do (control case: the check can fail)."""
+    import time
+
+    from conftest import free_port
+
+    cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", **({} if guard else {"deny_remote_writes": False}))
+    assert cfg.guarded_key_expr() == ("skinmap/demo/**" if guard else None)
+    run = _ForgeryRun(cfg)
+    try:
+        assert run.publish_until_seen(1), "the watcher never received the gateway's elements"
+        # the forger's puts go where a subscriber is: wait until it knows of the watcher's
+        probe = run.forger.declare_publisher("skinmap/demo/elements")
+        assert _wait_until(lambda: probe.matching_status.matching)
+        probe.undeclare()
+        run.forge(100)
+        run.publisher.publish_elements(_elements(2))  # after the forged ones on the same links
+        time.sleep(0.5)
+        replies = [r.ok.payload.to_bytes() for r in run.watcher.get("skinmap/demo/info", timeout=2.0)
+                   if r.ok is not None]
+        if guard:
+            assert run.seen["forged"] == 0
+            assert len(replies) == 1 and b"forged" not in replies[0]  # the gateway's own info only
+        else:
+            assert _wait_until(lambda: run.seen["forged"] == 100)
+            assert any(b"forged" in r for r in replies)
+        assert run.seen["real"] >= 2
+    finally:
+        run.close()
+
+
+def test_guard_keeps_a_config_file_with_its_own_access_control():
+    import json
+
+    from skinmap.daemon.zenoh_io import make_session_config
+
+    production = Path(__file__).resolve().parents[1] / "config" / "zenoh-production.json5"
+    kept = make_session_config(config_file=production, allow_non_loopback=True, deny_remote_writes="skinmap/**")
+    assert json.loads(kept.get_json("access_control/default_permission")) == "deny"
+    added = make_session_config(["tcp/127.0.0.1:0"], deny_remote_writes="skinmap/demo/**")
+    acl = json.loads(added.get_json("access_control"))
+    assert acl["enabled"] is True and acl["default_permission"] == "allow"
+    assert acl["rules"][0]["key_exprs"] == ["skinmap/demo/**"] and acl["rules"][0]["flows"] == ["ingress"]
+    assert json.loads(make_session_config([], []).get_json("access_control/enabled")) is False
+
+
+def test_client_rejects_forged_elements_and_names_why():
+    """Guard off, so forged puts arrive: SkinmapClient hands out only the real elements and
+    counts and names every forged one it dropped."""
+    from conftest import free_port
+    from skinmap.daemon.client import SkinmapClient
+
+    cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", deny_remote_writes=False)
+    run = _ForgeryRun(cfg)
+    try:
+        with SkinmapClient([run.endpoint], device="demo", mode="client") as client:
+            client.subscribe("elements")
+            assert run.publish_until_seen(1)
+            probe = run.forger.declare_publisher("skinmap/demo/elements")
+            assert _wait_until(lambda: probe.matching_status.matching)
+            probe.undeclare()
+            got = []
+            seq = 10
+            run.forge(5)
+            while len(got) < 3 and seq < 200:
+                run.publisher.publish_elements(_elements(seq))
+                seq += 1
+                try:
+                    got.append(client.elements(timeout=0.2))
+                except TimeoutError:
+                    pass
+            assert len(got) == 3 and all(m.valid.all() and m.positions[0, 2] == 0.002 for m in got)
+
+            def drained() -> bool:
+                try:
+                    client.elements(timeout=0.05)
+                except TimeoutError:
+                    pass
+                return client.rejected("elements") == 6
+
+            assert _wait_until(drained)  # 5 forged puts and the forged delete (an empty payload)
+            reasons = client.rejections("elements")
+            assert reasons[:5] == ["elements: element 0 is flagged VALID but its position, normal or "
+                                   "uncertainty is not finite"] * 5
+            assert reasons[5] == "truncated message: 0 bytes, header needs 32"
+    finally:
+        run.close()
+
+
+def test_check_message_applies_the_layout_rules():
+    import numpy as np
+
+    from skinmap.daemon import messages as msg
+    from skinmap.daemon.client import RejectedMessage, check_message
+
+    k = 4
+    pos = np.zeros((k, 3))
+    nrm = np.tile([0.0, 0.0, 1.0], (k, 1))
+    sig = np.full(k, 1e-4)
+    flags = np.full(k, msg.ElementFlag.VALID, np.uint8)
+
+    def enc(p=pos, n=nrm, s=sig, f=flags):
+        return msg.encode_elements(1, 2, 3, p, n, s, f)
+
+    assert check_message("elements", enc()).count == k
+    nan_clear = pos.copy()
+    nan_clear[2] = np.nan
+    cleared = flags.copy()
+    cleared[2] = msg.ElementFlag.DEGRADED
+    assert check_message("elements", enc(p=nan_clear, f=cleared)).count == k  # NaN allowed when not VALID
+    cases = [(enc(p=nan_clear), "element 2 is flagged VALID but its position"),
+             (enc(n=nrm * 2), "element 0 is flagged VALID but its normal is not a unit vector"),
+             (enc(s=-sig), "element 0 has a negative uncertainty"),
+             (enc(f=flags | 0x40), "element 0 has unknown flag bits 0x41")]
+    for payload, reason in cases:
+        with pytest.raises(RejectedMessage, match=reason):
+            check_message("elements", payload)
+    reserved = bytearray(enc())
+    reserved[6] = 1
+    with pytest.raises(RejectedMessage, match="reserved header bytes"):
+        check_message("elements", bytes(reserved))
+    with pytest.raises(msg.MessageError, match="counts imply"):
+        good = bytearray(enc())
+        good[32] = k + 1  # K disagrees with the header's length
+        check_message("elements", bytes(good))
+    up = np.zeros((2, 2, 2))
+    up[0, 1, 1] = np.inf
+    gf = np.full((2, 2, 2), msg.GaugeFlag.UPPER_VALID | msg.GaugeFlag.LOWER_VALID, np.uint8)
+    with pytest.raises(RejectedMessage, match=r"upper gauge \[0, 1, 1\] is flagged valid but not finite"):
+        check_message("strains", msg.encode_strains(1, 2, 3, up, np.zeros((2, 2, 2)), gf))
+    nodes = np.zeros((2, 2, 3))
+    nodes[1, 0, 2] = np.nan
+    with pytest.raises(RejectedMessage, match="surface: a node is not finite"):
+        check_message("surface", msg.encode_surface(1, 2, 3, nodes, np.tile([0.0, 0.0, 1.0], (2, 2, 1)),
+                                                    np.zeros((2, 2))))
