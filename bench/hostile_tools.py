@@ -360,7 +360,7 @@ def scenario_forged_puts(tmp: Path) -> None:
     sys.path.insert(0, str(REPO / "tests"))
     from conftest import free_port
 
-    k = 32
+    k = 16  # the default element grid: 1 x 16 at 3 mm
     forged = messages.encode_elements(7, 0, time.time_ns(), np.full((k, 3), np.nan), np.tile([0.0, 0.0, 1.0], (k, 1)),
                                       np.full(k, 1e-4), np.full(k, messages.ElementFlag.VALID, np.uint8))
     for guard in (True, False):
