@@ -254,37 +254,46 @@ def bad_config_copies(real: Path, folder: Path) -> dict[str, Path]:
 # running the tools
 
 
+# The tool's own peak RSS: VmHWM of its process, read at exit. (wait4's ru_maxrss would also
+# count the RSS this script had when it forked the child.)
+_PEAK_WRAPPER = """
+import atexit, sys
+def _peak():
+    with open("/proc/self/status") as f:
+        kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    sys.stderr.write(f"\\nHOSTILE_PEAK_KB {kb}\\n")
+atexit.register(_peak)
+from skinmap.daemon.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
 def run_tool_rss(args: list[str], timeout: float = 120.0) -> dict[str, Any]:
-    """`skinmap ARGS` in its own process: exit code, wall time, its own peak RSS (wait4), output."""
+    """`skinmap ARGS` in its own process: exit code, wall time, its own peak RSS, output."""
     t0 = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
-    timer = threading.Timer(timeout, proc.kill)
-    timer.start()
-    chunks: dict[str, bytes] = {}
-
-    def drain(name: str, stream) -> None:
-        chunks[name] = stream.read()
-
-    readers = [threading.Thread(target=drain, args=(n, s)) for n, s in (("out", proc.stdout), ("err", proc.stderr))]
-    for r in readers:
-        r.start()
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    for r in readers:
-        r.join()
-    timer.cancel()
+    proc = subprocess.Popen([sys.executable, "-c", _PEAK_WRAPPER, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        timed_out = False
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        timed_out = True
     wall = time.monotonic() - t0
-    return {"rc": proc.returncode, "wall_s": wall, "rss_mib": usage.ru_maxrss / 1024,
-            "out": chunks["out"].decode(errors="replace"), "err": chunks["err"].decode(errors="replace"),
-            "timed_out": proc.returncode == -9}
+    peak = [int(line.split()[1]) for line in err.splitlines() if line.startswith("HOSTILE_PEAK_KB")]
+    err = "\n".join(line for line in err.splitlines() if not line.startswith("HOSTILE_PEAK_KB"))
+    result = {"rc": proc.returncode, "wall_s": wall, "out": out, "err": err, "timed_out": timed_out}
+    if peak:
+        result["rss_mib"] = peak[0] / 1024
+    return result
 
 
 def summary(result: dict[str, Any], grep: str = "") -> str:
     text = (result["out"] + result["err"]).strip().splitlines()
     traceback = any(line.startswith("Traceback") for line in text)
     pick = [line.strip() for line in text if grep and grep in line][:2] or text[-1:]
-    what = "TIMED OUT (killed)" if result.get("timed_out") else f"rc {result['rc']}"
+    what = "TIMED OUT (killed)" if result["timed_out"] else f"rc {result['rc']}"
     rss = f", peak {result['rss_mib']:.0f} MiB" if "rss_mib" in result else ""
     return (f"{what}, {result['wall_s']:.2f} s{rss}{', TRACEBACK' if traceback else ''}: "
             + " | ".join(p[:160] for p in pick))

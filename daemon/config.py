@@ -81,7 +81,7 @@ class OutputConfig:
 class ElementSpec:
     u_mm: float
     v_mm: float
-    offset_mm: float = 0.0  # along the upper normal; negative = below the upper surface
+    offset_mm: float = 0.0  # from the neutral plane along the upper normal; negative = toward the lower side
 
 
 @dataclass(frozen=True)

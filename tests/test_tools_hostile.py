@@ -412,3 +412,33 @@ def test_check_message_applies_the_layout_rules():
     with pytest.raises(RejectedMessage, match="surface: a node is not finite"):
         check_message("surface", msg.encode_surface(1, 2, 3, nodes, np.tile([0.0, 0.0, 1.0], (2, 2, 1)),
                                                     np.zeros((2, 2))))
+
+
+def test_the_documented_non_python_client_config_is_loopback_only_and_receives():
+    """docs/examples/zenoh-client.json5, as docs/zenoh.md shows it, opens a client session that
+    receives the daemon's elements (its endpoint swapped for a free loopback port)."""
+    import json
+
+    import zenoh
+
+    from conftest import free_port
+    from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
+
+    example = Path(__file__).resolve().parents[1] / "docs" / "examples" / "zenoh-client.json5"
+    text = example.read_text()
+    assert text[text.index("{"):].strip() in (Path(__file__).resolve().parents[1] / "docs" / "zenoh.md").read_text()
+    config = zenoh.Config.from_file(str(example))
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    got = []
+    with open_session(make_session_config([endpoint], [], deny_remote_writes="skinmap/demo/**")) as daemon:
+        publisher = SkinmapPublisher(daemon, "skinmap", "demo")
+        with open_session(config) as session:
+            sub = session.declare_subscriber("skinmap/demo/elements", lambda s: got.append(s.payload.to_bytes()))
+            assert _wait_until(lambda: (publisher.publish_elements(_elements(3)), bool(got))[1])
+            sub.undeclare()
+        publisher.close()
+    assert got[0] == _elements(3)
