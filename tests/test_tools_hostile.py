@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 
 import pytest
+from conftest import free_port
 
 from skinmap.daemon.cli import main as skinmap_main
 from skinmap.daemon.mcapinspect import NotRegularFileError, inspect, iter_messages_file_order, recover
@@ -233,7 +234,6 @@ class _ForgeryRun:
     def __init__(self, cfg) -> None:
         import zenoh
 
-        from conftest import free_port  # noqa: F401 - the endpoint is in cfg already
         from skinmap.daemon.service import open_zenoh
         from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config
 
@@ -281,7 +281,6 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
     `deny_remote_writes = false` they do (control case: the check can fail)."""
     import time
 
-    from conftest import free_port
 
     cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", **({} if guard else {"deny_remote_writes": False}))
     assert cfg.guarded_key_expr() == ("skinmap/demo/**" if guard else None)
@@ -326,7 +325,6 @@ def test_guard_keeps_a_config_file_with_its_own_access_control():
 def test_client_rejects_forged_elements_and_names_why():
     """Guard off, so forged puts arrive: SkinmapClient hands out only the real elements and
     counts and names every forged one it dropped."""
-    from conftest import free_port
     from skinmap.daemon.client import SkinmapClient
 
     cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", deny_remote_writes=False)
@@ -421,7 +419,6 @@ def test_the_documented_non_python_client_config_is_loopback_only_and_receives()
 
     import zenoh
 
-    from conftest import free_port
     from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
     example = Path(__file__).resolve().parents[1] / "docs" / "examples" / "zenoh-client.json5"
