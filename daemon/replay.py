@@ -301,12 +301,15 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
 
 
 _config_cache: dict[str, DaemonConfig] = {}
+_CONFIG_CACHE_SIZE = 64
 
 
 def _config_from_text(text: str) -> DaemonConfig:
     cfg = _config_cache.get(text)
     if cfg is None:
         cfg = parse_config(tomllib.loads(text) if text else {}, source="<log>", text=text)
+        if len(_config_cache) >= _CONFIG_CACHE_SIZE:
+            _config_cache.clear()  # a file of many distinct /config texts must not grow it for ever
         _config_cache[text] = cfg
     return cfg
 
