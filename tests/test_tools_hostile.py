@@ -251,6 +251,11 @@ class _ForgeryRun:
         self._sub = self.watcher.declare_subscriber("skinmap/demo/elements", self._count)
         self._fake_info = self.forger.declare_queryable(
             "skinmap/demo/info", lambda q: q.reply("skinmap/demo/info", b'{"forged": true}'))
+        self._fake_token = self.forger.liveliness().declare_token("skinmap/demo/forged-alive")
+
+    def tokens(self) -> list[str]:
+        return sorted(str(r.ok.key_expr) for r in self.watcher.liveliness().get("skinmap/demo/**", timeout=2.0)
+                      if r.ok is not None)
 
     def _count(self, sample) -> None:
         self.seen["forged" if sample.payload.to_bytes() == self.forged else "real"] += 1
@@ -267,6 +272,7 @@ class _ForgeryRun:
         self.forger.delete("skinmap/demo/elements")
 
     def close(self) -> None:
+        self._fake_token.undeclare()
         self._fake_info.undeclare()
         self._sub.undeclare()
         self.forger.close()
@@ -299,9 +305,11 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
         if guard:
             assert run.seen["forged"] == 0
             assert len(replies) == 1 and b"forged" not in replies[0]  # the gateway's own info only
+            assert run.tokens() == ["skinmap/demo/alive"]
         else:
             assert _wait_until(lambda: run.seen["forged"] == 100)
             assert any(b"forged" in r for r in replies)
+            assert run.tokens() == ["skinmap/demo/alive", "skinmap/demo/forged-alive"]
         assert run.seen["real"] >= 2
     finally:
         run.close()
