@@ -176,11 +176,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.publish:
         from skinmap.daemon.zenoh_io import make_session_config, open_session
 
-        publisher_ctx = open_session(make_session_config([args.listen], []))
+        publisher_ctx = open_session(make_session_config([args.listen], [],
+                                                         deny_remote_writes=f"{args.prefix}/**"))
     try:
         session = publisher_ctx.__enter__() if publisher_ctx else None
         report = replay_log(args.log, session=session, prefix=args.prefix, speed=args.speed,
-                            progress=not args.quiet)
+                            progress=not args.quiet, max_record_bytes=_record_limit(args))
     finally:
         if publisher_ctx:
             publisher_ctx.__exit__(None, None, None)
@@ -192,10 +193,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
 # inspect / recover
 
 
+def _record_limit(args: argparse.Namespace) -> int:
+    if not 0.001 <= args.max_record_mb <= 1 << 20:
+        raise ValueError(f"--max-record-mb must be between 0.001 and {1 << 20}, got {args.max_record_mb:g}")
+    return int(args.max_record_mb * 1024 * 1024)
+
+
+def _add_record_limit(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-record-mb", type=float, default=64.0,
+                   help="skip records and chunks larger than this (MiB, uncompressed); default 64")
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     from skinmap.daemon.mcapinspect import inspect, render_surface_png
 
-    report = inspect(args.log, gap_threshold_s=args.gap)
+    report = inspect(args.log, gap_threshold_s=args.gap, max_record_bytes=_record_limit(args))
     print(report.format())
     if args.png:
         snap = render_surface_png(args.log, args.at, args.png)
@@ -206,7 +218,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def cmd_recover(args: argparse.Namespace) -> int:
     from skinmap.daemon.mcapinspect import recover
 
-    report = recover(args.log, args.output)
+    report = recover(args.log, args.output, max_record_bytes=_record_limit(args))
     print(report.format())
     return 0
 
@@ -301,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--prefix", default="skinmap-replay")
     r.add_argument("--speed", type=float, default=0.0, help="1 = recorded speed, 0 = as fast as possible")
     r.add_argument("--quiet", "-q", action="store_true")
+    _add_record_limit(r)
     r.set_defaults(func=cmd_replay)
 
     i = sub.add_parser("inspect", help="summarise a log; optionally draw the surface")
@@ -308,11 +321,13 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--gap", type=float, default=1.0, help="report time gaps longer than this (s)")
     i.add_argument("--png", help="write a PNG of the surface to this path")
     i.add_argument("--at", type=float, default=None, help="seconds after the log's start (default: last)")
+    _add_record_limit(i)
     i.set_defaults(func=cmd_inspect)
 
     rc = sub.add_parser("recover", help="rewrite a cut (.mcap.active) log as a finished file")
     rc.add_argument("log")
     rc.add_argument("--output", "-o")
+    _add_record_limit(rc)
     rc.set_defaults(func=cmd_recover)
 
     t = sub.add_parser("tare", help="record the flat sheet's resting resistances")

@@ -7,15 +7,24 @@
         first = client.latest("elements")          # newest cached scan, at once
         for msg in client.iter_elements(timeout=2.0):
             use(msg.positions, msg.normals)        # (K, 3) metres, unit normals
+
+Every message is checked against its layout's rules before it is handed out (`check_message`):
+one that breaks them (a NaN in an element flagged VALID, counts that disagree with the header,
+unknown flag bits, non-zero reserved bytes...) is dropped, counted in `rejected(kind)` and named
+in `rejections(kind)`, so a forged or damaged put never reaches the caller as data.
 """
 
 from __future__ import annotations
 
+import collections
 import queue
+import struct
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
+import numpy as np
 import zenoh
 
 from skinmap.daemon import messages
@@ -30,6 +39,82 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {
 }
 
 _STREAM_KINDS = (*DATA_KINDS, "status")
+_REJECTIONS_KEPT = 16
+_UNIT_TOLERANCE = 1e-6
+_KNOWN_ELEMENT_FLAGS = int(messages.ElementFlag.VALID | messages.ElementFlag.EXTRAPOLATED
+                           | messages.ElementFlag.DEGRADED | messages.ElementFlag.STALE)
+_KNOWN_GAUGE_FLAGS = int(messages.GaugeFlag.UPPER_VALID | messages.GaugeFlag.LOWER_VALID)
+
+
+class RejectedMessage(messages.MessageError):
+    """A message that decodes but breaks its layout's rules (docs/zenoh.md)."""
+
+
+def _first_bad(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def _check_elements(m: messages.ElementsMessage, raw: bytes) -> None:
+    if struct.unpack_from("<I", raw, messages.HEADER_SIZE + 4)[0] != 0:
+        raise RejectedMessage("elements: reserved field after K is not 0")
+    unknown = (m.flags & (0xFF ^ _KNOWN_ELEMENT_FLAGS)) != 0
+    if unknown.any():
+        i = _first_bad(unknown)
+        raise RejectedMessage(f"elements: element {i} has unknown flag bits 0x{int(m.flags[i]):02x}")
+    valid = m.valid
+    bad = valid & ~(np.isfinite(m.positions).all(axis=1) & np.isfinite(m.normals).all(axis=1)
+                    & np.isfinite(m.uncertainty))
+    if bad.any():
+        raise RejectedMessage(f"elements: element {_first_bad(bad)} is flagged VALID but its position, "
+                              "normal or uncertainty is not finite")
+    with np.errstate(invalid="ignore"):
+        norm_off = np.abs(np.linalg.norm(m.normals, axis=1) - 1.0) > _UNIT_TOLERANCE
+        negative = m.uncertainty < 0
+    if (valid & norm_off).any():
+        raise RejectedMessage(f"elements: element {_first_bad(valid & norm_off)} is flagged VALID but "
+                              "its normal is not a unit vector")
+    if negative.any():
+        raise RejectedMessage(f"elements: element {_first_bad(negative)} has a negative uncertainty")
+
+
+def _check_surface(m: messages.SurfaceMessage, raw: bytes) -> None:
+    if raw[messages.HEADER_SIZE + 13:messages.HEADER_SIZE + 16] != b"\0\0\0":
+        raise RejectedMessage("surface: padding after the counts is not 0")
+    # skinmapd never publishes a non-finite node (it holds the last good frame instead)
+    for name, arr in (("node", m.nodes), ("normal", m.normals), ("uncertainty", m.uncertainty),
+                      ("cloud point", m.cloud)):
+        if not np.isfinite(arr).all():
+            raise RejectedMessage(f"surface: a {name} is not finite")
+    if (m.uncertainty < 0).any():
+        raise RejectedMessage("surface: a node has a negative uncertainty")
+
+
+def _check_strains(m: messages.StrainsMessage, raw: bytes) -> None:
+    unknown = (m.gauge_flags & (0xFF ^ _KNOWN_GAUGE_FLAGS)) != 0
+    if unknown.any():
+        raise RejectedMessage("strains: a gauge has unknown flag bits")
+    for layer, eps, valid in (("upper", m.eps_upper, m.valid_upper), ("lower", m.eps_lower, m.valid_lower)):
+        if (valid & ~np.isfinite(eps)).any():
+            k, i, j = np.argwhere(valid & ~np.isfinite(eps))[0]
+            raise RejectedMessage(f"strains: {layer} gauge [{k}, {i}, {j}] is flagged valid but not finite")
+
+
+_CHECKS: dict[str, Callable[[Any, bytes], None]] = {
+    "elements": _check_elements, "surface": _check_surface, "strains": _check_strains,
+}
+
+
+def check_message(kind: str, payload: bytes) -> Any:
+    """Decode a ``kind`` payload and check it against the layout's rules; the decoded message,
+    or MessageError (RejectedMessage for a rule broken by a well-formed buffer) naming why."""
+    _check_kind(kind, ALL_KINDS)
+    decoded = DECODERS[kind](payload)
+    if kind in _CHECKS:
+        header = bytes(payload[:messages.HEADER_SIZE])
+        if header[6:8] != b"\0\0":
+            raise RejectedMessage(f"{kind}: reserved header bytes are not 0")
+        _CHECKS[kind](decoded, bytes(payload))
+    return decoded
 
 
 def _check_kind(kind: str, allowed: tuple[str, ...]) -> None:
@@ -63,11 +148,13 @@ class Subscription:
 
     def __init__(self, session: zenoh.Session, key: str, decode: Callable[[bytes], Any],
                  callback: Callable[[Any], None], queue_size: int,
-                 on_error: Callable[[Exception], None] | None) -> None:
+                 on_error: Callable[[Exception], None] | None,
+                 on_reject: Callable[[messages.MessageError], None] | None = None) -> None:
         self._buffer = _DropOldestQueue(queue_size)
         self._decode = decode
         self._callback = callback
         self._on_error = on_error
+        self._on_reject = on_reject
         self._subscriber = session.declare_subscriber(
             key, lambda sample: self._buffer.push(sample.payload.to_bytes()))
         self._thread = threading.Thread(target=self._run, daemon=True,
@@ -85,7 +172,13 @@ class Subscription:
             if payload is None:
                 return
             try:
-                self._callback(self._decode(payload))
+                try:
+                    decoded = self._decode(payload)
+                except messages.MessageError as exc:
+                    if self._on_reject is not None:
+                        self._on_reject(exc)
+                    raise
+                self._callback(decoded)
             except Exception as exc:  # keep delivering; report through on_error if given
                 if self._on_error is not None:
                     self._on_error(exc)
@@ -103,6 +196,7 @@ class SkinmapClient:
     Blocking reads (``elements``, ``surface``, ``strains``, iterators) start their subscription
     on first use and then return messages in arrival order from a bounded queue of
     ``queue_size`` (oldest dropped when the reader falls behind; see ``dropped``).
+    Messages that break their layout's rules are skipped (``rejected``, ``rejections``).
     """
 
     def __init__(self, connect: Iterable[str] = ("tcp/127.0.0.1:7447",), prefix: str = "skinmap",
@@ -119,6 +213,8 @@ class SkinmapClient:
         self._lock = threading.Lock()
         self._streams: dict[str, tuple[Any, _DropOldestQueue]] = {}
         self._subscriptions: list[Subscription] = []
+        self._rejected: collections.Counter[str] = collections.Counter()
+        self._rejections: dict[str, collections.deque[str]] = {}
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -162,6 +258,29 @@ class SkinmapClient:
         stream = self._streams.get(kind)
         return stream[1].dropped if stream else 0
 
+    def rejected(self, kind: str = "elements") -> int:
+        """Messages of ``kind`` dropped because they break the layout's rules (forged or
+        damaged: undecodable, NaN in a VALID element, counts disagreeing with the header...)."""
+        with self._lock:
+            return self._rejected[kind]
+
+    def rejections(self, kind: str = "elements") -> list[str]:
+        """Why the most recent rejected ``kind`` messages were dropped (up to 16, oldest first)."""
+        with self._lock:
+            return list(self._rejections.get(kind, ()))
+
+    def _reject(self, kind: str, exc: Exception) -> None:
+        with self._lock:
+            self._rejected[kind] += 1
+            self._rejections.setdefault(kind, collections.deque(maxlen=_REJECTIONS_KEPT)).append(str(exc))
+
+    def _decode(self, kind: str, payload: bytes) -> Any:
+        try:
+            return check_message(kind, payload)
+        except messages.MessageError as exc:
+            self._reject(kind, exc)
+            raise
+
     def pending(self, kind: str = "elements") -> int:
         """Messages of ``kind`` received and not yet read."""
         stream = self._streams.get(kind)
@@ -187,18 +306,25 @@ class SkinmapClient:
         self._stream(kind)
 
     def next(self, kind: str, timeout: float | None = 5.0) -> Any:
-        """Block for the next ``kind`` message and return it decoded; TimeoutError if none
-        arrives within ``timeout`` seconds (None waits for ever)."""
+        """Block for the next well-formed ``kind`` message and return it decoded; TimeoutError
+        if none arrives within ``timeout`` seconds (None waits for ever). Messages breaking the
+        layout's rules are skipped and counted (``rejected``)."""
         _check_kind(kind, _STREAM_KINDS)
         buffer = self._stream(kind)
-        try:
-            payload = buffer.queue.get(timeout=timeout)
-        except queue.Empty:
-            raise TimeoutError(f"no {kind} message on {self._keys[kind]!r} within "
-                               f"{timeout} s") from None
-        if payload is None:
-            raise RuntimeError("SkinmapClient was closed while waiting")
-        return DECODERS[kind](payload)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                payload = buffer.queue.get(timeout=wait)
+            except queue.Empty:
+                raise TimeoutError(f"no {kind} message on {self._keys[kind]!r} within "
+                                   f"{timeout} s") from None
+            if payload is None:
+                raise RuntimeError("SkinmapClient was closed while waiting")
+            try:
+                return self._decode(kind, payload)
+            except messages.MessageError:
+                continue
 
     def elements(self, timeout: float | None = 5.0) -> messages.ElementsMessage:
         """Next elements message (per-element positions/normals in metres)."""
@@ -227,8 +353,9 @@ class SkinmapClient:
                    on_error: Callable[[Exception], None] | None = None) -> Subscription:
         """Call ``callback(decoded_message)`` for each ``kind`` message on a client thread."""
         _check_kind(kind, _STREAM_KINDS)
-        sub = Subscription(self.session, self._keys[kind], DECODERS[kind], callback,
-                           self._queue_size, on_error)
+        sub = Subscription(self.session, self._keys[kind], lambda p: check_message(kind, p),
+                           callback, self._queue_size, on_error,
+                           on_reject=lambda exc: self._reject(kind, exc))
         self._subscriptions.append(sub)
         return sub
 
@@ -246,7 +373,11 @@ class SkinmapClient:
         errors = []
         for reply in self.session.get(key, timeout=timeout):
             if reply.ok is not None:
-                return DECODERS[kind](reply.ok.payload.to_bytes())
+                try:
+                    return self._decode(kind, reply.ok.payload.to_bytes())
+                except messages.MessageError as exc:
+                    errors.append(f"rejected reply: {exc}")
+                    continue
             errors.append(reply.err.payload.to_string())
         detail = f": {'; '.join(errors)}" if errors else ""
         raise LookupError(f"no {kind} available on {key!r} (is skinmapd running and has it "

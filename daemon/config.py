@@ -85,7 +85,7 @@ class OutputConfig:
 class ElementSpec:
     u_mm: float
     v_mm: float
-    offset_mm: float = 0.0  # along the upper normal; negative = below the upper surface
+    offset_mm: float = 0.0  # from the neutral plane along the upper normal; negative = toward the lower side
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,10 @@ class ZenohConfig:
     allow_non_loopback: bool = False
     config_file: str = ""  # optional Zenoh JSON5 file (production: TLS, access control)
     enabled: bool = True
+    # Zenoh access control: puts, deletes, queryables, liveliness tokens and replies that other
+    # sessions send into the gateway's key space are dropped on arrival (subscribing and
+    # querying stay open). A config_file with its own enabled access_control replaces this.
+    deny_remote_writes: bool = True
 
 
 @dataclass(frozen=True)
@@ -160,6 +164,16 @@ class DaemonConfig:
     state: StateConfig = field(default_factory=StateConfig)
     source: str = "<defaults>"  # where the config came from
     text: str = ""  # the raw TOML, logged at start
+
+    def guarded_key_expr(self) -> str | None:
+        """The key expression other Zenoh sessions may not write into (None: not guarded):
+        `<prefix>/<device>/**`, or all of `<prefix>/**` while the device name comes from the
+        scanner's serial number and is not known before the session opens."""
+        if not self.zenoh.deny_remote_writes:
+            return None
+        if self.device.name:
+            return f"{self.zenoh.prefix}/{self.device.name}/**"
+        return f"{self.zenoh.prefix}/**"
 
     def resolve(self, path: str) -> Path:
         """A relative directory in the config is relative to the config file's folder."""
@@ -311,6 +325,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "allow_non_loopback": _boolean,
         "config_file": _string(),
         "enabled": _boolean,
+        "deny_remote_writes": _boolean,
     },
     "log": {
         "enabled": _boolean,
@@ -467,6 +482,8 @@ offset_mm = -0.3
 [zenoh]
 prefix = "skinmap"
 listen = ["tcp/127.0.0.1:7447"]
+# other sessions may subscribe and query, never put into skinmap/demo/**
+deny_remote_writes = true
 
 [log]
 directory = "logs"

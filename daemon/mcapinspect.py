@@ -6,6 +6,11 @@ FILE order with their own framing check, because a file cut by a crash has no su
 mcap's time-ordered reader returns nothing for it. Every record is parsed with the classes of
 `mcap.records`; chunks are checked against their CRC before any message in them is used, so
 what is returned is always an exact prefix of what was written.
+
+Hostile or damaged files cost bounded memory: a record (or a chunk's declared uncompressed
+size) larger than `max_record_bytes` is skipped unread and named in `skipped`, chunks are
+decompressed incrementally and never past their declared size, and only regular files are
+opened (a FIFO, a device or a folder would block or never end).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import itertools
 import json
 import math
 import os
+import stat
 import struct
 import zlib
 from collections import Counter
@@ -49,6 +55,8 @@ from .mcaplog import (
 
 __all__ = [
     "NotMcapError",
+    "NotRegularFileError",
+    "DEFAULT_MAX_RECORD_BYTES",
     "ReadEnd",
     "LoggedMessage",
     "FileOrderMessages",
@@ -67,6 +75,11 @@ __all__ = [
 
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
 _RECORD_HEAD = struct.Struct("<BQ")
+_MiB = 1024 * 1024
+# skinmapd writes chunks of `log.chunk_kb` (at most 64 MiB by its config check) and records far
+# smaller, so anything larger is not from skinmapd and is refused unread.
+DEFAULT_MAX_RECORD_BYTES = 64 * _MiB
+_MAX_SKIPPED_LISTED = 1000
 
 # Records that can appear in a data section and matter for reading; others are skipped.
 _PARSERS: dict[int, Callable[[ReadDataStream, int], McapRecord]] = {
@@ -84,6 +97,84 @@ _PARSERS: dict[int, Callable[[ReadDataStream, int], McapRecord]] = {
 
 class NotMcapError(ValueError):
     """The file does not start with the MCAP magic bytes."""
+
+
+class NotRegularFileError(ValueError):
+    """The path names a FIFO, a device, a socket or a folder, not a log file."""
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+               (stat.S_ISSOCK, "a socket"))
+
+
+def open_regular_file(path: str | os.PathLike[str]) -> io.BufferedReader:
+    """Open `path` for reading only if it is a regular file; NotRegularFileError otherwise.
+
+    O_NONBLOCK keeps the open itself from waiting for a FIFO's writer; the type is then
+    checked on the open descriptor, so a path swapped after a check cannot slip through."""
+    name = os.fspath(path)
+    fd = os.open(name, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = next((what for test, what in _FILE_KINDS if test(mode)), "not a regular file")
+            raise NotRegularFileError(f"{name}: is {kind}, not a regular MCAP log file")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _check_limit(max_record_bytes: int) -> int:
+    if isinstance(max_record_bytes, bool) or not isinstance(max_record_bytes, int) \
+            or max_record_bytes < 1024:
+        raise ValueError(f"max_record_bytes must be an integer >= 1024, got {max_record_bytes!r}")
+    return max_record_bytes
+
+
+def _size(n: int) -> str:
+    return f"{n / _MiB:.1f} MiB" if n >= _MiB else f"{n} bytes"
+
+
+class _Refused(Exception):
+    """A record that is skipped, the rest of the file still read."""
+
+
+def _decompress_chunk(chunk: Chunk, limit: int) -> Chunk:
+    """The chunk with its records uncompressed, never producing more than its declared
+    uncompressed size (+1 byte, to notice a chunk that lies about it)."""
+    size = chunk.uncompressed_size
+    if size > limit:
+        raise _Refused(f"declares {_size(size)} uncompressed, over the {_size(limit)} limit")
+    want = size + 1
+    if chunk.compression == "":
+        data = chunk.data
+    elif chunk.compression == "zstd":
+        import zstandard
+
+        reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
+        parts, got = [], 0
+        while got < want:
+            piece = reader.read(want - got)
+            if not piece:
+                break
+            parts.append(piece)
+            got += len(piece)
+        data = b"".join(parts)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=want)
+    else:
+        raise _Refused(f"unknown compression {chunk.compression!r}")
+    if len(data) != size:
+        what = "more than" if len(data) > size else f"{len(data)} bytes, not"
+        raise _Refused(f"decompresses to {what} its declared {_size(size)}")
+    return Chunk(compression="", data=data, message_end_time=chunk.message_end_time,
+                 message_start_time=chunk.message_start_time,
+                 uncompressed_crc=chunk.uncompressed_crc, uncompressed_size=size)
 
 
 @dataclass(frozen=True)
@@ -117,18 +208,27 @@ class _Item:
 class _FileOrderReader:
     """Generator of `_Item`s; sets `self.end` once the file has been read as far as possible."""
 
-    def __init__(self, path: str | os.PathLike[str]):
+    def __init__(self, path: str | os.PathLike[str], *,
+                 max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES):
         self.path = os.fspath(path)
+        self.max_record_bytes = _check_limit(max_record_bytes)
         self.end: ReadEnd | None = None
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.header: Header | None = None
+        self.skipped: list[str] = []  # the first _MAX_SKIPPED_LISTED records refused
+        self.skipped_count = 0
 
     def _finish(self, complete: bool, reason: str, valid: int, size: int) -> None:
         self.end = ReadEnd(complete, reason, valid, size)
 
+    def _skip(self, what: str) -> None:
+        self.skipped_count += 1
+        if len(self.skipped) < _MAX_SKIPPED_LISTED:
+            self.skipped.append(what)
+
     def items(self) -> Iterator[_Item]:
-        with open(self.path, "rb") as f:
+        with open_regular_file(self.path) as f:
             size = os.fstat(f.fileno()).st_size
             magic = f.read(len(MAGIC))
             if magic != MAGIC:
@@ -155,16 +255,27 @@ class _FileOrderReader:
                     self._finish(False, f"file cut inside a {_opcode_name(opcode)} record "
                                  f"at offset {pos}", pos, size)
                     return
-                body = f.read(length)
                 parser = _PARSERS.get(opcode)
                 if in_summary and opcode != Opcode.FOOTER:
                     parser = None  # the summary only repeats what was read already
+                if parser is not None and length > self.max_record_bytes:
+                    self._skip(f"{_opcode_name(opcode)} record at offset {pos} skipped: "
+                               f"{_size(length)}, over the {_size(self.max_record_bytes)} "
+                               "limit")
+                    parser = None
                 if parser is None:
+                    # Seek, not read: a skipped record costs no memory, however long.
                     pos += _RECORD_HEAD.size + length
+                    f.seek(pos)
                     continue
+                body = f.read(length)
                 try:
                     record = parser(ReadDataStream(io.BytesIO(body)), length)
                     contained = self._contained(record, body)
+                except _Refused as exc:
+                    self._skip(f"{_opcode_name(opcode)} record at offset {pos} skipped: {exc}")
+                    pos += _RECORD_HEAD.size + length
+                    continue
                 except Exception as exc:  # any parse failure means corrupt bytes: stop here
                     self._finish(False, f"corrupt {_opcode_name(opcode)} record at offset "
                                  f"{pos}: {exc}", pos, size)
@@ -187,7 +298,8 @@ class _FileOrderReader:
         """The items a complete record yields; raises if the record is corrupt."""
         if isinstance(record, Chunk):
             # validate_crc: a chunk whose bytes did not all reach the disk is rejected whole.
-            return [item for r in breakup_chunk(record, validate_crc=True)
+            plain = _decompress_chunk(record, self.max_record_bytes)
+            return [item for r in breakup_chunk(plain, validate_crc=True)
                     for item in self._contained(r, b"")]
         if isinstance(record, Attachment):
             stored = struct.unpack_from("<I", body, len(body) - 4)[0]
@@ -214,15 +326,25 @@ def _opcode_name(opcode: int) -> str:
 
 
 class FileOrderMessages:
-    """Iterator of `LoggedMessage` in file order; `end` (a `ReadEnd`) is set when exhausted."""
+    """Iterator of `LoggedMessage` in file order; `end` (a `ReadEnd`) is set when exhausted,
+    `skipped` names the records refused as over `max_record_bytes` so far."""
 
-    def __init__(self, path: str | os.PathLike[str]):
-        self._reader = _FileOrderReader(path)
+    def __init__(self, path: str | os.PathLike[str], *,
+                 max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES):
+        self._reader = _FileOrderReader(path, max_record_bytes=max_record_bytes)
         self._items = self._reader.items()
 
     @property
     def end(self) -> ReadEnd | None:
         return self._reader.end
+
+    @property
+    def skipped(self) -> list[str]:
+        return self._reader.skipped
+
+    @property
+    def skipped_count(self) -> int:
+        return self._reader.skipped_count
 
     def __iter__(self) -> FileOrderMessages:
         return self
@@ -243,11 +365,21 @@ def _logged(item: _Item) -> LoggedMessage:
     return LoggedMessage(topic, schema_name, encoding, msg.log_time, msg.publish_time, msg.data)
 
 
-def iter_messages_file_order(path: str | os.PathLike[str]) -> FileOrderMessages:
+def iter_messages_file_order(path: str | os.PathLike[str], *,
+                             max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES
+                             ) -> FileOrderMessages:
     """All messages of a finished or cut MCAP file in file order, never raising on a cut or
-    corrupt tail (only on a file that is not MCAP at all). After the loop, `.end` tells how
-    the file ended."""
-    return FileOrderMessages(path)
+    corrupt tail (only on a file that is not MCAP at all, or not a regular file). After the
+    loop, `.end` tells how the file ended and `.skipped` which records were too large."""
+    return FileOrderMessages(path, max_record_bytes=max_record_bytes)
+
+
+def _skipped_lines(skipped: list[str], count: int, indent: str = "  ") -> list[str]:
+    shown = skipped[:10]
+    lines = [f"{indent}{line}" for line in shown]
+    if count > len(shown):
+        lines.append(f"{indent}... and {count - len(shown)} more records skipped")
+    return lines
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,6 +395,8 @@ class RecoverReport:
     attachments: int
     metadata: int
     end: ReadEnd
+    skipped: tuple[str, ...] = ()
+    skipped_count: int = 0
 
     def format(self) -> str:
         state = "finished file" if self.end.complete else f"cut file ({self.end.reason})"
@@ -271,6 +405,9 @@ class RecoverReport:
                  f"{self.end.valid_bytes} of {self.end.file_bytes} bytes)",
                  f"written to {self.output}"]
         lines += [f"  {topic}: {count}" for topic, count in sorted(self.topics.items())]
+        if self.skipped_count:
+            lines.append(f"  {self.skipped_count} record(s) not recovered (too large):")
+            lines += _skipped_lines(list(self.skipped), self.skipped_count, "    ")
         return "\n".join(lines)
 
 
@@ -283,7 +420,8 @@ def _default_recovered_path(path: str) -> str:
 
 
 def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str] | None = None,
-            *, compression: str = "zstd") -> RecoverReport:
+            *, compression: str = "zstd",
+            max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES) -> RecoverReport:
     """Write a finished, indexed MCAP holding everything readable from `path` (typically a
     `.mcap.active` left by a crash). Default output: `x.mcap.active` -> `x.mcap` when that
     name is free, else `<stem>.recovered.mcap`. The source file is left untouched."""
@@ -295,7 +433,7 @@ def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str] | Non
               "none": CompressionType.NONE}
     if compression not in codecs:
         raise ValueError(f"compression must be one of {sorted(codecs)}, got {compression!r}")
-    reader = _FileOrderReader(source)
+    reader = _FileOrderReader(source, max_record_bytes=max_record_bytes)
     items = reader.items()
     first = next(items, None)  # parse before creating anything, so a non-MCAP file fails clean
     tmp = output + ".partial"
@@ -311,7 +449,8 @@ def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str] | Non
     os.replace(tmp, output)
     assert reader.end is not None
     return RecoverReport(source, output, sum(topics.values()), dict(topics),
-                         counts["attachments"], counts["metadata"], reader.end)
+                         counts["attachments"], counts["metadata"], reader.end,
+                         tuple(reader.skipped), reader.skipped_count)
 
 
 def _write_recovered(tmp: str, reader: _FileOrderReader, items: Iterator[_Item],
@@ -402,6 +541,8 @@ class InspectReport:
     metadata: dict[str, dict[str, str]]
     attachments: list[str]
     gap_threshold_s: float
+    skipped: list[str] = field(default_factory=list)  # records refused as too large
+    skipped_count: int = 0
 
     @property
     def first_ns(self) -> int | None:
@@ -442,8 +583,11 @@ class InspectReport:
                        f"t+{(g.t_ns - t0) * 1e-9:.3f} s")
         for i in self.issues:
             out.append(f"  {i.level} in {i.source} at t+{(i.t_ns - t0) * 1e-9:.3f} s: {i.text}")
-        if not (self.sequence_gaps or self.issues or any(s.time_gaps for s in
-                                                        self.topics.values())):
+        if self.skipped_count:
+            out.append(f"  {self.skipped_count} record(s) skipped unread:")
+            out += _skipped_lines(self.skipped, self.skipped_count, "    ")
+        if not (self.sequence_gaps or self.issues or self.skipped_count or
+                any(s.time_gaps for s in self.topics.values())):
             out.append("  no gaps, warnings or errors found")
         return "\n".join(out)
 
@@ -481,13 +625,15 @@ def _status_issues(t_ns: int, status: Any) -> list[LogIssue]:
 
 
 def inspect(path: str | os.PathLike[str], *, gap_threshold_s: float = 1.0,
-            max_issues: int = 1000) -> InspectReport:
+            max_issues: int = 1000,
+            max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES) -> InspectReport:
     """Summarise a finished or cut log: per-topic counts, rates, first/last times, time gaps
     longer than `gap_threshold_s`, sequence gaps on topics that carry a frame seq, and
-    warnings/errors from /log and /status (at most `max_issues` listed)."""
+    warnings/errors from /log and /status (at most `max_issues` listed). Records over
+    `max_record_bytes` are skipped and listed."""
     if not gap_threshold_s > 0:
         raise ValueError(f"gap_threshold_s must be > 0, got {gap_threshold_s!r}")
-    reader = _FileOrderReader(path)
+    reader = _FileOrderReader(path, max_record_bytes=max_record_bytes)
     topics: dict[str, TopicStats] = {}
     last_seq: dict[str, int] = {}
     seq_gaps: list[SequenceGap] = []
@@ -534,7 +680,15 @@ def inspect(path: str | os.PathLike[str], *, gap_threshold_s: float = 1.0,
     assert reader.end is not None
     return InspectReport(os.fspath(path), reader.end,
                          reader.header.library if reader.header else "", topics, seq_gaps,
-                         issues[:max_issues], metadata, attachments, gap_threshold_s)
+                         issues[:max_issues], metadata, attachments, gap_threshold_s,
+                         reader.skipped, reader.skipped_count)
+
+
+_MAX_ISSUE_TEXT = 500
+
+
+def _clip(text: str) -> str:
+    return text if len(text) <= _MAX_ISSUE_TEXT else text[:_MAX_ISSUE_TEXT] + "..."
 
 
 def _message_issues(m: LoggedMessage) -> list[LogIssue]:
@@ -542,16 +696,21 @@ def _message_issues(m: LoggedMessage) -> list[LogIssue]:
         return []
     try:
         obj = json.loads(m.data)
+        if m.topic == "/status":
+            return [LogIssue(i.t_ns, i.source, i.level, _clip(i.text))
+                    for i in _status_issues(m.log_time_ns, obj)]
+        level = obj.get("level", 0) if isinstance(obj, dict) else 0
+        if isinstance(level, int) and level >= LOG_LEVELS["WARNING"]:
+            name = _LEVEL_NAMES.get(level, str(level))
+            return [LogIssue(m.log_time_ns, "/log", name,
+                             _clip(f"[{obj.get('name', '')}] {obj.get('message', '')}"))]
+        return []
+    except RecursionError:
+        # json and str() recurse per nesting level: one such record must not end the report.
+        return [LogIssue(m.log_time_ns, m.topic, "ERROR", f"unreadable record "
+                         f"({len(m.data)} bytes): JSON nested too deeply to read")]
     except ValueError:
         return [LogIssue(m.log_time_ns, m.topic, "ERROR", "message is not valid JSON")]
-    if m.topic == "/status":
-        return _status_issues(m.log_time_ns, obj)
-    level = obj.get("level", 0) if isinstance(obj, dict) else 0
-    if isinstance(level, int) and level >= LOG_LEVELS["WARNING"]:
-        name = _LEVEL_NAMES.get(level, str(level))
-        return [LogIssue(m.log_time_ns, "/log", name,
-                         f"[{obj.get('name', '')}] {obj.get('message', '')}")]
-    return []
 
 
 # --------------------------------------------------------------------------------------------

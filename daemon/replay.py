@@ -8,6 +8,11 @@ the calibration in force at the time, and compares the element messages byte for
 Cut (`.mcap.active`) files are read in file order up to the cut.  The graph fit is warm-started
 from the scans before (pipeline.graph_restart), so in a file that starts mid-stream the scans
 before its first cold restart may differ from the live ones: they are counted as not comparable.
+
+A damaged or hostile record (a /config that is not a config object, undecodable /strains or
+/elements, a record over the reader's size limit) is named in the report's `problems`, one line
+each, and the rest of the file is replayed: an unusable /config does not replace the one in
+force before it, and scans with no usable config before them are counted, not replayed.
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ import numpy as np
 from skinmap.daemon import messages
 from skinmap.daemon.calibration import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
-from skinmap.daemon.mcapinspect import iter_messages_file_order
+from skinmap.daemon.mcapinspect import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
 from skinmap.daemon.mcaplog import decode_strains
 from skinmap.daemon.pipeline import FramePipeline, graph_restart
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
@@ -49,6 +54,11 @@ class ReplayReport:
     seconds: float = 0.0
     end: str = ""
     results: list[messages.ElementsMessage] = field(default_factory=list)
+    # one line per unusable record (bad /config, undecodable message, record over the size limit)
+    problems: list[str] = field(default_factory=list)
+    problem_count: int = 0
+    # scans the live run processed for which the file holds no usable /config before them
+    unconfigured: int = 0
 
     @property
     def identical(self) -> bool:
@@ -67,11 +77,20 @@ class ReplayReport:
         ]
         if self.published:
             lines.append(f"  republished {self.published} element messages")
+        if self.unconfigured:
+            lines.append(f"  {self.unconfigured} processed scans not replayed: no usable /config before them")
         if self.mismatched:
             lines.append(f"  first mismatched seqs: {self.mismatched[:10]}")
+        lines += [f"  {p}" for p in self.problems[:_PROBLEMS_SHOWN]]
+        if self.problem_count > _PROBLEMS_SHOWN:
+            lines.append(f"  ... and {self.problem_count - _PROBLEMS_SHOWN} more unusable records")
         if self.end:
             lines.append(f"  log end: {self.end}")
         return "\n".join(lines)
+
+
+_PROBLEMS_SHOWN = 10
+_PROBLEMS_KEPT = 1000
 
 
 def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
@@ -80,35 +99,102 @@ def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
                        np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"))
 
 
-def _first_pass(path: str) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]], int]:
-    """Logged elements by seq, the config in force for each processed seq, raw frame count."""
+def _type_name(value: Any) -> str:
+    return {list: "a list", dict: "an object", str: "a string", type(None): "null"}.get(type(value), type(value).__name__)
+
+
+def _config_doc(data: bytes) -> tuple[str, dict]:
+    """(config text, calibration) of a /config message; ValueError naming what is unusable."""
+    try:
+        doc = json.loads(data)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply to read") from None
+    except ValueError as exc:
+        raise ValueError(f"not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"is {_type_name(doc)}, expected an object with config_text and calibration")
+    text = doc.get("config_text", doc.get("config", ""))
+    calibration = doc.get("calibration", {})
+    if not isinstance(text, str):
+        raise ValueError(f"config_text is {_type_name(text)}, expected a string")
+    if not isinstance(calibration, dict):
+        raise ValueError(f"calibration is {_type_name(calibration)}, expected an object")
+    try:
+        _config_from_text(text)
+    except ValueError as exc:  # TOML and config errors are ValueErrors
+        raise ValueError(f"config_text is not a usable config: {exc}") from None
+    try:
+        _calibration_from_doc(calibration)
+    except (KeyError, TypeError, ValueError) as exc:
+        what = f"lacks {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise ValueError(f"calibration is not usable: {what}") from None
+    hello_hex = calibration.get("hello_frame_hex")
+    if hello_hex is not None:
+        try:
+            if not isinstance(decode_frame(bytes.fromhex(hello_hex)).msg, Hello):
+                raise ValueError("not a HELLO frame")
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"calibration.hello_frame_hex is not a HELLO frame: {exc}") from None
+    return text, calibration
+
+
+def _problem(report: ReplayReport, line: str) -> None:
+    report.problem_count += 1
+    if len(report.problems) < _PROBLEMS_KEPT:
+        report.problems.append(line)
+
+
+def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
+                ) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]], int]:
+    """Logged elements by seq, the config in force for each processed seq, raw frame count.
+    Unusable records are named in `report.problems`."""
     elements: dict[int, bytes] = {}
     config_for_seq: dict[int, tuple[str, dict]] = {}
     current: tuple[str, dict] | None = None
     raw = 0
-    for m in iter_messages_file_order(path):
+    reader = iter_messages_file_order(path, max_record_bytes=max_record_bytes)
+    for index, m in enumerate(reader):
+        where = f"{m.topic} message #{index} (log time {m.log_time_ns})"
         if m.topic == "/raw":
             raw += 1
         elif m.topic == "/config":
-            doc = json.loads(m.data)
-            current = (doc.get("config_text", doc.get("config", "")), doc.get("calibration", {}))
-        elif m.topic == "/strains" and current is not None:
-            seq = decode_strains(m.data)[0]
-            config_for_seq[seq] = current
+            try:
+                current = _config_doc(m.data)
+            except ValueError as exc:
+                keep = "; the config before it stays in force" if current is not None else ""
+                _problem(report, f"unusable {where}: {exc}{keep}")
+        elif m.topic == "/strains":
+            try:
+                seq = decode_strains(m.data)[0]
+            except (ValueError, RecursionError) as exc:
+                _problem(report, f"unusable {where}: {exc}")
+                continue
+            if current is None:
+                report.unconfigured += 1
+            else:
+                config_for_seq[seq] = current
         elif m.topic == "/elements":
-            elements[messages.decode_header(m.data).seq] = bytes(m.data)
+            try:
+                elements[messages.decode_header(m.data).seq] = bytes(m.data)
+            except messages.MessageError as exc:
+                _problem(report, f"unusable {where}: {exc}")
+    for line in reader.skipped:
+        _problem(report, line)
+    report.problem_count += reader.skipped_count - len(reader.skipped)
     return elements, config_for_seq, raw
 
 
 def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
-               progress: bool = False, keep_results: bool = False) -> ReplayReport:
-    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max)."""
+               progress: bool = False, keep_results: bool = False,
+               max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES) -> ReplayReport:
+    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max).
+    Records over `max_record_bytes` are skipped and named in the report's `problems`."""
     from skinmap.daemon.service import limit_blas_threads
 
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
     path = str(path)
     report = ReplayReport(path)
-    logged, config_for_seq, n_raw = _first_pass(path)
+    logged, config_for_seq, n_raw = _first_pass(path, report, max_record_bytes)
     decoder = StreamDecoder()
     pipeline: FramePipeline | None = None
     earlier: FramePipeline | None = None
@@ -123,10 +209,13 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
     t_start = time.perf_counter()
     first_log_ns: int | None = None
     try:
-        reader = iter_messages_file_order(path)
+        reader = iter_messages_file_order(path, max_record_bytes=max_record_bytes)
         for m in reader:
             if m.topic == "/config" and hello is None:
-                hex_hello = json.loads(m.data).get("calibration", {}).get("hello_frame_hex")
+                try:
+                    hex_hello = _config_doc(m.data)[1].get("hello_frame_hex")
+                except ValueError:
+                    continue  # named by the first pass
                 if hex_hello:
                     hello = decode_frame(bytes.fromhex(hex_hello)).msg  # file starts mid-stream
                 continue
@@ -212,12 +301,15 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
 
 
 _config_cache: dict[str, DaemonConfig] = {}
+_CONFIG_CACHE_SIZE = 64
 
 
 def _config_from_text(text: str) -> DaemonConfig:
     cfg = _config_cache.get(text)
     if cfg is None:
         cfg = parse_config(tomllib.loads(text) if text else {}, source="<log>", text=text)
+        if len(_config_cache) >= _CONFIG_CACHE_SIZE:
+            _config_cache.clear()  # a file of many distinct /config texts must not grow it for ever
         _config_cache[text] = cfg
     return cfg
 

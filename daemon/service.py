@@ -631,6 +631,7 @@ def open_zenoh(cfg: DaemonConfig):
     zconf = make_session_config(
         zc.listen, zc.connect, allow_non_loopback=zc.allow_non_loopback, mode=zc.mode,
         config_file=str(cfg.resolve(zc.config_file)) if zc.config_file else None,
+        deny_remote_writes=cfg.guarded_key_expr(),
     )
     return open_session(zconf)
 

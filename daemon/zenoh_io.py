@@ -97,13 +97,16 @@ def _file_endpoints(config: zenoh.Config, key: str, mode: str) -> list[str]:
 
 def make_session_config(listen: Iterable[str] = (), connect: Iterable[str] = (), *,
                         allow_non_loopback: bool = False, mode: str = "peer",
-                        config_file: str | Path | None = None) -> zenoh.Config:
+                        config_file: str | Path | None = None,
+                        deny_remote_writes: str | None = None) -> zenoh.Config:
     """Build a Zenoh config that talks only to the given endpoints.
 
     Multicast scouting and gossip are always switched off, except that a ``config_file``
     (production: TLS, access control) may explicitly enable multicast scouting. Every
     endpoint -- given here or found in the file -- must be tcp on loopback unless
     ``allow_non_loopback`` is True. ``listen``/``connect`` given here replace the file's.
+    With ``deny_remote_writes`` (a key expression), other sessions' writes there are dropped
+    by access control (``foreign_write_guard``), unless the file enables its own.
     """
     if mode not in _MODES:
         raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
@@ -145,7 +148,27 @@ def make_session_config(listen: Iterable[str] = (), connect: Iterable[str] = (),
     if not multicast_in_file:
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("scouting/gossip/enabled", "false")
+    if deny_remote_writes is not None and \
+            json.loads(config.get_json("access_control/enabled")) is not True:
+        config.insert_json5("access_control", json.dumps(foreign_write_guard(deny_remote_writes)))
     return config
+
+
+def foreign_write_guard(key_expr: str) -> dict[str, Any]:
+    """A Zenoh ``access_control`` block for a publishing session: what other sessions send
+    into ``key_expr`` that would write there (put, delete, a queryable, a liveliness token, a
+    reply) is dropped on arrival; subscribing, querying and everything else stay allowed.
+
+    The subject has no attributes, so it matches every remote session on every link."""
+    return {
+        "enabled": True,
+        "default_permission": "allow",
+        "rules": [{"id": "no-foreign-writes", "permission": "deny", "flows": ["ingress"],
+                   "messages": ["put", "delete", "declare_queryable", "liveliness_token", "reply"],
+                   "key_exprs": [key_expr]}],
+        "subjects": [{"id": "every-remote-session"}],
+        "policies": [{"rules": ["no-foreign-writes"], "subjects": ["every-remote-session"]}],
+    }
 
 
 @contextmanager
