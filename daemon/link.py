@@ -75,7 +75,8 @@ class LinkError(RuntimeError):
 
 
 class DeviceRefused(LinkError):
-    """The host will not serve this device as it describes itself (retried slowly)."""
+    """The host will not serve this device now: it describes itself unacceptably, or it keeps
+    rebooting. Retried more slowly than a vanished port."""
 
 
 def open_serial(port: str, baudrate: int, exclusive: bool) -> serial.SerialBase:
@@ -549,6 +550,8 @@ class ScannerLink:
             self.stats.scans_wrong_size += 1
             self._refuse_scan("size", f"scan size {scan.n}×{scan.m} disagrees with HELLO {hello.n}×{hello.m}: "
                                       f"{self.stats.scans_wrong_size} scan(s) refused")
+            # It arrived: its index still counts, so the gap after it is no loss.
+            self._last_sample, self._last_sample_mono = scan.sample_index, now
             return
         if self._expected_step_ns and abs(scan.step_period_ns - self._expected_step_ns) > RATE_TOLERANCE * self._expected_step_ns:
             self.stats.rate_mismatches += 1
@@ -597,9 +600,9 @@ class ScannerLink:
         while times and now - times[0] > REBOOT_WINDOW_S:
             times.popleft()
         if len(times) > REBOOT_LIMIT:
-            times.clear()
-            raise LinkError(f"scanner rebooted {REBOOT_LIMIT + 1} times within {REBOOT_WINDOW_S:g} s (HELLO storm); "
-                            "backing off before the next handshake")
+            # The window is kept: while the storm lasts every further reboot backs off at once.
+            raise DeviceRefused(f"scanner rebooted {len(times)} times within {REBOOT_WINDOW_S:g} s (HELLO storm); "
+                                "backing off before the next handshake")
 
     def _stream(self) -> None:
         stalled = False
