@@ -27,7 +27,7 @@ from skinmap.daemon.service import Gateway, open_zenoh
 from skinmap.emulator.device import DeviceConfig
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
-from skinmap.emulator.transport import PtyTransport, SharedTcpTransport
+from skinmap.emulator.transport import PtyTransport, SharedTcpTransport, TcpTransport
 from skinmap.protocol import Start, encode_frame
 
 RATE_HZ = 40.0
@@ -305,6 +305,38 @@ def scenario_two_hosts(events: EventCount) -> None:
             emu.stop()
 
 
+def scenario_two_hosts_replacing(events: EventCount) -> None:
+    """The emulator's ordinary TCP server: a new client replaces the old one (and powers the
+    scanner up afresh), so two hosts take the port from each other in turn."""
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        transport = TcpTransport()
+        emu = Emulator(DeviceConfig(n=5, m=5, scan_rate_hz=RATE_HZ, seed=5), make_shape("flat"), transport)
+        emu.start()
+        first = Running(config(transport.url, tmp, "first"))
+        try:
+            wait(lambda: first.gw.stats.scans_in >= 10, 20.0)
+            n0 = first.gw.stats.scans_in
+            t0 = time.monotonic()
+            second = Running(config(transport.url, tmp, "second"))
+            try:
+                share, warnings = observe([first.gw, second.gw], 10.0)
+                dt = time.monotonic() - t0
+                rate1 = (first.gw.stats.scans_in - n0) / dt
+                st1, st2 = first.gw.status(), second.gw.status()
+                line("second host, TCP replacing",
+                     f"healthy first {share[0]:.0%} / second {share[1]:.0%}; first took {rate1:.1f} scans/s "
+                     f"(configured {RATE_HZ:g}); reconnects {st1['reconnects']}/{st2['reconnects']}; "
+                     f"warning: {short([w for w in warnings if 'unstable' in w] or warnings)}")
+            finally:
+                second.close()
+            rec = recovery(first.gw, time.monotonic(), 20.0)
+            line("  ... second host leaves", f"first: {rec}")
+        finally:
+            first.close()
+            emu.stop()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default="", help="run only scenarios whose name contains this")
@@ -338,7 +370,8 @@ def main() -> None:
         ("HELLO storm", lambda: hostile_mode("HELLO storm 50/s (no reboot)", events, "unsolicited HELLO",
                                              set_(hello_storm_hz=50.0), set_(hello_storm_hz=0.0))),
         ("reboot storm", lambda: scenario_reboot_storm(events)),
-        ("two hosts", lambda: scenario_two_hosts(events)),
+        ("two hosts shared", lambda: scenario_two_hosts(events)),
+        ("two hosts replacing", lambda: scenario_two_hosts_replacing(events)),
     ]
     for name, run in scenarios:
         if args.only.lower() in name.lower():
