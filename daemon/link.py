@@ -25,6 +25,7 @@ import serial
 from skinmap.daemon.config import DeviceConfig
 from skinmap.protocol import (
     Ack,
+    DeviceState,
     Frame,
     Hello,
     Message,
@@ -68,6 +69,11 @@ REFUSED_BACKOFF_FACTOR = 8
 RATE_TOLERANCE = 0.02  # applied rate / step period may differ this much from the request (TDM rounding)
 INDEX_SLACK = 64  # sample-index jumps plausible beyond elapsed time × rate (buffering, clock drift)
 SENT_IDS_REMEMBERED = 64
+# A port lost this often is unstable (a loose cable, or another host taking a socket:// port
+# over in turn): the link says so while it streams in between.
+FLAP_WINDOW_S = 30.0
+FLAP_LIMIT = 3
+FLAP_HOLD_S = 10.0
 
 
 class LinkError(RuntimeError):
@@ -197,6 +203,7 @@ class ScannerLink:
         self.streaming = threading.Event()
         self._last_sample: int | None = None
         self._last_sample_mono = 0.0
+        self._last_sample_us = 0
         self._last_scan_mono = 0.0  # last accepted scan
         self._last_rx_scan_mono = 0.0  # last SCAN frame of any kind
         self._rejected_reported = 0
@@ -204,8 +211,9 @@ class ScannerLink:
         self._next_reject_report = 0.0
         self._next_report: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
-        self._query_pending = False  # a QUERY_INFO of ours is out: its HELLO is solicited
+        self._query_until = 0.0  # a HELLO before this answers a QUERY_INFO of ours
         self._reboot_times: collections.deque[float] = collections.deque()
+        self._drop_times: collections.deque[float] = collections.deque()
         self._trouble_until = 0.0  # while now < this, the link reports `_trouble` instead of streaming
         self._trouble_state = ""
         self._trouble = ""
@@ -245,6 +253,8 @@ class ScannerLink:
             except (serial.SerialException, OSError) as exc:
                 self._fault("warning", "disconnected", f"serial port {self.cfg.port}: {exc}")
                 self.stats.disconnects += 1
+                if self.hello is not None:
+                    self._drop_times.append(time.monotonic())
             except LinkError as exc:
                 if isinstance(exc, DeviceRefused):
                     cap = self.cfg.reconnect_max_s * REFUSED_BACKOFF_FACTOR
@@ -290,7 +300,7 @@ class ScannerLink:
         self._decoder.reset()
         self._last_sample = None
         self._tx_seq = 0  # PROTOCOL.md §5: the host numbers its frames from 0 on every open
-        self._query_pending = False
+        self._query_until = 0.0
         self.stats.connects += 1
         try:
             self._port.reset_input_buffer()
@@ -313,7 +323,9 @@ class ScannerLink:
         if rid is not None and (not self._sent_ids or self._sent_ids[-1] != rid):
             self._sent_ids.append(rid)
         if isinstance(msg, QueryInfo):
-            self._query_pending = True
+            # HELLOs within the handshake timeout answer it (retries are answered from the
+            # device's memory, ACK and HELLO again).
+            self._query_until = time.monotonic() + self.cfg.handshake_timeout_s
         self._port.write(encode_frame(msg, self._tx_seq))
         self._tx_seq = (self._tx_seq + 1) & 0xFFFF
 
@@ -337,6 +349,7 @@ class ScannerLink:
         frames = self._decoder.feed(data)
         self._report_frame_errors()
         reboot: _Rebooted | None = None
+        answered: Hello | None = None  # the answer to our own QUERY_INFO
         for f in frames:
             self._on_frame(f, t_rx)
             msg = f.msg
@@ -348,20 +361,29 @@ class ScannerLink:
             elif isinstance(msg, (Ack, Nak)):
                 self._check_answer(msg)
             elif isinstance(msg, Hello):
-                solicited = self._query_pending
-                self._query_pending = False
+                solicited = time.monotonic() < self._query_until
                 if f.seq == 0:
                     # PROTOCOL.md §5: a HELLO with seq 0 is a device that (re)booted.
                     if self.stats.state not in ("handshake", "connecting"):
                         reboot = _Rebooted(msg)
                 elif self.streaming.is_set() or self._trouble_until:
-                    if solicited or self._unsolicited_hello(f):
+                    if solicited:
+                        answered = msg
+                    elif self._unsolicited_hello(f):
                         reboot = _Rebooted(msg, booted=False)
         self.stats.decoder = self._decoder.counters()
         self.stats.frames_rejected = self._rejected_frames()
         self.stats.unknown_frames = self._decoder.unknown_type
         self.stats.last_frame_error = self._decoder.last_error or ""
         self._publish_extra()
+        if reboot is None and answered is not None:
+            # The answer to a stall's QUERY_INFO: handshake again if the device is not scanning
+            # (it rebooted unseen: its STATUS says IDLE), or describes itself differently; not
+            # after a firmware hang, whose scans resume by themselves.
+            scanning = (time.monotonic() - self._last_rx_scan_mono < self.cfg.stall_timeout_s
+                        or (self.device_status is not None and self.device_status.state == DeviceState.SCANNING))
+            if not scanning or answered != self.hello:
+                reboot = _Rebooted(answered, booted=False)
         if reboot is not None:
             raise reboot
         return frames
@@ -396,10 +418,10 @@ class ScannerLink:
 
     # -- signs of another host, or of a device that misbehaves -----------------------------
 
-    def _trouble_begin(self, state: str, text: str) -> None:
-        """Mark the link unhealthy for CONDITION_HOLD_S: `streaming` is cleared (status
-        `connected` false, warning "scanner not streaming (<state>): <text>"), scans still flow."""
-        self._trouble_until = time.monotonic() + CONDITION_HOLD_S
+    def _trouble_begin(self, state: str, text: str, hold_s: float = CONDITION_HOLD_S) -> None:
+        """Mark the link unhealthy for `hold_s`: `streaming` is cleared (status `connected`
+        false, warning "scanner not streaming (<state>): <text>"), scans still flow."""
+        self._trouble_until = max(self._trouble_until, time.monotonic() + hold_s)
         self._trouble_state, self._trouble = state, text
         if self.streaming.is_set() or self.stats.state != state:
             self.streaming.clear()
@@ -412,6 +434,17 @@ class ScannerLink:
             self.stats.state = "streaming"
             self.streaming.set()
             self._on_event("info", f"{self._trouble_state} condition over; streaming")
+
+    def _check_flapping(self) -> None:
+        now = time.monotonic()
+        drops = self._drop_times
+        while drops and now - drops[0] > FLAP_WINDOW_S:
+            drops.popleft()
+        if len(drops) >= FLAP_LIMIT:
+            text = (f"serial link unstable: lost {len(drops)} times in the last {FLAP_WINDOW_S:g} s (last: "
+                    f"{self.stats.last_error}); a loose connection, or another host taking the port over")
+            self._trouble_begin("unstable", text, FLAP_HOLD_S)
+            self._report("unstable", "error", text)
 
     def _check_answer(self, reply: Ack | Nak) -> None:
         if reply.request_id in self._sent_ids or not (self.streaming.is_set() or self._trouble_until):
@@ -534,6 +567,7 @@ class ScannerLink:
         self.streaming.set()
         self.stats.state = "streaming"
         self._on_event("info", f"scanner {hello.serial_number} {hello.n}×{hello.m} streaming at {applied / 1000:g} scans/s")
+        self._check_flapping()
 
     def _refuse_scan(self, key: str, text: str) -> None:
         self._scan_problem, self._scan_problem_mono = text, time.monotonic()
@@ -551,7 +585,7 @@ class ScannerLink:
             self._refuse_scan("size", f"scan size {scan.n}×{scan.m} disagrees with HELLO {hello.n}×{hello.m}: "
                                       f"{self.stats.scans_wrong_size} scan(s) refused")
             # It arrived: its index still counts, so the gap after it is no loss.
-            self._last_sample, self._last_sample_mono = scan.sample_index, now
+            self._last_sample, self._last_sample_mono, self._last_sample_us = scan.sample_index, now, scan.timestamp_us
             return
         if self._expected_step_ns and abs(scan.step_period_ns - self._expected_step_ns) > RATE_TOLERANCE * self._expected_step_ns:
             self.stats.rate_mismatches += 1
@@ -571,7 +605,10 @@ class ScannerLink:
                 self._refuse_scan("repeat", f"scan index {index} repeated: {self.stats.scans_repeated_index} "
                                             "scan(s) with a repeated index refused (stuck or duplicated index)")
                 return
-            elapsed = max(now - self._last_sample_mono, 0.0)
+            # Time passed by the host's clock or by the device's (scans read late arrive in a burst:
+            # the device clock then says how far apart they were taken).
+            device_elapsed = (scan.timestamp_us - self._last_sample_us) * 1e-6
+            elapsed = max(now - self._last_sample_mono, device_elapsed, 0.0)
             plausible = elapsed * self.stats.applied_scan_rate_mhz / 1000 * 2 + INDEX_SLACK
             if index == 0 or scan.flags & ScanFlag.FIRST_AFTER_START or gap > 0x7FFFFFFF or gap - 1 > plausible:
                 # A restart this host did not ask for, or a jump no elapsed time explains:
@@ -587,7 +624,7 @@ class ScannerLink:
                     self.stats.scans_dropped_by_device += gap - 1
                 else:
                     self.stats.scans_lost += gap - 1
-        self._last_sample, self._last_sample_mono = index, now
+        self._last_sample, self._last_sample_mono, self._last_sample_us = index, now, scan.timestamp_us
         self.stats.scans += 1
         self._last_scan_mono = now
         self._on_scan(scan, frame, t_rx)
@@ -646,7 +683,7 @@ class ScannerLink:
                 self.stats.last_error = why
                 if self.stats.state != "stalled" and not self._trouble_until:
                     self.stats.state = "stalled"
-            if now >= next_kick and not self._trouble_until:
+            if now >= next_kick and not (self._trouble_until and self._trouble_state == "contended"):
                 # Keep the port open (data resumes at once when the device does) and ask who is
                 # there: its HELLO leads to a full handshake (rate set and confirmed, then START),
                 # never a bare START that would run the device at whatever rate it has.

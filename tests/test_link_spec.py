@@ -221,8 +221,9 @@ def test_scans_dropped_by_the_device_are_not_counted_as_link_loss():
     finally:
         link.stop()
     assert link.stats.scans_lost == 0
+    # Every flagged gap is a device drop; the device may drop more (a busy reader, the scans
+    # before a re-handshake), never fewer.
     assert link.stats.scans_dropped_by_device <= dev.scans_dropped
-    assert link.stats.scans_dropped_by_device >= dev.scans_dropped - 2  # the last ones may be unflagged yet
 
 
 def test_lost_start_ack_after_a_reboot_counts_one_reboot():
@@ -312,7 +313,9 @@ def test_hello_storm_without_reboot_costs_no_scans_and_is_unhealthy_while_it_las
         link.stop()
     assert during[0] is False and during[1] == "contended" and "unsolicited HELLO" in during[2]
     assert link.stats.scans_lost == 0 and link.stats.reboots == 0 and link.stats.index_resyncs == 0
-    assert sorted(rec.scans) == list(range(rec.scans[0], rec.scans[-1] + 1))  # not one scan lost
+    # No restart: the index only grows, and what is missing the device dropped itself (a busy reader).
+    assert all(b > a for a, b in zip(rec.scans, rec.scans[1:]))
+    assert rec.scans[-1] - rec.scans[0] + 1 - len(rec.scans) == link.stats.scans_dropped_by_device
 
 
 def test_reboot_storm_backs_off_with_a_clear_error():
@@ -330,6 +333,31 @@ def test_reboot_storm_backs_off_with_a_clear_error():
     finally:
         link.stop()
     assert any("rebooted 4 times within 10 s" in t for t in texts(rec, "HELLO storm"))
+
+
+def test_a_port_lost_again_and_again_is_reported_unstable_while_it_streams():
+    dev = make_device()
+    ports: list[FakePort] = []
+
+    def opener(*_a):
+        ports.append(FakePort(dev))
+        return ports[-1]
+
+    rec = Recorder()
+    link = rec.link(CFG, opener)
+    link.start()
+    try:
+        for _ in range(3):  # as when another host takes a socket:// port over in turn
+            n = len(rec.scans)
+            assert wait_for(lambda: len(rec.scans) >= n + 5, 5.0)
+            ports[-1].unplugged = True
+        n = len(rec.scans)
+        assert wait_for(lambda: len(rec.scans) >= n + 5, 5.0)
+        during = (link.streaming.is_set(), link.stats.state, link.stats.last_error)
+    finally:
+        link.stop()
+    assert during[0] is False and during[1] == "unstable", during
+    assert "lost 3 times in the last 30 s" in during[2]
 
 
 def test_two_hosts_on_a_shared_socket_are_both_told_and_unhealthy():
