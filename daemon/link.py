@@ -253,8 +253,8 @@ class ScannerLink:
             except (serial.SerialException, OSError) as exc:
                 self._fault("warning", "disconnected", f"serial port {self.cfg.port}: {exc}")
                 self.stats.disconnects += 1
-                if self.hello is not None:
-                    self._drop_times.append(time.monotonic())
+                if self.streaming.is_set() or self._trouble_until:
+                    self._drop_times.append(time.monotonic())  # a streaming port lost (not a failed reopen)
             except LinkError as exc:
                 if isinstance(exc, DeviceRefused):
                     cap = self.cfg.reconnect_max_s * REFUSED_BACKOFF_FACTOR
