@@ -130,7 +130,7 @@ def recovery(gw: Gateway, t_end: float, timeout: float = 10.0) -> str:
         return f"no scans within {timeout:g} s"
     scans = time.monotonic() - t_end
     if not wait(lambda: gw.status()["healthy"], timeout):
-        return f"scans after {scans:.2f} s, not healthy within {timeout:g} s"
+        return f"scans after {scans:.2f} s, not healthy within {timeout:g} s ({short(gw.status()['warnings'], 2)})"
     return f"scans after {scans:.2f} s, healthy after {time.monotonic() - t_end:.2f} s"
 
 
