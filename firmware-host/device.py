@@ -16,6 +16,7 @@ A scan is sent once its last step has completed.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -55,9 +56,9 @@ from skinmap.protocol import (
     step_period_ns,
     tdm_steps,
 )
-from skinmap.protocol.framing import HEADER, decode_body
+from skinmap.protocol.framing import HEADER, decode_body, encode_body
 
-__all__ = ["DeviceConfig", "Device", "ScanRecord"]
+__all__ = ["DeviceConfig", "Device", "HostileModes", "ScanRecord"]
 
 FW_VERSION = (0, 1, 0)
 STATUS_PERIOD_S = 1.0
@@ -134,6 +135,26 @@ class ScanRecord:
         return self.shape_time_s + np.asarray(drive_line, dtype=float) * self.step_period_ns * 1e-9
 
 
+@dataclass
+class HostileModes:
+    """Ways a scanner can break the protocol, for robustness tests (all off by default; they
+    may be changed while running). A conforming device never does any of this."""
+
+    hello_gauge_length_um: int | None = None  # HELLO reports this gauge length
+    hello_protocol_major: int | None = None  # HELLO claims this protocol major version
+    repeat_sample_index: bool = False  # every SCAN carries the same sample index
+    scan_dims: tuple[int, int] | None = None  # SCANs of this N×M, whatever HELLO says
+    hello_storm_hz: float = 0.0  # unsolicited HELLOs (seq continuing) per second, scanning goes on
+    vendor_frame_hz: float = 0.0  # intact frames of vendor type 0x80 per second
+    drop_every: int = 0  # the device drops every k-th scan itself (DROPPED_BEFORE, scans_dropped)
+    lose_start_acks: int = 0  # the ACKs of the next k START commands never leave the device
+    lose_boot_hello: bool = False  # the HELLO sent at boot is lost
+    index_jump: int = 0  # added once to the next SCAN's sample index, then reset to 0
+
+
+VENDOR_FRAME_TYPE = 0x80
+
+
 class Device:
     """Emulated scanner firmware.  Faults are injected through :meth:`set_open`,
     :meth:`set_saturated`, :meth:`stall`, :meth:`reboot` (byte-level faults live in the link)."""
@@ -162,6 +183,9 @@ class Device:
         # the first evaluation may build tables (key-framed elastic scenes): do it before the
         # scanner boots, not while the first scan falls due
         self.strains(0.0)
+        self.hostile = HostileModes()
+        self._next_storm = self._next_vendor = float(now_s)
+        self._scan_count = 0
         self._boot(now_s, watchdog=False)
 
     # ------------------------------------------------------------------ state and clocks
@@ -245,7 +269,7 @@ class Device:
     def hello(self) -> Hello:
         gf, r0 = self.calibration.micro_units()
         c = self.config
-        return Hello(
+        hello = Hello(
             fw_version=FW_VERSION,
             serial_number=self.serial_number,
             pitch_um=int(round(c.pitch_mm * 1000)),
@@ -260,6 +284,15 @@ class Device:
             drive_line=self.drive_line,
             sense_channel=self.sense_channel,
         )
+        return dataclasses.replace(hello, **self._hostile_hello_fields()) if self._hostile_hello_fields() else hello
+
+    def _hostile_hello_fields(self) -> dict:
+        h, out = self.hostile, {}
+        if h.hello_gauge_length_um is not None:
+            out["gauge_length_um"] = h.hello_gauge_length_um
+        if h.hello_protocol_major is not None:
+            out["protocol_major"] = h.hello_protocol_major
+        return out
 
     def status(self, now_s: float) -> Status:
         """The STATUS message now; bitmaps: gauges open/saturated in the latest scan (while
@@ -330,6 +363,9 @@ class Device:
         while len(self._answers) > RETRY_MEMORY:
             self._answers.popitem(last=False)
         out = b"".join(self._frame(m) for m in answers)
+        if isinstance(msg, Start) and self.hostile.lose_start_acks > 0:
+            self.hostile.lose_start_acks -= 1
+            out = b""  # sent (its seq is used) but lost on the way; a retry gets the replay
         if after is not None:
             out += after()
         return out
@@ -393,10 +429,21 @@ class Device:
     # ------------------------------------------------------------------ scheduled output
 
     def _pending(self, now_s: float) -> bytes:
+        out = b""
         if self._hello_due:
             self._hello_due = False
-            return b"\x00" + self._frame(self.hello())
-        return b""
+            out = b"\x00" + self._frame(self.hello())
+            if self.hostile.lose_boot_hello:
+                out = b"\x00"
+        h = self.hostile
+        if h.hello_storm_hz > 0 and now_s >= self._next_storm:
+            self._next_storm = max(self._next_storm + 1.0 / h.hello_storm_hz, now_s)
+            out += self._frame(self.hello())
+        if h.vendor_frame_hz > 0 and now_s >= self._next_vendor:
+            self._next_vendor = max(self._next_vendor + 1.0 / h.vendor_frame_hz, now_s)
+            out += encode_body(VENDOR_FRAME_TYPE, self._seq, b"vendor diagnostics")
+            self._seq = (self._seq + 1) & 0xFFFF
+        return out
 
     def poll(self, now_s: float, tx_ready: bool = True) -> bytes:
         """Everything the device sends by ``now_s``: HELLO after boot, due SCANs, STATUS.
@@ -421,6 +468,10 @@ class Device:
                 self._drop(due - MAX_BACKLOG_SCANS, period)
                 due = MAX_BACKLOG_SCANS
             for _ in range(max(due, 0)):
+                self._scan_count += 1
+                if self.hostile.drop_every and self._scan_count % self.hostile.drop_every == 0:
+                    self._drop(1, period)  # acquired, not sent: counted, flagged on the next SCAN
+                    continue
                 out.append(self._scan(self._next_t0))
                 self._next_t0 += period
         out.append(self._maybe_status(now_s))
@@ -449,6 +500,10 @@ class Device:
         t = self._next_status
         if self.state == DeviceState.SCANNING and self._next_t0 is not None:
             t = min(t, self._next_t0 + self.scan_period_s)
+        if self.hostile.hello_storm_hz > 0:
+            t = min(t, self._next_storm)
+        if self.hostile.vendor_frame_hz > 0:
+            t = min(t, self._next_vendor)
         if self._hello_due or self._status_due:
             t = -math.inf
         return max(t, self._stall_until)
@@ -487,6 +542,13 @@ class Device:
         )
         strain = self.strains(record.unit_times_s(self.drive_line))
         wire = self.readout.read(strain, t0 - self._boot_time)
+        h = self.hostile
+        if h.index_jump:
+            self.sample_index = (self.sample_index + h.index_jump) & 0xFFFFFFFF
+            record = dataclasses.replace(record, sample_index=self.sample_index)
+            h.index_jump = 0
+        if h.scan_dims is not None:
+            wire = np.full((2, 2, *h.scan_dims), 6_550_000, dtype=np.uint32)
         flags = 0
         self._last_open = wire == RES_OPEN
         self._last_saturated = wire == RES_SATURATED
@@ -503,7 +565,8 @@ class Device:
         self.history[(record.boot, record.sample_index)] = record
         while len(self.history) > self.history_limit:
             self.history.popitem(last=False)
-        self.sample_index = (self.sample_index + 1) & 0xFFFFFFFF
+        if not h.repeat_sample_index:
+            self.sample_index = (self.sample_index + 1) & 0xFFFFFFFF
         self.scans_sent += 1
         self.last_strain = strain
         frame = self._frame(msg)

@@ -192,7 +192,7 @@ class Emulator:
             out = []
             for fd in readable:
                 if isinstance(t, TcpTransport) and t.server is not None and fd == t.server.fileno():
-                    if t.accept():
+                    if t.accept() and not getattr(t, "shared", False):
                         dev.reboot(now, watchdog=False)  # powered by the new connection
                     continue
                 data = t.on_readable(fd)

@@ -14,7 +14,7 @@ import termios
 import tty
 from pathlib import Path
 
-__all__ = ["Transport", "PtyTransport", "TcpTransport", "DEFAULT_LINK"]
+__all__ = ["Transport", "PtyTransport", "TcpTransport", "SharedTcpTransport", "DEFAULT_LINK"]
 
 DEFAULT_LINK = Path("/tmp/skinmap-emulator/ttySKIN0")
 TX_HIGH_WATER = 256 * 1024  # queued bytes beyond which the link counts as busy
@@ -259,3 +259,108 @@ class TcpTransport(Transport):
 
     def describe(self) -> str:
         return self.url
+
+
+class SharedTcpTransport(TcpTransport):
+    """Like :class:`TcpTransport`, but as a serial-to-network bridge that allows several
+    connections: every client's bytes reach the device and the device's bytes go to every
+    client, so two hosts on one scanner see each other's answers. Clients joining or leaving do
+    not power-cycle the scanner; it is on while at least one is connected."""
+
+    shared = True
+
+    def __init__(self, port: int = 0, host: str = "127.0.0.1"):
+        super().__init__(port, host)
+        self.clients: list[socket.socket] = []
+        self._queues: dict[int, bytearray] = {}
+
+    def _drop_client(self) -> None:
+        for c in self.clients:
+            try:
+                c.close()
+            except OSError:
+                pass
+        self.clients.clear()
+        self._queues.clear()
+        self.client = None
+
+    def _remove(self, conn: socket.socket) -> None:
+        self._queues.pop(conn.fileno(), None)
+        self.clients.remove(conn)
+        conn.close()
+        self.client = self.clients[0] if self.clients else None
+
+    @property
+    def connected(self) -> bool:
+        return bool(self.clients)
+
+    @property
+    def tx_ready(self) -> bool:
+        return any(len(q) < TX_HIGH_WATER for q in self._queues.values())
+
+    @property
+    def tx_pending(self) -> int:
+        return sum(len(q) for q in self._queues.values())
+
+    def read_fds(self) -> list[int]:
+        fds = [self.server.fileno()] if self.server is not None else []
+        return fds + [c.fileno() for c in self.clients]
+
+    def write_fd(self) -> int | None:
+        for c in self.clients:
+            if self._queues.get(c.fileno()):
+                return c.fileno()
+        return None
+
+    def accept(self) -> bool:
+        try:
+            conn, _ = self.server.accept()
+        except (BlockingIOError, InterruptedError, AttributeError):
+            return False
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.clients.append(conn)
+        self._queues[conn.fileno()] = bytearray()
+        self.client = self.clients[0]
+        self.clients_accepted += 1
+        return True
+
+    def on_readable(self, fd: int) -> bytes:
+        conn = next((c for c in self.clients if c.fileno() == fd), None)
+        if conn is None:
+            return b""
+        try:
+            data = conn.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError:
+            data = b""
+        if not data:
+            self._remove(conn)
+            return b""
+        self.bytes_in += len(data)
+        return data
+
+    def send(self, data: bytes) -> None:
+        if not data:
+            return
+        for q in self._queues.values():
+            if len(q) < 4 * TX_HIGH_WATER:  # a client that reads nothing loses its bytes, not the others'
+                q += data
+        self.flush()
+
+    def flush(self) -> None:
+        for conn in list(self.clients):
+            q = self._queues.get(conn.fileno())
+            while q:
+                try:
+                    n = conn.send(q)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    self._remove(conn)
+                    break
+                if n <= 0:
+                    break
+                self.bytes_out += n
+                del q[:n]

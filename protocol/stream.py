@@ -15,6 +15,7 @@ from .errors import (
 )
 from .framing import (
     CRC_SIZE,
+    decode_body,
     HEADER_SIZE,
     KNOWN_INCOMPAT_FLAGS,
     MAX_ENCODED_BODY,
@@ -112,6 +113,13 @@ class StreamDecoder:
             return
         try:
             frame = decode_frame(wire)
+        except UnknownMessageTypeError as exc:
+            # An intact frame (CRC good) of a type this host does not know (vendor, newer minor
+            # version): counted apart, not damage, and its seq is the sender's, so no loss.
+            self.unknown_type += 1
+            self.last_error = str(exc)
+            self._note_seq(decode_body(wire)[0].seq, restarted=False)
+            return
         except ProtocolError as exc:
             setattr(self, _COUNTER_OF.get(type(exc), "length_errors"),
                     getattr(self, _COUNTER_OF.get(type(exc), "length_errors")) + 1)
@@ -130,15 +138,17 @@ class StreamDecoder:
 
     def _accept(self, frame: Frame, frames: list[Frame]) -> None:
         # A HELLO with sequence 0 is a sender that (re)booted: its counter restarts, nothing was lost.
-        restarted = frame.seq == 0 and frame.msg_type == MsgType.HELLO
+        self._note_seq(frame.seq, restarted=frame.seq == 0 and frame.msg_type == MsgType.HELLO)
+        self.frames_ok += 1
+        frames.append(frame)
+
+    def _note_seq(self, seq: int, restarted: bool) -> None:
         if self._last_seq is not None and not restarted:
-            lost = (frame.seq - self._last_seq - 1) & 0xFFFF
+            lost = (seq - self._last_seq - 1) & 0xFFFF
             if lost:
                 self.seq_gaps += 1
                 self.seq_lost += lost
-        self._last_seq = frame.seq
-        self.frames_ok += 1
-        frames.append(frame)
+        self._last_seq = seq
 
     @staticmethod
     def _salvage(wire: bytes) -> tuple[int, Frame] | None:
