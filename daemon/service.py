@@ -824,51 +824,62 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
     show = cfg.output.console if console is None else console
     with open_zenoh(cfg) as session:
         gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
-        if threading.current_thread() is threading.main_thread():
-            _watch_signals(gw)
+        unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
         if stop_event is not None:
             threading.Thread(target=lambda: (stop_event.wait(), gw.stop()), daemon=True).start()
         log.info("skinmapd %s starting: scanner %s, Zenoh %s, logs %s", skinmap.__version__, cfg.device.port,
                  ",".join(cfg.zenoh.listen + cfg.zenoh.connect) if cfg.zenoh.enabled else "off",
                  cfg.resolve(cfg.log.directory) if cfg.log.enabled else "off")
-        gw.run()
+        try:
+            gw.run()
+        finally:
+            unwatch()
     log.info("skinmapd stopped")
     return 0
 
 
-def _watch_signals(gw: Gateway) -> None:
+def _watch_signals(gw: Gateway) -> Callable[[], None]:
     """Honour SIGTERM/SIGINT whatever the main thread is doing.
 
     Python runs signal handlers in the main thread only, between bytecodes; a main thread held
     in a blocking call would never see them. The C-level handler also writes the signal number
     to a pipe, which a thread of our own reads: it stops the gateway and, if the main loop has
     not begun shutting down within STOP_GRACE_S, shuts down itself and exits.
+    Returns the function that puts the previous handlers back.
     """
     r, w = os.pipe()
     os.set_blocking(w, False)
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda _signum, _frame: None)  # the work happens in the watcher thread
-    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    previous = {sig: signal.signal(sig, lambda _signum, _frame: None)  # the work happens in the watcher
+                for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
 
     def watch() -> None:
-        while True:
-            data = os.read(r, 16)
-            for signum in data:
-                if signum in (signal.SIGTERM, signal.SIGINT):
-                    break
-            else:
-                continue
-            log.info("received %s, stopping", signal.Signals(signum).name)
-            gw.stop()
-            if gw._shutting_down.wait(STOP_GRACE_S):
-                return
-            log.error("the main loop did not begin stopping within %.0f s of %s; shutting down from the "
-                      "signal watcher", STOP_GRACE_S, signal.Signals(signum).name)
-            gw.shutdown()
-            logging.shutdown()
-            os._exit(1)
+        handled = False
+        with os.fdopen(r, "rb", buffering=0) as pipe:
+            while data := pipe.read(16):  # empty once unwatched (the write end closed)
+                signum = next((s for s in data if s in (signal.SIGTERM, signal.SIGINT)), None)
+                if signum is None or handled:
+                    continue
+                handled = True
+                log.info("received %s, stopping", signal.Signals(signum).name)
+                gw.stop()
+                if gw._shutting_down.wait(STOP_GRACE_S):
+                    continue
+                log.error("the main loop did not begin stopping within %.0f s of %s; shutting down from the "
+                          "signal watcher", STOP_GRACE_S, signal.Signals(signum).name)
+                gw.shutdown()
+                logging.shutdown()
+                os._exit(1)
 
     threading.Thread(target=watch, name="skinmap-signals", daemon=True).start()
+
+    def unwatch() -> None:
+        signal.set_wakeup_fd(previous_fd)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        os.close(w)
+
+    return unwatch
 
 
 def setup_logging(verbose: bool = False) -> None:
