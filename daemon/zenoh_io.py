@@ -51,7 +51,8 @@ _MODES = ("peer", "client", "router")
 # Replies to one client can block (a reply takes the query's congestion control, BLOCK by
 # default, and a client that stops reading fills its link until Zenoh closes it). Each query is
 # answered by a thread of its own, so queries from other clients do not wait behind the stalled
-# ones; at most this many at once (beyond, queries wait for the stalled link to be closed).
+# ones; at most this many at once. Beyond, the serving thread answers itself (in order, as if
+# there were no threads) until a thread is free again.
 REPLY_THREADS_MAX = 256
 _KEY_SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/\[\]]+):(?P<port>[^#?]*)"
@@ -283,7 +284,9 @@ class SkinmapPublisher:
                 query = self._queries.recv()
             except Exception:  # channel closed by undeclare/session close
                 return
-            self._reply_slots.acquire()
+            if not self._reply_slots.acquire(blocking=False):
+                self._answer_and_release(query, slot=False)
+                continue
             try:
                 threading.Thread(target=self._answer_and_release, args=(query,), daemon=True,
                                  name="skinmap-reply").start()
@@ -291,7 +294,7 @@ class SkinmapPublisher:
                 log.warning("answering a query inline: %s", exc)
                 self._answer_and_release(query)
 
-    def _answer_and_release(self, query: zenoh.Query) -> None:
+    def _answer_and_release(self, query: zenoh.Query, slot: bool = True) -> None:
         try:
             self._answer(query)
         except Exception as exc:  # a bad query must not stop serving
@@ -300,7 +303,8 @@ class SkinmapPublisher:
             try:
                 query.drop()
             finally:
-                self._reply_slots.release()
+                if slot:
+                    self._reply_slots.release()
 
     def _answer(self, query: zenoh.Query) -> None:
         with self._lock:
