@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,16 +102,95 @@ def save_tare(state_dir: Path, serial: str, base_resistance: np.ndarray, n_scans
     return path
 
 
-def load_tare(state_dir: Path, serial: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str] | None:
-    """The stored tare for this scanner, or None if there is none or it does not fit."""
-    path = tare_path(state_dir, serial)
+#: A tare of the largest array (2 × 2 × 32 × 32 gauges) is about 80 kB; anything far larger is
+#: not a tare, and reading it must not hold up the service.
+MAX_TARE_BYTES = 4 * 1024 * 1024
+
+
+def _read_tare_text(path: Path) -> str | None:
+    """The tare file's text, or None if there is none. Never blocks: a FIFO or device at the
+    path is refused (opened non-blocking, then only a regular file is read)."""
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         return None
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"tare file {path} is unreadable: {exc}") from exc
-    if tuple(doc.get("shape", ())) != tuple(shape):
-        raise ValueError(f"tare file {path} is for an array shaped {doc.get('shape')}, the scanner is {list(shape)}")
-    values = np.array([np.nan if x is None else x for x in doc["base_resistance_ohm"]], dtype=np.float64)
-    return values.reshape(shape), f"tare {doc.get('created', '?')}"
+    except OSError as exc:
+        raise ValueError(f"unreadable: {exc.strerror or exc}") from exc
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"not a regular file ({_file_kind(st.st_mode)})")
+        if st.st_size > MAX_TARE_BYTES:
+            raise ValueError(f"{st.st_size} bytes, more than a tare can be ({MAX_TARE_BYTES})")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_TARE_BYTES + 1)
+    except OSError as exc:
+        raise ValueError(f"unreadable: {exc.strerror or exc}") from exc
+    finally:
+        os.close(fd)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"not UTF-8 text: {exc}") from exc
+
+
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def parse_tare(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
+    """Base resistances shaped ``shape`` and the tare's source text, from a tare file's text;
+    ValueError says what is wrong with it."""
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"not JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"not a JSON object but {_json_kind(doc)}")
+    file_shape = doc.get("shape")
+    if (not isinstance(file_shape, list) or not all(type(x) is int for x in file_shape)):
+        raise ValueError(f"'shape' must be a list of integers, got {_json_kind(file_shape)}")
+    if tuple(file_shape) != tuple(shape):
+        raise ValueError(f"for an array shaped {file_shape}, the scanner is {list(shape)}")
+    raw = doc.get("base_resistance_ohm")
+    if not isinstance(raw, list):
+        raise ValueError(f"'base_resistance_ohm' must be a list, got {_json_kind(raw)}")
+    expected = int(np.prod(shape))
+    if len(raw) != expected:
+        raise ValueError(f"'base_resistance_ohm' has {len(raw)} values, the scanner has {expected} gauges")
+    for i, x in enumerate(raw):
+        # null is a gauge the tare could not measure; it keeps its factory value
+        if x is not None and (type(x) not in (int, float)):
+            raise ValueError(f"'base_resistance_ohm'[{i}] must be a number or null, got {_json_kind(x)}")
+    values = np.array([np.nan if x is None else float(x) for x in raw], dtype=np.float64)
+    created = doc.get("created", "?")
+    return values.reshape(shape), f"tare {created if isinstance(created, str) else '?'}"
+
+
+def _json_kind(value: object) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return f"the boolean {json.dumps(value)}"
+    if isinstance(value, (int, float)):
+        return f"the number {value!r}"
+    if isinstance(value, str):
+        return f"the string {value[:40]!r}"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    return "an object"
+
+
+def load_tare(state_dir: Path, serial: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str] | None:
+    """The stored tare for this scanner, or None if there is none; ValueError (naming the file
+    and what is wrong) if there is a file that is not a tare of this array."""
+    path = tare_path(state_dir, serial)
+    try:
+        text = _read_tare_text(path)
+        return None if text is None else parse_tare(text, shape)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None

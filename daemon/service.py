@@ -7,12 +7,15 @@ Threads, each with one job, joined by bounded queues whose drops are counted:
          └──raw frames──▶ log thread (MCAP) ◀──strains, surfaces, elements
     main thread: status, console line, tare reload, systemd notifications, signals
 
-The link thread never waits on reconstruction, Zenoh or the disk.
+The link thread never waits on reconstruction, Zenoh or the disk. The systemd watchdog is fed
+by the main thread only while the data path works (scans are processed and published, or none
+arrive to be processed), so a wedged or failing pipeline gets the service restarted.
 """
 from __future__ import annotations
 
 import argparse
 import collections
+import json
 import logging
 import os
 import queue
@@ -32,7 +35,7 @@ from skinmap.daemon.calibration import Calibration, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
-from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult, OutputDecimator
+from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult
 from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, FaultFlag, Frame, Hello, Scan, encode_frame
 
 __all__ = ["Gateway", "GatewayStats", "main", "pipeline_for_hello", "calibration_for_hello"]
@@ -41,7 +44,16 @@ log = logging.getLogger("skinmapd")
 
 PROCESS_QUEUE_SIZE = 2
 RECENT_WINDOW_S = 3.0  # status warns about damage and loss seen this recently
-MAX_CLOUD_POINTS = 40_000  # the published dense cloud is thinned beyond this (32×32 at 20/pitch is 410k)  # latest wins: a late scan is worth less than a fresh one
+MAX_CLOUD_POINTS = 40_000  # the published dense cloud is thinned beyond this (32×32 at 20/pitch is 410k)
+# A scan waiting this long with none processed since, or a silent link thread, stops the
+# watchdog (at least this; longer when systemd's watchdog period is longer).
+DATA_PATH_TIMEOUT_S = 5.0
+WATCHDOG_CHECK_S = 0.5  # how often the main loop judges the data path
+STOP_GRACE_S = 5.0  # after SIGTERM, the main loop must begin shutting down within this
+CLOCK_JUMP_US = 1_000_000  # device time may run ahead of host arrival time by this (buffering)
+BLOCK_CLOSE_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+ZENOH_DEFAULT_BLOCK_CLOSE_US = 5_000_000
+BLOCK_CLOSE_US = 1_000_000
 
 
 def geometry_for_hello(hello: Hello, cfg: DaemonConfig) -> ArrayGeometry:
@@ -56,22 +68,29 @@ def geometry_for_hello(hello: Hello, cfg: DaemonConfig) -> ArrayGeometry:
     )
 
 
-def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
-    """The scanner's factory calibration, with the stored tare applied when there is one."""
+def load_calibration(hello: Hello, cfg: DaemonConfig) -> tuple[Calibration, str]:
+    """The scanner's factory calibration with the stored tare applied, and "" -- or, when the
+    tare file is no tare of this array, the factory calibration and what is wrong with it."""
     cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
     try:
         tare = load_tare(cfg.resolve(cfg.state.directory), hello.serial_number, cal.base_resistance.shape)
+        return (cal if tare is None else cal.with_tare(*tare)), ""
     except ValueError as exc:
-        log.warning("ignoring tare: %s", exc)
-        return cal
-    return cal if tare is None else cal.with_tare(*tare)
+        problem = f"ignoring tare {exc}"
+        log.warning("%s; using the factory calibration", problem)
+        return cal, problem
 
 
-def pipeline_for_hello(hello: Hello, cfg: DaemonConfig) -> FramePipeline:
+def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
+    """The scanner's factory calibration, with the stored tare applied when there is one."""
+    return load_calibration(hello, cfg)[0]
+
+
+def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration | None = None) -> FramePipeline:
     uv, offsets = cfg.elements.material_coordinates()
     return FramePipeline(
         geometry_for_hello(hello, cfg),
-        calibration_for_hello(hello, cfg),
+        calibration if calibration is not None else calibration_for_hello(hello, cfg),
         np.asarray(uv, dtype=np.float64).reshape(-1, 2),
         np.asarray(offsets, dtype=np.float64),
         strain_sigma=cfg.reconstruction.strain_sigma,
@@ -87,6 +106,68 @@ def device_name(hello: Hello, cfg: DaemonConfig) -> str:
         return cfg.device.name
     safe = "".join(c if c.isalnum() or c in "-_" else "-" for c in hello.serial_number.strip("\0 "))
     return safe or "scanner"
+
+
+class HostDecimator:
+    """Chooses the scans to process from the HOST clock at their arrival: the output keeps its
+    rate whatever the scanner's clock does (replay picks the same scans from the logged strains).
+
+    A scan up to a quarter period early still counts (arrival jitter, scans read in bursts), so
+    an output rate equal to the scan rate passes every scan. rate_hz = 0 passes every scan.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_ns = 0 if rate_hz <= 0 else int(round(1e9 / rate_hz))
+        self._next_due: int | None = None
+
+    def due(self, host_mono_ns: int) -> bool:
+        if self.period_ns == 0:
+            return True
+        if self._next_due is None or host_mono_ns >= self._next_due + 4 * self.period_ns:
+            self._next_due = host_mono_ns  # first scan or a long gap: restart the schedule here
+        if host_mono_ns >= self._next_due - self.period_ns // 4:
+            self._next_due += self.period_ns
+            return True
+        return False
+
+
+class DeviceClockCheck:
+    """Sanity of the scanner's clock, judged scan by scan against the host's monotonic clock.
+
+    Device time is only data (published and logged with each scan), never a schedule; a clock
+    that stands still, runs backwards or jumps ahead is a scanner fault to name in status.
+    """
+
+    def __init__(self) -> None:
+        self.faults = 0
+        self.problem = ""
+        self.problem_mono = -float("inf")
+        self.reset()
+
+    def reset(self) -> None:
+        """A new handshake (reconnect, reboot) restarts the device clock legitimately."""
+        self._prev: tuple[int, int, int] | None = None
+
+    def check(self, device_time_us: int, sample_index: int, host_mono_ns: int) -> str:
+        """The problem this scan shows ("" if none)."""
+        prev, self._prev = self._prev, (device_time_us, sample_index, host_mono_ns)
+        if prev is None or sample_index == prev[1]:
+            return ""
+        d_dev = device_time_us - prev[0]
+        d_host_us = (host_mono_ns - prev[2]) // 1000
+        if d_dev == 0:
+            problem = f"scanner clock stuck at {device_time_us} µs (scans {prev[1]} and {sample_index})"
+        elif d_dev < 0:
+            problem = (f"scanner clock running backwards: {d_dev / 1e6:+.3f} s from scan {prev[1]} to "
+                       f"{sample_index}")
+        elif d_dev > d_host_us + CLOCK_JUMP_US:
+            problem = (f"scanner clock jumped ahead {d_dev / 1e6:.3f} s from scan {prev[1]} to {sample_index} "
+                       f"while {d_host_us / 1e6:.3f} s passed on the host")
+        else:
+            return ""
+        self.faults += 1
+        self.problem, self.problem_mono = problem, host_mono_ns / 1e9
+        return problem
 
 
 @dataclass
@@ -134,9 +215,13 @@ class Gateway:
         self.notifier = notifier or SystemdNotifier()
         self.stats = GatewayStats()
         self._stop = threading.Event()
+        self._shutdown_lock = threading.Lock()
+        self._shutting_down = threading.Event()
         self._proc_q: queue.Queue = queue.Queue(maxsize=PROCESS_QUEUE_SIZE)
         self._log_q: queue.Queue = queue.Queue(maxsize=cfg.log.queue_size)
-        self._decimator = OutputDecimator(cfg.output.rate_hz)
+        self._decimator = HostDecimator(cfg.output.rate_hz)
+        self.clock = DeviceClockCheck()
+        self._clock_reported = -float("inf")
         self._hello_lock = threading.Lock()
         self._hello: Hello | None = None
         self._hello_gen = 0
@@ -144,13 +229,19 @@ class Gateway:
         self._pipeline: FramePipeline | None = None
         self._device = cfg.device.name or ""
         self._tare_mtime: float | None = None
+        self._tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._log_state = "off"
         self._last_log_error = ""
         self._processing_error = ""  # the last scan's failure; empty once a scan succeeds
         self._ready_sent = False
-        self._surface_decimator = OutputDecimator(cfg.output.surface_rate_hz)
-        self._strains_decimator = OutputDecimator(cfg.output.strains_rate_hz)
-        self._log_surface_decimator = OutputDecimator(cfg.log.surface_rate_hz)
+        # Data-path liveness for the watchdog (monotonic seconds; None: nothing waiting).
+        self._waiting_since: float | None = None
+        self._link_alive_mono = time.monotonic()
+        self.watchdog_fed = False  # the last check found the data path working
+        self._data_path_problem = ""
+        self._surface_decimator = HostDecimator(cfg.output.surface_rate_hz)
+        self._strains_decimator = HostDecimator(cfg.output.strains_rate_hz)
+        self._log_surface_decimator = HostDecimator(cfg.log.surface_rate_hz)
         self._logger = None
         if cfg.log.enabled:
             factory = logger_factory or _default_logger
@@ -162,7 +253,7 @@ class Gateway:
             on_scan=self._on_scan,
             on_frame=self._on_frame,
             on_event=self._on_event,
-            on_alive=self.notifier.watchdog,
+            on_alive=self._on_link_alive,
             opener=opener,
         )
         self.results: collections.deque[FrameResult] = collections.deque(maxlen=4)  # for tests and the console
@@ -178,13 +269,24 @@ class Gateway:
         with self._hello_lock:
             self._hello = hello
             self._hello_gen += 1
+            self.clock.reset()
+
+    def _on_link_alive(self) -> None:
+        self._link_alive_mono = time.monotonic()
 
     def _on_scan(self, scan: Scan, frame: Frame, t_rx_ns: int) -> None:
+        t_mono = time.monotonic_ns()
         self.stats.scans_in += 1
-        self.stats.scan_times.append(time.monotonic())
-        if not self._decimator.due(scan.timestamp_us):
+        self.stats.scan_times.append(t_mono / 1e9)
+        problem = self.clock.check(scan.timestamp_us, scan.sample_index, t_mono)
+        if problem and t_mono / 1e9 - self._clock_reported > RECENT_WINDOW_S:
+            self._clock_reported = t_mono / 1e9  # named once per window; `clock.faults` counts all
+            self._on_event("warning", problem)
+        if not self._decimator.due(t_mono):
             return
-        item = (scan, t_rx_ns)
+        if self._waiting_since is None:
+            self._waiting_since = t_mono / 1e9
+        item = (scan, t_rx_ns, t_mono)
         try:
             self._proc_q.put_nowait(item)
         except queue.Full:
@@ -215,7 +317,8 @@ class Gateway:
         if hello is None:
             return None
         if self._pipeline is None or getattr(self, "_pipeline_gen", -1) != gen:
-            pipeline = pipeline_for_hello(hello, self.cfg)
+            cal, self._tare_problem = load_calibration(hello, self.cfg)
+            pipeline = pipeline_for_hello(hello, self.cfg, cal)
             pipeline.continue_from(self._pipeline)  # keep the warm start across a reconnect
             self._pipeline = pipeline
             self._pipeline_gen = gen
@@ -288,11 +391,11 @@ class Gateway:
     def _process_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                scan, t_rx = self._proc_q.get(timeout=0.2)
+                scan, t_rx, t_mono = self._proc_q.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
-                self._process(scan, t_rx)
+                self._process(scan, t_rx, t_mono)
             except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
                 self.stats.processing_errors += 1
                 text = f"processing failed: {type(exc).__name__}: {exc}"
@@ -301,7 +404,7 @@ class Gateway:
                     self._enqueue_log(("event", time.time_ns(), "error", text))
                 self._processing_error = text
 
-    def _process(self, scan: Scan, t_rx: int) -> None:
+    def _process(self, scan: Scan, t_rx: int, t_mono: int) -> None:
         pipeline = self._ensure_pipeline()
         if pipeline is None or (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):
             return
@@ -311,21 +414,23 @@ class Gateway:
         self.stats.last_seq = result.seq
         self.stats.last_solver_ms = result.solve_time_s * 1e3
         self.results.append(result)
-        self._publish(result)
-        self.notifier.watchdog()
+        if self._publish(result, t_mono):
+            self._waiting_since = None  # the data path has caught up: the watchdog may be fed
         if not self._ready_sent:
             self._ready_sent = True
             self.notifier.ready(f"streaming from {self.cfg.device.port}")
 
-    def _publish(self, r: FrameResult) -> None:
+    def _publish(self, r: FrameResult, t_mono: int) -> bool:
+        """Publish one result (and queue it for the log); False if publishing failed."""
         elements = messages.encode_elements(
             r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
             r.element_positions_mm / 1000.0, r.element_normals, r.element_sigma_mm / 1000.0, r.element_flags)
-        want_surface = self._surface_decimator.due(r.device_time_us)
-        want_strains = self._strains_decimator.due(r.device_time_us)
+        want_surface = self._surface_decimator.due(t_mono)
+        want_strains = self._strains_decimator.due(t_mono)
         gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
             r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
         pub = self._publisher
+        ok = True
         if pub is not None:
             try:
                 pub.publish_elements(elements)
@@ -341,6 +446,7 @@ class Gateway:
                 self.stats.published += 1
             except Exception as exc:  # noqa: BLE001
                 self.stats.publish_errors += 1
+                ok = False
                 log.warning("publish failed: %s", exc)
         t_done = time.time_ns()
         self.stats.latencies_ms.append((t_done - r.host_time_ns) / 1e6)
@@ -349,9 +455,10 @@ class Gateway:
         # the same scans); surfaces at the surface rate.
         self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
         self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
-        if self._logger is not None and self._log_surface_decimator.due(r.device_time_us):
+        if self._logger is not None and self._log_surface_decimator.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
             self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, np.asarray(cloud).reshape(-1, 3)))
+        return ok
 
     def _points(self, r: FrameResult) -> np.ndarray:
         cache = getattr(r, "_points_cache", None)
@@ -478,6 +585,13 @@ class Gateway:
             warnings.append(f"logging failed (publishing continues): {self._last_log_error}")
         if self._processing_error:
             warnings.append(f"{self._processing_error} (nothing published for these scans)")
+        if self._tare_problem:
+            warnings.append(f"{self._tare_problem} (factory calibration in use)")
+        if self.clock.problem and time.monotonic() - self.clock.problem_mono <= RECENT_WINDOW_S:
+            warnings.append(f"{self.clock.problem} ({self.clock.faults} clock fault(s) since start; "
+                            "output paced by the host clock)")
+        if self._data_path_problem:
+            warnings.append(f"{self._data_path_problem}; systemd watchdog not fed")
         faults: list[str] = []
         dev = self.link.device_status
         if dev is not None and dev.fault_flags:
@@ -552,7 +666,8 @@ class Gateway:
         mtime = self._tare_file_mtime(hello)
         if mtime is not None and mtime != self._tare_mtime:
             self._tare_mtime = mtime
-            pipeline.set_calibration(calibration_for_hello(hello, self.cfg))
+            cal, self._tare_problem = load_calibration(hello, self.cfg)
+            pipeline.set_calibration(cal)
             log.info("loaded new tare (%s)", pipeline.calibration.source)
             self._log_config()
             if self._publisher is not None:
@@ -573,19 +688,58 @@ class Gateway:
         self.link.start()
 
     def run(self) -> None:
-        """Start, report status until stop() is called, then shut down cleanly."""
+        """Start, report status and feed the watchdog until stop() is called, then shut down."""
         self.start()
         period = 1.0 / self.cfg.output.status_rate_hz
+        next_status = time.monotonic() + period
         try:
-            while not self._stop.wait(period):
-                self._status_tick()
+            while not self._stop.wait(min(period, WATCHDOG_CHECK_S)):
+                if time.monotonic() >= next_status:
+                    next_status = max(next_status + period, time.monotonic())
+                    self._status_tick()
+                self._check_data_path()
         finally:
             self.shutdown()
+
+    def data_path_problem(self, now: float | None = None) -> str:
+        """Why the data path is not working ("" if it is): a scan has waited for processing too
+        long with none processed and published since, or the link thread has gone silent."""
+        now = time.monotonic() if now is None else now
+        timeout = max(DATA_PATH_TIMEOUT_S, self.notifier.watchdog_interval_s)
+        since = self._waiting_since
+        if since is not None and now - since > timeout:
+            why = self._processing_error or (
+                f"{self.stats.publish_errors} publish error(s)" if self.stats.publish_errors else "processing blocked")
+            return f"no scan processed and published for {now - since:.1f} s ({why})"
+        d = self.cfg.device
+        # The link loop reports in at least once per reconnect cycle (back-off plus handshake).
+        link_timeout = max(timeout, d.reconnect_max_s + 4 * d.handshake_timeout_s + 1.0)
+        if now - self._link_alive_mono > link_timeout:
+            return f"scanner link thread silent for {now - self._link_alive_mono:.1f} s"
+        return ""
+
+    def _check_data_path(self) -> None:
+        problem = self.data_path_problem()
+        was_problem, self._data_path_problem = self._data_path_problem, problem
+        if problem:
+            if not was_problem:
+                log.error("%s: not feeding the systemd watchdog", problem)
+                self._enqueue_log(("event", time.time_ns(), "error", problem))
+            self.watchdog_fed = False
+            return
+        if was_problem:
+            log.info("data path working again; feeding the systemd watchdog")
+        self.watchdog_fed = True
+        self.notifier.watchdog()
 
     def stop(self) -> None:
         self._stop.set()
 
     def shutdown(self) -> None:
+        with self._shutdown_lock:
+            if self._shutting_down.is_set():
+                return
+            self._shutting_down.set()
         self._stop.set()
         self.notifier.stopping()
         self.link.stop()
@@ -633,6 +787,11 @@ def open_zenoh(cfg: DaemonConfig):
         config_file=str(cfg.resolve(zc.config_file)) if zc.config_file else None,
         deny_remote_writes=cfg.guarded_key_expr(),
     )
+    # A reply takes its query's congestion control (BLOCK by default), so a client that stops
+    # reading holds up replies to it until Zenoh closes its link: after 1 s here instead of
+    # Zenoh's 5 s, unless a Zenoh config file sets its own value.
+    if json.loads(zconf.get_json(BLOCK_CLOSE_KEY)) == ZENOH_DEFAULT_BLOCK_CLOSE_US:
+        zconf.insert_json5(BLOCK_CLOSE_KEY, str(BLOCK_CLOSE_US))
     return open_session(zconf)
 
 
@@ -667,22 +826,62 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
     show = cfg.output.console if console is None else console
     with open_zenoh(cfg) as session:
         gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
-
-        def _on_signal(signum: int, _frame: Any) -> None:
-            log.info("received %s, stopping", signal.Signals(signum).name)
-            gw.stop()
-
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, _on_signal)
-            signal.signal(signal.SIGINT, _on_signal)
+        unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
         if stop_event is not None:
             threading.Thread(target=lambda: (stop_event.wait(), gw.stop()), daemon=True).start()
         log.info("skinmapd %s starting: scanner %s, Zenoh %s, logs %s", skinmap.__version__, cfg.device.port,
                  ",".join(cfg.zenoh.listen + cfg.zenoh.connect) if cfg.zenoh.enabled else "off",
                  cfg.resolve(cfg.log.directory) if cfg.log.enabled else "off")
-        gw.run()
+        try:
+            gw.run()
+        finally:
+            unwatch()
     log.info("skinmapd stopped")
     return 0
+
+
+def _watch_signals(gw: Gateway) -> Callable[[], None]:
+    """Honour SIGTERM/SIGINT whatever the main thread is doing.
+
+    Python runs signal handlers in the main thread only, between bytecodes; a main thread held
+    in a blocking call would never see them. The C-level handler also writes the signal number
+    to a pipe, which a thread of our own reads: it stops the gateway and, if the main loop has
+    not begun shutting down within STOP_GRACE_S, shuts down itself and exits.
+    Returns the function that puts the previous handlers back.
+    """
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    previous = {sig: signal.signal(sig, lambda _signum, _frame: None)  # the work happens in the watcher
+                for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        handled = False
+        with os.fdopen(r, "rb", buffering=0) as pipe:
+            while data := pipe.read(16):  # empty once unwatched (the write end closed)
+                signum = next((s for s in data if s in (signal.SIGTERM, signal.SIGINT)), None)
+                if signum is None or handled:
+                    continue
+                handled = True
+                log.info("received %s, stopping", signal.Signals(signum).name)
+                gw.stop()
+                if gw._shutting_down.wait(STOP_GRACE_S):
+                    continue
+                log.error("the main loop did not begin stopping within %.0f s of %s; shutting down from the "
+                          "signal watcher", STOP_GRACE_S, signal.Signals(signum).name)
+                gw.shutdown()
+                logging.shutdown()
+                os._exit(1)
+
+    threading.Thread(target=watch, name="skinmap-signals", daemon=True).start()
+
+    def unwatch() -> None:
+        signal.set_wakeup_fd(previous_fd)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        os.close(w)
+
+    return unwatch
 
 
 def setup_logging(verbose: bool = False) -> None:

@@ -48,6 +48,12 @@ _PRIORITIES = {
 }
 
 _MODES = ("peer", "client", "router")
+# Replies to one client can block (a reply takes the query's congestion control, BLOCK by
+# default, and a client that stops reading fills its link until Zenoh closes it). Each query is
+# answered by a thread of its own, so queries from other clients do not wait behind the stalled
+# ones; at most this many at once. Beyond, the serving thread answers itself (in order, as if
+# there were no threads) until a thread is free again.
+REPLY_THREADS_MAX = 256
 _KEY_SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/\[\]]+):(?P<port>[^#?]*)"
                        r"(?P<rest>[#?].*)?$")
@@ -171,14 +177,33 @@ def foreign_write_guard(key_expr: str) -> dict[str, Any]:
     }
 
 
+class ZenohOpenError(OSError):
+    """The Zenoh session could not be opened (an endpoint in use, unreachable, refused)."""
+
+
+def _zerror_text(exc: Exception) -> str:
+    """Zenoh's error message on one line, without its Rust source locations."""
+    text = " ".join(str(exc).split())
+    text = re.sub(r" at \S+\.rs:\d+\.?", "", text)
+    listener = re.search(r"bound to (\S+?): \[[^\]]*?: ([^\[\]]+?)(?: \(os error \d+\))?\.?\]", text)
+    if listener:
+        return f"cannot listen on {listener[1]}: {listener[2]}"
+    return text
+
+
 @contextmanager
 def open_session(config: zenoh.Config) -> Iterator[zenoh.Session]:
-    """Open a session and always close it on exit.
+    """Open a session and always close it on exit; ZenohOpenError (one line naming the
+    endpoint and the reason, e.g. "cannot listen on tcp/127.0.0.1:7447: Address already in
+    use") if it cannot be opened.
 
     Closing explicitly matters: a process holding callback subscribers or queryables can hang
     at interpreter exit otherwise (atexit runs too late).
     """
-    session = zenoh.open(config)
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ZenohOpenError(f"Zenoh: {_zerror_text(exc)}") from None
     try:
         yield session
     finally:
@@ -227,6 +252,7 @@ class SkinmapPublisher:
         self._queryable = session.declare_queryable(f"{prefix}/{device}/*",
                                                     zenoh.handlers.FifoChannel(64))
         self._queries = self._queryable.handler
+        self._reply_slots = threading.BoundedSemaphore(REPLY_THREADS_MAX)
         self._token = session.liveliness().declare_token(key_for(prefix, device, "alive"))
         self._server = threading.Thread(target=self._serve_queries, daemon=True,
                                         name=f"skinmap-latest-{device}")
@@ -281,12 +307,27 @@ class SkinmapPublisher:
                 query = self._queries.recv()
             except Exception:  # channel closed by undeclare/session close
                 return
+            if not self._reply_slots.acquire(blocking=False):
+                self._answer_and_release(query, slot=False)
+                continue
             try:
-                self._answer(query)
-            except Exception as exc:  # a bad query must not stop serving
-                log.warning("latest-value query %s failed: %s", query.selector, exc)
-            finally:
+                threading.Thread(target=self._answer_and_release, args=(query,), daemon=True,
+                                 name="skinmap-reply").start()
+            except RuntimeError as exc:  # no thread to be had: answer here, late rather than never
+                log.warning("answering a query inline: %s", exc)
+                self._answer_and_release(query)
+
+    def _answer_and_release(self, query: zenoh.Query, slot: bool = True) -> None:
+        try:
+            self._answer(query)
+        except Exception as exc:  # a bad query must not stop serving
+            log.warning("latest-value query %s failed: %s", query.selector, exc)
+        finally:
+            try:
                 query.drop()
+            finally:
+                if slot:
+                    self._reply_slots.release()
 
     def _answer(self, query: zenoh.Query) -> None:
         with self._lock:

@@ -180,6 +180,8 @@ class Device:
         self.last_strain: np.ndarray | None = None
         #: called with the ScanRecord of every scan sent (ground-truth logging)
         self.on_scan: Callable[[ScanRecord], None] | None = None
+        #: fault injection: maps the true clock (µs since boot) to the one the firmware reports
+        self.time_us: Callable[[int], int] | None = None
         # the first evaluation may build tables (key-framed elastic scenes): do it before the
         # scanner boots, not while the first scan falls due
         self.strains(0.0)
@@ -217,7 +219,8 @@ class Device:
         self.readout.reset_state()
 
     def device_time_us(self, now_s: float) -> int:
-        return max(0, int(round((now_s - self._boot_time) * 1e6)))
+        t = max(0, int(round((now_s - self._boot_time) * 1e6)))
+        return t if self.time_us is None else max(0, int(self.time_us(t)))
 
     def shape_time(self, now_s: float) -> float:
         return now_s - self._epoch
