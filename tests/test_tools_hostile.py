@@ -287,7 +287,6 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
     `deny_remote_writes = false` they do (control case: the check can fail)."""
     import time
 
-
     cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", **({} if guard else {"deny_remote_writes": False}))
     assert cfg.guarded_key_expr() == ("skinmap/demo/**" if guard else None)
     run = _ForgeryRun(cfg)
@@ -300,15 +299,20 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
         run.forge(100)
         run.publisher.publish_elements(_elements(2))  # after the forged ones on the same links
         time.sleep(0.5)
-        replies = [r.ok.payload.to_bytes() for r in run.watcher.get("skinmap/demo/info", timeout=2.0)
-                   if r.ok is not None]
+        def info_replies() -> list[bytes]:
+            return [r.ok.payload.to_bytes() for r in run.watcher.get("skinmap/demo/info", timeout=2.0)
+                    if r.ok is not None]
+
+        replies = info_replies()
         if guard:
             assert run.seen["forged"] == 0
             assert len(replies) == 1 and b"forged" not in replies[0]  # the gateway's own info only
             assert run.tokens() == ["skinmap/demo/alive"]
         else:
             assert _wait_until(lambda: run.seen["forged"] == 100)
-            assert any(b"forged" in r for r in replies)
+            # (a loaded machine may answer the first query before the forged queryable is known)
+            assert any(b"forged" in r for r in replies) or _wait_until(
+                lambda: any(b"forged" in r for r in info_replies()))
             assert run.tokens() == ["skinmap/demo/alive", "skinmap/demo/forged-alive"]
         assert run.seen["real"] >= 2
     finally:
