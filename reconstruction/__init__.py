@@ -38,7 +38,7 @@ from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .robust import huber_potential
-from .forward import GaugeLayout, misfit, surface_strains
+from .forward import GaugeLayout, misfit, misfit_and_strains
 from .surface import Diagnostics, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
@@ -375,7 +375,7 @@ class Reconstructor:
         and none once the answer fits within the noise.  The constant twist keeps its sign."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
-        chi, dof, _ = misfit(self._surface(general[0], None, None), layout, eu, el, sigma_f)
+        chi, dof, fu, fl = misfit_and_strains(self._surface(general[0], None, None), layout, eu, el, sigma_f)
         du, dl = eu, el
         sign = twist_sign
         if sign is None and general[1] != 0.0:
@@ -384,20 +384,19 @@ class Reconstructor:
         for _ in range(self.defect_steps):
             if chi <= dof:
                 break
-            fu, fl = surface_strains(self._surface(general[0], None, None), layout)
             du, dl = du + (eu - fu), dl + (el - fl)
             # (np.maximum keeps a missing gauge's NaN)
             turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
                                             self.gauge_length)
             trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el))
-            chi_t, _, _ = misfit(self._surface(trial[0], None, None), layout, eu, el, sigma_f)
+            chi_t, _, fu_t, fl_t = misfit_and_strains(self._surface(trial[0], None, None), layout, eu, el, sigma_f)
             # a pass must gain clearly (1 %): a decision at the rounding level would make the
             # answer depend on how the arithmetic was ordered (replay needs the same bytes)
             if not (chi_t < DEFECT_GAIN * chi) or not np.isfinite(trial[0]).all():
                 break
             # the fields' misfit stays that of the measured data (the consistency check's input)
             general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1}, trial[4], trial[5])
-            chi = chi_t
+            chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
         return general
 

@@ -9,11 +9,13 @@ stretch, no small slopes, no circular arcs), so a misfit here is a misfit of the
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["GaugeLayout", "surface_strains", "misfit"]
+from .surface import hermite_weights
+
+__all__ = ["GaugeLayout", "surface_strains", "misfit", "misfit_and_strains"]
 
 # Chords per gauge of the coarse polyline; the fine one has twice as many and Richardson's rule
 # removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).
@@ -33,6 +35,9 @@ class GaugeLayout:
     h_lower: float
     uv: np.ndarray  # (2 dirs · N · M · (S + 1 + 2S + 1), 2) sample points, both polylines
     split: int  # points per gauge on the coarse polyline (S + 1)
+    # the Hermite weights of those points per fine grid (nf, mf, origin, spacing), built on first
+    # use: fixed points cost one sparse product per frame
+    _weights: dict = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float) -> "GaugeLayout":
@@ -50,7 +55,7 @@ class GaugeLayout:
 def surface_strains(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarray]:
     """Upper- and lower-layer strains (2, N, M) each that the gauges would read on ``surface``
     (anything with ``locate(uv) → (positions, normals)``)."""
-    pos, nrm = surface.locate(layout.uv)
+    pos, nrm = _locate(surface, layout)
     k = layout.split
     per = pos.shape[0] // (2 * layout.n * layout.m)
     pos = pos.reshape(2, layout.n, layout.m, per, 3)
@@ -66,11 +71,43 @@ def surface_strains(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarra
     return out[0], out[1]
 
 
+def _locate(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and unit normals of the layout's points on ``surface``: by the cached sparse
+    Hermite weights for a :class:`~.surface.Surface`, else through its ``locate``."""
+    coeffs = getattr(surface, "_coeffs", None)
+    if coeffs is None:
+        return surface.locate(layout.uv)
+    nf, mf = coeffs.shape[:2]
+    origin = surface._uv_origin()
+    key = (nf, mf, float(origin[0]), float(origin[1]), surface._spacing)
+    weights = layout._weights.get(key)
+    if weights is None:
+        weights = layout._weights[key] = hermite_weights(nf, mf, origin, surface._spacing, layout.uv)
+    flat = coeffs.reshape(nf * mf * 4, 3)
+    pos, d_u, d_v = (w @ flat for w in weights)
+    normal = np.cross(d_u, d_v)
+    normal /= np.sqrt((normal * normal).sum(axis=1))[:, None]
+    return pos, normal
+
+
 def misfit(surface, layout: GaugeLayout, eps_upper: np.ndarray, eps_lower: np.ndarray, strain_sigma: float) -> tuple[float, int, np.ndarray]:
     """χ² of the measured strains against those the surface predicts, with independent noise of
     s.d. ``strain_sigma`` on every gauge; NaN gauges are left out.  Returns (χ², gauges counted,
     per-gauge normalised residuals (2 layers, 2, N, M), NaN where left out)."""
     fu, fl = surface_strains(surface, layout)
+    return _chi2(fu, fl, eps_upper, eps_lower, strain_sigma)
+
+
+def misfit_and_strains(surface, layout: GaugeLayout, eps_upper: np.ndarray, eps_lower: np.ndarray,
+                       strain_sigma: float) -> tuple[float, int, np.ndarray, np.ndarray]:
+    """As :func:`misfit`, returning (χ², gauges counted, upper strains, lower strains) read on
+    the surface (for a caller that uses them again)."""
+    fu, fl = surface_strains(surface, layout)
+    chi2, count, _ = _chi2(fu, fl, eps_upper, eps_lower, strain_sigma)
+    return chi2, count, fu, fl
+
+
+def _chi2(fu, fl, eps_upper, eps_lower, strain_sigma: float) -> tuple[float, int, np.ndarray]:
     r = np.stack([fu - eps_upper, fl - eps_lower]) / strain_sigma
     counted = np.isfinite(r)
     chi2 = float(np.square(r[counted]).sum())

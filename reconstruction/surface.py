@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 from .linalg import cross_t
 
-__all__ = ["Surface", "Diagnostics", "hermite_patch_eval", "hermite_grid_eval"]
+__all__ = ["Surface", "Diagnostics", "hermite_patch_eval", "hermite_grid_eval", "hermite_weights"]
 
 # Points per block in locate(): the Hermite evaluation holds ~50 floats per point.
 _LOCATE_CHUNK = 16384
@@ -103,6 +103,23 @@ def hermite_patch_eval(
     """
     out = _hermite_eval(coeffs, np.array([u0, v0]), spacing, uv)
     return out[:, 0], out[:, 1], out[:, 2]
+
+
+def hermite_weights(nf: int, mf: int, origin: np.ndarray, spacing: float, uv: np.ndarray) -> list[sp.csr_matrix]:
+    """The bicubic Hermite evaluation at fixed points ``uv`` (K, 2) as three sparse (K, nf·mf·4)
+    matrices (position, ∂/∂u, ∂/∂v), to multiply with the node coefficients reshaped to
+    (nf·mf·4, 3): points that never move (the gauges') then cost one sparse product per frame
+    (the same numbers as :func:`_hermite_eval`, 16 entries a row)."""
+    cell, t = _patch_cells(uv, origin, 1.0 / spacing, np.array([mf - 2, nf - 2]))
+    basis = (t[:, :, None] ** _POWERS) @ _HERMITE
+    basis[:, :, 4:] *= 1.0 / spacing
+    w = basis[:, 0][:, _W_U] * basis[:, 1][:, _W_V]  # (K, 3, 16)
+    p = cell[:, 1] * mf + cell[:, 0]
+    corners = p[:, None] + np.array([0, 1, mf, mf + 1])
+    cols = (corners[:, :, None] * 4 + np.arange(4)).reshape(-1, 16)
+    rows = np.repeat(np.arange(uv.shape[0]), 16)
+    shape = (uv.shape[0], nf * mf * 4)
+    return [sp.csr_matrix((w[:, k].ravel(), (rows, cols.ravel())), shape=shape) for k in range(3)]
 
 
 def _hermite_eval(coeffs: np.ndarray, origin: np.ndarray, spacing: float, uv: np.ndarray) -> np.ndarray:
