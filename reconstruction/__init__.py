@@ -33,6 +33,7 @@ from .engine import (
     unit_data,
 )
 from .grid import FineGrid
+from .linalg import aligned_distances
 from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, disagreement
@@ -662,12 +663,7 @@ def _memo(fn):
 def _differs(a: Surface, b: Surface) -> bool:
     """Two answers that differ by more than their noise anywhere, after the best rigid
     alignment (a rigid motion of the whole sheet is not a different shape)."""
-    p, q = a.nodes.reshape(-1, 3), b.nodes.reshape(-1, 3)
-    pc, qc = p.mean(axis=0), q.mean(axis=0)
-    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    gap = np.sqrt((((p - pc) @ r.T + qc - q) ** 2).sum(axis=1))
+    gap = aligned_distances(a.nodes.reshape(-1, 3), b.nodes.reshape(-1, 3))
     noise = a._fine_sigma_fn()
     rows, cols = a._node_index
     tol = MIRROR_SIGMAS * np.sqrt(2.0) * noise[rows[:, None], cols].ravel() + MIRROR_FLOOR_MM

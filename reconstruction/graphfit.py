@@ -45,6 +45,8 @@ from scipy.interpolate import BSpline
 from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
 
+from .linalg import aligned_distances
+
 __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
@@ -115,11 +117,7 @@ def disagreement(graph_pos: np.ndarray, general_pos: np.ndarray, tolerance: np.n
     p = np.asarray(graph_pos, dtype=float).reshape(-1, 3)
     q = np.asarray(general_pos, dtype=float).reshape(-1, 3)
     tol = np.asarray(tolerance, dtype=float).reshape(-1)
-    pc, qc = p.mean(axis=0), q.mean(axis=0)
-    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = (u * np.array([1.0, 1.0, d])) @ vt  # (p − pc) @ rot ≈ q − qc
-    dist = np.sqrt((((p - pc) @ rot + qc - q) ** 2).sum(axis=1))
+    dist = aligned_distances(p, q)
     keep = tol > 0.0
     if not keep.any() or not np.isfinite(dist).all():
         return math.inf

@@ -59,6 +59,16 @@ def diff_v_t(f: np.ndarray, h: float) -> np.ndarray:
     return out
 
 
+def aligned_distances(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Distance of every point of ``p`` (K, 3) to its partner in ``q`` after the best rigid
+    motion of ``p`` onto ``q`` (Kabsch): the shape difference of two answers, whatever frame."""
+    pc, qc = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    d = np.sign(np.linalg.det(u @ vt))
+    rot = (u * np.array([1.0, 1.0, d])) @ vt  # (p − pc) @ rot ≈ q − qc
+    return np.sqrt((((p - pc) @ rot + qc - q) ** 2).sum(axis=1))
+
+
 def edge_mean(f: np.ndarray, axis: int) -> np.ndarray:
     """Mean of the two end values of every grid edge along ``axis`` (0: v-edges, 1: u-edges)."""
     return 0.5 * (f[:-1] + f[1:]) if axis == 0 else 0.5 * (f[:, :-1] + f[:, 1:])
