@@ -1,11 +1,15 @@
 """Reconstruction benchmark: accuracy per shape class and time per frame.
 
 Run: .venv/bin/python bench/reconstruction.py [--quick] [--seed S] [--shapes K] [--only accuracy|elastic|timing]
-     [--elastic-sizes 5,12,16] [--elastic-shapes K] [--kernels compiled|numpy] [--general]
+     [--sizes 5,8,12,16,32] [--elastic-sizes 5,12,16] [--elastic-shapes K] [--kernels compiled|numpy] [--general]
 
-Accuracy: 5×5 cells, 12 mm pitch, h = 0.2 mm, 10 mm gauges; strains from the physics forward
-model (skinmap.emulator.physics) for shapes with seeded random parameters; node error after the
-best rigid alignment, noise-free and with strain noise s.d. 0.0057 % on every gauge; for bumps
+Accuracy (a table per size in --sizes, default 5 only): N×N cells, 12 mm pitch, h = 0.2 mm, 10 mm
+gauges; strains from the physics forward model (skinmap.emulator.physics) for shapes with seeded
+random parameters (on sheets larger than 5×5 the radii and bump positions grow with the sheet,
+bump heights and widths stay); node error after the best rigid alignment, noise-free and with
+strain noise s.d. 0.0057 % on every gauge (every reconstruction is told that s.d., as skinmapd
+tells it the sensor's); the mean node_sigma and the count of overconfident noisy
+reconstructions (some node's error above 3 node_sigma + 0.05 mm); for bumps
 also the feature-size fidelity L_r/L_g (diameter of the largest circle inside the −6 dB contour
 around the peak, reconstructed over true).
 
@@ -59,6 +63,8 @@ import elastic_dataset as ed  # noqa: E402  (bench/elastic_dataset.py: the elast
 
 PITCH, H, GAUGE = 12.0, 0.2, 10.0
 NOISE = 0.0057e-2
+# the strain s.d. the noise-free reconstructions are told: the sensor's, as skinmapd tells it
+CLEAN_SIGMA = NOISE
 
 
 def kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -86,7 +92,7 @@ def feature_size(height: np.ndarray, peak: tuple[int, int], step: float) -> floa
 def bump_fidelity(shape: ph.GaussianBumps, surf, n: int, m: int) -> float:
     """L_r / L_g on a 0.25 mm material grid, the reconstruction aligned to the truth by its nodes."""
     h_sign = np.sign(shape.bumps[0][0])
-    step = 0.25
+    step = 0.25 * max(1.0, n / 8.0)  # 0.25 mm on small sheets; a bounded grid on large ones
     u0, u1, v0, v1 = surf.extent
     us = np.arange(u0, u1 + 1e-9, step)
     vs = np.arange(v0, v1 + 1e-9, step)
@@ -102,22 +108,24 @@ def bump_fidelity(shape: ph.GaussianBumps, surf, n: int, m: int) -> float:
     return feature_size(z_r, peak_r, step) / feature_size(z_g, peak_g, step)
 
 
-def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[object, dict]]]:
-    """Seeded random shapes per class, each with the keyword arguments its reconstruction uses."""
+def shape_classes(rng: np.random.Generator, k: int, scale: float = 1.0) -> dict[str, list[tuple[object, dict]]]:
+    """Seeded random shapes per class, each with the keyword arguments its reconstruction uses.
+    ``scale``: radii and bump positions for a sheet that many times the 5×5 one's size (bump
+    heights and widths stay: a sharp feature stays sharp)."""
 
     def signed(lo, hi):
-        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))) * rng.choice([-1.0, 1.0]))
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))) * rng.choice([-1.0, 1.0])) * scale
 
     classes: dict[str, list] = {"flat": [(ph.Flat(), {})]}
     classes["cylinder on a grid line, |R| 25-100"] = [
         (ph.Cylinder(signed(25, 100), axis_angle=float(rng.choice([0.0, 90.0]))), {}) for _ in range(k)
     ]
     classes["bump |h| 1-5, FWHM 15-30, anywhere"] = [
-        (ph.GaussianBumps(height=signed(1, 5), fwhm=float(rng.uniform(15, 30)), centre=tuple(rng.uniform(-24, 24, 2))), {})
+        (ph.GaussianBumps(height=signed(1, 5) / scale, fwhm=float(rng.uniform(15, 30)), centre=tuple(rng.uniform(-24, 24, 2) * scale)), {})
         for _ in range(k)
     ]
     classes["bump |h| 5, FWHM 15 (spec corner)"] = [
-        (ph.GaussianBumps(height=5.0 * rng.choice([-1.0, 1.0]), fwhm=15.0, centre=tuple(rng.uniform(-24, 24, 2))), {})
+        (ph.GaussianBumps(height=5.0 * rng.choice([-1.0, 1.0]), fwhm=15.0, centre=tuple(rng.uniform(-24, 24, 2) * scale)), {})
         for _ in range(k)
     ]
     classes["sphere cap |R| 40-120"] = [(ph.SphereCap(signed(40, 120)), {}) for _ in range(k)]
@@ -140,7 +148,7 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     rng_t = rng.spawn(1)[0]
 
     def signed_t(lo, hi):
-        return float(np.exp(rng_t.uniform(np.log(lo), np.log(hi))) * rng_t.choice([-1.0, 1.0]))
+        return float(np.exp(rng_t.uniform(np.log(lo), np.log(hi))) * rng_t.choice([-1.0, 1.0])) * scale
 
     turned = [(signed_t(50, 120), float(rng_t.choice([-30.0, -15.0, 15.0, 30.0]))) for _ in range(k)]
     classes["saddle turned +-15/30 deg, |R| 50-120"] = [(ph.Saddle(r, axis_angle=a), {}) for r, a in turned]
@@ -155,12 +163,13 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     rng_g = rng.spawn(1)[0]
 
     def signed_g(lo, hi):
-        return float(np.exp(rng_g.uniform(np.log(lo), np.log(hi))) * rng_g.choice([-1.0, 1.0]))
+        return float(np.exp(rng_g.uniform(np.log(lo), np.log(hi))) * rng_g.choice([-1.0, 1.0])) * scale
 
     classes["saddle at any angle (graph), |R| 40-120"] = [
         (ph.Saddle(signed_g(40, 120), axis_angle=float(rng_g.uniform(0, 180))), {}) for _ in range(k)
     ]
-    classes["twisted quadric, |k_ij| <= 1/40 mm"] = [(ph.Quadric(*rng_g.uniform(-1 / 40, 1 / 40, 3)), {}) for _ in range(k)]
+    classes["twisted quadric, |k_ij| <= 1/40 mm"] = [(ph.Quadric(*(rng_g.uniform(-1 / 40, 1 / 40, 3) / scale)), {})
+                                                     for _ in range(k)]
 
     def trough(radius: float, angle: float) -> ph.Quadric:
         d = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
@@ -172,24 +181,28 @@ def shape_classes(rng: np.random.Generator, k: int) -> dict[str, list[tuple[obje
     return classes
 
 
-def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None) -> None:
+def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None, n: int = 5) -> None:
     rng = np.random.default_rng(seed)
-    n = m = 5
+    m = n
+    scale = (n - 1) / 4.0  # radii and positions for this sheet's extent (the 5x5 classes as given)
     centres = ph.cell_centres(n, m, PITCH)
     model = "the general model alone (graph_fit=False)" if graph_fit is False else "the default model (graph fit first)"
     print(f"\nAccuracy of {model}, {n}x{m} cells, pitch {PITCH:g} mm, h = {H:g} mm, {GAUGE:g} mm gauges "
-          f"({k} random shapes per class, seed {seed}; noisy: s.d. {100 * NOISE:.4f} % strain, {noisy_draws} draws each)")
+          f"({k} random shapes per class, seed {seed}; clean: told strain_sigma={CLEAN_SIGMA:g}; noisy: s.d. {100 * NOISE:.4f} % "
+          f"strain, told so, {noisy_draws} draws each; radii and bump positions x{scale:g} of the 5x5 classes, "
+          f"bump sizes as given)")
     head = (f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} "
-            f"{'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
+            f"{'sigma':>6s} {'over':>5s} {'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
     print(head)
     print("-" * len(head))
-    for name, shapes in shape_classes(rng, k).items():
+    for name, shapes in shape_classes(rng, k, scale).items():
         clean_mean, clean_max, noisy_mean, noisy_max, fid, graphs = [], [], [], [], [], []
         ambiguous, either = [], []  # flagged ambiguous; of those, the answer or its mirror right (0.05 mm)
+        sigmas, over = [], []
         for shape, kw in shapes:
             eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
             truth = shape.position(centres)
-            surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, **kw)
+            surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, strain_sigma=CLEAN_SIGMA, **kw)
             e = node_errors(surf.nodes, truth)
             graphs.append(surf.diagnostics.extra["model"] == "graph")
             _ambiguity(surf, e, truth, ambiguous, either)
@@ -203,13 +216,18 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
                 _ambiguity(noisy, e, truth, ambiguous, either)
                 noisy_mean.append(e.mean())
                 noisy_max.append(e.max())
+                sigmas.append(noisy.node_sigma.mean())
+                over.append(_over(e, noisy, truth))
             if isinstance(shape, ph.GaussianBumps):
                 fid.append(bump_fidelity(shape, surf, n, m))
         f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
         print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
-              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {f:>16s} {100 * np.mean(graphs):5.0f}% "
+              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {np.mean(sigmas):6.3f} "
+              f"{sum(over):>2d}/{len(over):<2d} {f:>16s} {100 * np.mean(graphs):5.0f}% "
               f"{sum(ambiguous):>2d}/{len(ambiguous):<2d} {sum(either):>3d}/{sum(ambiguous):<3d}")
-    print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; "
+    print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; sigma: mean "
+          "node_sigma of the noisy reconstructions; over: noisy reconstructions with some node error > 3 node_sigma + "
+          "0.05 mm (for one flagged ambiguous: in both its answers); "
           "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
           "reconstructions flagged ambiguous (Surface.mirror set), either: of those, how many have the answer or "
           "its mirror within 0.05 mm mean of the truth)")
@@ -288,9 +306,8 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                 kw = {} if default_sign or plan.twist_sign is None else {"twist_sign": plan.twist_sign}
                 for f, (eu, el, truth) in enumerate(forms):
                     prefix = "" if f == 0 else "k"
-                    surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, **kw)
+                    surf = reconstruct(eu, el, PITCH, H, H, graph_fit=graph_fit, strain_sigma=CLEAN_SIGMA, **kw)
                     e = node_errors(surf.nodes, truth)
-                    stats["over" if f == 0 else "kover"].append(_over(e, surf, truth))
                     stats["amb" if f == 0 else "kamb"].append(surf.mirror is not None)
                     if f == 0:
                         stats["cm"].append(e.mean())
@@ -318,8 +335,9 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                   f"{np.mean(stats['kn']):9.4f} {kover:>8s} {kamb:>4s} | {100 * np.mean(stats['graph']):4.0f}%")
     scale = f"x{n / 5:g} on this sheet" if n > 5 else "as given"
     print(f"(mm; mean = mean over scenes of the mean node error after the best rigid alignment, max = largest "
-          f"node error of any scene; sigma: mean node_sigma of the noisy reconstructions; over: reconstructions "
-          f"(clean and noisy) with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
+          f"node error of any scene; clean reconstructions are told strain_sigma={CLEAN_SIGMA:g}, noisy ones the noise's s.d.; "
+          f"sigma: mean node_sigma of the noisy reconstructions; over: noisy reconstructions "
+          f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "
           f"{scale}; oblique cylinders get their twist_sign except in the default-sign row)")
     print(f"(scenes: {len(solved)} solved in {sum(solved):.1f} s, {len(cached)} loaded from the solver's cache "
@@ -478,6 +496,8 @@ def main() -> None:
     ap.add_argument("--shapes", type=int, default=None, help="random shapes per class (default 12, quick 4)")
     ap.add_argument("--only", choices=("accuracy", "elastic", "timing"), default=None,
                     help="print one part only (accuracy: the kinematic accuracy tables; elastic: the elastic-scene tables)")
+    ap.add_argument("--sizes", default="5",
+                    help="sheet sizes N of the kinematic accuracy tables, comma-separated (default 5; e.g. 5,8,12,16,32)")
     ap.add_argument("--elastic-sizes", default="5",
                     help="sheet sizes N of the elastic tables, comma-separated (default 5; a 16x16 scene takes about "
                          "5-20 s to solve once, then comes from the disk cache)")
@@ -488,15 +508,21 @@ def main() -> None:
                     help="per-frame kernels of the timing table (numpy: the reference implementation)")
     args = ap.parse_args()
     k = args.shapes or (4 if args.quick else 12)
-    try:
-        elastic_sizes = [int(x) for x in args.elastic_sizes.split(",") if x.strip()]
-    except ValueError:
-        ap.error(f"--elastic-sizes takes integers separated by commas, got {args.elastic_sizes!r}")
-    if not elastic_sizes or min(elastic_sizes) < 2:
-        ap.error("--elastic-sizes takes sizes >= 2")
+    def sizes(flag: str, text: str) -> list[int]:
+        try:
+            out = [int(x) for x in text.split(",") if x.strip()]
+        except ValueError:
+            ap.error(f"{flag} takes integers separated by commas, got {text!r}")
+        if not out or min(out) < 2:
+            ap.error(f"{flag} takes sizes >= 2, got {text!r}")
+        return out
+
+    elastic_sizes = sizes("--elastic-sizes", args.elastic_sizes)
+    kinematic_sizes = sizes("--sizes", args.sizes)
     threadpool_limits(1)
     if args.only in (None, "accuracy"):
-        accuracy_table(k, 1 if args.quick else 3, args.seed, False if args.general else None)
+        for n in kinematic_sizes:
+            accuracy_table(k, 1 if args.quick else 3, args.seed, False if args.general else None, n)
         bump_grid_table(4 if args.quick else 10, args.seed)
     if args.only in (None, "elastic"):
         k_el = args.elastic_shapes or (1 if args.quick else 2)

@@ -38,6 +38,7 @@ from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, disagreement
 from .graphsheet import free_part, graph_sheet_fields
+from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
 from .surface import Diagnostics, Surface
@@ -189,6 +190,9 @@ class Reconstructor:
         self.graph_fit = bool(graph_fit)
         self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
+        # what the turning noise makes of the mean curvature product, measured on first use
+        # (all-valid field maps; a few dead units change it little)
+        self._product_noise: ProductNoise | None = None
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -328,7 +332,9 @@ class Reconstructor:
                     return _to_sensor_frame(grid, self._graph.fine_positions(fit_m.coeffs))
                 return general_m[0]
 
-            surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid)
+            product_fields = convex_info.get("product_fields") if fit is not None else None
+            surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
+                                   product_fields)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf._graph_start = (graph.coeffs, earlier) if fit is None else None
@@ -336,12 +342,26 @@ class Reconstructor:
         return surf
 
 
-    def _twist_noise(self, positions_at, base_shift: float, c0: float, turning, valid, strain_sigma: float,
+    def _product_stats(self, k_u, k_v, tau0, turning_sigma: float) -> tuple[float, float]:
+        """(bias, s.d.) of the mean curvature product k_u k_v − τ₀² over the cells' region
+        that turning noise of s.d. ``turning_sigma`` (one unit, per length) causes, for these
+        fields (:mod:`.productnoise`)."""
+        if not turning_sigma > 0.0:
+            return 0.0, 0.0
+        grid = self.grid
+        if self._product_noise is None:
+            valid = np.ones((2, self.n, self.m), dtype=bool)
+            self._product_noise = measure_product_noise(grid.field_maps(valid), valid, grid.inner)
+        tau0 = np.asarray(tau0, dtype=float)
+        return self._product_noise.stats(np.asarray(k_u), np.asarray(k_v), tau0 - tau0.sum() / tau0.size, grid.inner,
+                                         turning_sigma)
+
+    def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
                      undecided: float = 0.0):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
-        from the mean curvature product k_u k_v, whose s.d. from independent noise on every
-        unit's turning is (σ_t κ_rms + σ_t²)/√units; c = √(product) then has the s.d. of that over
+        from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
+        through the model's field maps (:mod:`.productnoise`); c = √(product) then has the s.d. of that over
         2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  An
         ``undecided`` shift (a less-sheared twist within the noise, which the model did not
         take) adds half the distance to that answer: 3 s.d. then reach past it."""
@@ -355,7 +375,7 @@ class Reconstructor:
             return _memo(other)
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
             return lambda: None
-        sigma_product = _product_sigma(turning, valid, strain_sigma, self.h_upper, self.h_lower)
+        sigma_product = product_sd(strain_sigma)
         sigma_c = min(sigma_product / (2.0 * abs(c0)), math.sqrt(sigma_product))
 
         def spread() -> np.ndarray:
@@ -407,7 +427,7 @@ class Reconstructor:
                        node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=diag)
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
-                   valid) -> Surface:
+                   valid, product_fields=None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -424,6 +444,13 @@ class Reconstructor:
         diag = surf.diagnostics
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
         layout = self._layout
+        if product_fields is None:  # a graph answered: the fields of the measured data
+            product_fields = self.grid.field_maps(valid)(turning, np.ones(turning.shape))[:3]
+
+        def product_sd(sigma_strain: float) -> float:
+            sig_t = math.sqrt(2.0) * sigma_strain / (self.h_upper + self.h_lower)
+            return self._product_stats(*product_fields, sig_t)[1]
+
         chi0, dof, _ = misfit(surf, layout, eu, el, sigma_f)
         birge = max(1.0, chi0 / max(dof, 1))
         # χ² differences of this size are what the data can still tell apart (2 s.d., scaled by
@@ -441,7 +468,7 @@ class Reconstructor:
         # half-diagonal): below the mirror floor the two images are one answer; and a twist
         # within what the turning noise makes of the curvature product is no twist to mirror
         if (abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None
-                and abs(c0) > MIRROR_SIGMAS * math.sqrt(_product_sigma(turning, valid, sigma_f, self.h_upper, self.h_lower))):
+                and abs(c0) > MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f))):
             if positions_at is not None:
                 pos_m = positions_at(-2.0 * c0)
             else:  # a graph answered: its mirror is the graph refitted with the opposite sign
@@ -465,7 +492,7 @@ class Reconstructor:
         # no position is less certain than "somewhere on the sheet's own extent"
         ceiling = math.sqrt(self._half_diagonal2)
 
-        twist = self._twist_noise(positions_at, base_shift, c0, turning, valid, strain_sigma,
+        twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
                                   diag.extra.get("undecided_twist", 0.0))
 
         def sigma() -> np.ndarray:
@@ -549,13 +576,31 @@ class Reconstructor:
         if compiled is not None:
             k_u, k_v, lam_u, lam_v = compiled.as_field(k_u), compiled.as_field(k_v), compiled.as_field(lam_u), compiled.as_field(lam_v)
             metric_stack = compiled.metric_terms(grid.spacing, lam_u, lam_v)
-            metric = Metric(*metric_stack)
         else:
-            metric = metric_terms(grid.spacing, lam_u, lam_v)
+            metric_stack = np.array(metric_terms(grid.spacing, lam_u, lam_v))
         stretch_sigma = strain_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        product_noise = self._product_stats(k_u, k_v, tau0, turning_sigma)
+        metric = Metric(*metric_stack)
+        # the noise these data carry (too few units to tell: the stated; at most twice the
+        # stated: more is a sharp feature's doing)
+        present = turning_noise_estimate(turning, valid) if n_valid else 0.0
+        present = turning_sigma if not math.isfinite(present) else min(present, 2.0 * turning_sigma)
+        if product_noise[0] != 0.0:
+            # the noise's own curvature product is no Gaussian curvature: the product the twist
+            # is read from, and Brioschi's source for the shear (its F = 0 part and the base of
+            # later passes), are taken without it
+            product_noise = (product_noise[0] * (present / turning_sigma) ** 2, product_noise[1])
+        if product_noise[0] != 0.0:
+            debias = (present * present) * self._product_noise.bias_field * metric_stack[7]
+            metric_stack = metric_stack.copy()
+            metric_stack[6] -= debias
+            metric_stack[8] -= debias
+            metric = Metric(*metric_stack)
         tau, twist_c, graph = solve_twist(
-            grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None
+            grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
+            product_noise=product_noise,
         )
+        convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None
         if graph is not None:  # a sheet pushed out of plane: twist and shear from its slopes
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0))
@@ -571,9 +616,7 @@ class Reconstructor:
             here = least_shear_value(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric, tau_mean)
             # a twist whose square the turning noise could produce is no evidence (three s.d. of
             # the mean curvature product, as solve_twist judges the Gauss equation's)
-            inner = grid.inner
-            curv_rms = math.sqrt(float((k_u[inner] ** 2).sum() + (k_v[inner] ** 2).sum()) / k_u[inner].size)
-            noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(self.n * self.m)
+            noise = 3.0 * product_noise[1]
             options = [(c, val) for c, val in options if val < LEAST_SHEAR_GAIN * here]
             if sign_known:
                 options = [opt for opt in options if opt[0] * sign > 0.0]
@@ -637,15 +680,6 @@ class Reconstructor:
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
-
-
-def _product_sigma(turning: np.ndarray, valid: np.ndarray, strain_sigma: float, h_upper: float, h_lower: float) -> float:
-    """S.d. of the sheet-mean curvature product k_u k_v from independent noise on every unit's
-    turning (σ_t per length): (σ_t κ_rms + σ_t²)/√(units per direction)."""
-    sig_t = math.sqrt(2.0) * strain_sigma / (h_upper + h_lower)
-    t = turning[valid]
-    kappa = math.sqrt(float((t * t).mean())) if t.size else 0.0
-    return (sig_t * kappa + sig_t * sig_t) / math.sqrt(max(int(valid.sum()) / 2, 1))
 
 
 def _memo(fn):

@@ -80,6 +80,7 @@ def solve_twist(
     metric: Metric | None = None,
     stretch_sigma: float = 0.0,
     sign_from_data: bool = True,
+    product_noise: tuple[float, float] | None = None,
 ) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -92,8 +93,11 @@ def solve_twist(
     it needs (:func:`_saddle_twist`).  Where the sign is not observable (mirror-image twists give
     identical strains, e.g. an oblique cylinder) ``twist_sign`` chooses it; it also overrides a
     sign read from the data when ``sign_from_data`` is False.  ``stretch_sigma``: stretch noise
-    s.d. of one unit.  Returns the τ field and its constant without the graph refinement, and
-    the graph model (:class:`GraphTwist`) when the stretch pattern suggests one.
+    s.d. of one unit.  ``product_noise``: (bias, s.d.) of the mean product k_u k_v − τ₀² that
+    the turning noise alone causes (:mod:`.productnoise`; the bias is removed before the product
+    is read as a twist); without it, independent noise on every node is assumed.  Returns the τ
+    field and its constant without the graph refinement, and the graph model
+    (:class:`GraphTwist`) when the stretch pattern suggests one.
     """
     tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
@@ -105,13 +109,20 @@ def solve_twist(
     # over a half-size ρ; a developable one needs none.  Attribute positive k_u k_v to a constant
     # twist only in proportion to how little the stretch varies.
     prod, need, dev2 = _stretch_need(grid, k_u, k_v, tau0, lam_u, lam_v)
+    if product_noise is not None:
+        # the noise's own share of the product is no curvature (a flat noisy sheet is no cylinder)
+        bias, spread = product_noise
+        prod = prod - bias
+        need = abs(prod) * _half_size2(grid) / 12.0
+        noise = 3.0 * spread
+    else:
+        # three s.d. of the mean product when each unit's turning carries independent noise
+        n_units = grid.n * grid.m
+        curv_rms = math.sqrt(float((ku_in * ku_in).sum() + (kv_in * kv_in).sum()) / count)
+        noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(n_units)
     dev = math.sqrt(dev2)
     ratio = dev / need if need > 0 else math.inf
     weight = min(max(1.5 - 3.0 * ratio, 0.0), 1.0)
-    # three s.d. of the mean product when each unit's turning carries independent noise
-    n_units = grid.n * grid.m
-    curv_rms = math.sqrt(float((ku_in * ku_in).sum() + (kv_in * kv_in).sum()) / count)
-    noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(n_units)
     # unbiased above twice the noise level, off below it, continuous in between
     significance = min(max(prod / noise - 1.0, 0.0), 1.0) if noise > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
@@ -424,10 +435,15 @@ def _stretch_need(grid: FineGrid, k_u, k_v, tau, lam_u, lam_v) -> tuple[float, f
     ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau[inner], lam_u[inner], lam_v[inner]
     count = ku_in.size
     gauss = float((ku_in * kv_in - t_in * t_in).sum()) / count
-    rho2 = 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
+    rho2 = _half_size2(grid)
     lu_dev, lv_dev = lu_in - lu_in.sum() / count, lv_in - lv_in.sum() / count
     dev2 = 0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count
     return gauss, abs(gauss) * rho2 / 12.0, dev2
+
+
+def _half_size2(grid: FineGrid) -> float:
+    """Mean squared half-size ρ² of the cells' region."""
+    return 0.25 * ((grid.u[grid.node_cols[-1]]) ** 2 + (grid.v[grid.node_rows[-1]]) ** 2)
 
 
 def stretch_supports_curvature(grid: FineGrid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma: float = 0.0) -> bool:
