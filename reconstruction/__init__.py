@@ -333,8 +333,10 @@ class Reconstructor:
                 return general_m[0]
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
+            known = convex_info.get("forward_chi2") if fit is not None else None
+            known = known[1:] if known is not None and known[0] is pos else None
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
-                                   product_fields)
+                                   product_fields, known)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf._graph_start = (graph.coeffs, earlier) if fit is None else None
@@ -419,6 +421,8 @@ class Reconstructor:
             general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1}, trial[4], trial[5])
             chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
+        # the answer's χ² at the posterior check's noise level, read once
+        general[3]["forward_chi2"] = (general[0], chi, dof)
         return general
 
     def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics) -> Surface:
@@ -427,7 +431,7 @@ class Reconstructor:
                        node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=diag)
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
-                   valid, product_fields=None) -> Surface:
+                   valid, product_fields=None, known_chi2: tuple[float, int] | None = None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -451,7 +455,7 @@ class Reconstructor:
             sig_t = math.sqrt(2.0) * sigma_strain / (self.h_upper + self.h_lower)
             return self._product_stats(*product_fields, sig_t)[1]
 
-        chi0, dof, _ = misfit(surf, layout, eu, el, sigma_f)
+        chi0, dof = known_chi2 if known_chi2 is not None else misfit(surf, layout, eu, el, sigma_f)[:2]
         birge = max(1.0, chi0 / max(dof, 1))
         # χ² differences of this size are what the data can still tell apart (2 s.d., scaled by
         # the misfit the model leaves)

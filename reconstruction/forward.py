@@ -18,7 +18,8 @@ from .surface import hermite_weights
 __all__ = ["GaugeLayout", "surface_strains", "misfit", "misfit_and_strains"]
 
 # Chords per gauge of the coarse polyline; the fine one has twice as many and Richardson's rule
-# removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).
+# removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).  The coarse polyline's
+# points are every other point of the fine one, so only the fine one's are evaluated.
 _SEGMENTS = 6
 
 
@@ -33,8 +34,7 @@ class GaugeLayout:
     gauge_length: float
     h_upper: float
     h_lower: float
-    uv: np.ndarray  # (2 dirs · N · M · (S + 1 + 2S + 1), 2) sample points, both polylines
-    split: int  # points per gauge on the coarse polyline (S + 1)
+    uv: np.ndarray  # (2 dirs · N · M · (2S + 1), 2) sample points of the fine polylines
     # the Hermite weights of those points per fine grid (nf, mf, origin, spacing), built on first
     # use: fixed points cost one sparse product per frame
     _weights: dict = field(default_factory=dict, compare=False, repr=False)
@@ -43,29 +43,28 @@ class GaugeLayout:
     def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float) -> "GaugeLayout":
         u_c = (np.arange(m) - (m - 1) / 2.0) * pitch
         v_c = (np.arange(n) - (n - 1) / 2.0) * pitch
-        t = np.concatenate([np.linspace(-0.5, 0.5, _SEGMENTS + 1), np.linspace(-0.5, 0.5, 2 * _SEGMENTS + 1)])
-        t = t * gauge_length
+        t = np.linspace(-0.5, 0.5, 2 * _SEGMENTS + 1) * gauge_length
         vv, uu, tt = np.meshgrid(v_c, u_c, t, indexing="ij")  # (N, M, points)
         along_u = np.stack([uu + tt, vv], axis=-1)
         along_v = np.stack([uu, vv + tt], axis=-1)
         uv = np.stack([along_u, along_v]).reshape(-1, 2)
-        return cls(n, m, float(gauge_length), float(h_upper), float(h_lower), uv, _SEGMENTS + 1)
+        return cls(n, m, float(gauge_length), float(h_upper), float(h_lower), uv)
 
 
 def surface_strains(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarray]:
     """Upper- and lower-layer strains (2, N, M) each that the gauges would read on ``surface``
     (anything with ``locate(uv) → (positions, normals)``)."""
     pos, nrm = _locate(surface, layout)
-    k = layout.split
     per = pos.shape[0] // (2 * layout.n * layout.m)
     pos = pos.reshape(2, layout.n, layout.m, per, 3)
     nrm = nrm.reshape(2, layout.n, layout.m, per, 3)
     out = []
     for h in (layout.h_upper, -layout.h_lower):
         layer = pos + h * nrm
-        seg = np.sqrt((np.diff(layer, axis=3) ** 2).sum(axis=4))  # (2, N, M, per − 1)
-        coarse = seg[..., : k - 1].sum(axis=3)
-        fine = seg[..., k:].sum(axis=3)  # skips the jump from the coarse line's end to the fine one's start
+        d = np.diff(layer, axis=3)  # (2, N, M, per − 1, 3)
+        fine = np.sqrt((d * d).sum(axis=4)).sum(axis=3)
+        d2 = d[..., 0::2, :] + d[..., 1::2, :]  # chords over every other point: the coarse line
+        coarse = np.sqrt((d2 * d2).sum(axis=4)).sum(axis=3)
         length = (4.0 * fine - coarse) / 3.0
         out.append(length / layout.gauge_length - 1.0)
     return out[0], out[1]
