@@ -58,7 +58,7 @@ DEFECT_GAIN = 0.99
 # Posterior check (Reconstructor._posterior): a χ² difference below this many units (times the
 # misfit's Birge ratio) does not tell two answers apart (2 s.d. of one parameter).
 MIRROR_CHI2 = 4.0
-MIRROR_SHARE = 0.25
+MIRROR_SHARE = 0.5
 # Two mirror images are reported only where they differ by more than this many combined noise
 # s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
