@@ -1,33 +1,18 @@
 """SkinmapPublisher <-> SkinmapClient over loopback TCP with multicast scouting off."""
 
 import multiprocessing
-import socket
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import free_port, wait_until
 
 from skinmap.daemon import messages as msg
 from skinmap.daemon.client import SkinmapClient
 from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
 DEVICE = "skin-test"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(predicate, timeout=10.0, step=0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 def elements_payload(seq, k=6):
@@ -216,6 +201,7 @@ def _publish_in_child(endpoint, ready, stop):
             stop.wait(10.0)
 
 
+@pytest.mark.slow
 def test_publisher_in_another_process():
     # a process forked after a session was opened cannot open one: use 'spawn'
     ctx = multiprocessing.get_context("spawn")
