@@ -154,7 +154,7 @@ def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(em
 
             storage.fail = None
             resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 30, "logging to resume")
-            after = receive_elements(client, 5)
+            after = receive_elements(client, 20)  # enough scans for the resumed file to hold some
             assert gw.status()["healthy"] is True or all("logging" not in w for w in gw.status()["warnings"])
             gap_s = longest_gap_s(during + after)
     lg = loggers[0]
@@ -287,8 +287,8 @@ directory = "state"
         assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
         time.sleep(0.37)  # somewhere inside a chunk
         os.kill(proc.pid, signal.SIGKILL)
-        t_kill = time.time_ns()
         proc.wait(timeout=10)
+        t_kill = time.time_ns()  # once it is surely dead: SIGKILL lands a moment after os.kill
         sent_at_kill = emu.device.scans_sent
         dropped_by_device = emu.device.scans_dropped
     finally:
@@ -382,7 +382,7 @@ def test_sigkill_mid_write_leaves_readable_files_losing_at_most_one_chunk(killed
     lost_s = (t_kill - last_t) / 1e9
     # Nothing logged after the kill, nothing logged that was not sent (how much was in flight
     # depends on the machine's load: printed, not asserted).
-    assert lost_s >= 0 and lost_scans >= 0, (lost_s, lost_scans)
+    assert lost_s > 0 and lost_scans >= 0, (lost_s, lost_scans)
 
     recovered = logs / "recovered.mcap"
     assert skinmap_main(["recover", str(active), "-o", str(recovered)]) == 0

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway
+from conftest import (explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway,
+                      wait_for)
 
 from skinmap.daemon.client import SkinmapClient
 from skinmap.daemon.replay import replay_log
@@ -47,7 +48,7 @@ def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(em
             first = client.elements(timeout=30.0)
             assert first.positions.shape == (len(ELEMENT_UV), 3)
             for _ in range(10):
-                msg = client.elements(timeout=5.0)
+                msg = client.elements(timeout=30.0)
                 assert np.isfinite(msg.positions).all() and np.isfinite(msg.normals).all()
                 assert (msg.flags & 1).all()
                 result = next((r for r in list(gw.results) if r.seq == msg.seq), None)
@@ -78,14 +79,11 @@ def test_daemon_survives_unplug_and_replug_behind_the_same_link(emulator, tmp_pa
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
             client.elements(timeout=30.0)
             emulator.disconnect(reconnect_after_s=0.5)
-            deadline = time.monotonic() + 15
-            while gw.link.stats.reconnects < 1 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert gw.link.stats.reconnects >= 1
+            wait_for(lambda: gw.link.stats.reconnects >= 1, what="a reconnect")
             t_back = time.time_ns()
-            msg = client.elements(timeout=10.0)
+            msg = client.elements(timeout=30.0)
             while msg.host_time_ns < t_back:  # skip anything queued from before the unplug
-                msg = client.elements(timeout=10.0)
+                msg = client.elements(timeout=30.0)
             assert np.isfinite(msg.positions).all()
     assert gw.link.stats.disconnects >= 1
 
@@ -169,10 +167,10 @@ def test_dead_gauge_degrades_nearby_elements_and_is_reported(emulator, tmp_path)
     with running_gateway(cfg) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
             client.elements(timeout=30.0)
-            msg = client.elements(timeout=5.0)
-            status = client.next("status", timeout=5.0)
+            msg = client.elements(timeout=30.0)
+            status = client.next("status", timeout=30.0)
             if status["healthy"]:  # the first report may predate the first processed scan
-                status = client.next("status", timeout=5.0)
+                status = client.next("status", timeout=30.0)
     assert np.isfinite(msg.positions).all() and np.isfinite(msg.uncertainty).all()
     degraded = (msg.flags & 0x04) != 0
     near = np.abs(ELEMENT_UV).max(axis=1) <= 18.0  # within 1.5 pitch of the centre cell
