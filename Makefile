@@ -3,7 +3,7 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test bench clean
+.PHONY: run test test-slow check bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,8 +14,17 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(VENV)/bin/skinmap demo
 
+# The default suite (about 2 minutes on a 2-core machine); the longer tests are marked slow.
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -m "not slow"
+
+test-slow: $(STAMP)
+	$(VENV)/bin/python -m pytest -m slow
+
+# Static checks: mypy on the modules that are clean (.ci/typecheck.py), dead code (vulture).
+check: $(STAMP)
+	$(VENV)/bin/python .ci/typecheck.py
+	$(VENV)/bin/vulture --min-confidence 80 skinmap protocol firmware-host reconstruction daemon tests bench
 
 bench: $(STAMP)
 	$(VENV)/bin/python bench/run_all.py

@@ -24,7 +24,7 @@ from typing import Any, Callable
 
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.service import Gateway, open_zenoh
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import PtyTransport, SharedTcpTransport, TcpTransport
@@ -153,7 +153,7 @@ def short(warnings: list[str], n: int = 1) -> str:
 
 def pty_emulator(tmp: Path, rate_hz: float = RATE_HZ) -> tuple[Emulator, str]:
     link = tmp / "ttySKIN0"
-    emu = Emulator(DeviceConfig(n=5, m=5, scan_rate_hz=rate_hz, seed=5), make_shape("flat"), PtyTransport(link=link))
+    emu = Emulator(ScannerSpec(n=5, m=5, scan_rate_hz=rate_hz, seed=5), make_shape("flat"), PtyTransport(link=link))
     return emu, str(link)
 
 
@@ -277,7 +277,7 @@ def scenario_two_hosts(events: EventCount) -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         transport = SharedTcpTransport()
-        emu = Emulator(DeviceConfig(n=5, m=5, scan_rate_hz=RATE_HZ, seed=5), make_shape("flat"), transport)
+        emu = Emulator(ScannerSpec(n=5, m=5, scan_rate_hz=RATE_HZ, seed=5), make_shape("flat"), transport)
         emu.start()
         first = Running(config(transport.url, tmp, "first"))
         try:
@@ -311,7 +311,7 @@ def scenario_two_hosts_replacing(events: EventCount) -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         transport = TcpTransport()
-        emu = Emulator(DeviceConfig(n=5, m=5, scan_rate_hz=RATE_HZ, seed=5), make_shape("flat"), transport)
+        emu = Emulator(ScannerSpec(n=5, m=5, scan_rate_hz=RATE_HZ, seed=5), make_shape("flat"), transport)
         emu.start()
         first = Running(config(transport.url, tmp, "first"))
         try:

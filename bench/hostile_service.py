@@ -33,7 +33,7 @@ from latency import free_port  # bench/latency.py
 from skinmap.daemon.calibration import save_tare, tare_path
 from skinmap.daemon.client import SkinmapClient
 from skinmap.daemon.zenoh_io import make_session_config
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import PtyTransport
@@ -95,7 +95,7 @@ class Rig:
                  zport: int | None = None, **sections: dict[str, Any]) -> None:
         self.work = work
         work.mkdir(parents=True, exist_ok=True)
-        self.emulator = Emulator(DeviceConfig(n=N, m=N, scan_rate_hz=SCAN_HZ, seed=7),
+        self.emulator = Emulator(ScannerSpec(n=N, m=N, scan_rate_hz=SCAN_HZ, seed=7),
                                  make_shape("cylinder", radius=45.0), PtyTransport(link=work / "tty"))
         self.emulator.start()
         wait_until(lambda: self.emulator.device is not None, 10)

@@ -169,13 +169,13 @@ def record_real_log(folder: Path, scans: int = 40) -> Path:
     """Run the emulator and an in-process gateway until `scans` shapes were made; the log file."""
     from skinmap.daemon.config import parse_config
     from skinmap.daemon.service import Gateway
-    from skinmap.emulator.device import DeviceConfig
+    from skinmap.emulator.device import ScannerSpec
     from skinmap.emulator.emulator import Emulator
     from skinmap.emulator.physics import make_shape
     from skinmap.emulator.transport import PtyTransport
 
     folder.mkdir(parents=True, exist_ok=True)
-    emu = Emulator(DeviceConfig(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
+    emu = Emulator(ScannerSpec(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
                    PtyTransport(link=folder / "tty"))
     emu.start()
     cfg = parse_config({"device": {"port": str(folder / "tty"), "name": "hostile", "scan_rate_hz": 30},
@@ -361,7 +361,7 @@ def scenario_forged_puts(tmp: Path) -> None:
     from skinmap.daemon.config import parse_config
     from skinmap.daemon.service import Gateway, open_zenoh
     from skinmap.daemon.zenoh_io import make_session_config
-    from skinmap.emulator.device import DeviceConfig
+    from skinmap.emulator.device import ScannerSpec
     from skinmap.emulator.emulator import Emulator
     from skinmap.emulator.physics import make_shape
     from skinmap.emulator.transport import PtyTransport
@@ -375,7 +375,7 @@ def scenario_forged_puts(tmp: Path) -> None:
     for guard in (True, False):
         folder = tmp / f"forge-{guard}"
         folder.mkdir()
-        emu = Emulator(DeviceConfig(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
+        emu = Emulator(ScannerSpec(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
                        PtyTransport(link=folder / "tty"))
         emu.start()
         endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -24,7 +24,6 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -179,7 +178,6 @@ class GatewayStats:
     published: int = 0
     publish_errors: int = 0
     log_dropped: int = 0
-    log_errors: int = 0
     processing_errors: int = 0
     last_seq: int = -1
     last_solver_ms: float = 0.0
@@ -498,13 +496,11 @@ class Gateway:
                     self._log_state = "recording"
                     log.info("logging resumed: %s", lg.current_path)
             except LogStorageError as exc:
-                self.stats.log_errors += 1
                 if self._log_state != "error":
                     log.error("logging failed, publishing continues: %s", exc)
                 self._log_state = "error"
                 self._last_log_error = str(exc)
             except Exception as exc:  # noqa: BLE001
-                self.stats.log_errors += 1
                 log.warning("log write failed: %s", exc)
         try:
             lg.close()

@@ -262,13 +262,6 @@ class SkinmapPublisher:
     def keys(self) -> dict[str, str]:
         return dict(self._keys)
 
-    def has_subscribers(self, kind: str) -> bool:
-        """True if some subscriber matches ``kind`` (lets the daemon skip encoding unread data)."""
-        if kind not in self._publishers:
-            raise ValueError(f"unknown published kind {kind!r}; expected one of "
-                             f"{tuple(self._publishers)}")
-        return bool(self._publishers[kind].matching_status.matching)
-
     def _put(self, kind: str, payload: bytes) -> None:
         if not isinstance(payload, (bytes, bytearray, memoryview)):
             raise TypeError(f"{kind} payload must be bytes, got {type(payload).__name__}")

@@ -5,7 +5,7 @@
 - :mod:`~skinmap.emulator.scenes` — every shape kind's elastic form (molds, membranes, balloon, palm)
 - :mod:`~skinmap.emulator.electrical` — calibration, hysteresis, drift, noise, ADC (pure numpy)
 - :mod:`~skinmap.emulator.device` — the firmware as a pure state machine (bytes and time in, bytes out)
-- :mod:`~skinmap.emulator.link` — byte-level link faults
+- :mod:`~skinmap.emulator.linkfaults` — byte-level link faults
 - :mod:`~skinmap.emulator.transport`, :mod:`~skinmap.emulator.emulator` — pty / TCP edges and the loop
 - :mod:`~skinmap.emulator.cli` — the ``skinmap-emulator`` command
 
@@ -13,10 +13,10 @@ See firmware-host/README.md.
 """
 from __future__ import annotations
 
-from skinmap.emulator.device import Device, DeviceConfig, ScanRecord
+from skinmap.emulator.device import Device, ScannerSpec, ScanRecord
 from skinmap.emulator.electrical import Calibration, ElectricalConfig
 from skinmap.emulator.emulator import Emulator, FaultSchedule
-from skinmap.emulator.link import LinkFaults
+from skinmap.emulator.linkfaults import LinkFaults
 from skinmap.emulator.physics import (
     GroundTruth,
     Shape,
@@ -30,7 +30,7 @@ from skinmap.emulator.scenes import make_scene, parse_scene_spec
 from skinmap.emulator.transport import PtyTransport, TcpTransport
 
 __all__ = [
-    "Calibration", "Device", "DeviceConfig", "ElectricalConfig", "Emulator", "FaultSchedule",
+    "Calibration", "Device", "ScannerSpec", "ElectricalConfig", "Emulator", "FaultSchedule",
     "GroundTruth", "LinkFaults", "PtyTransport", "ScanRecord", "Shape", "TcpTransport",
     "cell_centres", "gauge_strains", "ground_truth", "make_scene", "make_shape", "parse_scene_spec",
     "parse_shape_spec",

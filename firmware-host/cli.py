@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.emulator.emulator import Emulator, FaultSchedule
-from skinmap.emulator.link import LinkFaults
+from skinmap.emulator.linkfaults import LinkFaults
 from skinmap.emulator.mechanics import MechanicsError
 from skinmap.emulator.physics import SHAPE_KINDS
 from skinmap.emulator.scenes import cache_directory, parse_scene_spec
@@ -125,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> tuple[DeviceConfig, np.ndarray, np.ndarray]:
+def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> tuple[ScannerSpec, np.ndarray, np.ndarray]:
     n, m = args.size if args.size else (5, 5)
     if args.size and (args.rows or args.cols):
         parser.error("give either --size or --rows/--cols")
@@ -140,7 +140,7 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
     except ValueError as exc:
         parser.error(str(exc))
     try:
-        cfg = DeviceConfig(n=n, m=m, pitch_mm=args.pitch, scan_rate_hz=args.rate,
+        cfg = ScannerSpec(n=n, m=m, pitch_mm=args.pitch, scan_rate_hz=args.rate,
                            max_step_rate_hz=args.max_step_rate, seed=args.seed, electrical=elec)
     except ValueError as exc:
         parser.error(str(exc))

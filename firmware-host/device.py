@@ -1,6 +1,6 @@
 """The scanner firmware as a pure state machine: bytes and time in, bytes out, no I/O.
 
-    dev = Device(DeviceConfig(n=5, m=5), shape, now_s=0.0)
+    dev = Device(ScannerSpec(n=5, m=5), shape, now_s=0.0)
     out = dev.poll(0.0)            # HELLO at boot
     out = dev.on_bytes(data, now)  # answers to host commands (ACK/NAK, HELLO for QUERY_INFO)
     out = dev.poll(now)            # SCANs that are due, periodic STATUS
@@ -58,7 +58,7 @@ from skinmap.protocol import (
 )
 from skinmap.protocol.framing import HEADER, decode_body, encode_body
 
-__all__ = ["DeviceConfig", "Device", "HostileModes", "ScanRecord"]
+__all__ = ["ScannerSpec", "Device", "HostileModes", "ScanRecord"]
 
 FW_VERSION = (0, 1, 0)
 STATUS_PERIOD_S = 1.0
@@ -72,7 +72,7 @@ _HOST_FRAME_LIMIT = 300  # receive buffer (PROTOCOL.md §13); longer bodies are 
 
 
 @dataclass(frozen=True)
-class DeviceConfig:
+class ScannerSpec:
     """Geometry, rates and identity of an emulated scanner."""
 
     n: int = 5
@@ -94,22 +94,22 @@ class DeviceConfig:
         for name in ("n", "m"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or not MIN_DIM <= v <= MAX_DIM:
-                raise ValueError(f"DeviceConfig.{name} must be an integer in {MIN_DIM}..{MAX_DIM}, got {v!r}")
+                raise ValueError(f"ScannerSpec.{name} must be an integer in {MIN_DIM}..{MAX_DIM}, got {v!r}")
         for name in ("pitch_mm", "gauge_length_mm", "scan_rate_hz", "max_step_rate_hz"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"DeviceConfig.{name} must be a positive number, got {v!r}")
+                raise ValueError(f"ScannerSpec.{name} must be a positive number, got {v!r}")
         for name in ("h_upper_mm", "h_lower_mm"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 0 <= v < 65.535):
-                raise ValueError(f"DeviceConfig.{name} must be in 0..65 mm, got {v!r}")
+                raise ValueError(f"ScannerSpec.{name} must be in 0..65 mm, got {v!r}")
         if self.scan_rate_hz > self.max_scan_rate_hz:
             raise ValueError(
-                f"DeviceConfig.scan_rate_hz {self.scan_rate_hz} exceeds the maximum "
+                f"ScannerSpec.scan_rate_hz {self.scan_rate_hz} exceeds the maximum "
                 f"{self.max_scan_rate_hz:g} scans/s of a {self.n}x{self.m} array"
             )
         if self.serial_number is not None and (len(self.serial_number) > 16 or not self.serial_number.isascii()):
-            raise ValueError(f"DeviceConfig.serial_number must be <= 16 ASCII characters, got {self.serial_number!r}")
+            raise ValueError(f"ScannerSpec.serial_number must be <= 16 ASCII characters, got {self.serial_number!r}")
 
     @property
     def steps(self) -> int:
@@ -159,7 +159,7 @@ class Device:
     """Emulated scanner firmware.  Faults are injected through :meth:`set_open`,
     :meth:`set_saturated`, :meth:`stall`, :meth:`reboot` (byte-level faults live in the link)."""
 
-    def __init__(self, config: DeviceConfig, shape: Shape, now_s: float = 0.0):
+    def __init__(self, config: ScannerSpec, shape: Shape, now_s: float = 0.0):
         self.config = config
         self.shape = shape
         self._epoch = float(now_s)

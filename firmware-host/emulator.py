@@ -1,7 +1,7 @@
 """The emulator runtime: the pure :class:`~skinmap.emulator.device.Device` behind a transport,
 driven by a select loop that writes each scan when its time comes.
 
-    emu = Emulator(DeviceConfig(n=5, m=5), make_shape("cylinder", radius=40),
+    emu = Emulator(ScannerSpec(n=5, m=5), make_shape("cylinder", radius=40),
                    PtyTransport("/tmp/skinmap-emulator/ttySKIN0"))
     emu.start()                       # background thread; or emu.run(duration) in the foreground
     ...  serial.Serial("/tmp/skinmap-emulator/ttySKIN0") ...
@@ -26,8 +26,8 @@ from typing import Callable, TextIO
 
 import numpy as np
 
-from skinmap.emulator.device import Device, DeviceConfig, ScanRecord
-from skinmap.emulator.link import FaultyLink, LinkFaults
+from skinmap.emulator.device import Device, ScannerSpec, ScanRecord
+from skinmap.emulator.linkfaults import FaultyLink, LinkFaults
 from skinmap.emulator.physics import GroundTruth, Shape
 from skinmap.emulator.transport import TcpTransport, Transport
 
@@ -57,7 +57,7 @@ class FaultSchedule:
 class Emulator:
     def __init__(
         self,
-        config: DeviceConfig,
+        config: ScannerSpec,
         shape: Shape,
         transport: Transport,
         link_faults: LinkFaults = LinkFaults(),

@@ -130,6 +130,8 @@ class PtyTransport(Transport):
             except OSError:
                 pass
         for fd in (self.master, self.slave):
+            if fd is None:
+                continue
             try:
                 os.close(fd)
             except OSError:
@@ -158,6 +160,8 @@ class PtyTransport(Transport):
         return data
 
     def _write(self, data: memoryview) -> int:
+        if self.master is None:  # flush() writes only while connected; a closed pty is a lost peer
+            raise OSError(errno.EBADF, "pseudo-terminal closed")
         return os.write(self.master, data)
 
     def describe(self) -> str:
@@ -224,9 +228,11 @@ class TcpTransport(Transport):
 
     def accept(self) -> bool:
         """Accept a waiting client; True when a new client is connected."""
+        if self.server is None:  # closed
+            return False
         try:
             conn, _ = self.server.accept()
-        except (BlockingIOError, InterruptedError, AttributeError):
+        except (BlockingIOError, InterruptedError):
             return False
         self._drop_client()
         conn.setblocking(False)
@@ -251,6 +257,8 @@ class TcpTransport(Transport):
         return data
 
     def _write(self, data: memoryview) -> int:
+        if self.client is None:
+            raise OSError(errno.ENOTCONN, "no host connected")
         return self.client.send(data)
 
     @property
@@ -313,9 +321,11 @@ class SharedTcpTransport(TcpTransport):
         return None
 
     def accept(self) -> bool:
+        if self.server is None:  # closed
+            return False
         try:
             conn, _ = self.server.accept()
-        except (BlockingIOError, InterruptedError, AttributeError):
+        except (BlockingIOError, InterruptedError):
             return False
         conn.setblocking(False)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

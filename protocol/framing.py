@@ -12,12 +12,13 @@ from dataclasses import dataclass
 from cobs import cobs
 
 from .errors import CobsError, CrcError, IncompatibleFlagsError, LengthError, VersionError
+from .layout import HEADER_LAYOUT, fixed_struct
 
 PROTOCOL_MAJOR = 1
 PROTOCOL_MINOR = 0
 
 DELIMITER = b"\x00"
-HEADER = struct.Struct("<BBBBHH")  # version, incompat_flags, compat_flags, msg_type, seq, payload_len
+HEADER = fixed_struct(HEADER_LAYOUT)  # version, incompat_flags, compat_flags, msg_type, seq, payload_len
 HEADER_SIZE = HEADER.size  # 8
 CRC_SIZE = 4
 MAX_PAYLOAD = 40960

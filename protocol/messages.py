@@ -12,12 +12,13 @@ from __future__ import annotations
 import enum
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Self
 
 import numpy as np
 
 from .errors import FieldError, LengthError
 from .framing import PROTOCOL_MAJOR, PROTOCOL_MINOR, crc32
+from .layout import HEADER_LAYOUT, NUMPY_DTYPE, TYPE_SIZE, FieldSpec, field_offset, fixed_struct, layout_size, schema_line
 
 MIN_DIM = 2
 MAX_DIM = 32
@@ -29,6 +30,7 @@ RES_SATURATED = 0xFFFFFFFE  # saturated / over range
 RES_MAX_VALID = 0xFFFFFFFD
 
 _U32_LE = np.dtype("<u4")
+Buffer = bytes | bytearray | memoryview  # what a payload may be handed in as (decode passes views)
 
 
 class MsgType(enum.IntEnum):
@@ -86,14 +88,6 @@ class ErrorCode(enum.IntEnum):
 # count: "" scalar, "k*N*M" an array of k·N·M elements, "ceil(k*N*M/8)" a bitmap in bytes,
 # "*" the rest of the payload.
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class FieldSpec:
-    type: str
-    name: str
-    count: str = ""
-    units: str = ""
 
 
 _GAUGE_ORDER = "(2 layers, 2 directions, N, M) C order"
@@ -170,19 +164,26 @@ LAYOUTS: dict[MsgType, tuple[FieldSpec, ...]] = {
     MsgType.RESET: (FieldSpec("u16", "request_id", "", "request id"),),
 }
 
-_TYPE_SIZE = {"u8": 1, "char": 1, "u16": 2, "i16": 2, "u32": 4, "u64": 8}
+
+
+def _fixed(mtype: MsgType) -> struct.Struct:
+    """Struct of a message's fixed leading fields, derived from its layout."""
+    return fixed_struct(LAYOUTS[mtype])
+
+
+def _payload_size(mtype: MsgType, n: int, m: int) -> int:
+    return layout_size(LAYOUTS[mtype], n, m)
 
 
 def schema_text() -> str:
     """Canonical text of all layouts: one line per message, hashed into SCHEMA_HASH."""
     lines = [
         f"skinmap-protocol {PROTOCOL_MAJOR}",
-        "header: u8 version; u8 incompat_flags; u8 compat_flags; u8 msg_type; u16 seq; u16 payload_len",
+        "header: " + schema_line(HEADER_LAYOUT),
         "trailer: u32 crc32",
     ]
     for mtype, fields in LAYOUTS.items():
-        parts = [f"{f.type}[{f.count}] {f.name}" if f.count else f"{f.type} {f.name}" for f in fields]
-        lines.append(f"{mtype.name} 0x{mtype.value:02X}: " + "; ".join(parts))
+        lines.append(f"{mtype.name} 0x{mtype.value:02X}: " + schema_line(fields))
     return "\n".join(lines) + "\n"
 
 
@@ -199,7 +200,7 @@ def layout_rows(mtype: MsgType) -> list[tuple[str, str, str, str, str]]:
             terms.append(f"{nm_bytes}·N·M")
         if bitmaps:
             terms.append(("" if bitmaps == 1 else f"{bitmaps}·") + "ceil(4·N·M/8)")
-        size = _TYPE_SIZE[f.type]
+        size = TYPE_SIZE[f.type]
         if f.count == "":
             size_text = str(size)
             const += size
@@ -255,19 +256,32 @@ def _expect_len(mtype: MsgType, payload_len: int, expected: int, extended: bool)
         )
 
 
-def _dims_from(mtype: MsgType, payload: bytes, offset: int, fixed: int) -> tuple[int, int]:
+def _dims_from(mtype: MsgType, payload: Buffer, fixed: int) -> tuple[int, int]:
     if len(payload) < fixed:
         raise LengthError(
             f"{mtype.name} payload is {len(payload)} bytes, shorter than its fixed part {fixed}"
         )
-    n, m = payload[offset], payload[offset + 1]
+    fields = LAYOUTS[mtype]
+    n, m = payload[field_offset(fields, "n")], payload[field_offset(fields, "m")]
     _check_dims(mtype.name, n, m)
     return n, m
 
 
+def _array_field(mtype: MsgType, payload: Buffer, name: str, shape: tuple[int, ...],
+                 base: int = 0) -> np.ndarray:
+    """Zero-copy view of an N·M array field, placed and typed by the layout (`base`: where the
+    payload starts in `payload`)."""
+    fields = LAYOUTS[mtype]
+    spec = next(f for f in fields if f.name == name)
+    n, m = shape[-2], shape[-1]
+    offset = base + field_offset(fields, name, n, m)
+    count = int(np.prod(shape))
+    return np.frombuffer(payload, np.dtype(NUMPY_DTYPE[spec.type]), count, offset).reshape(shape)
+
+
 def _arrays_equal(a: object, b: object, names: tuple[str, ...]) -> bool:
     if type(a) is not type(b):
-        return NotImplemented  # type: ignore[return-value]
+        return NotImplemented
     for name in names:
         x, y = getattr(a, name), getattr(b, name)
         if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
@@ -288,7 +302,7 @@ class Hello:
     """Device info: identity, geometry, rates, channel map and per-gauge calibration."""
 
     TYPE: ClassVar[MsgType] = MsgType.HELLO
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<BBBBBBH16sIIIHHIII")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.HELLO)
 
     fw_version: tuple[int, int, int]
     serial_number: str
@@ -367,11 +381,11 @@ class Hello:
 
     @classmethod
     def payload_size(cls, n: int, m: int) -> int:
-        return cls._FIXED.size + 38 * n * m
+        return _payload_size(MsgType.HELLO, n, m)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> Hello:
-        n, m = _dims_from(MsgType.HELLO, payload, 2, cls._FIXED.size)
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Hello:
+        n, m = _dims_from(MsgType.HELLO, payload, cls._FIXED.size)
         _expect_len(MsgType.HELLO, len(payload), cls.payload_size(n, m), extended)
         (pmaj, pmin, _, _, major, minor, patch, serial, schema, pitch, glen, hu, hl, rate,
          max_rate, lsb) = cls._FIXED.unpack_from(payload)
@@ -379,15 +393,11 @@ class Hello:
             serial_text = serial.rstrip(b"\x00").decode("ascii")
         except UnicodeDecodeError:
             raise FieldError(f"HELLO serial_number is not ASCII: {serial!r}") from None
-        nm = n * m
-        off = cls._FIXED.size
-        gf = np.frombuffer(payload, _U32_LE, 4 * nm, off).reshape(2, 2, n, m)
-        off += 16 * nm
-        r0 = np.frombuffer(payload, _U32_LE, 4 * nm, off).reshape(2, 2, n, m)
-        off += 16 * nm
-        drive = np.frombuffer(payload, np.uint8, 2 * nm, off).reshape(2, n, m)
-        off += 2 * nm
-        sense = np.frombuffer(payload, np.uint8, 4 * nm, off).reshape(2, 2, n, m)
+        g4, g2 = (2, 2, n, m), (2, n, m)
+        gf = _array_field(MsgType.HELLO, payload, "gauge_factor_micro", g4)
+        r0 = _array_field(MsgType.HELLO, payload, "base_resistance_uohm", g4)
+        drive = _array_field(MsgType.HELLO, payload, "drive_line", g2)
+        sense = _array_field(MsgType.HELLO, payload, "sense_channel", g4)
         if drive.max() >= 2 * min(n, m):
             raise FieldError(f"HELLO drive_line values must be < 2·min(N, M) = {2 * min(n, m)}")
         if sense.max() >= 2 * (n + m):
@@ -414,7 +424,7 @@ class Scan:
     """One whole scan: all 4·N·M gauge resistances, fixed point µΩ."""
 
     TYPE: ClassVar[MsgType] = MsgType.SCAN
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<IQIBBH")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.SCAN)
 
     sample_index: int
     timestamp_us: int
@@ -460,17 +470,17 @@ class Scan:
 
     @classmethod
     def payload_size(cls, n: int, m: int) -> int:
-        return cls._FIXED.size + 16 * n * m
+        return _payload_size(MsgType.SCAN, n, m)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False, offset: int = 0) -> Scan:
+    def unpack_payload(cls, payload: Buffer, extended: bool = False, offset: int = 0) -> Scan:
         """Decode; `payload` may be a larger buffer with the payload at `offset` (zero copy)."""
         view = memoryview(payload)[offset:]
-        n, m = _dims_from(MsgType.SCAN, view, 16, cls._FIXED.size)
+        n, m = _dims_from(MsgType.SCAN, view, cls._FIXED.size)
         size = cls.payload_size(n, m)
         _expect_len(MsgType.SCAN, len(view), size, extended)
         index, stamp, period, _, _, flags = cls._FIXED.unpack_from(view)
-        res = np.frombuffer(payload, _U32_LE, 4 * n * m, offset + cls._FIXED.size).reshape(2, 2, n, m)
+        res = _array_field(MsgType.SCAN, payload, "resistance_uohm", (2, 2, n, m), offset)
         return cls(index, stamp, period, res, flags)
 
     def __eq__(self, other: object) -> bool:
@@ -482,7 +492,7 @@ class Status:
     """Periodic (1 Hz) and on-change fault report with counters and per-gauge bitmaps."""
 
     TYPE: ClassVar[MsgType] = MsgType.STATUS
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<QIIIIHhBBBB")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.STATUS)
 
     timestamp_us: int
     fault_flags: int
@@ -510,7 +520,7 @@ class Status:
 
     @classmethod
     def payload_size(cls, n: int, m: int) -> int:
-        return cls._FIXED.size + 2 * cls.bitmap_size(n, m)
+        return _payload_size(MsgType.STATUS, n, m)
 
     def pack_payload(self) -> bytes:
         opened = np.asarray(self.open_gauges)
@@ -537,8 +547,8 @@ class Status:
         return fixed + bits[0] + bits[1]
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> Status:
-        n, m = _dims_from(MsgType.STATUS, payload, 29, cls._FIXED.size)
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Status:
+        n, m = _dims_from(MsgType.STATUS, payload, cls._FIXED.size)
         _expect_len(MsgType.STATUS, len(payload), cls.payload_size(n, m), extended)
         (stamp, faults, sent, dropped, rejected, supply, temp, state, _, _, fill) = cls._FIXED.unpack_from(payload)
         nb, count = cls.bitmap_size(n, m), 4 * n * m
@@ -561,7 +571,7 @@ class Ack:
     """Positive answer to a command; `result` is command specific (PROTOCOL.md, ACK)."""
 
     TYPE: ClassVar[MsgType] = MsgType.ACK
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<HB")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.ACK)
 
     request_id: int
     command: int
@@ -575,7 +585,7 @@ class Ack:
         return self._FIXED.pack(self.request_id, self.command) + bytes(self.result)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> Ack:
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Ack:
         if not cls._FIXED.size <= len(payload) <= cls._FIXED.size + MAX_PING_ECHO:
             raise LengthError(f"ACK payload is {len(payload)} bytes, allowed 3..{3 + MAX_PING_ECHO}")
         rid, cmd = cls._FIXED.unpack_from(payload)
@@ -594,7 +604,7 @@ class Nak:
     """Negative answer to a command: error code and which argument (1-based, 0 = none)."""
 
     TYPE: ClassVar[MsgType] = MsgType.NAK
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<HBBB")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.NAK)
 
     request_id: int
     command: int
@@ -609,7 +619,7 @@ class Nak:
         return self._FIXED.pack(self.request_id, self.command, self.error, self.argument)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> Nak:
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Nak:
         _expect_len(MsgType.NAK, len(payload), cls._FIXED.size, extended)
         return cls(*cls._FIXED.unpack_from(payload))
 
@@ -621,7 +631,8 @@ class Nak:
 
 @dataclass
 class _RequestOnly:
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<H")
+    # START, STOP, QUERY_INFO and RESET share this one-field layout (checked by the tests)
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.START)
 
     request_id: int
 
@@ -630,7 +641,7 @@ class _RequestOnly:
         return self._FIXED.pack(self.request_id)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False):  # noqa: ANN206
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Self:
         _expect_len(cls.TYPE, len(payload), cls._FIXED.size, extended)  # type: ignore[attr-defined]
         return cls(*cls._FIXED.unpack_from(payload))
 
@@ -660,7 +671,7 @@ class SetScanRate:
     """Set complete scans per second (× 1000); the TDM step rate is 2·min(N, M) times that."""
 
     TYPE: ClassVar[MsgType] = MsgType.SET_SCAN_RATE
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<HI")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.SET_SCAN_RATE)
 
     request_id: int
     scan_rate_mhz: int
@@ -671,7 +682,7 @@ class SetScanRate:
         return self._FIXED.pack(self.request_id, self.scan_rate_mhz)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> SetScanRate:
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> SetScanRate:
         _expect_len(MsgType.SET_SCAN_RATE, len(payload), cls._FIXED.size, extended)
         return cls(*cls._FIXED.unpack_from(payload))
 
@@ -679,7 +690,7 @@ class SetScanRate:
 @dataclass
 class Ping:
     TYPE: ClassVar[MsgType] = MsgType.PING
-    _FIXED: ClassVar[struct.Struct] = struct.Struct("<H")
+    _FIXED: ClassVar[struct.Struct] = _fixed(MsgType.PING)
 
     request_id: int
     echo: bytes = b""
@@ -691,7 +702,7 @@ class Ping:
         return self._FIXED.pack(self.request_id) + bytes(self.echo)
 
     @classmethod
-    def unpack_payload(cls, payload: bytes, extended: bool = False) -> Ping:
+    def unpack_payload(cls, payload: Buffer, extended: bool = False) -> Ping:
         if not 2 <= len(payload) <= 2 + MAX_PING_ECHO:
             raise LengthError(f"PING payload is {len(payload)} bytes, allowed 2..{2 + MAX_PING_ECHO}")
         return cls(int.from_bytes(payload[:2], "little"), bytes(payload[2:]))
@@ -699,7 +710,7 @@ class Ping:
 
 Message = Hello | Scan | Status | Ack | Nak | Start | Stop | SetScanRate | QueryInfo | Ping | Reset
 COMMANDS = (Start, Stop, SetScanRate, QueryInfo, Ping, Reset)
-MESSAGE_CLASSES: dict[MsgType, type] = {
+MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
     cls.TYPE: cls for cls in (Hello, Scan, Status, Ack, Nak, *COMMANDS)
 }
 

@@ -50,6 +50,22 @@ class StreamDecoder:
     at once and the rest of it, up to the next 0x00, is skipped unbuffered.
     """
 
+    # the counters (COUNTERS, PROTOCOL.md section 3), set to 0 in __init__
+    frames_ok: int
+    bytes_in: int
+    garbage_bytes: int
+    cobs_errors: int
+    crc_errors: int
+    length_errors: int
+    version_errors: int
+    incompat_flag_drops: int
+    unknown_type: int
+    field_errors: int
+    oversize_frames: int
+    salvaged_frames: int
+    seq_gaps: int
+    seq_lost: int
+
     def __init__(self) -> None:
         self._buf = bytearray()
         self._skipping = False

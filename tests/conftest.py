@@ -1,10 +1,18 @@
-"""Shared test helpers: free loopback ports and a gateway running in a background thread."""
+"""Shared test helpers: free loopback ports, waiting on conditions, receiving in order, a
+gateway running in a background thread, storage that fails on demand, rigid alignment.
+
+Waits are on conditions with generous time-outs (they end as soon as the condition holds, so
+only a failing test waits them out): a loaded machine makes things slower, not wrong.
+"""
 from __future__ import annotations
 
 import contextlib
 import socket
 import threading
-from typing import Any, Iterator
+import time
+from typing import Any, Callable, Iterator
+
+WAIT_S = 30.0  # default time-out of a wait: long enough for a loaded 2-core machine
 
 
 def free_port() -> int:
@@ -12,6 +20,71 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float = WAIT_S, poll: float = 0.02) -> bool:
+    """True as soon as `predicate()` is truthy; False if it is not after `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll)
+    return bool(predicate())
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float = WAIT_S, what: str = "the condition",
+             poll: float = 0.02) -> float:
+    """Seconds until `predicate()` held (a figure to print, not to assert); fails naming
+    `what` after `timeout`."""
+    t0 = time.monotonic()
+    if not wait_until(predicate, timeout, poll):
+        raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+    return time.monotonic() - t0
+
+
+def receive_elements(client: Any, count: int, timeout: float = WAIT_S) -> list:
+    """The next `count` elements messages a SkinmapClient receives; their sequence numbers
+    must rise (in order, none repeated)."""
+    out = [client.elements(timeout=timeout) for _ in range(count)]
+    seqs = [m.seq for m in out]
+    assert all(b > a for a, b in zip(seqs, seqs[1:])), f"elements out of order: {seqs}"
+    return out
+
+
+@contextlib.contextmanager
+def pty_emulator(link: Any, spec: Any, shape: Any, **emulator_kwargs: Any) -> Iterator[Any]:
+    """An emulated scanner (ScannerSpec, shape) on a pseudo-terminal at `link`, stopped on exit."""
+    from skinmap.emulator.emulator import Emulator
+    from skinmap.emulator.transport import PtyTransport
+
+    emu = Emulator(spec, shape, PtyTransport(link=link), **emulator_kwargs)
+    emu.start()
+    try:
+        yield emu
+    finally:
+        emu.stop()
+
+
+def gateway_config(tmp_path: Any, zport: int, port: Any, name: str, scan_rate_hz: float, *,
+                   device: dict | None = None, output: dict | None = None, elements: dict | None = None,
+                   log: dict | None = None, text: str = "") -> Any:
+    """A validated skinmapd configuration for a test: the scanner at `port`, Zenoh listening on
+    loopback `zport` only, logs and state under `tmp_path`."""
+    from skinmap.daemon.config import parse_config
+
+    return parse_config({
+        "device": {"port": str(port), "name": name, "scan_rate_hz": scan_rate_hz, **(device or {})},
+        "output": {"rate_hz": 20, "status_rate_hz": 4, **(output or {})},
+        "elements": elements or {"layout": "grid", "rows": 1, "cols": 4},
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{zport}"]},
+        "log": {"directory": str(tmp_path / "logs"), **(log or {})},
+        "state": {"directory": str(tmp_path / "state")},
+    }, source=str(tmp_path / "skinmapd.toml"), text=text)
+
+
+def explicit_elements(uv: Any) -> dict:
+    """The [elements] table placing one element at each (u, v) mm."""
+    return {"layout": "explicit", "explicit": [{"u_mm": float(u), "v_mm": float(v)} for u, v in uv]}
 
 
 @contextlib.contextmanager
@@ -52,13 +125,101 @@ class CheckedFile:
         self.raw.close()
 
 
-def aligned_error(nodes, truth) -> float:
+def aligned_error(nodes: Any, truth: Any) -> float:
     """Mean node error after the best rigid alignment (Kabsch)."""
     import numpy as np
 
-    p, q = np.asarray(nodes).reshape(-1, 3), np.asarray(truth).reshape(-1, 3)
-    pc, qc = p.mean(0), q.mean(0)
-    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    from skinmap.reconstruction.linalg import aligned_distances
+
+    p, q = np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3)
+    return float(aligned_distances(p, q).mean())
+
+
+def rigid_motion(src: Any, dst: Any) -> tuple[Any, Any]:
+    """R, t minimising |R·src + t − dst| (Kabsch) for (K, 3) point sets, for tests that move
+    other points with the same motion (distances alone: `aligned_error`)."""
+    import numpy as np
+
+    src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _s, vt = np.linalg.svd((src - cs).T @ (dst - cd))
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return float(np.linalg.norm((p - pc) @ r.T + qc - q, axis=1).mean())
+    return r, cd - r @ cs
+
+
+def _readable_by_others(path: str) -> bool:
+    """Whether a user that is neither owner nor group can reach and read `path`."""
+    import os
+    import stat
+
+    for p in {os.path.abspath(path), os.path.realpath(path)}:  # the link and what it points to
+        parts = p.split(os.sep)
+        for i in range(2, len(parts)):
+            if not os.stat(os.sep.join(parts[:i])).st_mode & stat.S_IXOTH:
+                return False
+        if not os.stat(p).st_mode & stat.S_IROTH:
+            return False
+    return True
+
+
+def _link_tree(src: str, dst: str) -> None:
+    """Copy a tree as hard links where the file system allows (fast, mtimes kept: numba's cache
+    index matches its sources by mtime and size), as copies otherwise."""
+    import os
+    import shutil
+
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(src, dst, symlinks=True, copy_function=link, dirs_exist_ok=True,
+                    ignore=shutil.ignore_patterns("__editable__*", "skinmap-*.dist-info"))
+
+
+@contextlib.contextmanager
+def python_for_other_users(*extra_dirs: str) -> Iterator[tuple[str, dict[str, str], dict[str, str]]]:
+    """(interpreter, environment additions, {dir: its readable copy}) with which another user
+    (the service's unprivileged one) runs this checkout's skinmap and dependencies.
+
+    A checkout in a private directory (mode 0700, e.g. under /root) is out of that user's reach,
+    and so may be the interpreter: then the interpreter, the environment's site-packages, the
+    package's folders and `extra_dirs` are linked into a world-readable temporary directory.
+    Otherwise everything is used where it is."""
+    import importlib
+    import os
+    import shutil
+    import sys
+    import sysconfig
+    import tempfile
+
+    names = ("skinmap", "skinmap.protocol", "skinmap.emulator", "skinmap.reconstruction", "skinmap.daemon")
+    packages = {name: list(importlib.import_module(name).__path__)[0] for name in names}
+    site = sysconfig.get_paths()["purelib"]
+    needed = [sys.executable, site, *packages.values(), *extra_dirs]
+    if all(_readable_by_others(p) for p in needed):
+        yield sys.executable, {}, {d: d for d in extra_dirs}
+        return
+    tmp = tempfile.mkdtemp(prefix="skinmap-readable-")
+    try:
+        os.chmod(tmp, 0o755)
+        env: dict[str, str] = {"PYTHONNOUSERSITE": "1"}
+        python = sys.executable if _readable_by_others(sys.executable) else os.path.realpath(sys.executable)
+        if not _readable_by_others(python):
+            base = os.path.join(tmp, "python")
+            _link_tree(sys.base_prefix, base)
+            python = os.path.join(base, "bin", os.path.basename(os.path.realpath(sys.executable)))
+            env["LD_LIBRARY_PATH"] = os.path.join(base, "lib")
+        _link_tree(site, os.path.join(tmp, "site"))
+        for name, path in packages.items():
+            _link_tree(path, os.path.join(tmp, "pkg", *name.split(".")))
+        copies = {}
+        for d in extra_dirs:
+            copies[d] = os.path.join(tmp, "extra", os.path.basename(os.path.normpath(d)))
+            _link_tree(d, copies[d])
+        env["PYTHONPATH"] = os.pathsep.join([os.path.join(tmp, "pkg"), os.path.join(tmp, "site")])
+        yield python, env, copies
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

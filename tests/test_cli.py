@@ -2,16 +2,13 @@
 from __future__ import annotations
 
 import json
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port, running_gateway
+from conftest import WAIT_S, free_port, running_gateway, wait_until
 
 from skinmap.daemon.cli import main as skinmap_main
-from skinmap.daemon.config import parse_config
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import PtyTransport
@@ -23,7 +20,7 @@ pytestmark = pytest.mark.slow
 def session_run(tmp_path_factory):
     """Run emulator → gateway for a few seconds; run echo/info meanwhile; keep the log."""
     tmp = tmp_path_factory.mktemp("cli")
-    emu = Emulator(DeviceConfig(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
+    emu = Emulator(ScannerSpec(n=4, m=5, scan_rate_hz=30.0, seed=5), make_shape("cylinder", radius=40.0),
                    PtyTransport(link=tmp / "tty"))
     emu.start()
     zport = free_port()
@@ -48,9 +45,8 @@ directory = "state"
     outputs: dict[str, object] = {}
     try:
         with running_gateway(cfg) as gw:
-            deadline = time.monotonic() + 30
-            while gw.stats.results < 20 and time.monotonic() < deadline:
-                time.sleep(0.05)
+            # 20 processed scans: a log with content; waited for, however long a loaded machine takes
+            wait_until(lambda: gw.stats.results >= 20, 4 * WAIT_S)
             outputs["gateway_results"] = gw.stats.results
             outputs["info_rc"] = skinmap_main(["info", "--connect", f"tcp/127.0.0.1:{zport}", "--device", "cli", "--json"])
             outputs["echo_rc"] = skinmap_main(["echo", "--connect", f"tcp/127.0.0.1:{zport}", "--device", "cli", "--duration", "1.0"])
@@ -111,7 +107,6 @@ def test_tare_from_log_is_stored_and_used(session_run, capsys):
 
     from skinmap.daemon.config import load_config
     from skinmap.daemon.service import calibration_for_hello
-    from skinmap.daemon.replay import resistances_from_log
     from skinmap.daemon.mcapinspect import iter_messages_file_order
     from skinmap.protocol import Hello, StreamDecoder
 

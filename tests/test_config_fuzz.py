@@ -134,6 +134,7 @@ def assert_names_a_key_of(doc: dict, message: str) -> None:
     assert cross, f"error does not name a key of the document: {message}"
 
 
+@pytest.mark.slow
 def test_config_loader_fuzz_returns_a_config_or_names_the_key():
     seen: collections.Counter = collections.Counter()
 
@@ -167,6 +168,7 @@ def test_config_loader_fuzz_returns_a_config_or_names_the_key():
     assert seen["accepted"] >= CONFIG_EXAMPLES // 20 and seen["refused"] >= CONFIG_EXAMPLES // 4
 
 
+@pytest.mark.slow
 def test_config_file_fuzz_mutated_demo_config():
     """Random edits of the demo config text: load_config either loads it or raises ConfigError
     (invalid TOML included), never anything else."""
@@ -225,6 +227,7 @@ def _some_frames(seed: int) -> bytes:
     return p.encode_frame(scan, seed % 65536) + p.encode_frame(p.Ack(seed, int(p.MsgType.PING), b"ok"), 1)
 
 
+@pytest.mark.slow
 def test_stream_decoder_fuzz_counted():
     seen: collections.Counter = collections.Counter()
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from skinmap import protocol as p
-from skinmap.emulator.device import Device, DeviceConfig
+from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig, resistance_to_strain
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.protocol.framing import encode_body
@@ -39,7 +39,7 @@ class Host:
 
 
 def make(n=5, m=5, shape=None, elec=IDEAL, rate=10.0, seed=1, t0=100.0):
-    dev = Device(DeviceConfig(n=n, m=m, scan_rate_hz=rate, seed=seed, electrical=elec),
+    dev = Device(ScannerSpec(n=n, m=m, scan_rate_hz=rate, seed=seed, electrical=elec),
                  shape or make_shape("cylinder", radius=40.0), now_s=t0)
     host = Host(dev)
     boot = host.poll(t0)
@@ -74,7 +74,7 @@ def test_boot_sends_delimiter_hello_seq0_then_status():
     status = boot[1].msg
     assert status.state == p.DeviceState.IDLE and status.scans_sent == 0
     # the wire starts with a delimiter that closes off line noise
-    dev2 = Device(DeviceConfig(), make_shape("flat"), now_s=0.0)
+    dev2 = Device(ScannerSpec(), make_shape("flat"), now_s=0.0)
     assert dev2.poll(0.0)[:1] == b"\x00"
     assert raw(100.5) == b""
 
@@ -340,7 +340,7 @@ def test_adc_fault_enters_fault_state_and_refuses_start():
 
 def test_same_seed_same_bytes_different_seed_different_calibration():
     def run(seed):
-        dev = Device(DeviceConfig(seed=seed, electrical=ElectricalConfig()), make_shape("palm"), now_s=0.0)
+        dev = Device(ScannerSpec(seed=seed, electrical=ElectricalConfig()), make_shape("palm"), now_s=0.0)
         out = dev.poll(0.0) + dev.on_bytes(p.encode_frame(p.Start(1), 0), 0.0)
         return out + b"".join(dev.poll(0.1 * k) for k in range(1, 12))
 
@@ -368,14 +368,14 @@ def _centres():
 
 
 def test_config_errors_are_named():
-    with pytest.raises(ValueError, match="DeviceConfig.n"):
-        DeviceConfig(n=1)
-    with pytest.raises(ValueError, match="DeviceConfig.m"):
-        DeviceConfig(m=33)
+    with pytest.raises(ValueError, match="ScannerSpec.n"):
+        ScannerSpec(n=1)
+    with pytest.raises(ValueError, match="ScannerSpec.m"):
+        ScannerSpec(m=33)
     with pytest.raises(ValueError, match="exceeds the maximum"):
-        DeviceConfig(n=32, m=32, scan_rate_hz=100.0)
+        ScannerSpec(n=32, m=32, scan_rate_hz=100.0)
     with pytest.raises(ValueError, match="serial_number"):
-        DeviceConfig(serial_number="x" * 17)
+        ScannerSpec(serial_number="x" * 17)
 
 
 @pytest.mark.parametrize("n, m", [(2, 2), (7, 3), (3, 7), (32, 32)])
@@ -398,7 +398,7 @@ from hypothesis import given, settings, strategies as st  # noqa: E402
 @settings(max_examples=150, deadline=None)
 @given(chunks=st.lists(st.binary(max_size=400), max_size=6), seed=st.integers(0, 3))
 def test_arbitrary_host_bytes_never_break_the_firmware(chunks, seed):
-    dev = Device(DeviceConfig(n=2, m=3, seed=seed, electrical=IDEAL), make_shape("flat"), now_s=0.0)
+    dev = Device(ScannerSpec(n=2, m=3, seed=seed, electrical=IDEAL), make_shape("flat"), now_s=0.0)
     dec = p.StreamDecoder()
     dec.feed(dev.poll(0.0))
     valid = p.encode_frame(p.Ping(77, b"alive"), 0)

@@ -7,7 +7,7 @@ import pytest
 
 from skinmap import protocol as p
 from skinmap.emulator import cli
-from skinmap.emulator.device import Device, DeviceConfig
+from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig, resistance_to_strain
 from skinmap.emulator.physics import gauge_strains, ground_truth, make_shape
 from skinmap.emulator.scenes import KeyframedSheet, SheetShape, make_scene, parse_scene_spec
@@ -25,10 +25,11 @@ def scans(dev: Device, t0: float, until: float) -> list:
     return [f.msg for f in frames if f.msg_type == p.MsgType.SCAN]
 
 
+@pytest.mark.slow
 def test_device_streams_the_elastic_sphere_not_the_geodesic_map(cache):
     shape = make_scene("sphere", 5, 5, 12.0, radius=60.0, cache_dir=cache)
     assert isinstance(shape, SheetShape)
-    dev = Device(DeviceConfig(n=5, m=5, scan_rate_hz=10.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
+    dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=10.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
     dev.poll(100.0)
     scan = scans(dev, 100.0, 100.1)[0]
     eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
@@ -42,11 +43,12 @@ def test_device_streams_the_elastic_sphere_not_the_geodesic_map(cache):
     np.testing.assert_allclose(truth.nodes, ground_truth(shape, 5, 5, 12.0).nodes)
 
 
+@pytest.mark.slow
 def test_moving_elastic_scene_is_sampled_at_each_units_tdm_step(cache):
     # a coarse mesh and few key frames: this checks the sampling, not the mechanics
     shape = make_scene("membrane", 5, 5, 12.0, fingers=2, period=1.0, mesh=3.0, keyframes=8, cache_dir=cache)
     assert isinstance(shape, KeyframedSheet) and shape.time_varying
-    dev = Device(DeviceConfig(n=5, m=5, scan_rate_hz=5.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
+    dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=5.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
     dev.poll(100.0)
     scan = scans(dev, 100.0, 100.45)[0]
     eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
@@ -57,6 +59,7 @@ def test_moving_elastic_scene_is_sampled_at_each_units_tdm_step(cache):
     assert np.abs(eps - at_step0).max() > 1e-4  # the fingers moved during the scan
 
 
+@pytest.mark.slow
 def test_keyframed_readings_are_exact_at_key_frames_and_continuous_between(cache):
     shape = make_scene("membrane", 5, 5, 12.0, fingers=1, period=1.0, mesh=3.0, keyframes=8, cache_dir=cache)
     t_k = float(shape.times[3])
@@ -89,6 +92,7 @@ def test_scene_spec_mechanics_must_be_named():
         parse_scene_spec("flat", "rigid", 5, 5)  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_balloon_centre_turns_from_convex_to_concave_under_the_dome_and_back(cache):
     # the paper's balloon: a unit inside the array switches from convex (the balloon) to concave
     # (the dome's imprint) during the press and back on release
@@ -103,6 +107,7 @@ def test_balloon_centre_turns_from_convex_to_concave_under_the_dome_and_back(cac
     np.testing.assert_allclose(bend[4.0], bend[0.0], atol=1e-9)  # released: one period later
 
 
+@pytest.mark.slow
 def test_palm_mold_holds_still_during_a_hold_and_moves_between_keys(cache):
     shape = make_scene("palm", 3, 3, 12.0, hold=1.0, transition=1.0, mesh=2.0, keyframes=16, cache_dir=cache)
     a = np.stack(gauge_strains(shape, 3, 3, 12.0, t=2.1))
@@ -121,6 +126,7 @@ def test_points_outside_the_solved_film_are_refused_not_clamped(cache):
         ground_truth(shape, 3, 3, 12.0, element_uv=[[0.0, 25.0]])
 
 
+@pytest.mark.slow
 def test_balloon_pressed_on_a_wall_ridge_stays_below_the_wall_and_dips_under_the_crest(cache):
     shape = make_scene("balloon", 5, 5, 12.0, indenter=1, depth=5.0, period=4.0, mesh=2.0, keyframes=4,
                        cache_dir=cache)

@@ -8,17 +8,16 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
 
 from skinmap import protocol as p
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.emulator.emulator import Emulator, FaultSchedule
-from skinmap.emulator.link import LinkFaults
+from skinmap.emulator.linkfaults import LinkFaults
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.emulator.transport import PtyTransport, TcpTransport
 
@@ -86,7 +85,7 @@ def _check_strains(hello: p.Hello, scans, shape, n, m, tol):
 def test_pty_round_trip_through_pyserial(tmp_path):
     link = tmp_path / "ttySKIN0"
     shape = make_shape("gaussian", height=4.0, fwhm=18.0, centre=(3.0, -2.0))
-    cfg = DeviceConfig(n=5, m=5, scan_rate_hz=50.0, seed=7)
+    cfg = ScannerSpec(n=5, m=5, scan_rate_hz=50.0, seed=7)
     with Emulator(cfg, shape, PtyTransport(link)) as emu:
         assert link.is_symlink() and os.readlink(link) == emu.transport.path
         with serial.Serial(str(link), timeout=0.05) as port:
@@ -118,7 +117,7 @@ def test_pty_round_trip_through_pyserial(tmp_path):
 
 def test_tcp_round_trip_through_serial_for_url():
     shape = make_shape("cylinder", radius=40.0)
-    cfg = DeviceConfig(n=4, m=6, scan_rate_hz=40.0, electrical=ElectricalConfig.ideal())
+    cfg = ScannerSpec(n=4, m=6, scan_rate_hz=40.0, electrical=ElectricalConfig.ideal())
     with Emulator(cfg, shape, TcpTransport(0)) as emu:
         url = emu.transport.url
         assert url.startswith("socket://127.0.0.1:")
@@ -141,7 +140,7 @@ def test_tcp_round_trip_through_serial_for_url():
 
 def test_disconnect_then_new_pty_behind_the_same_symlink(tmp_path):
     link = tmp_path / "tty"
-    cfg = DeviceConfig(n=3, m=3, scan_rate_hz=50.0)
+    cfg = ScannerSpec(n=3, m=3, scan_rate_hz=50.0)
     with Emulator(cfg, make_shape("flat"), PtyTransport(link)) as emu:
         port = serial.Serial(str(link), timeout=0.05)
         host = Client(port)
@@ -173,24 +172,31 @@ def test_disconnect_then_new_pty_behind_the_same_symlink(tmp_path):
 
 def test_byte_faults_are_survived_by_the_stream_decoder(tmp_path):
     faults = LinkFaults(garbage_rate_hz=20.0, bit_flip_rate=2e-4, drop_rate=5e-5)
-    cfg = DeviceConfig(n=5, m=5, scan_rate_hz=100.0, seed=3)
+    cfg = ScannerSpec(n=5, m=5, scan_rate_hz=100.0, seed=3)
     with Emulator(cfg, make_shape("flat"), PtyTransport(tmp_path / "tty"), faults) as emu:
         with serial.Serial(str(tmp_path / "tty"), timeout=0.05) as port:
             host = Client(port)
             host.send(p.Start(1))
-            scans = host.scans(host.read_until(_n_scans(80), timeout=5.0))
+            scans = host.scans(host.read_until(_n_scans(80), timeout=60.0))
         counters = emu.link.counters()
-    d = host.dec
+    d = host.dec.counters()
+    assert len(scans) >= 80
     assert counters["garbage_bursts"] > 0 and counters["bits_flipped"] > 0
-    assert d.crc_errors + d.cobs_errors + d.length_errors > 0  # damage was seen...
+    damaged = sum(d[k] for k in ("crc_errors", "cobs_errors", "length_errors", "oversize_frames",
+                                 "version_errors", "incompat_flag_drops", "field_errors"))
+    assert damaged > 0  # damage was seen...
     idx = np.array([s.sample_index for s in scans])
-    assert np.all(np.diff(idx) >= 1)  # ...and what got through is intact and in order
-    delivered = len(idx) / (idx[-1] - idx[0] + 1)
-    assert 0.5 < delivered < 1.0, delivered  # most scans survive, some are lost
+    steps = np.diff(idx)
+    assert np.all(steps >= 1)  # ...what got through is intact and in order...
+    # ...and every run of missing scans is accounted for: a body the decoder dropped (one run
+    # at most per damaged body), or the device saying it dropped scans itself.
+    gaps = steps > 1
+    flagged = np.array([bool(s.flags & p.ScanFlag.DROPPED_BEFORE) for s in scans[1:]])
+    assert int((gaps & ~flagged).sum()) <= damaged, (int(gaps.sum()), damaged)
 
 
 def test_scheduled_reboot_sends_hello_again(tmp_path):
-    cfg = DeviceConfig(n=3, m=3, scan_rate_hz=50.0)
+    cfg = ScannerSpec(n=3, m=3, scan_rate_hz=50.0)
     sched = FaultSchedule(reboot_every_s=0.5)
     with Emulator(cfg, make_shape("flat"), TcpTransport(0), schedule=sched) as emu:
         port = serial.serial_for_url(emu.transport.url, timeout=0.05)
@@ -247,7 +253,7 @@ def test_cli_serves_pty_writes_truth_and_exits_cleanly_on_sigterm(tmp_path):
     "args, words",
     [
         (["--size", "5by5"], "size must look like"),
-        (["--size", "1x5"], "DeviceConfig.n"),
+        (["--size", "1x5"], "ScannerSpec.n"),
         (["--shape", "blob"], "unknown shape kind"),
         (["--dead-gauge", "upper,row,9,9"], "outside the 5x5 array"),
         (["--dead-gauge", "middle,row,1,1"], "layer must be upper or lower"),
@@ -264,7 +270,7 @@ def test_cli_bad_arguments_are_named(args, words):
 
 
 def test_scheduled_stall_silences_the_device_then_flags_lost_scans(tmp_path):
-    cfg = DeviceConfig(n=3, m=3, scan_rate_hz=50.0)
+    cfg = ScannerSpec(n=3, m=3, scan_rate_hz=50.0)
     sched = FaultSchedule(stall_every_s=0.6, stall_for_s=0.3)
     with Emulator(cfg, make_shape("flat"), PtyTransport(tmp_path / "tty"), schedule=sched) as emu:
         with serial.Serial(str(tmp_path / "tty"), timeout=0.05) as port:

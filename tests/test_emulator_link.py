@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from skinmap import protocol as p
-from skinmap.emulator.link import FaultyLink, LinkFaults
+from skinmap.emulator.linkfaults import FaultyLink, LinkFaults
 
 
 def _stream(k=200):

@@ -12,10 +12,11 @@ import time
 import numpy as np
 import pytest
 import serial
+from conftest import wait_until
 
 from skinmap.daemon.config import DeviceConfig as LinkConfig
 from skinmap.daemon.link import ScannerLink
-from skinmap.emulator.device import Device, DeviceConfig
+from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.physics import make_shape
 
 
@@ -85,7 +86,7 @@ class FakePort:
 
 
 def make_device(n=5, m=5, **kw) -> Device:
-    return Device(DeviceConfig(n=n, m=m, scan_rate_hz=100.0, seed=3, **kw), make_shape("flat"), now_s=time.monotonic())
+    return Device(ScannerSpec(n=n, m=m, scan_rate_hz=100.0, seed=3, **kw), make_shape("flat"), now_s=time.monotonic())
 
 
 class Recorder:
@@ -106,15 +107,6 @@ class Recorder:
         )
 
 
-def wait_for(pred, timeout=5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 CFG = LinkConfig(port="/dev/fake-scanner", scan_rate_hz=100.0, handshake_timeout_s=1.0, stall_timeout_s=0.3,
                  reconnect_min_s=0.05, reconnect_max_s=0.2)
 
@@ -125,7 +117,7 @@ def test_handshake_and_streaming():
     link = rec.link(CFG, lambda *a: FakePort(dev))
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 20)
+        assert wait_until(lambda: len(rec.scans) >= 20)
     finally:
         link.stop()
     assert len(rec.hellos) == 1 and rec.hellos[0].n == 5
@@ -140,7 +132,7 @@ def test_lost_scans_are_counted_from_the_sample_index():
     link = rec.link(CFG, lambda *a: FakePort(dev, drop_every=4))
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 30)
+        assert wait_until(lambda: len(rec.scans) >= 30)
     finally:
         link.stop()
     expected_lost = (rec.scans[-1] - rec.scans[0] + 1) - len(rec.scans)
@@ -148,17 +140,18 @@ def test_lost_scans_are_counted_from_the_sample_index():
     assert link.stats.scans_lost == expected_lost
 
 
+@pytest.mark.slow
 def test_stall_is_reported_and_streaming_resumes():
     dev = make_device()
     rec = Recorder()
     link = rec.link(CFG, lambda *a: FakePort(dev))
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.stall(time.monotonic(), 1.0)
-        assert wait_for(lambda: link.stats.stalls >= 1, 3.0)
+        assert wait_until(lambda: link.stats.stalls >= 1)
         before = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > before + 10, 5.0)
+        assert wait_until(lambda: len(rec.scans) > before + 10)
     finally:
         link.stop()
     assert any("resumed" in text for _, text in rec.events)
@@ -172,12 +165,12 @@ def test_reboot_triggers_a_new_handshake():
     link = rec.link(CFG, lambda *a: port)
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 10)
+        assert wait_until(lambda: len(rec.scans) >= 10)
         with port.lock:  # the firmware restarts and announces itself with HELLO
             port._append(dev._reboot_now(time.monotonic(), True))
-        assert wait_for(lambda: len(rec.hellos) >= 2, 5.0)
+        assert wait_until(lambda: len(rec.hellos) >= 2)
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > n + 10, 5.0)
+        assert wait_until(lambda: len(rec.scans) > n + 10)
     finally:
         link.stop()
     assert link.stats.reboots >= 1
@@ -200,14 +193,14 @@ def test_unplug_and_replug_reconnects_in_process():
     link = rec.link(CFG, opener)
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         available.clear()
         ports[-1].unplugged = True
-        assert wait_for(lambda: link.stats.disconnects >= 1, 3.0)
+        assert wait_until(lambda: link.stats.disconnects >= 1)
         time.sleep(0.3)  # a few failed reopen attempts
         available.set()
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > n + 10, 5.0)
+        assert wait_until(lambda: len(rec.scans) > n + 10)
     finally:
         link.stop()
     assert link.stats.reconnects >= 1
@@ -223,7 +216,7 @@ def test_device_larger_than_allowed_is_refused_with_a_clear_error():
     link = rec.link(cfg, lambda *a: FakePort(dev))
     link.start()
     try:
-        assert wait_for(lambda: link.stats.handshake_failures >= 2, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 2)
     finally:
         link.stop()
     assert not rec.scans and not rec.hellos
@@ -243,7 +236,7 @@ def test_silent_port_gives_a_handshake_error_not_a_crash():
     link = rec.link(cfg, lambda *a: SilentPort(make_device()))
     link.start()
     try:
-        assert wait_for(lambda: link.stats.handshake_failures >= 2, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 2)
     finally:
         link.stop()
     assert "no HELLO" in link.stats.last_error

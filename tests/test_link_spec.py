@@ -13,13 +13,14 @@ import pytest
 
 from skinmap.daemon.config import DeviceConfig as LinkConfig
 from skinmap.daemon.link import ScannerLink, open_serial
-from skinmap.emulator.device import Device, DeviceConfig
+from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import SharedTcpTransport
 from skinmap.protocol import DeviceState, Start, StreamDecoder, encode_frame, step_period_ns
 
-from test_link import CFG, FakePort, Recorder, make_device, wait_for
+from conftest import wait_until
+from test_link import CFG, FakePort, Recorder, make_device
 
 
 class ScanLog(Recorder):
@@ -66,7 +67,7 @@ def test_gauge_length_zero_or_longer_than_the_pitch_is_refused_at_the_handshake(
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: link.stats.handshake_failures >= 1, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 1)
     finally:
         link.stop()
     assert expected in link.stats.last_error and "pitch 12000" in link.stats.last_error
@@ -89,7 +90,7 @@ def test_major_version_mismatch_stops_the_device_and_backs_off_beyond_the_reconn
     link = running(dev, rec, cfg)
     backoffs: list[float] = []
     try:
-        assert wait_for(lambda: (backoffs.append(link.stats.backoff_s) or link.stats.handshake_failures >= 4), 10.0)
+        assert wait_until(lambda: (backoffs.append(link.stats.backoff_s) or link.stats.handshake_failures >= 4))
     finally:
         link.stop()
     assert "major versions differ" in link.stats.last_error and "protocol 2.0" in link.stats.last_error
@@ -104,12 +105,12 @@ def test_reboot_into_an_incompatible_protocol_stops_the_device():
     port = FakePort(dev)
     link = running(dev, rec, port=port)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.hello_protocol_major = 2
         reboot_on_port(port, dev)
-        assert wait_for(lambda: link.stats.handshake_failures >= 1, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 1)
         _start_scanning(dev)  # the new firmware starts by itself: the next refusal stops it again
-        assert wait_for(lambda: link.stats.handshake_failures >= 2 and dev.state == DeviceState.IDLE, 10.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 2 and dev.state == DeviceState.IDLE)
     finally:
         link.stop()
     assert "major versions differ" in link.stats.last_error
@@ -121,17 +122,17 @@ def test_reboot_into_an_incompatible_protocol_stops_the_device():
 
 def test_lost_boot_hello_still_gets_the_configured_rate_before_start():
     # boot default 20 scans/s, configured 100
-    dev = Device(DeviceConfig(n=5, m=5, scan_rate_hz=20.0, seed=3), make_shape("flat"), now_s=time.monotonic())
+    dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=20.0, seed=3), make_shape("flat"), now_s=time.monotonic())
     rec = ScanLog()
     port = FakePort(dev)
     link = running(dev, rec, port=port)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 10)
+        assert wait_until(lambda: len(rec.scans) >= 10)
         dev.hostile.lose_boot_hello = True
         reboot_on_port(port, dev)  # IDLE, at its boot rate, and the host was not told
-        assert wait_for(lambda: link.stats.stalls >= 1, 5.0)
+        assert wait_until(lambda: link.stats.stalls >= 1)
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > n + 20, 10.0)
+        assert wait_until(lambda: len(rec.scans) > n + 20)
     finally:
         link.stop()
     want = step_period_ns(100_000, 5, 5)
@@ -146,7 +147,7 @@ def test_an_applied_rate_far_from_the_request_is_refused():
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: link.stats.handshake_failures >= 1, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 1)
     finally:
         link.stop()
     assert "applied 10 scans/s for the requested 100" in link.stats.last_error
@@ -157,15 +158,16 @@ def test_an_applied_rate_far_from_the_request_is_refused():
 # sample-index accounting
 
 
+@pytest.mark.slow
 def test_repeated_sample_index_is_counted_and_reported_rate_limited_not_as_reboots():
     dev = make_device()
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.repeat_sample_index = True
-        assert wait_for(lambda: link.stats.scans_repeated_index >= 100, 10.0)
-        assert wait_for(lambda: link.stats.state == "stalled", 5.0)
+        assert wait_until(lambda: link.stats.scans_repeated_index >= 100)
+        assert wait_until(lambda: link.stats.state == "stalled")
         error = link.stats.last_error
     finally:
         link.stop()
@@ -181,11 +183,11 @@ def test_implausible_index_jump_is_a_resync_not_a_loss():
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.index_jump = 0x7FFFFF00
-        assert wait_for(lambda: link.stats.index_resyncs >= 1, 5.0)
+        assert wait_until(lambda: link.stats.index_resyncs >= 1)
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > n + 10, 5.0)
+        assert wait_until(lambda: len(rec.scans) > n + 10)
     finally:
         link.stop()
     assert link.stats.scans_lost == 0 and link.stats.reboots == 0
@@ -198,9 +200,9 @@ def test_scan_size_disagreeing_with_hello_is_counted_and_named():
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.scan_dims = (6, 6)
-        assert wait_for(lambda: link.stats.state == "stalled" and link.stats.scans_wrong_size >= 50, 10.0)
+        assert wait_until(lambda: link.stats.state == "stalled" and link.stats.scans_wrong_size >= 50)
         error = link.stats.last_error
     finally:
         link.stop()
@@ -208,14 +210,15 @@ def test_scan_size_disagreeing_with_hello_is_counted_and_named():
     assert len(texts(rec, "scan size 6×6")) * 10 < link.stats.scans_wrong_size
 
 
+@pytest.mark.slow
 def test_scans_dropped_by_the_device_are_not_counted_as_link_loss():
     dev = make_device()
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.drop_every = 4
-        assert wait_for(lambda: link.stats.scans_dropped_by_device >= 20, 10.0)
+        assert wait_until(lambda: link.stats.scans_dropped_by_device >= 20)
         dev.hostile.drop_every = 0
         time.sleep(0.1)
     finally:
@@ -232,12 +235,12 @@ def test_lost_start_ack_after_a_reboot_counts_one_reboot():
     port = FakePort(dev)
     link = running(dev, rec, port=port)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 20)
+        assert wait_until(lambda: len(rec.scans) >= 20)
         dev.hostile.lose_start_acks = 1
         reboot_on_port(port, dev)
-        assert wait_for(lambda: link.stats.reboots >= 1, 5.0)
+        assert wait_until(lambda: link.stats.reboots >= 1)
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) > n + 20, 5.0)
+        assert wait_until(lambda: len(rec.scans) > n + 20)
     finally:
         link.stop()
     assert dev.hostile.lose_start_acks == 0  # the ACK was lost and the retry answered from memory
@@ -254,7 +257,7 @@ def test_vendor_frames_are_counted_as_unknown_not_as_damage_or_loss():
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: link.stats.unknown_frames >= 20, 10.0)
+        assert wait_until(lambda: link.stats.unknown_frames >= 20)
     finally:
         link.stop()
     assert link.stats.frames_rejected == 0
@@ -285,9 +288,9 @@ def test_host_sequence_numbers_start_at_zero_on_every_open():
     link = rec.link(CFG, opener)
     link.start()
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         ports[-1].unplugged = True
-        assert wait_for(lambda: len(ports) >= 2 and len(rec.scans) > 20, 5.0)
+        assert wait_until(lambda: len(ports) >= 2 and len(rec.scans) > 20)
     finally:
         link.stop()
     assert [w[0] for w in written[:2]] == [0, 0]
@@ -298,17 +301,18 @@ def test_host_sequence_numbers_start_at_zero_on_every_open():
 # HELLO storms and a second host
 
 
+@pytest.mark.slow
 def test_hello_storm_without_reboot_costs_no_scans_and_is_unhealthy_while_it_lasts():
     dev = make_device()
     rec = Recorder()
     link = running(dev, rec)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 10)
+        assert wait_until(lambda: len(rec.scans) >= 10)
         dev.hostile.hello_storm_hz = 50
-        assert wait_for(lambda: link.stats.unsolicited_hellos >= 25, 5.0)
+        assert wait_until(lambda: link.stats.unsolicited_hellos >= 25)
         during = (link.streaming.is_set(), link.stats.state, link.stats.last_error)
         dev.hostile.hello_storm_hz = 0
-        assert wait_for(lambda: link.streaming.is_set() and link.stats.state == "streaming", 10.0)
+        assert wait_until(lambda: link.streaming.is_set() and link.stats.state == "streaming")
     finally:
         link.stop()
     assert during[0] is False and during[1] == "contended" and "unsolicited HELLO" in during[2]
@@ -324,12 +328,12 @@ def test_reboot_storm_backs_off_with_a_clear_error():
     port = FakePort(dev)
     link = running(dev, rec, port=port)
     try:
-        assert wait_for(lambda: len(rec.scans) >= 5)
+        assert wait_until(lambda: len(rec.scans) >= 5)
         for _ in range(6):
             reboot_on_port(port, dev)
-            assert wait_for(lambda: link.stats.state != "handshake", 5.0)
+            assert wait_until(lambda: link.stats.state != "handshake")
             time.sleep(0.05)
-        assert wait_for(lambda: link.stats.handshake_failures >= 1, 5.0)
+        assert wait_until(lambda: link.stats.handshake_failures >= 1)
     finally:
         link.stop()
     assert any("rebooted 4 times within 10 s" in t for t in texts(rec, "HELLO storm"))
@@ -349,10 +353,10 @@ def test_a_port_lost_again_and_again_is_reported_unstable_while_it_streams():
     try:
         for _ in range(3):  # as when another host takes a socket:// port over in turn
             n = len(rec.scans)
-            assert wait_for(lambda: len(rec.scans) >= n + 5, 5.0)
+            assert wait_until(lambda: len(rec.scans) >= n + 5)
             ports[-1].unplugged = True
         n = len(rec.scans)
-        assert wait_for(lambda: len(rec.scans) >= n + 5, 5.0)
+        assert wait_until(lambda: len(rec.scans) >= n + 5)
         during = (link.streaming.is_set(), link.stats.state, link.stats.last_error)
     finally:
         link.stop()
@@ -360,9 +364,10 @@ def test_a_port_lost_again_and_again_is_reported_unstable_while_it_streams():
     assert "lost 3 times in the last 30 s" in during[2]
 
 
+@pytest.mark.slow
 def test_two_hosts_on_a_shared_socket_are_both_told_and_unhealthy():
     transport = SharedTcpTransport()
-    emu = Emulator(DeviceConfig(n=5, m=5, scan_rate_hz=50.0, seed=4), make_shape("flat"), transport)
+    emu = Emulator(ScannerSpec(n=5, m=5, scan_rate_hz=50.0, seed=4), make_shape("flat"), transport)
     emu.start()
     cfg = LinkConfig(port=transport.url, scan_rate_hz=50.0, handshake_timeout_s=1.0, stall_timeout_s=0.5,
                      reconnect_min_s=0.05, reconnect_max_s=0.2)
@@ -374,8 +379,8 @@ def test_two_hosts_on_a_shared_socket_are_both_told_and_unhealthy():
             link.start()
             links.append(link)
             recs.append(rec)
-            assert wait_for(lambda: len(rec.scans) >= 5 or link.stats.foreign_answers, 10.0)
-        assert wait_for(lambda: all(l.stats.foreign_answers >= 2 for l in links), 10.0)
+            assert wait_until(lambda: len(rec.scans) >= 5 or link.stats.foreign_answers)
+        assert wait_until(lambda: all(l.stats.foreign_answers >= 2 for l in links))
         samples = []
         end = time.monotonic() + 2.0
         while time.monotonic() < end:

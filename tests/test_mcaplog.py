@@ -448,6 +448,7 @@ def _surface(t: float):
     return nodes, normals, nodes.reshape(-1, 3)
 
 
+@pytest.mark.slow
 def test_inspect_reports_counts_gaps_and_problems(tmp_path):
     clock = FakeClock()
     logger = make_logger(tmp_path, clock)

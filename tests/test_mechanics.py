@@ -138,6 +138,7 @@ def foppl_von_karman_disc(r: np.ndarray, a: float, radius: float, poisson: float
     return n_rr - poisson * n_tt, n_tt - poisson * n_rr
 
 
+@pytest.mark.slow
 def test_free_disc_on_a_sphere_matches_the_foppl_von_karman_membrane_solution():
     a, radius, nu = 30.0, 300.0, 0.48
     centre_strain = (1.0 - nu) * a * a / (16.0 * radius**2)  # 3.25e-4
@@ -212,6 +213,7 @@ def test_uniaxial_prestretch_contracts_the_free_direction_by_plane_stress_poisso
     ("gaussian", dict(height=4.0, fwhm=18.0, u0=4.0, v0=-3.0)),
     ("sphere", dict(radius=60.0)),
 ], ids=["gaussian-off-centre", "sphere-R60"])
+@pytest.mark.slow
 def test_halving_the_mesh_changes_every_reading_by_less_than_1_percent_of_the_largest(cache_dir, kind, params):
     coarse = readings(scenes.make_scene(kind, 3, 3, PITCH, mesh=1.5, cache_dir=cache_dir, **params), 3, 3)
     fine = readings(scenes.make_scene(kind, 3, 3, PITCH, mesh=0.75, cache_dir=cache_dir, **params), 3, 3)

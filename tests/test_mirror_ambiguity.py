@@ -29,12 +29,14 @@ def pipeline(**kw) -> FramePipeline:
     return FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)), **kw)
 
 
+@pytest.mark.slow
 def test_an_oblique_cylinder_flags_every_element_ambiguous():
     result = pipeline().process(resistances(ph.Cylinder(50.0, axis_angle=30.0)), 0, 0, 0)
     assert ((result.element_flags & int(ElementFlag.AMBIGUOUS)) != 0).all()
     assert ((result.element_flags & int(ElementFlag.VALID)) != 0).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sign", [1, -1])
 def test_twist_sign_from_the_config_settles_it(sign):
     truth = ph.Cylinder(50.0, axis_angle=30.0)

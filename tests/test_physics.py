@@ -177,6 +177,7 @@ def test_balloon_contact_follows_dome():
     np.testing.assert_allclose(r, 80.0, rtol=1e-6)  # untouched balloon
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["membrane:fingers=2", "palm", "balloon", "membrane"])
 def test_time_varying_shapes_are_continuous_in_time(spec):
     # continuous (indeed Lipschitz) in t: halving the time step halves the largest change

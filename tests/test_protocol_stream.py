@@ -150,3 +150,11 @@ def test_a_rebooted_sender_is_not_counted_as_sequence_loss():
     frames = dec.feed(stream)
     assert len(frames) == 5
     assert dec.seq_gaps == 1 and dec.seq_lost == 1
+
+
+def test_every_counter_is_declared_on_the_decoder_and_reported():
+    from skinmap.protocol.stream import COUNTERS
+
+    declared = [name for name, kind in p.StreamDecoder.__annotations__.items() if kind == "int"]
+    assert declared == list(COUNTERS)
+    assert list(p.StreamDecoder().counters()) == list(COUNTERS)

@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import rigid_motion
 
 from skinmap import decouple, reconstruct
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor, Surface
+from skinmap.reconstruction.linalg import aligned_distances
 
 N = M = 5
 PITCH = 12.0
@@ -20,12 +22,7 @@ def strains(shape, n=N, m=M):
 
 def aligned_errors(recon: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Per-node distances after the best rigid alignment (Kabsch) of recon onto truth."""
-    p, q = recon.reshape(-1, 3), truth.reshape(-1, 3)
-    pc, qc = p - p.mean(0), q - q.mean(0)
-    u, _, vt = np.linalg.svd(pc.T @ qc)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return np.linalg.norm(pc @ rot.T - qc, axis=1)
+    return aligned_distances(recon.reshape(-1, 3), truth.reshape(-1, 3))
 
 
 def mean_error(shape, **kw) -> float:
@@ -97,6 +94,7 @@ def test_convex_bending_points_normals_outward():
     assert surf.normals[2, 0, 0] < -0.5 and surf.normals[2, 4, 0] > 0.5
 
 
+@pytest.mark.slow
 def test_locate_is_consistent_with_nodes_and_accurate_between_them():
     shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-4.0, 5.0))
     eu, el = strains(shape)
@@ -110,11 +108,8 @@ def test_locate_is_consistent_with_nodes_and_accurate_between_them():
     assert pos.shape == (200, 3) and np.allclose(np.linalg.norm(nrm, axis=1), 1.0)
     # compare with the truth in the reconstruction's best-aligned frame
     truth_nodes = shape.position(CENTRES).reshape(-1, 3)
-    p, q = surf.nodes.reshape(-1, 3), truth_nodes
-    pc, qc = p.mean(0), q.mean(0)
-    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
-    rot = vt.T @ np.diag([1, 1, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
-    err = np.linalg.norm((pos - pc) @ rot.T + qc - shape.position(uv), axis=1)
+    rot, shift = rigid_motion(surf.nodes.reshape(-1, 3), truth_nodes)
+    err = np.linalg.norm(pos @ rot.T + shift - shape.position(uv), axis=1)
     assert err.mean() < 0.2
     normal_err = np.degrees(np.arccos(np.clip(np.sum((nrm @ rot.T) * shape.normal(uv), axis=1), -1, 1)))
     assert normal_err.mean() < 2.0
@@ -145,6 +140,7 @@ def test_flat_and_grid_aligned_cylinders_within_0_02_mm(shape):
     "height, fwhm, centre",
     [(4.0, 18.0, (3.0, -2.0)), (-3.0, 20.0, (-10.0, 8.0)), (5.0, 24.0, (12.0, 12.0)), (2.5, 15.0, (0.0, 0.0)), (3.0, 16.0, (-20.0, -6.0))],
 )
+@pytest.mark.slow
 def test_gaussian_bumps_within_0_15_mm(height, fwhm, centre):
     assert mean_error(ph.GaussianBumps(height=height, fwhm=fwhm, centre=centre)) < 0.12
 
@@ -187,6 +183,7 @@ def test_shapes_without_a_mirror_twin_are_not_called_ambiguous(shape):
     assert surf.mirror is None and not surf.diagnostics.extra["ambiguous"]
 
 
+@pytest.mark.slow
 def test_noisy_bump_within_0_2_mm():
     shape = ph.GaussianBumps(height=4.0, fwhm=18.0, centre=(3.0, -2.0))
     eu, el = strains(shape)
@@ -269,6 +266,7 @@ def test_uncertainty_grows_with_the_misfit_the_noise_cannot_explain():
     assert np.allclose(fits.node_sigma, calm.node_sigma * np.sqrt(chi2), rtol=2e-3)
 
 
+@pytest.mark.slow
 def test_defect_correction_fits_the_gauges_within_the_noise_and_lowers_the_error():
     shape = ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0))
     eu, el = strains(shape)
@@ -298,6 +296,7 @@ def test_bad_input_is_rejected_with_clear_errors():
         Reconstructor(5, 5, convex_solver="cvx")
 
 
+@pytest.mark.slow
 def test_clarabel_fit_agrees_with_the_factorised_fit_on_consistent_data():
     shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
     eu, el = strains(shape)
@@ -309,6 +308,7 @@ def test_clarabel_fit_agrees_with_the_factorised_fit_on_consistent_data():
     assert b.diagnostics.extra["convex_status"] == "Solved"
 
 
+@pytest.mark.slow
 def test_other_grid_sizes_and_rectangular_arrays():
     for n, m in ((4, 6), (8, 8)):
         shape = ph.Cylinder(80.0)
@@ -319,6 +319,7 @@ def test_other_grid_sizes_and_rectangular_arrays():
         assert aligned_errors(surf.nodes, truth).mean() < 0.01
 
 
+@pytest.mark.slow
 def test_random_and_partly_missing_strains_never_give_nan():
     rng = np.random.default_rng(8)
     uv = rng.uniform(-30.0, 30.0, size=(30, 2))

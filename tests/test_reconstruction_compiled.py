@@ -10,6 +10,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from conftest import python_for_other_users
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor, kernels
@@ -54,6 +55,7 @@ def _frames(n: int, m: int, k: int, seed: int) -> list[tuple[np.ndarray, np.ndar
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n, m, k", [(5, 5, 18), (8, 8, 12), (16, 16, 6), (4, 7, 12), (3, 3, 6)])
 def test_compiled_kernels_match_the_numpy_reference(n, m, k):
     # the general model's kernels (the graph fit's are compared in test_reconstruction_graphfit.py)
@@ -73,6 +75,7 @@ def test_compiled_kernels_match_the_numpy_reference(n, m, k):
         prev_f, prev_r = a, b
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shear_passes, corrections", [(0, 0), (1, 2), (3, 1)])
 def test_other_pass_counts_match_the_reference(shear_passes, corrections):
     kw = {"shear_passes": shear_passes, "frame_corrections": corrections}
@@ -151,12 +154,16 @@ _SCRIPT = textwrap.dedent(
 )
 
 
-def _run(env_extra: dict[str, str], user: int | None = None) -> subprocess.Popen:
+TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+def _run(env_extra: dict[str, str], user: int | None = None, python: str = sys.executable,
+         tests_dir: str = TESTS_DIR) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     env.update(env_extra)
-    script = _SCRIPT.replace("TESTS_DIR", repr(os.path.dirname(os.path.abspath(__file__))))
+    script = _SCRIPT.replace("TESTS_DIR", repr(tests_dir))
     drop = [] if user is None else ["setpriv", f"--reuid={user}", f"--regid={user}", "--clear-groups"]
-    return subprocess.Popen([*drop, sys.executable, "-c", script], env=env, stdout=subprocess.PIPE,
+    return subprocess.Popen([*drop, python, "-c", script], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd="/")
 
 
@@ -200,7 +207,11 @@ def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
     package_cache = os.path.join(os.path.dirname(kernels.__file__), "__pycache__")
     if os.geteuid() == 0 and shutil.which("setpriv") and kernels._state["cache_locator"] == "InTreeCacheLocator":
         # the service's user cannot write the package directory: it loads what root compiled
-        nobody = _result(_run({"HOME": "/nonexistent"}, user=65534))
+        # (from a readable copy when this checkout lies in a private directory; the copy keeps
+        # the cache files and their sources' mtimes)
+        with python_for_other_users(TESTS_DIR) as (python, env_extra, copies):
+            nobody = _result(_run({"HOME": "/nonexistent", **env_extra}, user=65534, python=python,
+                                  tests_dir=copies[TESTS_DIR]))
         assert nobody[:2] == ["compiled", "True"] and nobody[2] == results[0][2]
         assert nobody[3] == "ReadOnlyPackageCache" and nobody[4:] == ["hits", "misses=0"]
         assert os.path.isdir(package_cache)

@@ -57,6 +57,7 @@ PRESTRETCHED_SPHERES = ["sphere:radius=61.2,prestretch=0.05", "sphere:radius=-70
                         "sphere:radius=120,prestretch=0.01"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noise_seed", [None, 3], ids=["clean", "noisy"])
 @pytest.mark.parametrize("spec", PRESTRETCHED_SPHERES)
 def test_prestretched_elastic_sphere_5x5_is_within_0_05mm_mean_after_rigid_alignment_and_not_answered_by_the_graph_fit(
@@ -72,6 +73,7 @@ def test_prestretched_elastic_sphere_5x5_is_within_0_05mm_mean_after_rigid_align
     assert aligned_error(surf.nodes, truth) < 0.05
 
 
+@pytest.mark.slow
 def test_prestretched_elastic_cylinder_5x5_is_not_answered_by_the_graph_fit_and_is_the_general_models_surface(
         recs, cache):
     # the reported oblique case (the graph fit gave 1.30 mm); the general model's own accuracy on
@@ -85,6 +87,7 @@ def test_prestretched_elastic_cylinder_5x5_is_not_answered_by_the_graph_fit_and_
         assert np.array_equal(surf.nodes, general(eu, el).nodes)
 
 
+@pytest.mark.slow
 def test_prestretched_elastic_sphere_with_a_dead_gauge_or_after_a_graph_frame_is_within_0_05mm_and_not_graph_fitted(
         recs, cache):
     rec, _ = recs

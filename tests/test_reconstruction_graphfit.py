@@ -25,6 +25,7 @@ def recs():
 SHARP = [(5.0, (17.0, -9.0)), (-4.6, (-21.0, 13.5)), (4.2, (3.5, 22.0)), (-5.0, (-8.0, -6.0))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("height, centre", SHARP)
 def test_sharp_bumps_are_resolved(recs, height, centre):
     graph, general = recs
@@ -100,6 +101,7 @@ def test_twist_sign_against_the_graph_falls_back():
     assert "other sign" in why or ("general: misfit" in why and "linear" in why)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k_uu, k_uv, k_vv", [(0.022, -0.018, 0.012), (-0.008, 0.0125, -0.0195), (0.0045, 0.0117, 0.0303)])
 def test_steep_twisted_graphs_get_the_right_twist(k_uu, k_uv, k_vv):
     # twisted quadrics whose corner slopes reach 0.5-1 (the last one an oblique trough): a fit
@@ -130,6 +132,7 @@ def test_graph_start_from_positions_recovers_the_coefficients():
     assert np.abs(fit.coeffs_from_positions(moved) - coeffs).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_compiled_graph_fit_matches_the_numpy_reference():
     fast = Reconstructor(N, M, PITCH, H, H, G, graph_fit=True)
     ref = Reconstructor(N, M, PITCH, H, H, G, graph_fit=True, kernels="numpy")
@@ -150,6 +153,7 @@ def test_graph_fit_arguments_are_checked():
 
 @pytest.mark.parametrize("shape", [ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-5.0, 8.0)),
                                    ph.Quadric(0.015, -0.008, 0.012)], ids=["bump", "quadric"])
+@pytest.mark.slow
 def test_graph_uncertainty_matches_monte_carlo(shape):
     # node_sigma of a graph-fitted surface comes from the graph fit's own normal equations
     eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)

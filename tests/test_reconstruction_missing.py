@@ -29,6 +29,7 @@ def _strains(n, m, shape=None):
     return ph.gauge_strains(shape, n, m, PITCH, H, H, G)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("grid_cls", [FineGrid, _SparseGrid])
 def test_left_out_fields_and_sigma_equal_a_new_factorisation(grid_cls):
     n, m = 4, 5
@@ -55,6 +56,7 @@ def test_left_out_fields_and_sigma_equal_a_new_factorisation(grid_cls):
         np.testing.assert_allclose(sig, expected, rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertainty():
     n = m = 5
     shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
@@ -90,6 +92,7 @@ def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertaint
     assert aligned_error(one.nodes, truth) < 2.0 * aligned_error(clean.nodes, truth) + 0.05
 
 
+@pytest.mark.slow
 def test_replay_of_the_same_sequence_is_bit_identical():
     n = m = 5
     eu, el = _strains(n, m)
@@ -141,6 +144,7 @@ def test_leave_out_rejects_bad_construction():
         (50.0, -45.0, {"twist_sign": -1.0}, 0.2),
     ],
 )
+@pytest.mark.slow
 def test_turned_saddles_from_the_physics_model(radius, angle, kwargs, bound):
     n = m = 5
     shape = ph.Saddle(radius, axis_angle=angle)
@@ -149,6 +153,7 @@ def test_turned_saddles_from_the_physics_model(radius, angle, kwargs, bound):
     assert aligned_error(surf.nodes, shape.position(ph.cell_centres(n, m, PITCH))) < bound
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("grid_cls", [FineGrid, _SparseGrid])
 def test_cache_state_changes_no_digit(grid_cls):
     n, m = 4, 5

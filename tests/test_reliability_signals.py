@@ -98,6 +98,7 @@ def test_saturated_and_open_gauges_from_the_wire_sentinels(warm_pipeline_factory
     assert degraded[near(2, 2) | near(4, 4)].all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, -5.0, 0.0, 1e12])
 def test_non_physical_resistances_are_rejected_per_gauge(warm_pipeline_factory, value):
     r = GOOD.copy()
@@ -107,6 +108,7 @@ def test_non_physical_resistances_are_rejected_per_gauge(warm_pipeline_factory, 
     assert not res.gauge_valid[1, 0, 3, 1] and res.gauge_valid.sum() == res.gauge_valid.size - 1
 
 
+@pytest.mark.slow
 def test_every_gauge_dead_gives_flagged_prior_then_recovers(warm_pipeline_factory):
     p = warm_pipeline_factory()
     first = p.process(GOOD, 1, 0, 0)
@@ -129,6 +131,7 @@ def test_a_cell_with_both_layers_of_a_unit_dead_is_still_measured_by_its_other_u
     assert (res.element_flags & VALID).all() and ((res.element_flags & DEGRADED) != 0)[near(2, 2)].all()
 
 
+@pytest.mark.slow
 def test_random_30_percent_strains_are_rejected_as_impossible_bends(warm_pipeline_factory):
     p = warm_pipeline_factory()
     good = p.process(GOOD, 1, 0, 0)
@@ -142,6 +145,7 @@ def test_random_30_percent_strains_are_rejected_as_impossible_bends(warm_pipelin
     assert (back.element_flags == good.element_flags).all() and back.diagnostics["implausible_units"] == 0
 
 
+@pytest.mark.slow
 def test_plausible_but_mutually_inconsistent_strains_flag_every_element(warm_pipeline_factory):
     rng = np.random.default_rng(31)
     common = rng.uniform(-0.05, 0.05, (2, N, M))
@@ -153,6 +157,7 @@ def test_plausible_but_mutually_inconsistent_strains_flag_every_element(warm_pip
     assert ((res.element_flags & DEGRADED) != 0).all()
 
 
+@pytest.mark.slow
 def test_legitimate_shapes_are_not_called_inconsistent():
     for shape in (make_shape("cylinder", radius=10.0, axis_angle=30.0), make_shape("saddle", radius=40.0),
                   make_shape("gaussian", height=8.0, fwhm=14.0), make_shape("sphere", radius=-20.0),
@@ -163,6 +168,7 @@ def test_legitimate_shapes_are_not_called_inconsistent():
         assert res.diagnostics["inconsistent"] is False and res.diagnostics["implausible_units"] == 0, shape
 
 
+@pytest.mark.slow
 def test_upper_and_lower_swapped_everywhere_reads_as_the_mirror_shape(warm_pipeline_factory):
     """A global swap is physically consistent (the sheet bent the other way): undetectable from
     strains alone, documented as such. A partial swap stays finite."""
@@ -185,6 +191,7 @@ def test_reject_implausible_units_leaves_its_inputs_alone():
     assert valid2.sum() == valid.size - 2
 
 
+@pytest.mark.slow
 def test_non_finite_solution_holds_the_last_good_frame_as_stale(warm_pipeline_factory, monkeypatch):
     p = warm_pipeline_factory()
     fresh = warm_pipeline_factory()
@@ -230,6 +237,7 @@ FUZZ_EXAMPLES = 150
                      elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
                                         st.floats(0.5, 1.5))),
 )
+@pytest.mark.slow
 def test_fuzz_any_resistances_give_a_publishable_result(warm_pipeline_factory, scale):
     """Arbitrary per-gauge factors on a good scan (NaN, ±inf, negative, huge, subnormal, or
     near 1): never raises, never non-finite, flags consistent with the gauges it could use."""
@@ -246,9 +254,12 @@ def test_fuzz_any_resistances_give_a_publishable_result(warm_pipeline_factory, s
     assert np.isnan(res.eps_upper[~res.gauge_valid[0]]).all() and np.isnan(res.eps_lower[~res.gauge_valid[1]]).all()
 
 
-def test_fuzz_count_is_recorded():
-    # docs/reliability.md quotes this number.
-    assert FUZZ_EXAMPLES >= 100
+def test_fuzz_count_is_the_one_docs_reliability_quotes():
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "reliability.md").read_text()
+    (row,) = [line for line in doc.splitlines() if "test_fuzz_any_resistances_give_a_publishable_result" in line]
+    assert f"| {FUZZ_EXAMPLES} per run |" in row, row
 
 
 # ---------------------------------------------------------------------------------------------

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from conftest import free_port, python_for_other_users, wait_until
 
 from skinmap.daemon import messages as msg
 from skinmap.daemon.client import SkinmapClient
@@ -34,21 +34,6 @@ ALLOWED_CN = "skinmap-client"  # listed in the production policy's cert_common_n
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None,
                                 reason="the openssl command line is needed to make certificates")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(predicate, timeout=5.0, step=0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -267,6 +252,7 @@ def test_make_session_config_refuses_non_loopback_unless_allowed(endpoint):
 # access control (production policy, mutual TLS on loopback)
 
 
+@pytest.mark.slow
 def test_allowed_client_reads_everything_but_cannot_write(pki, tmp_path):
     endpoint = f"tls/127.0.0.1:{free_port()}"
     with open_session(daemon_config(production_copy(pki, tmp_path), endpoint)) as session:
@@ -276,7 +262,7 @@ def test_allowed_client_reads_everything_but_cannot_write(pki, tmp_path):
             with open_client(endpoint, client_file(tmp_path, pki / "ca.pem", "client", pki)) as client:
                 assert connected(client), "allowed client did not connect over mutual TLS"
                 # liveliness and queries (late joiner: latest value, info)
-                assert wait_until(client.alive, 5.0)
+                assert wait_until(client.alive)
                 assert client.latest("elements", timeout=3.0).seq == 1
                 assert client.info(timeout=3.0)["device"] == DEVICE
                 live = []
@@ -302,6 +288,7 @@ def test_allowed_client_reads_everything_but_cannot_write(pki, tmp_path):
             daemon.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("acl_enabled", [True, False])
 def test_ingress_put_and_delete_are_denied_even_to_a_declared_subscriber(pki, tmp_path, acl_enabled):
     """With the daemon's subscribers announced to the client, the client does send its puts;
@@ -335,6 +322,7 @@ def test_ingress_put_and_delete_are_denied_even_to_a_declared_subscriber(pki, tm
             daemon.close()
 
 
+@pytest.mark.slow
 def test_certificate_outside_the_policy_connects_but_sees_nothing(pki, tmp_path):
     endpoint = f"tls/127.0.0.1:{free_port()}"
     with open_session(daemon_config(production_copy(pki, tmp_path), endpoint)) as session:
@@ -366,6 +354,7 @@ def _serve_elements(config: zenoh.Config):
     return session, publisher
 
 
+@pytest.mark.slow
 def test_server_only_tls_accepts_clients_that_trust_its_ca(pki, tmp_path):
     endpoint = f"tls/127.0.0.1:{free_port()}"
     session, publisher = _serve_elements(daemon_config(server_only_tls_file(pki, tmp_path), endpoint))
@@ -381,6 +370,7 @@ def test_server_only_tls_accepts_clients_that_trust_its_ca(pki, tmp_path):
         session.close()
 
 
+@pytest.mark.slow
 def test_mutual_tls_refuses_clients_without_a_certificate_of_the_ca(pki, tmp_path):
     endpoint = f"tls/127.0.0.1:{free_port()}"
     config = daemon_config(production_copy(pki, tmp_path), endpoint)
@@ -398,6 +388,7 @@ def test_mutual_tls_refuses_clients_without_a_certificate_of_the_ca(pki, tmp_pat
         session.close()
 
 
+@pytest.mark.slow
 def test_plain_tcp_client_cannot_talk_to_a_tls_listener(pki, tmp_path):
     port = free_port()
     session, publisher = _serve_elements(
@@ -445,7 +436,6 @@ def test_daemon_runs_as_an_unprivileged_user():
     check it streams, logs and stops cleanly with no capabilities."""
     import os
     import signal
-    import sys
     import tempfile
 
     from skinmap.daemon.cli import start_emulator, stop_process
@@ -477,22 +467,24 @@ directory = "state"
         if os.geteuid() == 0 else []
     if drop and shutil.which("setpriv") is None:
         pytest.skip("setpriv is needed to drop to an unprivileged user")
-    daemon = subprocess.Popen([*drop, sys.executable, "-m", "skinmap.daemon.service", "--config",
-                               str(cfg)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, cwd=work)
-    try:
-        with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap",
-                           device=DEVICE) as client:
-            assert client.elements(timeout=30.0).valid.any()
-            proc_status = dict(line.split(":", 1) for line in
-                               Path(f"/proc/{daemon.pid}/status").read_text().splitlines())
-            assert proc_status["Uid"].split()[:2] == [str(uid), str(uid)]
-            assert int(proc_status["CapEff"].strip(), 16) == 0
-        daemon.send_signal(signal.SIGTERM)
-        assert daemon.wait(timeout=30) == 0, daemon.stderr.read().decode()[-2000:]
-        logs = sorted((work / "logs").glob("*.mcap"))
-        assert logs and all(p.stat().st_uid == uid for p in logs)
-    finally:
-        stop_process(daemon, timeout=10)
-        stop_process(emulator)
-        shutil.rmtree(work, ignore_errors=True)
+    # a checkout in a private directory is out of the unprivileged user's reach: use a copy
+    with python_for_other_users() as (python, env_extra, _):
+        daemon = subprocess.Popen([*drop, python, "-m", "skinmap.daemon.service", "--config",
+                                   str(cfg)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE, cwd=work, env={**os.environ, **env_extra})
+        try:
+            with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap",
+                               device=DEVICE) as client:
+                assert client.elements(timeout=30.0).valid.any()
+                proc_status = dict(line.split(":", 1) for line in
+                                   Path(f"/proc/{daemon.pid}/status").read_text().splitlines())
+                assert proc_status["Uid"].split()[:2] == [str(uid), str(uid)]
+                assert int(proc_status["CapEff"].strip(), 16) == 0
+            daemon.send_signal(signal.SIGTERM)
+            assert daemon.wait(timeout=30) == 0, daemon.stderr.read().decode()[-2000:]
+            logs = sorted((work / "logs").glob("*.mcap"))
+            assert logs and all(p.stat().st_uid == uid for p in logs)
+        finally:
+            stop_process(daemon, timeout=10)
+            stop_process(emulator)
+            shutil.rmtree(work, ignore_errors=True)

@@ -9,52 +9,34 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port, running_gateway
+from conftest import (explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway,
+                      wait_for)
 
 from skinmap.daemon.client import SkinmapClient
-from skinmap.daemon.config import parse_config
 from skinmap.daemon.replay import replay_log
-from skinmap.emulator.device import DeviceConfig
+from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
-from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
-from skinmap.emulator.transport import PtyTransport
 
 pytestmark = pytest.mark.slow
-
-
-def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimising |R·src + t − dst| (Kabsch), for (K, 3) point sets."""
-    cs, cd = src.mean(0), dst.mean(0)
-    u, _s, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return r, cd - r @ cs
 
 
 ELEMENT_UV = np.array([[u, v] for v in (-6.0, 6.0) for u in np.linspace(-20.0, 20.0, 9)])
 
 
 def make_config(link: Path, tmp_path: Path, zport: int, **output):
-    return parse_config({
-        "device": {"port": str(link), "name": "e2e", "scan_rate_hz": 40, "stall_timeout_s": 1.0},
-        "output": {"rate_hz": 20, "status_rate_hz": 2, **output},
-        "elements": {"layout": "explicit", "explicit": [{"u_mm": float(u), "v_mm": float(v)} for u, v in ELEMENT_UV]},
-        "zenoh": {"listen": [f"tcp/127.0.0.1:{zport}"]},
-        "log": {"directory": str(tmp_path / "logs"), "max_file_mb": 64},
-        "state": {"directory": str(tmp_path / "state")},
-    }, source=str(tmp_path / "skinmapd.toml"), text="")
+    return gateway_config(tmp_path, zport, link, "e2e", 40, device={"stall_timeout_s": 1.0},
+                          output={"status_rate_hz": 2, **output}, elements=explicit_elements(ELEMENT_UV),
+                          log={"max_file_mb": 64})
 
 
 @pytest.fixture
 def emulator(tmp_path):
     shape = make_shape("gaussian", height=3.0, fwhm=24.0, u0=4.0, v0=-3.0)
-    cfg = DeviceConfig(n=5, m=5, scan_rate_hz=40.0, seed=11,
+    cfg = ScannerSpec(n=5, m=5, scan_rate_hz=40.0, seed=11,
                        electrical=ElectricalConfig(hysteresis=0.0, drift_rel_sd=0.0))
-    emu = Emulator(cfg, shape, PtyTransport(link=tmp_path / "ttySKIN0"), element_uv=ELEMENT_UV)
-    emu.start()
-    yield emu
-    emu.stop()
+    with pty_emulator(tmp_path / "ttySKIN0", cfg, shape, element_uv=ELEMENT_UV) as emu:
+        yield emu
 
 
 def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(emulator, tmp_path):
@@ -66,14 +48,14 @@ def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(em
             first = client.elements(timeout=30.0)
             assert first.positions.shape == (len(ELEMENT_UV), 3)
             for _ in range(10):
-                msg = client.elements(timeout=5.0)
+                msg = client.elements(timeout=30.0)
                 assert np.isfinite(msg.positions).all() and np.isfinite(msg.normals).all()
                 assert (msg.flags & 1).all()
                 result = next((r for r in list(gw.results) if r.seq == msg.seq), None)
                 if result is None:
                     continue
                 truth = emulator.ground_truth(msg.seq)
-                r, t = rigid_align(result.nodes_mm.reshape(-1, 3), truth.nodes.reshape(-1, 3))
+                r, t = rigid_motion(result.nodes_mm.reshape(-1, 3), truth.nodes.reshape(-1, 3))
                 est = (msg.positions * 1000.0) @ r.T + t
                 errors.append(np.linalg.norm(est - truth.element_positions, axis=1).mean())
             info = client.info()
@@ -97,14 +79,11 @@ def test_daemon_survives_unplug_and_replug_behind_the_same_link(emulator, tmp_pa
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
             client.elements(timeout=30.0)
             emulator.disconnect(reconnect_after_s=0.5)
-            deadline = time.monotonic() + 15
-            while gw.link.stats.reconnects < 1 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert gw.link.stats.reconnects >= 1
+            wait_for(lambda: gw.link.stats.reconnects >= 1, what="a reconnect")
             t_back = time.time_ns()
-            msg = client.elements(timeout=10.0)
+            msg = client.elements(timeout=30.0)
             while msg.host_time_ns < t_back:  # skip anything queued from before the unplug
-                msg = client.elements(timeout=10.0)
+                msg = client.elements(timeout=30.0)
             assert np.isfinite(msg.positions).all()
     assert gw.link.stats.disconnects >= 1
 
@@ -188,10 +167,10 @@ def test_dead_gauge_degrades_nearby_elements_and_is_reported(emulator, tmp_path)
     with running_gateway(cfg) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device="e2e") as client:
             client.elements(timeout=30.0)
-            msg = client.elements(timeout=5.0)
-            status = client.next("status", timeout=5.0)
+            msg = client.elements(timeout=30.0)
+            status = client.next("status", timeout=30.0)
             if status["healthy"]:  # the first report may predate the first processed scan
-                status = client.next("status", timeout=5.0)
+                status = client.next("status", timeout=30.0)
     assert np.isfinite(msg.positions).all() and np.isfinite(msg.uncertainty).all()
     degraded = (msg.flags & 0x04) != 0
     near = np.abs(ELEMENT_UV).max(axis=1) <= 18.0  # within 1.5 pitch of the centre cell

@@ -11,7 +11,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 
 from skinmap.daemon.cli import main as skinmap_main
 from skinmap.daemon.mcapinspect import NotRegularFileError, inspect, iter_messages_file_order, recover
@@ -53,6 +53,7 @@ def test_chunk_that_decompresses_past_its_declared_size_is_skipped(tmp_path, com
     assert report.topics["/log"].count == 2
 
 
+@pytest.mark.slow
 def test_the_limit_is_configurable_from_the_command_line(tmp_path, capsys):
     path = hostile.write_mcap(tmp_path / "bomb.mcap", [hostile.bomb_chunk(4 * MiB)])
     assert inspect(path).skipped_count == 0  # under the default limit: read (4 MiB of zeros)
@@ -215,17 +216,6 @@ def _elements(seq: int, k: int = 8, *, nan: bool = False) -> bytes:
                                np.full(k, 1e-4), np.full(k, msg.ElementFlag.VALID, np.uint8))
 
 
-def _wait_until(predicate, timeout: float = 5.0) -> bool:
-    import time
-
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
-
-
 class _ForgeryRun:
     """The gateway's Zenoh session (as skinmapd opens it from the config) publishing real
     elements, a watcher subscribing with a plain Zenoh session, and a foreign client-mode
@@ -261,7 +251,7 @@ class _ForgeryRun:
         self.seen["forged" if sample.payload.to_bytes() == self.forged else "real"] += 1
 
     def publish_until_seen(self, seq: int) -> bool:
-        return _wait_until(lambda: (self.publisher.publish_elements(_elements(seq)), self.seen["real"] > 0)[1])
+        return wait_until(lambda: (self.publisher.publish_elements(_elements(seq)), self.seen["real"] > 0)[1])
 
     def forge(self, n: int) -> None:
         import time
@@ -294,7 +284,7 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
         assert run.publish_until_seen(1), "the watcher never received the gateway's elements"
         # the forger's puts go where a subscriber is: wait until it knows of the watcher's
         probe = run.forger.declare_publisher("skinmap/demo/elements")
-        assert _wait_until(lambda: probe.matching_status.matching)
+        assert wait_until(lambda: probe.matching_status.matching)
         probe.undeclare()
         run.forge(100)
         run.publisher.publish_elements(_elements(2))  # after the forged ones on the same links
@@ -309,9 +299,9 @@ def test_foreign_puts_on_the_gateway_key_space_are_dropped_by_default(guard):
             assert len(replies) == 1 and b"forged" not in replies[0]  # the gateway's own info only
             assert run.tokens() == ["skinmap/demo/alive"]
         else:
-            assert _wait_until(lambda: run.seen["forged"] == 100)
+            assert wait_until(lambda: run.seen["forged"] == 100)
             # (a loaded machine may answer the first query before the forged queryable is known)
-            assert any(b"forged" in r for r in replies) or _wait_until(
+            assert any(b"forged" in r for r in replies) or wait_until(
                 lambda: any(b"forged" in r for r in info_replies()))
             assert run.tokens() == ["skinmap/demo/alive", "skinmap/demo/forged-alive"]
         assert run.seen["real"] >= 2
@@ -346,7 +336,7 @@ def test_client_rejects_forged_elements_and_names_why():
             client.subscribe("elements")
             assert run.publish_until_seen(1)
             probe = run.forger.declare_publisher("skinmap/demo/elements")
-            assert _wait_until(lambda: probe.matching_status.matching)
+            assert wait_until(lambda: probe.matching_status.matching)
             probe.undeclare()
             got = []
             seq = 10
@@ -367,7 +357,7 @@ def test_client_rejects_forged_elements_and_names_why():
                     pass
                 return client.rejected("elements") == 6
 
-            assert _wait_until(drained)  # 5 forged puts and the forged delete (an empty payload)
+            assert wait_until(drained)  # 5 forged puts and the forged delete (an empty payload)
             reasons = client.rejections("elements")
             assert reasons[:5] == ["elements: element 0 is flagged VALID but its position, normal or "
                                    "uncertainty is not finite"] * 5
@@ -447,7 +437,7 @@ def test_the_documented_non_python_client_config_is_loopback_only_and_receives()
         publisher = SkinmapPublisher(daemon, "skinmap", "demo")
         with open_session(config) as session:
             sub = session.declare_subscriber("skinmap/demo/elements", lambda s: got.append(s.payload.to_bytes()))
-            assert _wait_until(lambda: (publisher.publish_elements(_elements(3)), bool(got))[1])
+            assert wait_until(lambda: (publisher.publish_elements(_elements(3)), bool(got))[1])
             sub.undeclare()
         publisher.close()
     assert got[0] == _elements(3)

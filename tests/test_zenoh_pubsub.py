@@ -1,33 +1,18 @@
 """SkinmapPublisher <-> SkinmapClient over loopback TCP with multicast scouting off."""
 
 import multiprocessing
-import socket
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import free_port, wait_until
 
 from skinmap.daemon import messages as msg
 from skinmap.daemon.client import SkinmapClient
 from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
 DEVICE = "skin-test"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(predicate, timeout=10.0, step=0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 def elements_payload(seq, k=6):
@@ -47,6 +32,27 @@ STATUS = {"device": DEVICE, "host_time_ns": 5, "connected": True, "seq": 1,
           "reconnects": 1, "solver_time_ms": 9.5, "log_state": "off"}
 
 
+class Daemon:
+    """The daemon's side: its publisher and endpoint (unpacks as the pair), and whether a
+    subscriber has reached it, seen by a probe publisher on the same key in its session."""
+
+    def __init__(self, publisher: SkinmapPublisher, endpoint: str, session) -> None:
+        self.publisher, self.endpoint, self._session = publisher, endpoint, session
+        self._probes: dict = {}
+
+    def __iter__(self):
+        return iter((self.publisher, self.endpoint))
+
+    def subscribed(self, kind: str) -> bool:
+        if kind not in self._probes:
+            self._probes[kind] = self._session.declare_publisher(self.publisher.keys[kind])
+        return bool(self._probes[kind].matching_status.matching)
+
+    def close(self) -> None:
+        for probe in self._probes.values():
+            probe.undeclare()
+
+
 @pytest.fixture
 def daemon():
     """A publisher session listening on a free loopback port, as skinmapd would hold it."""
@@ -54,9 +60,11 @@ def daemon():
     endpoint = f"tcp/127.0.0.1:{port}"
     with open_session(make_session_config([endpoint], [])) as session:
         publisher = SkinmapPublisher(session, "skinmap", DEVICE)
+        d = Daemon(publisher, endpoint, session)
         try:
-            yield publisher, endpoint
+            yield d
         finally:
+            d.close()
             publisher.close()
 
 
@@ -70,9 +78,9 @@ def connect(endpoint, **kw):
 def test_subscriber_receives_elements_in_order(daemon):
     publisher, endpoint = daemon
     with connect(endpoint) as client:
-        assert not publisher.has_subscribers("elements")
+        assert not daemon.subscribed("elements")
         client.subscribe("elements")
-        assert wait_until(lambda: publisher.has_subscribers("elements"))
+        assert wait_until(lambda: daemon.subscribed("elements"))
         sent = {}
         for seq in range(3):
             payload, pos = elements_payload(seq)
@@ -125,7 +133,7 @@ def test_info_is_never_put(daemon):
         seen = []
         sub = client.session.declare_subscriber(f"skinmap/{DEVICE}/*",
                                                 lambda s: seen.append(str(s.key_expr)))
-        assert wait_until(lambda: publisher.has_subscribers("status"))
+        assert wait_until(lambda: daemon.subscribed("status"))
         publisher.set_info(INFO)
         assert client.info()["device"] == DEVICE
         publisher.publish_status(STATUS)  # proves the subscription is live
@@ -156,7 +164,7 @@ def test_iterator_and_callback_forms(daemon):
 
         client.on_elements(on_elements)
         client.subscribe("elements")
-        assert wait_until(lambda: publisher.has_subscribers("elements"))
+        assert wait_until(lambda: daemon.subscribed("elements"))
         for seq in range(3):
             publisher.publish_elements(elements_payload(seq)[0])
         assert done.wait(3.0) and got == [0, 1, 2]
@@ -168,7 +176,7 @@ def test_slow_reader_never_blocks_the_publisher(daemon):
     publisher, endpoint = daemon
     with connect(endpoint, queue_size=4) as client:
         client.subscribe("elements")
-        assert wait_until(lambda: publisher.has_subscribers("elements"))
+        assert wait_until(lambda: daemon.subscribed("elements"))
         payload = elements_payload(0, k=256)[0]
         published = 0
         deadline = time.monotonic() + 5.0
@@ -216,6 +224,7 @@ def _publish_in_child(endpoint, ready, stop):
             stop.wait(10.0)
 
 
+@pytest.mark.slow
 def test_publisher_in_another_process():
     # a process forked after a session was opened cannot open one: use 'spawn'
     ctx = multiprocessing.get_context("spawn")
@@ -271,8 +280,8 @@ def test_samples_carry_the_documented_qos_and_encoding(daemon):
         sub = client.session.declare_subscriber(f"skinmap/{DEVICE}/*",
                                                 zenoh.handlers.FifoChannel(8))
         try:
-            assert wait_until(lambda: publisher.has_subscribers("elements")
-                              and publisher.has_subscribers("status"))
+            assert wait_until(lambda: daemon.subscribed("elements")
+                              and daemon.subscribed("status"))
             publisher.publish_elements(elements_payload(1)[0])
             publisher.publish_status(STATUS)
             received = []
