@@ -51,7 +51,7 @@ def test_turning_noise_is_estimated_from_the_data_and_is_nil_on_a_smooth_clean_s
     assert np.isnan(turning_noise_estimate(turning[:, :2, :2], valid[:, :2, :2]))  # too few units to tell
 
 
-@pytest.mark.parametrize("n, bound", [(16, 0.1), (32, 0.2)])
+@pytest.mark.parametrize("n, bound", [(16, 0.1), pytest.param(32, 0.2, marks=pytest.mark.slow)])
 def test_a_noisy_flat_sheet_stays_flat_within_the_bound_and_its_sigma_covers_the_error(n, bound):
     rng = np.random.default_rng(n)
     rec = Reconstructor(n, n)
@@ -73,6 +73,7 @@ def test_noise_larger_than_stated_is_still_no_twist():
     assert err.mean() < 0.2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [ph.Cylinder(300.0, 30.0), ph.Cylinder(120.0, 0.0), ph.SphereCap(400.0)],
                          ids=["oblique-cylinder", "cylinder", "sphere"])
 def test_clean_data_told_the_sensor_noise_lose_nothing_to_the_correction_within_0_01_mm(shape):
