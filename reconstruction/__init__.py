@@ -16,6 +16,7 @@ import time
 from collections import OrderedDict
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from .decouple import decouple
 from .engine import (
@@ -193,6 +194,8 @@ class Reconstructor:
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
+        # BLAS thread limits for each call (the libraries' list is read once, here)
+        self._blas = ThreadpoolController()
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -223,7 +226,27 @@ class Reconstructor:
         else +1.  Where the stretch pattern fixes the sign (a saddle turned off 0° and 45°) the
         data decide unless ``twist_sign`` is given.  ``graph_warm=False``: the graph fit starts
         cold although ``previous`` holds a graph (a warm fit depends on the frames before it;
-        skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there)."""
+        skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
+
+        BLAS runs on one thread during the call and when the surface's uncertainty is first
+        read (this thread's problems are small: on a busy 2-core machine several BLAS threads
+        made a 5×5 frame 5 times slower)."""
+        with self._blas.limit(limits=1, user_api="blas"):
+            surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm)
+        for answer in (surf, surf.mirror):
+            if answer is not None and answer._fine_sigma_fn is not None:
+                answer._fine_sigma_fn = self._one_blas_thread(answer._fine_sigma_fn)
+        return surf
+
+    def _one_blas_thread(self, fn):
+        """``fn`` run with BLAS on one thread."""
+        def run():
+            with self._blas.limit(limits=1, user_api="blas"):
+                return fn()
+
+        return run
+
+    def _reconstruct(self, eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm) -> Surface:
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
