@@ -95,8 +95,12 @@ _PROBLEMS_KEPT = 1000
 
 def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
     shape = tuple(doc["shape"])
+    offsets = [None, None]
+    if "h_upper_mm" in doc or "h_lower_mm" in doc:
+        offsets = [np.asarray(doc[k], dtype=np.float64).reshape(shape[1:]) for k in ("h_upper_mm", "h_lower_mm")]
     return Calibration(np.asarray(doc["gauge_factor"], dtype=np.float64).reshape(shape),
-                       np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"))
+                       np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"),
+                       offsets[0], offsets[1], doc.get("fit") if isinstance(doc.get("fit"), dict) else None)
 
 
 def _type_name(value: Any) -> str:

@@ -31,7 +31,7 @@ import numpy as np
 
 import skinmap
 from skinmap.daemon import messages
-from skinmap.daemon.calibration import Calibration, load_tare
+from skinmap.daemon.calibration import Calibration, load_calibration_file, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
@@ -72,13 +72,23 @@ def load_calibration(hello: Hello, cfg: DaemonConfig) -> tuple[Calibration, str]
     """The scanner's factory calibration with the stored tare applied, and "" -- or, when the
     tare file is no tare of this array, the factory calibration and what is wrong with it."""
     cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    state = cfg.resolve(cfg.state.directory)
+    problems = []
     try:
-        tare = load_tare(cfg.resolve(cfg.state.directory), hello.serial_number, cal.base_resistance.shape)
-        return (cal if tare is None else cal.with_tare(*tare)), ""
+        fit = load_calibration_file(state, hello.serial_number, cal.base_resistance.shape)
+        if fit is not None:
+            cal = cal.with_mold_fit(fit[0], fit[1], fit[2], f"calibration {fit[3]['created']}", fit[3])
     except ValueError as exc:
-        problem = f"ignoring tare {exc}"
-        log.warning("%s; using the factory calibration", problem)
-        return cal, problem
+        problems.append(f"ignoring calibration {exc}")
+        log.warning("%s; using the factory gauge factors", problems[-1])
+    try:
+        tare = load_tare(state, hello.serial_number, cal.base_resistance.shape)
+        if tare is not None:
+            cal = cal.with_tare(tare[0], tare[1] if cal.source == "factory" else f"{cal.source}, {tare[1]}")
+    except ValueError as exc:
+        problems.append(f"ignoring tare {exc}")
+        log.warning("%s; using the factory base resistances", problems[-1])
+    return cal, "; ".join(problems)
 
 
 def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
@@ -228,7 +238,7 @@ class Gateway:
         self._publisher: Any = None
         self._pipeline: FramePipeline | None = None
         self._device = cfg.device.name or ""
-        self._tare_mtime: float | None = None
+        self._tare_mtime: tuple[float | None, float | None] | None = None
         self._tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._log_state = "off"
         self._last_log_error = ""
@@ -380,13 +390,19 @@ class Gateway:
 
     @staticmethod
     def _calibration_doc(cal: Calibration) -> dict[str, Any]:
-        return {
+        doc = {
             # Full precision: replay must reproduce the live strains bit for bit.
             "gauge_factor": cal.gauge_factor.ravel().tolist(),
             "r0_ohm": cal.base_resistance.ravel().tolist(),
             "shape": list(cal.gauge_factor.shape),
             "source": cal.source,
         }
+        if cal.h_upper_mm is not None:
+            doc["h_upper_mm"] = cal.h_upper_mm.ravel().tolist()
+            doc["h_lower_mm"] = cal.h_lower_mm.ravel().tolist()
+        if cal.summary:
+            doc["fit"] = dict(cal.summary)
+        return doc
 
     def _process_loop(self) -> None:
         while not self._stop.is_set():
@@ -650,16 +666,21 @@ class Gateway:
                 f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
                 f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
 
-    def _tare_file_mtime(self, hello: Hello) -> float | None:
-        from skinmap.daemon.calibration import tare_path
+    def _tare_file_mtime(self, hello: Hello) -> tuple[float | None, float | None] | None:
+        """Modification times of the tare and the calibration file (None: neither exists)."""
+        from skinmap.daemon.calibration import calibration_path, tare_path
 
-        try:
-            return tare_path(self.cfg.resolve(self.cfg.state.directory), hello.serial_number).stat().st_mtime
-        except OSError:
-            return None
+        state = self.cfg.resolve(self.cfg.state.directory)
+        times = []
+        for path in (tare_path(state, hello.serial_number), calibration_path(state, hello.serial_number)):
+            try:
+                times.append(path.stat().st_mtime)
+            except OSError:
+                times.append(None)
+        return None if times == [None, None] else (times[0], times[1])
 
     def _check_tare(self) -> None:
-        """A new tare written by `skinmap tare` is picked up without a restart."""
+        """A new tare or calibration written by `skinmap tare` / `calibrate` is picked up without a restart."""
         hello, pipeline = self._hello, self._pipeline
         if hello is None or pipeline is None:
             return
@@ -668,7 +689,7 @@ class Gateway:
             self._tare_mtime = mtime
             cal, self._tare_problem = load_calibration(hello, self.cfg)
             pipeline.set_calibration(cal)
-            log.info("loaded new tare (%s)", pipeline.calibration.source)
+            log.info("loaded new tare or calibration (%s)", pipeline.calibration.source)
             self._log_config()
             if self._publisher is not None:
                 self._publisher.set_info(self.info())
@@ -824,6 +845,21 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
     # the GIL sooner when bytes arrive while the reconstruction runs Python code.
     sys.setswitchinterval(0.001)
     show = cfg.output.console if console is None else console
+    from skinmap.daemon.portlock import PortBusy, PortLock
+
+    port_lock = PortLock(cfg.device.port, "skinmapd")
+    try:
+        port_lock.acquire()
+    except PortBusy as exc:
+        log.error("%s", exc)
+        return 1
+    try:
+        return _run_gateway_locked(cfg, show, stop_event)
+    finally:
+        port_lock.release()
+
+
+def _run_gateway_locked(cfg: DaemonConfig, show: bool, stop_event: threading.Event | None) -> int:
     with open_zenoh(cfg) as session:
         gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
         unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
