@@ -299,6 +299,9 @@ def check_pose(pose: Pose, strains: np.ndarray, h_upper_mm: float, h_lower_mm: f
         return ""
     along, across = (k_u, k_v) if pose.direction == "rows" else (k_v, k_u)
     want = 1.0 / pose.radius_mm
+    if abs(along) < 0.3 * abs(want) and abs(across) > 0.5 * abs(want):
+        return (f"the sheet bends along the other direction: turn it by 90° so that its {pose.direction} "
+                f"follow the mold's circumference (the axis is off)")
     if along * want <= 0:
         side = "convex" if want > 0 else "concave"
         return f"the sheet bends the wrong way for a {side} mold (turn it over)"
