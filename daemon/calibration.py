@@ -116,6 +116,17 @@ def tare_path(state_dir: Path, serial: str) -> Path:
     return Path(state_dir) / f"tare-{safe}.json"
 
 
+def _write_atomically(path: Path, doc: dict) -> Path:
+    """Temp file, fsync, rename: a crash never leaves half a file."""
+    tmp = path.with_suffix(".json.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(doc, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
 def save_tare(state_dir: Path, serial: str, base_resistance: np.ndarray, n_scans: int) -> Path:
     """Write the tare atomically (temp file, fsync, rename) so a crash never leaves half a file."""
     path = tare_path(state_dir, serial)
@@ -127,13 +138,7 @@ def save_tare(state_dir: Path, serial: str, base_resistance: np.ndarray, n_scans
         "shape": list(base_resistance.shape),
         "base_resistance_ohm": [None if not np.isfinite(x) else float(x) for x in base_resistance.ravel()],
     }
-    tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(doc, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return _write_atomically(path, doc)
 
 
 #: A tare of the largest array (2 × 2 × 32 × 32 gauges) is about 80 kB; anything far larger is
@@ -176,15 +181,20 @@ def _file_kind(mode: int) -> str:
     return "not a regular file"
 
 
-def parse_tare(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
-    """Base resistances shaped ``shape`` and the tare's source text, from a tare file's text;
-    ValueError says what is wrong with it."""
+def _json_object(text: str) -> dict:
     try:
         doc = json.loads(text)
     except ValueError as exc:
         raise ValueError(f"not JSON: {exc}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"not a JSON object but {_json_kind(doc)}")
+    return doc
+
+
+def parse_tare(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
+    """Base resistances shaped ``shape`` and the tare's source text, from a tare file's text;
+    ValueError says what is wrong with it."""
+    doc = _json_object(text)
     file_shape = doc.get("shape")
     if (not isinstance(file_shape, list) or not all(type(x) is int for x in file_shape)):
         raise ValueError(f"'shape' must be a list of integers, got {_json_kind(file_shape)}")
@@ -270,13 +280,7 @@ def save_calibration(state_dir: Path, serial: str, *, gauge_factor: np.ndarray, 
         "poses": poses,
         "notes": list(notes),
     }
-    tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(doc, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return _write_atomically(path, doc)
 
 
 def _numbers(doc: dict, key: str, count: int, positive: bool) -> np.ndarray:
@@ -292,12 +296,7 @@ def _numbers(doc: dict, key: str, count: int, positive: bool) -> np.ndarray:
 def parse_calibration(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """(gauge factors (2, 2, N, M), h_upper_mm (2, N, M), h_lower_mm, summary) from a calibration
     file's text; ValueError says what is wrong with it."""
-    try:
-        doc = json.loads(text)
-    except ValueError as exc:
-        raise ValueError(f"not JSON: {exc}") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"not a JSON object but {_json_kind(doc)}")
+    doc = _json_object(text)
     if (doc.get("format"), doc.get("version")) != CALIBRATION_FORMAT:
         raise ValueError(f"format {doc.get('format')!r} version {doc.get('version')!r}, this reader knows "
                          f"{CALIBRATION_FORMAT[0]!r} version {CALIBRATION_FORMAT[1]}")
