@@ -8,6 +8,7 @@
     skinmap recover LOG.mcap.active   rewrite a cut log as a finished file
     skinmap tare --config FILE        record the flat sheet's resting resistances
     skinmap calibrate --config FILE   guided mold calibration: gauge factors and layer offsets
+    skinmap map LOG.mcap --poses CSV  a log's presses stitched into the touched wall's relief
 """
 from __future__ import annotations
 
@@ -404,6 +405,25 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------------
+# map
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from skinmap.daemon.tactilemap import map_log, write_ply, write_png
+
+    report = map_log(args.log, args.poses, baseline_frames=args.baseline_frames, step_mm=args.step, k=args.k,
+                     min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell)
+    print(report.format())
+    if args.png:
+        write_png(report.relief, args.png)
+        print(f"height map written to {args.png}")
+    if args.ply:
+        count = write_ply(report.relief, args.ply)
+        print(f"{count} relief points written to {args.ply}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -482,6 +502,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--axis-error", type=float, default=3.0, help="with --emulate: placement error of the mold axis, deg")
     c.add_argument("--offset", type=float, default=5.0, help="with --emulate: placement off the mold's centre, mm")
     c.set_defaults(func=cmd_calibrate)
+
+    mp = sub.add_parser("map", help="stitch a log's contact events into the touched wall's relief")
+    mp.add_argument("log")
+    mp.add_argument("--poses", required=True, help="CSV of probe poses: x_mm, y_mm, angle_deg, depth_mm, one row a press")
+    mp.add_argument("--baseline-frames", type=int, default=10, help="surfaces before the first press (default 10)")
+    mp.add_argument("--k", type=float, default=3.0, help="contact: pressed in by more than k·σ of the baseline")
+    mp.add_argument("--min-depth", type=float, default=0.05, help="contact: and by more than this, mm")
+    mp.add_argument("--step", type=float, default=2.0, help="sampling of the sheet, mm")
+    mp.add_argument("--wall-size", type=float, default=120.0, help="the mapped wall's side, mm")
+    mp.add_argument("--cell", type=float, default=1.0, help="the relief map's cell, mm")
+    mp.add_argument("--png", help="write the height and confidence maps to this PNG")
+    mp.add_argument("--ply", help="write the relief's touched cells to this PLY point cloud")
+    mp.set_defaults(func=cmd_map)
     return p
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from skinmap.emulator import physics as ph
 
-__all__ = ["LetterRelief", "BalloonOnWall", "LETTER_STROKES"]
+__all__ = ["LetterRelief", "BalloonOnWall", "PressSequence", "LETTER_STROKES"]
 
 
 def _arc(cx: float, cy: float, r: float, a0: float, a1: float, pieces: int = 8) -> list[tuple[float, float, float, float]]:
@@ -63,6 +63,8 @@ class LetterRelief:
             scale = size / 120.0
             segs += [(cx + scale * a, cy + scale * b, cx + scale * c2, cy + scale * d) for a, b, c2, d in LETTER_STROKES[c]]
         self._segs = np.asarray(segs, dtype=float)
+        self._raster_step, self._raster_half = 0.5, 0.5 * self.size + 4.0
+        self._coeffs: np.ndarray | None = None
 
     def distance(self, xy: np.ndarray) -> np.ndarray:
         """Distance (mm) of wall points (..., 2) to the nearest stroke centre line."""
@@ -73,12 +75,28 @@ class LetterRelief:
         d = np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
         return d.min(axis=-1)
 
+    def _exact_height(self, xy: np.ndarray) -> np.ndarray:
+        x = np.clip((0.5 * self.width + 0.5 * self.edge - self.distance(xy)) / self.edge, 0.0, 1.0)
+        return self.relief * x * x * (3.0 - 2.0 * x)
+
     def height(self, xy: np.ndarray) -> np.ndarray:
         """Relief height H (mm) at wall points (..., 2): ``height`` on a stroke, 0 off it, a
-        smoothstep across the flank; 0 outside the wall's square."""
+        smoothstep across the flank; 0 outside the wall's square.  Evaluated as a cubic spline
+        through the exact profile on a 0.5 mm raster (the emulator evaluates it for every
+        quadrature point of every gauge of every scan); that spline is the relief, truth included."""
         xy = np.asarray(xy, dtype=float)
-        x = np.clip((0.5 * self.width + 0.5 * self.edge - self.distance(xy)) / self.edge, 0.0, 1.0)
-        h = self.relief * x * x * (3.0 - 2.0 * x)
+        if self._coeffs is None:
+            from scipy import ndimage
+
+            c = -self._raster_half + self._raster_step * np.arange(int(round(2 * self._raster_half / self._raster_step)) + 1)
+            xx, yy = np.meshgrid(c, c)
+            self._coeffs = ndimage.spline_filter(self._exact_height(np.stack([xx, yy], -1)), order=3)
+        from scipy import ndimage
+
+        idx = (xy + self._raster_half) / self._raster_step
+        flat = idx.reshape(-1, 2)
+        h = ndimage.map_coordinates(self._coeffs, [flat[:, 1], flat[:, 0]], order=3, prefilter=False, mode="nearest")
+        h = h.reshape(xy.shape[:-1])
         inside = np.all(np.abs(xy) <= 0.5 * self.size, axis=-1)
         return np.where(inside, h, 0.0)
 
@@ -120,3 +138,42 @@ class BalloonOnWall(ph.Shape):
         s = self.smoothing
         w = s * np.logaddexp(0.0, (x[..., 2] - self.wall_z(x[..., :2])) / s)
         return np.concatenate([x[..., :2], (x[..., 2] - w)[..., None]], axis=-1)
+
+
+class PressSequence(ph.Shape):
+    """Presses one after the other: the free balloon for ``rest_s``, then press i (centre,
+    angle, depth) held for ``hold_s``, the balloon free for ``gap_s`` between presses (moved and
+    turned meanwhile), then free again.  ``presses``: [(x_mm, y_mm, angle_deg, depth_mm), ...]."""
+
+    time_varying = True
+
+    def __init__(self, wall: LetterRelief, presses: list[tuple[float, float, float, float]], rest_s: float = 1.0,
+                 hold_s: float = 1.0, gap_s: float = 0.5, balloon_radius: float = 80.0, smoothing: float = 0.3,
+                 start_s: float = 0.0):
+        if not presses:
+            raise ValueError("a press sequence needs at least one press")
+        self.wall, self.rest_s, self.hold_s, self.gap_s = wall, float(rest_s), float(hold_s), float(gap_s)
+        self.start_s = float(start_s)  # the shape clock's time at which the sequence begins
+        self.presses = [BalloonOnWall(wall, (p[0], p[1]), p[2], p[3], balloon_radius, smoothing) for p in presses]
+        self._free = ph.SphereCap(balloon_radius)
+
+    def press_at(self, t: np.ndarray) -> np.ndarray:
+        """Index of the press held at each time (−1: none)."""
+        t = np.asarray(t, dtype=float) - self.start_s - self.rest_s
+        k = np.floor(t / (self.hold_s + self.gap_s)).astype(int)
+        held = (t >= 0) & (t - k * (self.hold_s + self.gap_s) < self.hold_s) & (k < len(self.presses))
+        return np.where(held, k, -1)
+
+    @property
+    def duration_s(self) -> float:
+        return self.start_s + self.rest_s + len(self.presses) * (self.hold_s + self.gap_s)
+
+    def position(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        uv = ph._as_uv(uv)
+        t = np.broadcast_to(np.asarray(t, dtype=float), uv.shape[:-1])
+        which = self.press_at(t)
+        out = self._free.position(uv)
+        for j in np.unique(which[which >= 0]):
+            sel = which == j
+            out[sel] = self.presses[int(j)].position(uv[sel])
+        return out
