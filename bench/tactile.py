@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--depth", type=float, default=2.0)
     ap.add_argument("--spacing", type=float, default=25.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--min-depth", type=float, default=0.05, help="contact: pressed in by more than this, mm")
+    ap.add_argument("--min-depth", type=float, default=0.5, help="contact: pressed in by more than this, mm")
     ap.add_argument("--png", help="write both maps (with the truth) to PNG files named after this one "
                                   "(NAME-scene.png, NAME-reconstructed.png)")
     args = ap.parse_args()

@@ -508,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--poses", required=True, help="CSV of probe poses: x_mm, y_mm, angle_deg, depth_mm, one row a press")
     mp.add_argument("--baseline-frames", type=int, default=10, help="surfaces before the first press (default 10)")
     mp.add_argument("--k", type=float, default=3.0, help="contact: pressed in by more than k·σ of the baseline")
-    mp.add_argument("--min-depth", type=float, default=0.05, help="contact: and by more than this, mm")
+    mp.add_argument("--min-depth", type=float, default=0.5, help="contact: and by more than this, mm")
     mp.add_argument("--step", type=float, default=2.0, help="sampling of the sheet, mm")
     mp.add_argument("--wall-size", type=float, default=120.0, help="the mapped wall's side, mm")
     mp.add_argument("--cell", type=float, default=1.0, help="the relief map's cell, mm")

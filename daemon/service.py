@@ -239,6 +239,7 @@ class Gateway:
         self._pipeline: FramePipeline | None = None
         self._device = cfg.device.name or ""
         self._tare_mtime: tuple[float | None, float | None] | None = None
+        self._contact: Any = None  # the tactile ContactTracker, built with the first pipeline
         self._tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._log_state = "off"
         self._last_log_error = ""
@@ -332,6 +333,7 @@ class Gateway:
             pipeline.continue_from(self._pipeline)  # keep the warm start across a reconnect
             self._pipeline = pipeline
             self._pipeline_gen = gen
+            self._contact = None  # a new baseline after every (re)connect
             self._tare_mtime = self._tare_file_mtime(hello)
             self._open_publisher(hello)
             self._log_config()
@@ -471,10 +473,32 @@ class Gateway:
         # the same scans); surfaces at the surface rate.
         self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
         self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
+        self._track_contact(r)
         if self._logger is not None and self._log_surface_decimator.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
             self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, np.asarray(cloud).reshape(-1, 3)))
         return ok
+
+    def _track_contact(self, r: FrameResult) -> None:
+        """With [tactile] on: the frame against the baseline, published and logged as `contact`."""
+        tc = self.cfg.tactile
+        if not tc.enabled or r.surface is None or self._pipeline is None:
+            return
+        from skinmap.daemon.tactile import ContactTracker, SampleGrid
+
+        g = self._pipeline.geometry
+        if self._contact is None or self._contact.grid != SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm):
+            self._contact = ContactTracker(SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm),
+                                           tc.baseline_frames, tc.k, tc.min_depth_mm)
+        pos, nrm = r.surface.locate(self._contact.grid.uv)
+        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns), **self._contact.update(pos, nrm)}
+        if self._publisher is not None:
+            try:
+                self._publisher.publish_contact(doc)
+            except Exception as exc:  # noqa: BLE001 - a failed put must not stop processing
+                self.stats.publish_errors += 1
+                log.warning("publishing contact failed: %s", exc)
+        self._enqueue_log(("contact", r.host_time_ns, doc))
 
     def _points(self, r: FrameResult) -> np.ndarray:
         cache = getattr(r, "_points_cache", None)
@@ -540,6 +564,8 @@ class Gateway:
             lg.log_surface(item[1], item[2], item[3], item[4], item[5])
         elif kind == "status":
             lg.log_status(item[1], item[2])
+        elif kind == "contact":
+            lg.log_contact(item[1], item[2])
         elif kind == "event":
             lg.log_event(item[1], item[2], item[3])
         elif kind == "config":

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["SampleGrid", "Baseline", "Contact", "ProbePose", "ReliefMap", "capture_baseline", "displacement",
-           "detect_contact", "feature_size", "read_poses_csv"]
+__all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "capture_baseline",
+           "displacement", "detect_contact", "feature_size", "read_poses_csv"]
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ def _align(p: np.ndarray, q: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, n
     return (p - ac) @ rot + bc, rot, bc - ac @ rot
 
 
-def displacement(positions: np.ndarray, baseline: Baseline, k: float = 3.0, min_depth_mm: float = 0.05,
+def displacement(positions: np.ndarray, baseline: Baseline, k: float = 3.0, min_depth_mm: float = 0.5,
                  iterations: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(d (K,) mm along the baseline normal, the frame's aligned positions (K, 3), contact mask)."""
     p = np.asarray(positions, dtype=float)
@@ -149,7 +149,7 @@ class Contact:
 
 
 def detect_contact(positions: np.ndarray, baseline: Baseline, grid: SampleGrid, k: float = 3.0,
-                   min_depth_mm: float = 0.05) -> Contact | None:
+                   min_depth_mm: float = 0.5) -> Contact | None:
     """The contact in one frame, or None if nothing is pressed in beyond k·σ."""
     d, moved, contact = displacement(positions, baseline, k, min_depth_mm)
     if not contact.any():
@@ -277,3 +277,45 @@ class ReliefMap:
         """Share of the cells of ``region`` (default: the wall's own square) that were touched."""
         region = self.wall_region() if region is None else region
         return float(np.count_nonzero((self._n > 0) & region) / max(1, np.count_nonzero(region)))
+
+
+class ContactTracker:
+    """The gateway's contact state, frame by frame (explicit state, no I/O): the first
+    ``baseline_frames`` surfaces become the baseline, every later one is compared with it.
+
+    ``update(positions, normals)`` returns the `contact` message (a JSON-able dict): ``state``
+    'baseline' (still collecting), 'free' or 'contact'; with a contact its area, peak depth,
+    feature size L_r and the depth map on the sample grid (row-major, mm, 0 off contact)."""
+
+    def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5) -> None:
+        if baseline_frames < 1:
+            raise ValueError(f"baseline_frames must be >= 1, got {baseline_frames}")
+        self.grid, self.baseline_frames, self.k, self.min_depth_mm = grid, int(baseline_frames), float(k), float(min_depth_mm)
+        self._frames: list[tuple[np.ndarray, np.ndarray]] = []
+        self.baseline: Baseline | None = None
+        self.events = 0
+        self._in_contact = False
+
+    def reset(self) -> None:
+        """Take a new baseline from the next frames (e.g. after the probe was re-inflated)."""
+        self._frames, self.baseline, self._in_contact = [], None, False
+
+    def update(self, positions: np.ndarray, normals: np.ndarray) -> dict:
+        g = self.grid
+        doc: dict = {"grid": {"rows": g.shape[0], "cols": g.shape[1], "step_mm": g.step}, "events": self.events}
+        if self.baseline is None:
+            self._frames.append((np.asarray(positions, float), np.asarray(normals, float)))
+            if len(self._frames) >= self.baseline_frames:
+                self.baseline = capture_baseline(self._frames)
+                self._frames = []
+            return {**doc, "state": "baseline", "baseline_frames": len(self._frames) if self.baseline is None
+                    else self.baseline_frames}
+        c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm)
+        if c is None:
+            self._in_contact = False
+            return {**doc, "state": "free"}
+        if not self._in_contact:
+            self.events += 1
+            self._in_contact = True
+        return {**doc, "events": self.events, "state": "contact", **c.summary(),
+                "depth_mm": np.round(c.depth, 4).ravel().tolist()}

@@ -3,7 +3,8 @@
 The log is replayed (its raw frames through the pipeline, with the calibration it was recorded
 with); every processed surface is sampled on a material grid; the first ``baseline_frames`` are
 the pre-contact baseline (start recording before the first press); a contact **event** is a run
-of consecutive frames in contact, represented by its frame of deepest indentation; event i is
+of at least two frames in contact (ended by two free ones), represented by its frame of deepest
+indentation; event i is
 placed by probe pose i (a CSV with columns x_mm, y_mm, angle_deg, depth_mm, one row a press, in
 order).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
 its confidence, a PLY point cloud of the touched cells.
@@ -45,29 +46,39 @@ class MapReport:
 
 
 def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleGrid, k: float = 3.0,
-                   min_depth_mm: float = 0.05, normals: list[np.ndarray] | None = None) -> tuple[list[Contact], int]:
+                   min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None) -> tuple[list[Contact], int]:
     """(contact events, the number of baseline frames used) from sampled surfaces (K, 3)."""
     if len(frames) <= baseline_frames:
         raise ValueError(f"{len(frames)} surfaces: not more than the {baseline_frames} baseline frames asked for")
     nrm = normals or [np.tile([0.0, 0.0, 1.0], (len(frames[0]), 1))] * len(frames)
     base = capture_baseline(list(zip(frames[:baseline_frames], nrm[:baseline_frames])))
+    # An event is at least `min_frames` frames in contact and ends after `min_frames` free
+    # ones: a frame whose scan straddles the press's start or end (each unit is read at its
+    # own TDM instant) neither splits a press nor makes one.
+    min_frames = 2
     events: list[Contact] = []
     current: Contact | None = None
+    run = free = 0
     for pos in frames[baseline_frames:]:
         c = detect_contact(pos, base, grid, k, min_depth_mm)
         if c is None:
-            if current is not None:
-                events.append(current)
-            current = None
-        elif current is None or c.peak_depth_mm > current.peak_depth_mm:
+            free += 1
+            if current is not None and free >= min_frames:
+                if run >= min_frames:
+                    events.append(current)
+                current, run = None, 0
+            continue
+        free = 0
+        run += 1
+        if current is None or c.peak_depth_mm > current.peak_depth_mm:
             current = c
-    if current is not None:
+    if current is not None and run >= min_frames:
         events.append(current)
     return events, baseline_frames
 
 
 def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str], *, baseline_frames: int = 10,
-            step_mm: float = 2.0, k: float = 3.0, min_depth_mm: float = 0.05, wall_size_mm: float = 120.0,
+            step_mm: float = 2.0, k: float = 3.0, min_depth_mm: float = 0.5, wall_size_mm: float = 120.0,
             cell_mm: float = 1.0) -> MapReport:
     """Replay the log and stitch its contact events with the poses; ValueError names what is
     wrong (no surfaces, too few baseline frames, event and pose counts that differ)."""
