@@ -51,7 +51,6 @@ def calibrate_device(cfg: DeviceConfig, mechanics: str, state: Path) -> tuple[ob
     placer = EmulatedPlacer(emu, mechanics, cfg.seed)
     poses = standard_poses()
     placer.prepare(poses)  # scenes solved before the clock starts (elastic solves are cached)
-    placer.prepare = lambda _p: None
     emu.start()
     feed = LinkFeed(LinkConfig(port=emu.transport.url, scan_rate_hz=cfg.scan_rate_hz))
     try:

@@ -122,11 +122,14 @@ class EmulatedPlacer:
         self.placements: list[tuple[float, float]] = []
 
     def prepare(self, poses: list[Pose]) -> None:
-        """Draw every placement and build (solve) every scene before the scanner streams."""
+        """Draw every placement and build (solve) every scene before the scanner streams; poses
+        already prepared keep theirs."""
         from skinmap.emulator.molds import mold_scene
 
         c = self.emulator.config
         for pose in poses:
+            if pose in self._scenes:
+                continue
             err = float(self.rng.uniform(-self.axis_error_deg, self.axis_error_deg))
             off = float(self.rng.uniform(-self.offset_mm, self.offset_mm))
             self._scenes[pose] = mold_scene(pose.kind, c.n, c.m, c.pitch_mm, radius=pose.radius_mm,

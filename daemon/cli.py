@@ -361,7 +361,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"skinmap calibrate: emulated {n}x{m} scanner ({args.mechanics} molds; hidden gauge-factor spread "
               f"{100 * args.gf_spread:g} %, offset spread {100 * args.offset_spread:g} %); solving the poses", flush=True)
         placer.prepare(poses)
-        placer.prepare = lambda _poses: None
         emulator.start()
         device_cfg = DeviceConfig(port=emulator.transport.url, scan_rate_hz=50.0)
     else:

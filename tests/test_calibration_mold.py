@@ -203,7 +203,6 @@ def _calibrate_emulated(tmp_path, n=3, seed=11):
     placer = EmulatedPlacer(emu, "kinematic", seed, rest_s=0.1)
     poses = standard_poses()
     placer.prepare(poses)
-    placer.prepare = lambda _p: None
     emu.start()
     feed = LinkFeed(LinkConfig(port=emu.transport.url, scan_rate_hz=50.0))
     said: list[str] = []
@@ -270,3 +269,16 @@ def test_take_static_gives_up_on_a_sheet_that_keeps_moving():
 
     with pytest.raises(CalibrationAborted, match="did not come to rest"):
         take_static(Moving(), np.ones((2, 2, 2, 2)), np.full((2, 2, 2, 2), 6.5), 9, 0.05, say=lambda s: None)
+
+
+def test_calibrate_command_against_the_emulator_writes_both_files(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    rc = cli.main(["calibrate", "--emulate", "3x3", "--state-dir", str(tmp_path / "state"), "--seed", "13",
+                   "--window", "15"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "[10/10]" in out and "against the emulator's hidden truth" in out
+    assert len(list((tmp_path / "state").glob("calibration-EMU-*.json"))) == 1
+    assert len(list((tmp_path / "state").glob("tare-EMU-*.json"))) == 1
+    assert cli.main(["calibrate"]) == 2  # neither a config nor --emulate
+    assert "give --config" in capsys.readouterr().err
