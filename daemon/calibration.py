@@ -8,6 +8,12 @@ channel-to-channel offsets and the slow drift that a factory R0 cannot know abou
     eps = (R / R0 − 1) / GF
 
 Arrays are shaped (2 layers, 2 directions, N, M), layer 0 = upper, 1 = lower.
+
+A mold calibration (``skinmap calibrate``, :mod:`skinmap.daemon.moldcal`) adds per-gauge gauge
+factors and per-unit layer offsets, stored in a versioned calibration file next to the tare.
+The reconstruction takes one pair of nominal offsets, so strains measured on a unit whose true
+offsets differ are mapped to the strains that unit would read at the nominal offsets
+(:func:`to_nominal_offsets`): the same stretch and turning, read at h_u and h_l.
 """
 from __future__ import annotations
 
@@ -20,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Calibration", "resistances_to_strains", "compute_tare", "save_tare", "load_tare", "tare_path"]
+__all__ = ["Calibration", "resistances_to_strains", "to_nominal_offsets", "compute_tare", "save_tare", "load_tare",
+           "tare_path", "calibration_path", "save_calibration", "load_calibration_file", "CALIBRATION_FORMAT"]
 
 # A gauge whose strain reads beyond this is treated as faulty (the gauges are linear to 50 %).
 MAX_PLAUSIBLE_STRAIN = 0.6
@@ -30,9 +37,20 @@ MAX_PLAUSIBLE_STRAIN = 0.6
 class Calibration:
     gauge_factor: np.ndarray  # (2, 2, N, M)
     base_resistance: np.ndarray  # (2, 2, N, M) ohm
-    source: str = "factory"  # "factory" or "tare <iso time>"
+    source: str = "factory"  # "factory", "tare <iso time>", "calibration <iso time>" or both
+    h_upper_mm: np.ndarray | None = None  # (2, N, M) per-unit layer offsets of a mold calibration
+    h_lower_mm: np.ndarray | None = None
+    summary: dict | None = None  # what the calibration file says of itself (method, date, residuals)
 
     def __post_init__(self) -> None:
+        if (self.h_upper_mm is None) != (self.h_lower_mm is None):
+            raise ValueError("calibration: layer offsets come in pairs (h_upper_mm and h_lower_mm)")
+        if self.h_upper_mm is not None:
+            want = self.gauge_factor.shape[1:]
+            for name in ("h_upper_mm", "h_lower_mm"):
+                h = getattr(self, name)
+                if h.shape != want or not (np.all(np.isfinite(h)) and np.all(h > 0)):
+                    raise ValueError(f"calibration: {name} must be {list(want)} finite offsets > 0 mm")
         gf, r0 = self.gauge_factor, self.base_resistance
         if gf.shape != r0.shape or gf.ndim != 4 or gf.shape[:2] != (2, 2):
             raise ValueError(f"calibration arrays must both be (2, 2, N, M); got {gf.shape} and {r0.shape}")
@@ -43,7 +61,23 @@ class Calibration:
 
     def with_tare(self, base_resistance: np.ndarray, source: str) -> "Calibration":
         tared = np.where(np.isfinite(base_resistance) & (base_resistance > 0), base_resistance, self.base_resistance)
-        return Calibration(self.gauge_factor, tared, source)
+        return Calibration(self.gauge_factor, tared, source, self.h_upper_mm, self.h_lower_mm, self.summary)
+
+    def with_mold_fit(self, gauge_factor: np.ndarray, h_upper_mm: np.ndarray, h_lower_mm: np.ndarray,
+                      source: str, summary: dict | None = None) -> "Calibration":
+        """These gauge factors and layer offsets, the base resistances kept."""
+        return Calibration(gauge_factor, self.base_resistance, source, h_upper_mm, h_lower_mm, summary)
+
+
+def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np.ndarray, h_lower: np.ndarray,
+                       h_upper_nominal: float, h_lower_nominal: float) -> tuple[np.ndarray, np.ndarray]:
+    """Strains of units with layer offsets (h_upper, h_lower) as units at the nominal offsets
+    would read them: the stretch (ε_u h_l + ε_l h_u)/(h_u + h_l) and the turning
+    (ε_u − ε_l)/(h_u + h_l) are kept (Kirchhoff–Love, to first order in h)."""
+    total = h_upper + h_lower
+    stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
+    turning = (eps_upper - eps_lower) / total
+    return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
 
 
 def resistances_to_strains(
@@ -82,6 +116,17 @@ def tare_path(state_dir: Path, serial: str) -> Path:
     return Path(state_dir) / f"tare-{safe}.json"
 
 
+def _write_atomically(path: Path, doc: dict) -> Path:
+    """Temp file, fsync, rename: a crash never leaves half a file."""
+    tmp = path.with_suffix(".json.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(doc, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
 def save_tare(state_dir: Path, serial: str, base_resistance: np.ndarray, n_scans: int) -> Path:
     """Write the tare atomically (temp file, fsync, rename) so a crash never leaves half a file."""
     path = tare_path(state_dir, serial)
@@ -93,13 +138,7 @@ def save_tare(state_dir: Path, serial: str, base_resistance: np.ndarray, n_scans
         "shape": list(base_resistance.shape),
         "base_resistance_ohm": [None if not np.isfinite(x) else float(x) for x in base_resistance.ravel()],
     }
-    tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(doc, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return _write_atomically(path, doc)
 
 
 #: A tare of the largest array (2 × 2 × 32 × 32 gauges) is about 80 kB; anything far larger is
@@ -108,8 +147,8 @@ MAX_TARE_BYTES = 4 * 1024 * 1024
 
 
 def _read_tare_text(path: Path) -> str | None:
-    """The tare file's text, or None if there is none. Never blocks: a FIFO or device at the
-    path is refused (opened non-blocking, then only a regular file is read)."""
+    """The tare (or calibration) file's text, or None if there is none. Never blocks: a FIFO or
+    device at the path is refused (opened non-blocking, then only a regular file is read)."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
@@ -142,15 +181,20 @@ def _file_kind(mode: int) -> str:
     return "not a regular file"
 
 
-def parse_tare(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
-    """Base resistances shaped ``shape`` and the tare's source text, from a tare file's text;
-    ValueError says what is wrong with it."""
+def _json_object(text: str) -> dict:
     try:
         doc = json.loads(text)
     except ValueError as exc:
         raise ValueError(f"not JSON: {exc}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"not a JSON object but {_json_kind(doc)}")
+    return doc
+
+
+def parse_tare(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, str]:
+    """Base resistances shaped ``shape`` and the tare's source text, from a tare file's text;
+    ValueError says what is wrong with it."""
+    doc = _json_object(text)
     file_shape = doc.get("shape")
     if (not isinstance(file_shape, list) or not all(type(x) is int for x in file_shape)):
         raise ValueError(f"'shape' must be a list of integers, got {_json_kind(file_shape)}")
@@ -192,5 +236,97 @@ def load_tare(state_dir: Path, serial: str, shape: tuple[int, ...]) -> tuple[np.
     try:
         text = _read_tare_text(path)
         return None if text is None else parse_tare(text, shape)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------------------
+# the mold calibration file
+
+#: Name and version of the calibration file's layout; a reader refuses any other.
+CALIBRATION_FORMAT = ("skinmap.calibration", 1)
+
+
+def calibration_path(state_dir: Path, serial: str) -> Path:
+    return tare_path(state_dir, serial).with_name(tare_path(state_dir, serial).name.replace("tare-", "calibration-", 1))
+
+
+def _finite_list(a: np.ndarray) -> list:
+    return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, dtype=float).ravel()]
+
+
+def save_calibration(state_dir: Path, serial: str, *, gauge_factor: np.ndarray, gauge_factor_sd: np.ndarray,
+                     h_upper_mm: np.ndarray, h_upper_sd_mm: np.ndarray, h_lower_mm: np.ndarray,
+                     h_lower_sd_mm: np.ndarray, residual_rms: np.ndarray, method: str,
+                     offsets_determined: bool, poses: list[dict], duration_s: float, notes: list[str]) -> Path:
+    """Write the calibration file atomically (temp file, fsync, rename)."""
+    path = calibration_path(state_dir, serial)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "format": CALIBRATION_FORMAT[0], "version": CALIBRATION_FORMAT[1],
+        "serial": serial,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "method": method,
+        "duration_s": round(float(duration_s), 3),
+        "shape": list(np.shape(gauge_factor)),
+        "gauge_factor": _finite_list(gauge_factor),
+        "gauge_factor_sd": _finite_list(gauge_factor_sd),
+        "residual_strain_rms": _finite_list(residual_rms),
+        "offsets_determined": bool(offsets_determined),
+        "h_upper_mm": _finite_list(h_upper_mm),
+        "h_upper_sd_mm": _finite_list(h_upper_sd_mm),
+        "h_lower_mm": _finite_list(h_lower_mm),
+        "h_lower_sd_mm": _finite_list(h_lower_sd_mm),
+        "poses": poses,
+        "notes": list(notes),
+    }
+    return _write_atomically(path, doc)
+
+
+def _numbers(doc: dict, key: str, count: int, positive: bool) -> np.ndarray:
+    raw = doc.get(key)
+    if not isinstance(raw, list) or len(raw) != count:
+        raise ValueError(f"'{key}' must be a list of {count} numbers, got {_json_kind(raw)}")
+    for i, x in enumerate(raw):
+        if type(x) not in (int, float) or not np.isfinite(x) or (positive and x <= 0):
+            raise ValueError(f"'{key}'[{i}] must be a finite number{' > 0' if positive else ''}, got {_json_kind(x)}")
+    return np.asarray(raw, dtype=np.float64)
+
+
+def parse_calibration(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(gauge factors (2, 2, N, M), h_upper_mm (2, N, M), h_lower_mm, summary) from a calibration
+    file's text; ValueError says what is wrong with it."""
+    doc = _json_object(text)
+    if (doc.get("format"), doc.get("version")) != CALIBRATION_FORMAT:
+        raise ValueError(f"format {doc.get('format')!r} version {doc.get('version')!r}, this reader knows "
+                         f"{CALIBRATION_FORMAT[0]!r} version {CALIBRATION_FORMAT[1]}")
+    if doc.get("shape") != list(shape):
+        raise ValueError(f"for an array shaped {doc.get('shape')}, the scanner is {list(shape)}")
+    gauges = int(np.prod(shape))
+    gf = _numbers(doc, "gauge_factor", gauges, True).reshape(shape)
+    hu = _numbers(doc, "h_upper_mm", gauges // 2, True).reshape(shape[1:])
+    hl = _numbers(doc, "h_lower_mm", gauges // 2, True).reshape(shape[1:])
+    res = np.asarray([np.nan if x is None else x for x in doc.get("residual_strain_rms") or []], dtype=float)
+    sd = np.asarray([np.nan if x is None else x for x in doc.get("gauge_factor_sd") or []], dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel_sd = sd / gf.ravel() if sd.size == gf.size else np.array([np.nan])
+    summary = {
+        "created": doc.get("created", "?"), "method": doc.get("method", "?"),
+        "offsets_determined": bool(doc.get("offsets_determined", False)),
+        "duration_s": doc.get("duration_s"),
+        "residual_strain_rms_median": float(np.nanmedian(res)) if res.size and np.isfinite(res).any() else None,
+        "gauge_factor_rel_sd_median": float(np.nanmedian(rel_sd)) if np.isfinite(rel_sd).any() else None,
+    }
+    return gf, hu, hl, summary
+
+
+def load_calibration_file(state_dir: Path, serial: str, shape: tuple[int, ...]
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict] | None:
+    """The stored mold calibration of this scanner, or None if there is none; ValueError (naming
+    the file and what is wrong) if there is a file that is not a calibration of this array."""
+    path = calibration_path(state_dir, serial)
+    try:
+        text = _read_tare_text(path)
+        return None if text is None else parse_calibration(text, shape)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None

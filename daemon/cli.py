@@ -7,6 +7,8 @@
     skinmap inspect LOG.mcap          topics, rates, gaps, errors; --png T for a surface snapshot
     skinmap recover LOG.mcap.active   rewrite a cut log as a finished file
     skinmap tare --config FILE        record the flat sheet's resting resistances
+    skinmap calibrate --config FILE   guided mold calibration: gauge factors and layer offsets
+    skinmap map LOG.mcap --poses CSV  a log's presses stitched into the touched wall's relief
 """
 from __future__ import annotations
 
@@ -161,6 +163,12 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"array      {info['rows']}×{info['cols']} cells, pitch {info['pitch_m'] * 1000:g} mm")
         print(f"elements   {info['elements'].get('count')} ({info['elements'].get('layout', '?')})")
         print(f"calibration {cal.get('source', '?')}")
+        fit = cal.get("fit")
+        if isinstance(fit, dict):
+            res, sd = fit.get("residual_strain_rms_median"), fit.get("gauge_factor_rel_sd_median")
+            print(f"           {fit.get('method', '?')}; residual {res if res is None else f'{res:.1e}'} strain rms, "
+                  f"gauge-factor s.d. {sd if sd is None else f'{100 * sd:.2f} %'} (medians); "
+                  f"layer offsets {'fitted' if fit.get('offsets_determined') else 'nominal'}")
         print(f"versions   {info.get('versions')}")
     return 0
 
@@ -228,8 +236,10 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_tare(args: argparse.Namespace) -> int:
+    from skinmap.daemon.calibrate import tare_problem
     from skinmap.daemon.calibration import compute_tare, save_tare
     from skinmap.daemon.config import ConfigError, load_config
+    from skinmap.daemon.portlock import PortBusy, PortLock
     from skinmap.daemon.replay import resistances_from_log
 
     try:
@@ -239,12 +249,26 @@ def cmd_tare(args: argparse.Namespace) -> int:
         return 2
     if args.from_log:
         serial, scans = resistances_from_log(args.from_log, start_s=args.at, count=args.scans)
+        hello = _hello_from_log(args.from_log)
     else:
-        serial, scans = _tare_from_scanner(cfg, args.scans)
+        try:
+            with PortLock(cfg.device.port, "skinmap tare"):
+                serial, scans, hello = _tare_from_scanner(cfg, args.scans)
+        except PortBusy as exc:
+            print(f"skinmap tare: {exc}; nothing written", file=sys.stderr)
+            return 1
     if len(scans) == 0:
         print("skinmap tare: no scans received; nothing written", file=sys.stderr)
         return 1
-    base = compute_tare(np.stack(scans))
+    stack = np.stack(scans)
+    if hello is not None:
+        h_u = cfg.reconstruction.h_upper_mm or hello.h_upper_um / 1000.0
+        h_l = cfg.reconstruction.h_lower_mm or hello.h_lower_um / 1000.0
+        problem = tare_problem(stack, hello.gauge_factor(), hello.base_resistance_ohm(), h_u, h_l)
+        if problem:
+            print(f"skinmap tare: not a tare: {problem}; nothing written", file=sys.stderr)
+            return 1
+    base = compute_tare(stack)
     path = save_tare(cfg.resolve(cfg.state.directory), serial, base, len(scans))
     finite = base[np.isfinite(base)]
     print(f"tare of {len(scans)} scans from scanner {serial} written to {path} "
@@ -252,8 +276,22 @@ def cmd_tare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _tare_from_scanner(cfg: Any, count: int) -> tuple[str, list[np.ndarray]]:
-    """Open the scanner directly (skinmapd must be stopped: the port is exclusive)."""
+def _hello_from_log(log_path: str) -> Any:
+    """The scanner's HELLO as logged with the config (None if the log has none)."""
+    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    from skinmap.protocol import Hello, StreamDecoder
+
+    decoder = StreamDecoder()
+    for m in iter_messages_file_order(str(log_path)):
+        if m.topic == "/raw":
+            for frame in decoder.feed(m.data):
+                if isinstance(frame.msg, Hello):
+                    return frame.msg
+    return None
+
+
+def _tare_from_scanner(cfg: Any, count: int) -> tuple[str, list[np.ndarray], Any]:
+    """Open the scanner directly (the port lock keeps skinmapd off it meanwhile)."""
     from skinmap.daemon.link import ScannerLink
 
     scans: list[np.ndarray] = []
@@ -273,7 +311,115 @@ def _tare_from_scanner(cfg: Any, count: int) -> tuple[str, list[np.ndarray]]:
     finally:
         link.stop()
     serial = link.hello.serial_number if link.hello else "unknown"
-    return serial, scans
+    return serial, scans, link.hello
+
+
+# ------------------------------------------------------------------------------------------
+# calibrate
+
+
+def _radii(text: str) -> tuple[float, ...]:
+    try:
+        radii = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"radii must be comma-separated numbers in mm, got {text!r}") from None
+    if len(set(radii)) < 1 or any(not (5.0 <= r <= 10000.0) for r in radii):
+        raise argparse.ArgumentTypeError(f"radii must be 5..10000 mm, got {text!r}")
+    return radii
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from skinmap.daemon.calibrate import (CalibrationAborted, EmulatedPlacer, LinkFeed, PromptPlacer,
+                                          run_calibration, summarise)
+    from skinmap.daemon.config import ConfigError, DeviceConfig, load_config
+    from skinmap.daemon.moldcal import standard_poses
+    from skinmap.daemon.portlock import PortBusy, PortLock
+
+    cfg = None
+    if args.config:
+        try:
+            cfg = load_config(args.config)
+        except ConfigError as exc:
+            print(f"skinmap calibrate: {exc}", file=sys.stderr)
+            return 2
+    elif not args.emulate:
+        print("skinmap calibrate: give --config (the scanner's port and state directory) or --emulate", file=sys.stderr)
+        return 2
+    state_dir = Path(args.state_dir) if args.state_dir else (cfg.resolve(cfg.state.directory) if cfg else Path("state"))
+    poses = standard_poses(args.radii, 0.0 if args.no_stretch else args.stretch)
+    emulator = None
+    if args.emulate:
+        from skinmap.emulator.device import ScannerSpec as EmulatedDevice
+        from skinmap.emulator.emulator import Emulator
+        from skinmap.emulator.physics import Flat
+        from skinmap.emulator.transport import TcpTransport
+
+        n, m = (int(x) for x in args.emulate.lower().split("x"))
+        emulator = Emulator(EmulatedDevice(n=n, m=m, scan_rate_hz=50.0, seed=args.seed, gf_spread=args.gf_spread,
+                                           offset_spread=args.offset_spread), Flat(), TcpTransport(0))
+        placer: Any = EmulatedPlacer(emulator, args.mechanics, args.seed, args.axis_error, args.offset)
+        print(f"skinmap calibrate: emulated {n}x{m} scanner ({args.mechanics} molds; hidden gauge-factor spread "
+              f"{100 * args.gf_spread:g} %, offset spread {100 * args.offset_spread:g} %); solving the poses", flush=True)
+        placer.prepare(poses)
+        emulator.start()
+        device_cfg = DeviceConfig(port=emulator.transport.url, scan_rate_hz=50.0)
+    else:
+        placer = PromptPlacer()
+        device_cfg = cfg.device
+    feed = LinkFeed(device_cfg, on_event=lambda level, text: print(f"  {level}: {text}", file=sys.stderr)
+                    if level != "info" else None)
+    try:
+        with PortLock(device_cfg.port, "skinmap calibrate"):
+            hello = feed.start()
+            try:
+                h_u = (cfg.reconstruction.h_upper_mm if cfg else 0.0) or hello.h_upper_um / 1000.0
+                h_l = (cfg.reconstruction.h_lower_mm if cfg else 0.0) or hello.h_lower_um / 1000.0
+                print(f"skinmap calibrate: scanner {hello.serial_number}, {hello.n}x{hello.m}; {len(poses)} poses; "
+                      f"each is taken when {args.window} scans in a row are static", flush=True)
+                run = run_calibration(feed, placer, poses, hello, state_dir=state_dir, h_upper_mm=h_u, h_lower_mm=h_l,
+                                      window=args.window, timeout_s=args.timeout)
+            finally:
+                feed.stop()
+    except PortBusy as exc:
+        print(f"skinmap calibrate: {exc}; nothing written", file=sys.stderr)
+        return 1
+    except CalibrationAborted as exc:
+        print(f"skinmap calibrate: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if emulator is not None:
+            emulator.stop()
+    for line in summarise(run.fit, hello.gauge_factor()):
+        print(f"  {line}")
+    print(f"calibration written to {run.calibration_file}, tare to {run.tare_file} ({run.duration_s:.1f} s)")
+    if emulator is not None:
+        truth = emulator.hidden_truth()
+        gf_err = run.fit.gauge_factor / truth["gauge_factor"] - 1.0
+        hu_err = run.fit.h_upper_mm / truth["h_upper_mm"] - 1.0
+        hl_err = run.fit.h_lower_mm / truth["h_lower_mm"] - 1.0
+        print(f"  against the emulator's hidden truth: gauge factors {100 * np.sqrt(np.mean(gf_err ** 2)):.2f} % rms "
+              f"(factory values {100 * np.sqrt(np.mean((hello.gauge_factor() / truth['gauge_factor'] - 1) ** 2)):.1f} %), "
+              f"h_upper {100 * np.sqrt(np.mean(hu_err ** 2)):.2f} %, h_lower {100 * np.sqrt(np.mean(hl_err ** 2)):.2f} % rms")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
+# map
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from skinmap.daemon.tactilemap import map_log, write_ply, write_png
+
+    report = map_log(args.log, args.poses, baseline_frames=args.baseline_frames, step_mm=args.step, k=args.k,
+                     min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell)
+    print(report.format())
+    if args.png:
+        write_png(report.relief, args.png)
+        print(f"height map written to {args.png}")
+    if args.ply:
+        count = write_ply(report.relief, args.ply)
+        print(f"{count} relief points written to {args.ply}")
+    return 0
 
 
 # ------------------------------------------------------------------------------------------
@@ -336,6 +482,38 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--from-log", help="take the scans from a log instead of the scanner")
     t.add_argument("--at", type=float, default=0.0, help="with --from-log: seconds after the log's start")
     t.set_defaults(func=cmd_tare)
+
+    c = sub.add_parser("calibrate", help="guided mold calibration: per-gauge gauge factors and layer offsets")
+    c.add_argument("--config", "-c", help="skinmapd's config (the scanner's port and the state directory)")
+    c.add_argument("--state-dir", help="write the tare and calibration here instead of the config's state directory")
+    c.add_argument("--radii", type=_radii, default=(40.0, 80.0), help="mold radii, mm (default 40,80)")
+    c.add_argument("--stretch", type=float, default=0.05, help="the stretching frame's strain (default 0.05)")
+    c.add_argument("--no-stretch", action="store_true",
+                   help="no stretched pose: gauge factors only, the layer offsets kept nominal")
+    c.add_argument("--window", type=int, default=30, help="scans per pose, all static (default 30)")
+    c.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for a pose to be static")
+    c.add_argument("--emulate", metavar="NxM", help="calibrate an in-process emulated scanner of this size")
+    c.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
+                   help="with --emulate: the molds as closed-form wraps or solved elastic films")
+    c.add_argument("--seed", type=int, default=0, help="with --emulate: the device's seed")
+    c.add_argument("--gf-spread", type=float, default=0.15, help="with --emulate: hidden gauge-factor spread")
+    c.add_argument("--offset-spread", type=float, default=0.10, help="with --emulate: hidden layer-offset spread")
+    c.add_argument("--axis-error", type=float, default=3.0, help="with --emulate: placement error of the mold axis, deg")
+    c.add_argument("--offset", type=float, default=5.0, help="with --emulate: placement off the mold's centre, mm")
+    c.set_defaults(func=cmd_calibrate)
+
+    mp = sub.add_parser("map", help="stitch a log's contact events into the touched wall's relief")
+    mp.add_argument("log")
+    mp.add_argument("--poses", required=True, help="CSV of probe poses: x_mm, y_mm, angle_deg, depth_mm, one row a press")
+    mp.add_argument("--baseline-frames", type=int, default=10, help="surfaces before the first press (default 10)")
+    mp.add_argument("--k", type=float, default=3.0, help="contact: pressed in by more than k·σ of the baseline")
+    mp.add_argument("--min-depth", type=float, default=0.5, help="contact: and by more than this, mm")
+    mp.add_argument("--step", type=float, default=2.0, help="sampling of the sheet, mm")
+    mp.add_argument("--wall-size", type=float, default=120.0, help="the mapped wall's side, mm")
+    mp.add_argument("--cell", type=float, default=1.0, help="the relief map's cell, mm")
+    mp.add_argument("--png", help="write the height and confidence maps to this PNG")
+    mp.add_argument("--ply", help="write the relief's touched cells to this PLY point cloud")
+    mp.set_defaults(func=cmd_map)
     return p
 
 

@@ -154,6 +154,15 @@ class StateConfig:
 
 
 @dataclass(frozen=True)
+class TactileConfig:
+    enabled: bool = False  # publish and log `contact` (docs/tactile.md)
+    baseline_frames: int = 10  # processed surfaces after each (re)connect that make the baseline
+    k: float = 3.0  # contact: pressed in beyond k·σ of the baseline
+    min_depth_mm: float = 0.5  # … and beyond this (what a free probe's reconstruction wanders stays below)
+    step_mm: float = 2.0  # material sampling of the sheet
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     device: DeviceConfig = field(default_factory=DeviceConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
@@ -162,6 +171,7 @@ class DaemonConfig:
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     log: LogConfig = field(default_factory=LogConfig)
     state: StateConfig = field(default_factory=StateConfig)
+    tactile: TactileConfig = field(default_factory=TactileConfig)
     source: str = "<defaults>"  # where the config came from
     text: str = ""  # the raw TOML, logged at start
 
@@ -341,6 +351,13 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "points_per_pitch": _number(1, 100, integer=True),
     },
     "state": {"directory": _string(r".+", "must be a non-empty path")},
+    "tactile": {
+        "enabled": _boolean,
+        "baseline_frames": _number(1, 10_000, integer=True),
+        "k": _number(0.5, 100),
+        "min_depth_mm": _number(0, 50),
+        "step_mm": _number(0.25, 50),
+    },
 }
 
 _SECTIONS = {
@@ -351,6 +368,7 @@ _SECTIONS = {
     "zenoh": ZenohConfig,
     "log": LogConfig,
     "state": StateConfig,
+    "tactile": TactileConfig,
 }
 
 

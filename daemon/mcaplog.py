@@ -225,6 +225,8 @@ TOPICS: dict[str, TopicSpec] = {
                   _json_schema(FOXGLOVE_POINTCLOUD_SCHEMA), "json"),
         TopicSpec("/status", "skinmap.Status", "jsonschema",
                   _json_schema({"title": "skinmap.Status", **_OBJECT_SCHEMA}), "json"),
+        TopicSpec("/contact", "skinmap.Contact", "jsonschema",
+                  _json_schema({"title": "skinmap.Contact", **_OBJECT_SCHEMA}), "json"),
         TopicSpec("/log", "foxglove.Log", "jsonschema", _json_schema(FOXGLOVE_LOG_SCHEMA),
                   "json"),
         TopicSpec("/config", "skinmap.Config", "jsonschema",
@@ -629,6 +631,12 @@ class McapLogger:
         if not isinstance(status, Mapping):
             raise TypeError(f"status must be a mapping, got {type(status).__name__}")
         self._log(TOPICS["/status"], t_ns, _to_json(dict(status), "status"))
+
+    def log_contact(self, t_ns: int, contact: Mapping[str, Any]) -> None:
+        """`/contact`: a JSON object (docs/tactile.md)."""
+        if not isinstance(contact, Mapping):
+            raise TypeError(f"contact must be a mapping, got {type(contact).__name__}")
+        self._log(TOPICS["/contact"], t_ns, _to_json(dict(contact), "contact"))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:

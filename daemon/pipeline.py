@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from skinmap.daemon.calibration import Calibration, resistances_to_strains
+from skinmap.daemon.calibration import Calibration, resistances_to_strains, to_nominal_offsets
 from skinmap.daemon.messages import ElementFlag
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator", "reject_implausible_units",
@@ -180,6 +180,9 @@ class FramePipeline:
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
+        cal = self.calibration
+        if cal.h_upper_mm is not None:
+            eps_u, eps_l = to_nominal_offsets(eps_u, eps_l, cal.h_upper_mm, cal.h_lower_mm, g.h_upper_mm, g.h_lower_mm)
         eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g)
         t0 = time.perf_counter()
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}

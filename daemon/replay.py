@@ -95,8 +95,12 @@ _PROBLEMS_KEPT = 1000
 
 def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
     shape = tuple(doc["shape"])
+    offsets = [None, None]
+    if "h_upper_mm" in doc or "h_lower_mm" in doc:
+        offsets = [np.asarray(doc[k], dtype=np.float64).reshape(shape[1:]) for k in ("h_upper_mm", "h_lower_mm")]
     return Calibration(np.asarray(doc["gauge_factor"], dtype=np.float64).reshape(shape),
-                       np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"))
+                       np.asarray(doc["r0_ohm"], dtype=np.float64).reshape(shape), doc.get("source", "logged"),
+                       offsets[0], offsets[1], doc.get("fit") if isinstance(doc.get("fit"), dict) else None)
 
 
 def _type_name(value: Any) -> str:
@@ -186,9 +190,11 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
 
 def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
                progress: bool = False, keep_results: bool = False,
-               max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES) -> ReplayReport:
+               max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES,
+               on_result: Any = None) -> ReplayReport:
     """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max).
-    Records over `max_record_bytes` are skipped and named in the report's `problems`."""
+    Records over `max_record_bytes` are skipped and named in the report's `problems`.
+    `on_result(result)` is called with every processed scan's FrameResult (its surface included)."""
     from skinmap.daemon.service import limit_blas_threads
 
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
@@ -255,6 +261,8 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                 last_seq = seq
                 result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)
                 report.processed += 1
+                if on_result is not None:
+                    on_result(result)
                 payload = messages.encode_elements(
                     seq, result.device_time_us, result.host_time_ns, result.element_positions_mm / 1000.0,
                     result.element_normals, result.element_sigma_mm / 1000.0, result.element_flags)

@@ -30,7 +30,7 @@ import numpy as np
 
 import skinmap
 from skinmap.daemon import messages
-from skinmap.daemon.calibration import Calibration, load_tare
+from skinmap.daemon.calibration import Calibration, load_calibration_file, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
@@ -71,13 +71,23 @@ def load_calibration(hello: Hello, cfg: DaemonConfig) -> tuple[Calibration, str]
     """The scanner's factory calibration with the stored tare applied, and "" -- or, when the
     tare file is no tare of this array, the factory calibration and what is wrong with it."""
     cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    state = cfg.resolve(cfg.state.directory)
+    problems = []
     try:
-        tare = load_tare(cfg.resolve(cfg.state.directory), hello.serial_number, cal.base_resistance.shape)
-        return (cal if tare is None else cal.with_tare(*tare)), ""
+        fit = load_calibration_file(state, hello.serial_number, cal.base_resistance.shape)
+        if fit is not None:
+            cal = cal.with_mold_fit(fit[0], fit[1], fit[2], f"calibration {fit[3]['created']}", fit[3])
     except ValueError as exc:
-        problem = f"ignoring tare {exc}"
-        log.warning("%s; using the factory calibration", problem)
-        return cal, problem
+        problems.append(f"ignoring calibration {exc}")
+        log.warning("%s; using the factory gauge factors", problems[-1])
+    try:
+        tare = load_tare(state, hello.serial_number, cal.base_resistance.shape)
+        if tare is not None:
+            cal = cal.with_tare(tare[0], tare[1] if cal.source == "factory" else f"{cal.source}, {tare[1]}")
+    except ValueError as exc:
+        problems.append(f"ignoring tare {exc}")
+        log.warning("%s; using the factory base resistances", problems[-1])
+    return cal, "; ".join(problems)
 
 
 def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
@@ -226,7 +236,8 @@ class Gateway:
         self._publisher: Any = None
         self._pipeline: FramePipeline | None = None
         self._device = cfg.device.name or ""
-        self._tare_mtime: float | None = None
+        self._tare_mtime: tuple[float | None, float | None] | None = None
+        self._contact: Any = None  # the tactile ContactTracker, built with the first pipeline
         self._tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._log_state = "off"
         self._last_log_error = ""
@@ -320,6 +331,7 @@ class Gateway:
             pipeline.continue_from(self._pipeline)  # keep the warm start across a reconnect
             self._pipeline = pipeline
             self._pipeline_gen = gen
+            self._contact = None  # a new baseline after every (re)connect
             self._tare_mtime = self._tare_file_mtime(hello)
             self._open_publisher(hello)
             self._log_config()
@@ -378,13 +390,19 @@ class Gateway:
 
     @staticmethod
     def _calibration_doc(cal: Calibration) -> dict[str, Any]:
-        return {
+        doc = {
             # Full precision: replay must reproduce the live strains bit for bit.
             "gauge_factor": cal.gauge_factor.ravel().tolist(),
             "r0_ohm": cal.base_resistance.ravel().tolist(),
             "shape": list(cal.gauge_factor.shape),
             "source": cal.source,
         }
+        if cal.h_upper_mm is not None:
+            doc["h_upper_mm"] = cal.h_upper_mm.ravel().tolist()
+            doc["h_lower_mm"] = cal.h_lower_mm.ravel().tolist()
+        if cal.summary:
+            doc["fit"] = dict(cal.summary)
+        return doc
 
     def _process_loop(self) -> None:
         while not self._stop.is_set():
@@ -453,10 +471,32 @@ class Gateway:
         # the same scans); surfaces at the surface rate.
         self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
         self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
+        self._track_contact(r)
         if self._logger is not None and self._log_surface_decimator.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
             self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, np.asarray(cloud).reshape(-1, 3)))
         return ok
+
+    def _track_contact(self, r: FrameResult) -> None:
+        """With [tactile] on: the frame against the baseline, published and logged as `contact`."""
+        tc = self.cfg.tactile
+        if not tc.enabled or r.surface is None or self._pipeline is None:
+            return
+        from skinmap.daemon.tactile import ContactTracker, SampleGrid
+
+        g = self._pipeline.geometry
+        if self._contact is None or self._contact.grid != SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm):
+            self._contact = ContactTracker(SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm),
+                                           tc.baseline_frames, tc.k, tc.min_depth_mm)
+        pos, nrm = r.surface.locate(self._contact.grid.uv)
+        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns), **self._contact.update(pos, nrm)}
+        if self._publisher is not None:
+            try:
+                self._publisher.publish_contact(doc)
+            except Exception as exc:  # noqa: BLE001 - a failed put must not stop processing
+                self.stats.publish_errors += 1
+                log.warning("publishing contact failed: %s", exc)
+        self._enqueue_log(("contact", r.host_time_ns, doc))
 
     def _points(self, r: FrameResult) -> np.ndarray:
         cache = getattr(r, "_points_cache", None)
@@ -520,6 +560,8 @@ class Gateway:
             lg.log_surface(item[1], item[2], item[3], item[4], item[5])
         elif kind == "status":
             lg.log_status(item[1], item[2])
+        elif kind == "contact":
+            lg.log_contact(item[1], item[2])
         elif kind == "event":
             lg.log_event(item[1], item[2], item[3])
         elif kind == "config":
@@ -646,16 +688,21 @@ class Gateway:
                 f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
                 f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
 
-    def _tare_file_mtime(self, hello: Hello) -> float | None:
-        from skinmap.daemon.calibration import tare_path
+    def _tare_file_mtime(self, hello: Hello) -> tuple[float | None, float | None] | None:
+        """Modification times of the tare and the calibration file (None: neither exists)."""
+        from skinmap.daemon.calibration import calibration_path, tare_path
 
-        try:
-            return tare_path(self.cfg.resolve(self.cfg.state.directory), hello.serial_number).stat().st_mtime
-        except OSError:
-            return None
+        state = self.cfg.resolve(self.cfg.state.directory)
+        times = []
+        for path in (tare_path(state, hello.serial_number), calibration_path(state, hello.serial_number)):
+            try:
+                times.append(path.stat().st_mtime)
+            except OSError:
+                times.append(None)
+        return None if times == [None, None] else (times[0], times[1])
 
     def _check_tare(self) -> None:
-        """A new tare written by `skinmap tare` is picked up without a restart."""
+        """A new tare or calibration written by `skinmap tare` / `calibrate` is picked up without a restart."""
         hello, pipeline = self._hello, self._pipeline
         if hello is None or pipeline is None:
             return
@@ -664,7 +711,7 @@ class Gateway:
             self._tare_mtime = mtime
             cal, self._tare_problem = load_calibration(hello, self.cfg)
             pipeline.set_calibration(cal)
-            log.info("loaded new tare (%s)", pipeline.calibration.source)
+            log.info("loaded new tare or calibration (%s)", pipeline.calibration.source)
             self._log_config()
             if self._publisher is not None:
                 self._publisher.set_info(self.info())
@@ -820,6 +867,21 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
     # the GIL sooner when bytes arrive while the reconstruction runs Python code.
     sys.setswitchinterval(0.001)
     show = cfg.output.console if console is None else console
+    from skinmap.daemon.portlock import PortBusy, PortLock
+
+    port_lock = PortLock(cfg.device.port, "skinmapd")
+    try:
+        port_lock.acquire()
+    except PortBusy as exc:
+        log.error("%s", exc)
+        return 1
+    try:
+        return _run_gateway_locked(cfg, show, stop_event)
+    finally:
+        port_lock.release()
+
+
+def _run_gateway_locked(cfg: DaemonConfig, show: bool, stop_event: threading.Event | None) -> int:
     with open_zenoh(cfg) as session:
         gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
         unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)

@@ -4,6 +4,7 @@ Key space (docs/zenoh.md) under ``<prefix>/<device>/``:
 
 - ``elements``, ``surface``, ``strains`` -- binary messages (skinmap.daemon.messages), put per scan
 - ``status`` -- JSON, put about once a second
+- ``contact`` -- JSON, put per processed scan when tactile mapping is on (docs/tactile.md)
 - ``info``   -- JSON, queryable only (never put)
 - ``alive``  -- liveliness token, present while the publisher is declared
 
@@ -30,13 +31,14 @@ from skinmap.daemon import messages
 log = logging.getLogger(__name__)
 
 DATA_KINDS = ("elements", "surface", "strains")
-ALL_KINDS = (*DATA_KINDS, "status", "info")
+ALL_KINDS = (*DATA_KINDS, "status", "contact", "info")
 
 _ENCODINGS = {
     "elements": "application/octet-stream;skinmap.elements/1",
     "surface": "application/octet-stream;skinmap.surface/1",
     "strains": "application/octet-stream;skinmap.strains/1",
     "status": "application/json;" + messages.STATUS_SCHEMA,
+    "contact": "application/json;skinmap.contact/1",
     "info": "application/json;" + messages.INFO_SCHEMA,
 }
 
@@ -45,6 +47,7 @@ _PRIORITIES = {
     "surface": zenoh.Priority.DATA,
     "strains": zenoh.Priority.DATA,
     "status": zenoh.Priority.DATA_LOW,
+    "contact": zenoh.Priority.DATA,
 }
 
 _MODES = ("peer", "client", "router")
@@ -246,7 +249,7 @@ class SkinmapPublisher:
                 self._keys[kind], encoding=zenoh.Encoding(_ENCODINGS[kind]),
                 congestion_control=zenoh.CongestionControl.DROP,
                 priority=_PRIORITIES[kind], express=kind in DATA_KINDS)
-            for kind in (*DATA_KINDS, "status")}
+            for kind in (*DATA_KINDS, "status", "contact")}
         # Queries arrive on a channel and are answered by our own thread, so no Zenoh call
         # runs inside a Zenoh callback.
         self._queryable = session.declare_queryable(f"{prefix}/{device}/*",
@@ -285,6 +288,10 @@ class SkinmapPublisher:
     def publish_status(self, status: Mapping[str, Any]) -> None:
         """Validate, encode and put a status report (messages.STATUS_FIELDS)."""
         self._put("status", messages.encode_status(status))
+
+    def publish_contact(self, contact: Mapping[str, Any]) -> None:
+        """Put a `contact` message (skinmap.daemon.tactile.ContactTracker.update) as JSON."""
+        self._put("contact", json.dumps(dict(contact), separators=(",", ":")).encode())
 
     def set_info(self, info: Mapping[str, Any]) -> None:
         """Replace the device description served on the ``info`` queryable (never put)."""

@@ -14,7 +14,7 @@ See firmware-host/README.md.
 from __future__ import annotations
 
 from skinmap.emulator.device import Device, ScannerSpec, ScanRecord
-from skinmap.emulator.electrical import Calibration, ElectricalConfig
+from skinmap.emulator.electrical import GaugeConstants, ElectricalConfig
 from skinmap.emulator.emulator import Emulator, FaultSchedule
 from skinmap.emulator.linkfaults import LinkFaults
 from skinmap.emulator.physics import (
@@ -30,7 +30,7 @@ from skinmap.emulator.scenes import make_scene, parse_scene_spec
 from skinmap.emulator.transport import PtyTransport, TcpTransport
 
 __all__ = [
-    "Calibration", "Device", "ScannerSpec", "ElectricalConfig", "Emulator", "FaultSchedule",
+    "GaugeConstants", "Device", "ScannerSpec", "ElectricalConfig", "Emulator", "FaultSchedule",
     "GroundTruth", "LinkFaults", "PtyTransport", "ScanRecord", "Shape", "TcpTransport",
     "cell_centres", "gauge_strains", "ground_truth", "make_scene", "make_shape", "parse_scene_spec",
     "parse_shape_spec",

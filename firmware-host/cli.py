@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import signal
 import sys
@@ -89,6 +90,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--max-step-rate", type=float, default=4000.0,
                    help="DAQ TDM step-rate limit, steps/s (max scan rate = this / 2·min(N,M))")
     g.add_argument("--seed", type=int, default=0, help="seed of calibration, noise and faults")
+    g.add_argument("--gf-spread", type=float, default=0.0, metavar="S",
+                   help="hidden truth: relative s.d. of the true gauge factors about HELLO's (e.g. 0.15)")
+    g.add_argument("--offset-spread", type=float, default=0.0, metavar="S",
+                   help="hidden truth: relative s.d. of each unit's true layer offsets (e.g. 0.10)")
     g.add_argument("--ideal", action="store_true", help="no hysteresis, drift, noise or ADC quantisation")
     g.add_argument("--no-noise", action="store_true")
     g.add_argument("--no-hysteresis", action="store_true")
@@ -119,6 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = p.add_argument_group("output")
     g.add_argument("--truth-file", type=Path, help="write ground truth as JSON lines, one per scan sent")
+    g.add_argument("--hidden-truth-file", type=Path,
+                   help="write the device's hidden truths (true gauge factors, layer offsets) as JSON")
     g.add_argument("--elements", type=parse_elements, help="element material coordinates 'u,v;u,v' for the truth file")
     g.add_argument("--duration", type=float, help="stop after this many seconds")
     g.add_argument("--status-every", type=float, default=5.0, help="status line period, s (0: none)")
@@ -141,7 +148,8 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
         parser.error(str(exc))
     try:
         cfg = ScannerSpec(n=n, m=m, pitch_mm=args.pitch, scan_rate_hz=args.rate,
-                           max_step_rate_hz=args.max_step_rate, seed=args.seed, electrical=elec)
+                           max_step_rate_hz=args.max_step_rate, seed=args.seed, electrical=elec,
+                           gf_spread=args.gf_spread, offset_spread=args.offset_spread)
     except ValueError as exc:
         parser.error(str(exc))
     masks = []
@@ -189,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"skinmap-emulator: cannot open the link: {exc}", file=sys.stderr)
         return 1
+    if args.hidden_truth_file is not None:
+        truth = {k: v.tolist() for k, v in emu.hidden_truth().items()}
+        args.hidden_truth_file.write_text(json.dumps({"serial": emu.device.serial_number, **truth}), encoding="utf-8")
     emu.set_open(dead)
     emu.set_saturated(saturated)
     where = transport.url if isinstance(transport, TcpTransport) else f"{transport.link} -> {transport.path}"

@@ -24,7 +24,13 @@ from typing import Callable
 
 import numpy as np
 
-from skinmap.emulator.electrical import Calibration, ElectricalConfig, GaugeReadout, draw_calibration
+from skinmap.emulator.electrical import (
+    ElectricalConfig,
+    GaugeConstants,
+    GaugeReadout,
+    draw_calibration,
+    draw_true_constants,
+)
 from skinmap.emulator.physics import GroundTruth, Shape, gauge_strains, ground_truth
 from skinmap.protocol import (
     MAX_DIM,
@@ -89,8 +95,17 @@ class ScannerSpec:
     # Gauss–Legendre panels of 8 points per gauge: one keeps the model within 2e-8 strain of the
     # converged value for every built-in shape, far below the 1 µΩ quantum (~1.2e-7)
     quadrature_panels: int = 1
+    # Hidden truths (0 = none): the relative s.d. by which the gauges' true gauge factors depart
+    # from the factory values in HELLO, and by which each unit's true layer offsets depart from
+    # the nominal h_upper_mm / h_lower_mm.  Never on the wire; see Device.hidden_truth().
+    gf_spread: float = 0.0
+    offset_spread: float = 0.0
 
     def __post_init__(self):
+        for name in ("gf_spread", "offset_spread"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v < 0.3):
+                raise ValueError(f"DeviceConfig.{name} must be a relative spread in [0, 0.3), got {v!r}")
         for name in ("n", "m"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or not MIN_DIM <= v <= MAX_DIM:
@@ -164,13 +179,18 @@ class Device:
         self.shape = shape
         self._epoch = float(now_s)
         rng = np.random.default_rng(config.seed)
-        self.calibration: Calibration = draw_calibration(rng, config.n, config.m)
+        self.calibration: GaugeConstants = draw_calibration(rng, config.n, config.m)
+        truth_rng = np.random.default_rng([config.seed, 3])
+        self._true_constants = draw_true_constants(truth_rng, self.calibration, config.gf_spread)
+        rel = np.clip(truth_rng.standard_normal((2, 2, config.n, config.m)), -3.0, 3.0) * config.offset_spread
+        self._true_h_upper = config.h_upper_mm * (1.0 + rel[0])  # (2, N, M) per unit
+        self._true_h_lower = config.h_lower_mm * (1.0 + rel[1])
         self._noise_rng = np.random.default_rng([config.seed, 1])
         self.drive_line, self.sense_channel = default_channel_map(config.n, config.m)
         self.open_gauges = np.zeros((2, 2, config.n, config.m), dtype=bool)
         self.saturated_gauges = np.zeros((2, 2, config.n, config.m), dtype=bool)
         self.readout = GaugeReadout(
-            self.calibration, config.electrical, self._noise_rng, self.open_gauges, self.saturated_gauges
+            self._true_constants, config.electrical, self._noise_rng, self.open_gauges, self.saturated_gauges
         )
         self.serial_number = config.serial_number or f"EMU-{config.seed & 0xFFFFFFFF:08X}"
         self.boot_count = 0
@@ -529,11 +549,44 @@ class Device:
 
     def _strains(self, t) -> np.ndarray:
         c = self.config
-        eu, el = gauge_strains(
-            self.shape, c.n, c.m, c.pitch_mm, c.h_upper_mm, c.h_lower_mm, c.gauge_length_mm,
-            t=t, samples=8, panels=c.quadrature_panels,
-        )
-        return np.stack([eu, el])
+        if not c.offset_spread:
+            eu, el = gauge_strains(
+                self.shape, c.n, c.m, c.pitch_mm, c.h_upper_mm, c.h_lower_mm, c.gauge_length_mm,
+                t=t, samples=8, panels=c.quadrature_panels,
+            )
+            return np.stack([eu, el])
+        # Per-unit offsets: a layer's strain is a smooth function of its offset h (the length of
+        # x + h·n), so the quadratic through h = +H, 0, −H gives every unit's own layers; the
+        # cubic remainder is of order (H·κ)³, below 1e-9 for bends of 40 mm and more.
+        big = 1.25 * max(c.h_upper_mm, c.h_lower_mm) * (1.0 + 3.0 * c.offset_spread)
+        plus, minus = gauge_strains(self.shape, c.n, c.m, c.pitch_mm, big, big, c.gauge_length_mm,
+                                    t=t, samples=8, panels=c.quadrature_panels)
+        mid, _ = gauge_strains(self.shape, c.n, c.m, c.pitch_mm, 0.0, 0.0, c.gauge_length_mm,
+                               t=t, samples=8, panels=c.quadrature_panels)
+
+        def at(h: np.ndarray) -> np.ndarray:
+            x = h / big
+            return mid + 0.5 * (plus - minus) * x + 0.5 * (plus + minus - 2.0 * mid) * x * x
+
+        return np.stack([at(self._true_h_upper), at(-self._true_h_lower)])
+
+    def set_shape(self, shape: Shape) -> None:
+        """Put the sheet into another shape (a calibration pose, a new scene); the next scans
+        read it."""
+        self.shape = shape
+        self._static_strain = None
+        self.strains(0.0)
+
+    def hidden_truth(self) -> dict[str, np.ndarray]:
+        """What the host cannot know and a calibration should find: the gauges' true gauge
+        factors (2, 2, N, M) and each unit's true layer offsets (2, N, M) in mm.  Ground truth
+        for tests and benchmarks only; never on the wire."""
+        return {
+            "gauge_factor": np.array(self._true_constants.gauge_factor, dtype=float),
+            "base_resistance_ohm": np.array(self._true_constants.base_resistance_ohm, dtype=float),
+            "h_upper_mm": self._true_h_upper.copy(),
+            "h_lower_mm": self._true_h_lower.copy(),
+        }
 
     def _scan(self, t0: float) -> bytes:
         record = ScanRecord(

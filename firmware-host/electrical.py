@@ -30,10 +30,11 @@ import numpy as np
 from skinmap.protocol import RES_MAX_VALID, RES_OPEN, RES_SATURATED
 
 __all__ = [
-    "Calibration",
+    "GaugeConstants",
     "ElectricalConfig",
     "GaugeReadout",
     "draw_calibration",
+    "draw_true_constants",
     "hysteresis_step",
     "drift_step",
     "lag_step",
@@ -47,8 +48,9 @@ R0_MEAN_OHM, R0_SD_OHM = 6.55, 0.72
 
 
 @dataclass(frozen=True)
-class Calibration:
-    """Factory calibration: gauge factor and base resistance per gauge, each (2, 2, N, M)."""
+class GaugeConstants:
+    """Gauge factor and base resistance per gauge, each (2, 2, N, M): a device's factory
+    calibration (reported in HELLO) or, with a hidden spread, its true constants."""
 
     gauge_factor: np.ndarray
     base_resistance_ohm: np.ndarray
@@ -90,7 +92,7 @@ def draw_calibration(
     gf_sd: float = GF_SD,
     r0_mean_ohm: float = R0_MEAN_OHM,
     r0_sd_ohm: float = R0_SD_OHM,
-) -> Calibration:
+) -> GaugeConstants:
     """Draw a device's factory calibration.  Values are rounded to the HELLO resolution
     (1e-6 GF, 1 µΩ) so the device and a host that reads HELLO use identical numbers."""
     if int(n) != n or int(m) != m or n < 1 or m < 1:
@@ -98,7 +100,19 @@ def draw_calibration(
     size = (2, 2, int(n), int(m))
     gf = _truncated_normal(rng, gf_mean, gf_sd, 0.3, size)
     r0 = _truncated_normal(rng, r0_mean_ohm, r0_sd_ohm, 1.0, size)
-    return Calibration(np.rint(gf * 1e6) / 1e6, np.rint(r0 * 1e6) / 1e6)
+    return GaugeConstants(np.rint(gf * 1e6) / 1e6, np.rint(r0 * 1e6) / 1e6)
+
+
+def draw_true_constants(rng: np.random.Generator, factory: GaugeConstants, gf_spread: float) -> GaugeConstants:
+    """The gauges' true constants: each gauge factor departs from its factory value by a
+    relative N(0, gf_spread) (clipped to ±3 s.d.), the base resistances are the factory's.  A
+    host that trusts HELLO is then wrong by that spread, as with gauges whose factory values
+    were measured on a different batch."""
+    if not (math.isfinite(gf_spread) and 0 <= gf_spread < 0.3):
+        raise ValueError(f"gauge-factor spread must be in [0, 0.3), got {gf_spread!r}")
+    gf = np.asarray(factory.gauge_factor, dtype=float)
+    rel = np.clip(rng.standard_normal(gf.shape), -3.0, 3.0) * gf_spread
+    return GaugeConstants(gf * (1.0 + rel), np.asarray(factory.base_resistance_ohm, dtype=float))
 
 
 @dataclass(frozen=True)
@@ -193,7 +207,7 @@ def drift_step(
 
 def strain_to_resistance(
     strain: np.ndarray,
-    calibration: Calibration,
+    calibration: GaugeConstants,
     drift: np.ndarray | float = 0.0,
     noise_rel_sd: float = 0.0,
     rng: np.random.Generator | None = None,
@@ -232,7 +246,7 @@ def quantise(
     return out
 
 
-def resistance_to_strain(resistance_uohm: np.ndarray, calibration: Calibration) -> np.ndarray:
+def resistance_to_strain(resistance_uohm: np.ndarray, calibration: GaugeConstants) -> np.ndarray:
     """Inverse of the ideal model for checks: ε = (R/R0 − 1)/GF, NaN for sentinels."""
     raw = np.asarray(resistance_uohm)
     r = raw.astype(float) * 1e-6
@@ -249,7 +263,7 @@ class GaugeReadout:
     ``t_s`` and returns the wire values (uint32 µΩ with sentinels).
     """
 
-    calibration: Calibration
+    calibration: GaugeConstants
     config: ElectricalConfig
     rng: np.random.Generator
     open_mask: np.ndarray | None = None

@@ -257,6 +257,18 @@ class Emulator:
         self.transport.open()
         self.device.reboot(now, watchdog=False)
 
+    def set_shape(self, shape: Shape) -> None:
+        """Put the emulated sheet into another shape (e.g. a calibration pose)."""
+        with self._lock:
+            self.shape = shape
+            if self.device is not None:
+                self.device.set_shape(shape)
+
+    def hidden_truth(self) -> dict[str, np.ndarray]:
+        """The device's hidden truths (true gauge factors and layer offsets); see Device."""
+        with self._lock:
+            return self.device.hidden_truth()
+
     def set_open(self, mask: np.ndarray) -> None:
         with self._lock:
             self.device.set_open(mask)

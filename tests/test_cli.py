@@ -95,10 +95,20 @@ def test_recover_rewrites_a_cut_log(session_run, capsys, tmp_path):
         assert sum(1 for _ in make_reader(f).iter_messages()) > 0
 
 
-def test_tare_from_log_is_stored_and_used(session_run, capsys):
+def test_tare_from_log_refuses_a_bent_sheet_and_a_stored_tare_is_used(session_run, capsys):
     tmp, cfg_path, _ = session_run
     log = next((tmp / "logs").glob("*.mcap"))
-    assert skinmap_main(["tare", "--config", str(cfg_path), "--from-log", str(log), "--scans", "10"]) == 0
+    # the session's sheet lies on a 40 mm cylinder: no tare
+    assert skinmap_main(["tare", "--config", str(cfg_path), "--from-log", str(log), "--scans", "10"]) == 1
+    err = capsys.readouterr().err
+    assert "not a tare" in err and "bent" in err and "nothing written" in err
+    assert not list((tmp / "state").glob("tare-*.json"))
+
+    from skinmap.daemon.calibration import compute_tare, save_tare
+    from skinmap.daemon.replay import resistances_from_log as scans_of
+
+    serial, scans = scans_of(log, count=10)
+    save_tare(tmp / "state", serial, compute_tare(np.stack(scans)), len(scans))
     tare_files = list((tmp / "state").glob("tare-*.json"))
     assert len(tare_files) == 1
     doc = json.loads(tare_files[0].read_text())

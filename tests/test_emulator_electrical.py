@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from skinmap.emulator.electrical import (
-    Calibration,
+    GaugeConstants,
     ElectricalConfig,
     GaugeReadout,
     draw_calibration,
@@ -131,7 +131,7 @@ def test_bad_inputs_are_named():
     with pytest.raises(ValueError, match="unknown effect"):
         ElectricalConfig().without("wobble")
     with pytest.raises(ValueError, match=r"\(2, 2, N, M\)"):
-        Calibration(np.ones((2, 3, 3)), np.ones((2, 3, 3)))
+        GaugeConstants(np.ones((2, 3, 3)), np.ones((2, 3, 3)))
     cal = draw_calibration(np.random.default_rng(0), 3, 3)
     with pytest.raises(ValueError, match="expected"):
         GaugeReadout(cal, ElectricalConfig(), np.random.default_rng()).read(np.zeros((2, 3, 3)), 0.0)

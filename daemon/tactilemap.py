@@ -1,0 +1,151 @@
+"""`skinmap map LOG.mcap`: a log's presses stitched into the touched wall's relief.
+
+The log is replayed (its raw frames through the pipeline, with the calibration it was recorded
+with); every processed surface is sampled on a material grid; the first ``baseline_frames`` are
+the pre-contact baseline (start recording before the first press); a contact **event** is a run
+of at least two frames in contact (ended by two free ones), represented by its frame of deepest
+indentation; event i is
+placed by probe pose i (a CSV with columns x_mm, y_mm, angle_deg, depth_mm, one row a press, in
+order).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
+its confidence, a PLY point cloud of the touched cells.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from skinmap.daemon.tactile import (Contact, ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,
+                                    read_poses_csv)
+
+__all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
+
+
+@dataclass
+class MapReport:
+    frames: int = 0
+    baseline_frames: int = 0
+    events: list[Contact] = field(default_factory=list)
+    relief: ReliefMap | None = None
+    problems: list[str] = field(default_factory=list)
+
+    def format(self) -> str:
+        lines = [f"{self.frames} surfaces, baseline of {self.baseline_frames}, {len(self.events)} contact events"]
+        for i, c in enumerate(self.events):
+            s = c.summary()
+            lines.append(f"  contact {i + 1}: area {s['area_mm2']:.0f} mm², peak depth {s['peak_depth_mm']:.2f} mm, "
+                         f"feature size L_r {s['feature_size_mm']:.1f} mm")
+        if self.relief is not None:
+            h = self.relief.height()
+            lines.append(f"relief map: coverage {100 * self.relief.coverage():.1f} % of the wall, heights "
+                         f"{np.nanmin(h):.2f}…{np.nanmax(h):.2f} mm" if np.isfinite(h).any() else "relief map: empty")
+        lines.extend(self.problems)
+        return "\n".join(lines)
+
+
+def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleGrid, k: float = 3.0,
+                   min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None) -> tuple[list[Contact], int]:
+    """(contact events, the number of baseline frames used) from sampled surfaces (K, 3)."""
+    if len(frames) <= baseline_frames:
+        raise ValueError(f"{len(frames)} surfaces: not more than the {baseline_frames} baseline frames asked for")
+    nrm = normals or [np.tile([0.0, 0.0, 1.0], (len(frames[0]), 1))] * len(frames)
+    base = capture_baseline(list(zip(frames[:baseline_frames], nrm[:baseline_frames])))
+    # An event is at least `min_frames` frames in contact and ends after `min_frames` free
+    # ones: a frame whose scan straddles the press's start or end (each unit is read at its
+    # own TDM instant) neither splits a press nor makes one.
+    min_frames = 2
+    events: list[Contact] = []
+    current: Contact | None = None
+    run = free = 0
+    for pos in frames[baseline_frames:]:
+        c = detect_contact(pos, base, grid, k, min_depth_mm)
+        if c is None:
+            free += 1
+            if current is not None and free >= min_frames:
+                if run >= min_frames:
+                    events.append(current)
+                current, run = None, 0
+            continue
+        free = 0
+        run += 1
+        if current is None or c.peak_depth_mm > current.peak_depth_mm:
+            current = c
+    if current is not None and run >= min_frames:
+        events.append(current)
+    return events, baseline_frames
+
+
+def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str], *, baseline_frames: int = 10,
+            step_mm: float = 2.0, k: float = 3.0, min_depth_mm: float = 0.5, wall_size_mm: float = 120.0,
+            cell_mm: float = 1.0) -> MapReport:
+    """Replay the log and stitch its contact events with the poses; ValueError names what is
+    wrong (no surfaces, too few baseline frames, event and pose counts that differ)."""
+    from skinmap.daemon.replay import replay_log
+
+    poses: list[ProbePose] = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8"))
+    frames: list[np.ndarray] = []
+    normals: list[np.ndarray] = []
+    grid_box: list[SampleGrid] = []
+
+    def on_result(result) -> None:
+        if result.surface is None:
+            return
+        if not grid_box:
+            n, m = result.nodes_mm.shape[:2]
+            grid_box.append(SampleGrid.for_array(n, m, float(result.surface.pitch), step_mm))
+        pos, nrm = result.surface.locate(grid_box[0].uv)
+        frames.append(np.asarray(pos, dtype=float))
+        normals.append(np.asarray(nrm, dtype=float))
+
+    replay = replay_log(log, on_result=on_result)
+    report = MapReport(frames=len(frames), problems=list(getattr(replay, "problems", []))[:5])
+    if not frames:
+        raise ValueError(f"{log}: no surfaces could be replayed from its raw frames")
+    grid = grid_box[0]
+    report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals)
+    if len(report.events) != len(poses):
+        raise ValueError(f"{log}: {len(report.events)} contact events, but {poses_csv} has {len(poses)} poses "
+                         "(one pose a press, in order)")
+    relief = ReliefMap(wall_size_mm, cell_mm)
+    for c, pose in zip(report.events, poses):
+        relief.add(c, pose, grid)
+    report.relief = relief
+    return report
+
+
+def write_ply(relief: ReliefMap, path: str | os.PathLike[str]) -> int:
+    """ASCII PLY of the touched cells: x, y (wall frame, mm), z = height, and the confidence."""
+    h = relief.height()
+    conf = relief.confidence()
+    c = relief.centres
+    keep = np.isfinite(h)
+    pts = np.column_stack([c[keep][:, 0], c[keep][:, 1], h[keep], conf[keep]])
+    with open(path, "w", encoding="ascii") as f:
+        f.write("ply\nformat ascii 1.0\ncomment skinmap stitched relief (wall frame, mm)\n")
+        f.write(f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\n"
+                "property float confidence\nend_header\n")
+        np.savetxt(f, pts, fmt="%.4f")
+    return int(len(pts))
+
+
+def write_png(relief: ReliefMap, path: str | os.PathLike[str], truth: np.ndarray | None = None) -> None:
+    """The height map and its confidence (and, if given, the true relief) side by side."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    panels = [("stitched height (mm)", relief.height(), "viridis"), ("confidence", relief.confidence(), "magma")]
+    if truth is not None:
+        panels.insert(0, ("true relief (mm)", truth, "viridis"))
+    fig = Figure(figsize=(4.2 * len(panels), 4.0), dpi=100)
+    FigureCanvasAgg(fig)
+    ext = [-relief.half, relief.half, -relief.half, relief.half]
+    for i, (title, img, cmap) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        im = ax.imshow(img, origin="lower", extent=ext, cmap=cmap)
+        ax.set_title(title)
+        ax.set_xlabel("x (mm)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(os.fspath(path), format="png")

@@ -1,0 +1,179 @@
+"""Tactile mapping scene: a balloon probe (the sheet laid on it) pressed against a cavity wall
+that carries a relief of raised letters, moved and turned between presses.
+
+    wall = LetterRelief()                                   # 'D', 'U', 'K', 'E' on 120 × 120 mm
+    shape = BalloonOnWall(wall, centre=(-30, 30), angle_deg=20, depth=3.0)
+    wall.height(xy)                                          # ground truth, mm
+
+Frames.  Probe frame: the balloon's apex at the origin, its outward normal +z, the sheet's
+centre on the apex (the sheet's sensor frame at rest).  Wall frame: the wall's base plane
+z_w = 0, the relief rising from it towards the probe by H(x_w, y_w) ≥ 0.  A press puts the wall's
+base plane at z = −depth in the probe frame (facing it, so wall height H sits at z = −depth − H)
+with the probe frame's (x, y) at the wall's ``centre`` + R(angle)·(x, y).
+
+Kinematic form: the sheet keeps its place on the balloon (geodesic polar map, as
+:class:`~skinmap.emulator.physics.SphereCap`) and, where the balloon would pass through the wall,
+is pushed back along −z onto it (a softplus of width ``smoothing`` rounds the contact's rim), as
+:class:`~skinmap.emulator.physics.BalloonDome` does for a dome: a balloon soft enough to take the
+wall's shape over the contact.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from skinmap.emulator import physics as ph
+
+__all__ = ["LetterRelief", "BalloonOnWall", "PressSequence", "LETTER_STROKES"]
+
+
+def _arc(cx: float, cy: float, r: float, a0: float, a1: float, pieces: int = 8) -> list[tuple[float, float, float, float]]:
+    a = np.radians(np.linspace(a0, a1, pieces + 1))
+    x, y = cx + r * np.cos(a), cy + r * np.sin(a)
+    return [(x[i], y[i], x[i + 1], y[i + 1]) for i in range(pieces)]
+
+
+#: Stroke centre lines (x0, y0, x1, y1) of each letter in a box of ±25 mm about its centre.
+LETTER_STROKES: dict[str, list[tuple[float, float, float, float]]] = {
+    "D": [(-18, -22, -18, 22), (-18, 22, 0, 22), (-18, -22, 0, -22)] + _arc(0, 0, 22, 90, -90),
+    "U": [(-18, 22, -18, -4), (18, 22, 18, -4)] + _arc(0, -4, 18, 180, 360),
+    "K": [(-18, -22, -18, 22), (-12, 0, 18, 22), (-12, 0, 18, -22)],
+    "E": [(-18, -22, -18, 22), (-18, 22, 18, 22), (-18, 0, 12, 0), (-18, -22, 18, -22)],
+}
+
+
+class LetterRelief:
+    """Raised letters on a wall: strokes ``width`` wide (the smallest feature), ``height`` high,
+    their flanks rising over ``edge`` mm (a smooth step), the letters centred in the quadrants of
+    a ``size`` × ``size`` mm wall centred on the origin."""
+
+    def __init__(self, letters: str = "DUKE", size: float = 120.0, width: float = 15.0, height: float = 4.0,
+                 edge: float = 6.0):
+        if len(letters) != 4 or any(c not in LETTER_STROKES for c in letters):
+            raise ValueError(f"four letters out of {''.join(LETTER_STROKES)}, got {letters!r}")
+        for name, v in (("size", size), ("width", width), ("height", height), ("edge", edge)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"relief {name} must be > 0 mm, got {v!r}")
+        self.letters, self.size, self.width, self.relief, self.edge = letters, float(size), float(width), float(height), float(edge)
+        q = size / 4.0
+        centres = [(-q, q), (q, q), (-q, -q), (q, -q)]
+        segs = []
+        for c, (cx, cy) in zip(letters, centres):
+            scale = size / 120.0
+            segs += [(cx + scale * a, cy + scale * b, cx + scale * c2, cy + scale * d) for a, b, c2, d in LETTER_STROKES[c]]
+        self._segs = np.asarray(segs, dtype=float)
+        self._raster_step, self._raster_half = 0.5, 0.5 * self.size + 4.0
+        self._coeffs: np.ndarray | None = None
+
+    def distance(self, xy: np.ndarray) -> np.ndarray:
+        """Distance (mm) of wall points (..., 2) to the nearest stroke centre line."""
+        p = np.asarray(xy, dtype=float)[..., None, :]
+        a, b = self._segs[:, :2], self._segs[:, 2:]
+        ab = b - a
+        t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+        d = np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+        return d.min(axis=-1)
+
+    def _exact_height(self, xy: np.ndarray) -> np.ndarray:
+        x = np.clip((0.5 * self.width + 0.5 * self.edge - self.distance(xy)) / self.edge, 0.0, 1.0)
+        return self.relief * x * x * (3.0 - 2.0 * x)
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Relief height H (mm) at wall points (..., 2): ``height`` on a stroke, 0 off it, a
+        smoothstep across the flank; 0 outside the wall's square.  Evaluated as a cubic spline
+        through the exact profile on a 0.5 mm raster (the emulator evaluates it for every
+        quadrature point of every gauge of every scan); that spline is the relief, truth included."""
+        xy = np.asarray(xy, dtype=float)
+        if self._coeffs is None:
+            from scipy import ndimage
+
+            c = -self._raster_half + self._raster_step * np.arange(int(round(2 * self._raster_half / self._raster_step)) + 1)
+            xx, yy = np.meshgrid(c, c)
+            self._coeffs = ndimage.spline_filter(self._exact_height(np.stack([xx, yy], -1)), order=3)
+        from scipy import ndimage
+
+        idx = (xy + self._raster_half) / self._raster_step
+        flat = idx.reshape(-1, 2)
+        h = ndimage.map_coordinates(self._coeffs, [flat[:, 1], flat[:, 0]], order=3, prefilter=False, mode="nearest")
+        h = h.reshape(xy.shape[:-1])
+        inside = np.all(np.abs(xy) <= 0.5 * self.size, axis=-1)
+        return np.where(inside, h, 0.0)
+
+
+class BalloonOnWall(ph.Shape):
+    """The sheet on a balloon of radius ``balloon_radius`` pressed ``depth`` mm against the wall
+    (see the module's frames); ``depth`` ≤ 0 leaves the balloon free (the baseline)."""
+
+    def __init__(self, wall: LetterRelief, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
+                 depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3):
+        self.wall = wall
+        self.centre = (float(centre[0]), float(centre[1]))
+        self.angle_deg = float(angle_deg)
+        self.depth = float(depth)
+        self.balloon_radius = float(balloon_radius)
+        self.smoothing = float(smoothing)
+        if not all(math.isfinite(v) for v in (*self.centre, self.angle_deg, self.depth)):
+            raise ValueError("press centre, angle and depth must be finite")
+        if not (self.balloon_radius > 0 and self.smoothing > 0):
+            raise ValueError("balloon radius and smoothing must be > 0 mm")
+        self._sphere = ph.SphereCap(self.balloon_radius)
+
+    def to_wall(self, xy: np.ndarray) -> np.ndarray:
+        """Probe-frame (x, y) → wall (x_w, y_w)."""
+        th = math.radians(self.angle_deg)
+        c, s = math.cos(th), math.sin(th)
+        xy = np.asarray(xy, dtype=float)
+        return np.stack([self.centre[0] + c * xy[..., 0] - s * xy[..., 1],
+                         self.centre[1] + s * xy[..., 0] + c * xy[..., 1]], axis=-1)
+
+    def wall_z(self, xy: np.ndarray) -> np.ndarray:
+        """The wall's surface in the probe frame at probe-frame (x, y)."""
+        return -self.depth - self.wall.height(self.to_wall(xy))
+
+    def position(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        x = self._sphere.position(ph._as_uv(uv))
+        if self.depth <= -5.0 * self.smoothing - self.wall.relief:
+            return x
+        s = self.smoothing
+        w = s * np.logaddexp(0.0, (x[..., 2] - self.wall_z(x[..., :2])) / s)
+        return np.concatenate([x[..., :2], (x[..., 2] - w)[..., None]], axis=-1)
+
+
+class PressSequence(ph.Shape):
+    """Presses one after the other: the free balloon for ``rest_s``, then press i (centre,
+    angle, depth) held for ``hold_s``, the balloon free for ``gap_s`` between presses (moved and
+    turned meanwhile), then free again.  ``presses``: [(x_mm, y_mm, angle_deg, depth_mm), ...]."""
+
+    time_varying = True
+
+    def __init__(self, wall: LetterRelief, presses: list[tuple[float, float, float, float]], rest_s: float = 1.0,
+                 hold_s: float = 1.0, gap_s: float = 0.5, balloon_radius: float = 80.0, smoothing: float = 0.3,
+                 start_s: float = 0.0):
+        if not presses:
+            raise ValueError("a press sequence needs at least one press")
+        self.wall, self.rest_s, self.hold_s, self.gap_s = wall, float(rest_s), float(hold_s), float(gap_s)
+        self.start_s = float(start_s)  # the shape clock's time at which the sequence begins
+        self.presses = [BalloonOnWall(wall, (p[0], p[1]), p[2], p[3], balloon_radius, smoothing) for p in presses]
+        self._free = ph.SphereCap(balloon_radius)
+
+    def press_at(self, t: np.ndarray) -> np.ndarray:
+        """Index of the press held at each time (−1: none)."""
+        t = np.asarray(t, dtype=float) - self.start_s - self.rest_s
+        k = np.floor(t / (self.hold_s + self.gap_s)).astype(int)
+        held = (t >= 0) & (t - k * (self.hold_s + self.gap_s) < self.hold_s) & (k < len(self.presses))
+        return np.where(held, k, -1)
+
+    @property
+    def duration_s(self) -> float:
+        return self.start_s + self.rest_s + len(self.presses) * (self.hold_s + self.gap_s)
+
+    def position(self, uv: ph.ArrayLike, t: ph.ArrayLike = 0.0) -> np.ndarray:
+        uv = ph._as_uv(uv)
+        t = np.broadcast_to(np.asarray(t, dtype=float), uv.shape[:-1])
+        which = self.press_at(t)
+        out = self._free.position(uv)
+        for j in np.unique(which[which >= 0]):
+            sel = which == j
+            out[sel] = self.presses[int(j)].position(uv[sel])
+        return out

@@ -1,0 +1,148 @@
+"""`skinmap map` end to end: the emulated balloon pressed on the letter wall, logged by a running
+gateway, replayed and stitched with the poses from a CSV."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from conftest import free_port, running_gateway
+
+from skinmap.daemon.cli import main as skinmap_main
+from skinmap.emulator.device import ScannerSpec
+from skinmap.emulator.electrical import ElectricalConfig
+from skinmap.emulator.emulator import Emulator
+from skinmap.emulator.physics import SphereCap
+from skinmap.emulator.transport import TcpTransport
+from skinmap.emulator.walls import LetterRelief, PressSequence
+
+pytestmark = pytest.mark.slow
+
+PRESSES = [(-30.0, 30.0, 10.0, 2.0), (30.0, 30.0, -15.0, 2.0), (-30.0, -30.0, 5.0, 2.0)]
+
+
+@pytest.fixture(scope="module")
+def press_log(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("map")
+    emu = Emulator(ScannerSpec(n=8, m=8, scan_rate_hz=20.0, seed=3, electrical=ElectricalConfig().without("drift")),
+                   SphereCap(80.0), TcpTransport(0))
+    emu.start()
+    zport = free_port()
+    cfg_text = f"""
+[device]
+port = "{emu.transport.url}"
+name = "map"
+scan_rate_hz = 20
+[output]
+rate_hz = 10
+[zenoh]
+listen = ["tcp/127.0.0.1:{zport}"]
+[tactile]
+enabled = true
+baseline_frames = 8
+[log]
+directory = "logs"
+[state]
+directory = "state"
+"""
+    (tmp / "skinmapd.toml").write_text(cfg_text)
+    _write_calibration(tmp / "state", emu)
+    from skinmap.daemon.config import load_config
+
+    cfg = load_config(tmp / "skinmapd.toml")
+    try:
+        with running_gateway(cfg) as gw:
+            deadline = time.monotonic() + 60
+            while gw.stats.results < 12 and time.monotonic() < deadline:  # the baseline: the free balloon
+                time.sleep(0.05)
+            scene = PressSequence(LetterRelief(), PRESSES, rest_s=0.5, hold_s=1.5, gap_s=1.0,
+                                  start_s=emu.device.shape_time(time.monotonic()))
+            emu.set_shape(scene)
+            while time.monotonic() < deadline and emu.device.shape_time(time.monotonic()) < scene.duration_s + 0.5:
+                time.sleep(0.1)
+            assert gw.stats.results > 30
+            latest = _latest_contact(zport)
+    finally:
+        emu.stop()
+    poses = tmp / "poses.csv"
+    poses.write_text("x_mm,y_mm,angle_deg,depth_mm\n" + "".join(f"{x},{y},{a},{d}\n" for x, y, a, d in PRESSES))
+    return tmp, next((tmp / "logs").glob("*.mcap")), poses, latest
+
+
+def _write_calibration(state, emu) -> None:
+    """A mold calibration in force for the run (gauge factors 2 % above HELLO's, offsets off
+    nominal), so that the log carries it and replay must use it."""
+    from skinmap.daemon.calibration import save_calibration
+
+    gf = emu.device.calibration.gauge_factor * 1.02
+    hu, hl = np.full((2, 8, 8), 0.21), np.full((2, 8, 8), 0.19)
+    save_calibration(state, emu.device.serial_number, gauge_factor=gf, gauge_factor_sd=gf * 1e-3, h_upper_mm=hu,
+                     h_upper_sd_mm=hu * 1e-3, h_lower_mm=hl, h_lower_sd_mm=hl * 1e-3, residual_rms=gf * 0 + 1e-5,
+                     method="test", offsets_determined=True, poses=[], duration_s=1.0, notes=[])
+
+
+def test_a_calibrated_run_logs_its_calibration_and_replays_identically(press_log, capsys):
+    import json
+
+    from skinmap.daemon.mcapinspect import iter_messages_file_order
+
+    _tmp, log, _poses, _ = press_log
+    config = next(json.loads(m.data) for m in iter_messages_file_order(str(log)) if m.topic == "/config")
+    cal = config["calibration"]
+    assert cal["source"].startswith("calibration ") and cal["h_upper_mm"][0] == 0.21
+    assert skinmap_main(["replay", str(log), "--quiet"]) == 0
+    assert "IDENTICAL" in capsys.readouterr().out
+
+
+def _latest_contact(zport: int) -> dict:
+    """The newest `contact` message, asked of the running gateway over loopback Zenoh."""
+    import json
+
+    from skinmap.daemon.zenoh_io import make_session_config, open_session
+
+    with open_session(make_session_config([], [f"tcp/127.0.0.1:{zport}"])) as session:
+        for _ in range(20):
+            for reply in session.get("skinmap/map/contact", timeout=2.0):
+                if reply.ok is not None:
+                    return json.loads(reply.ok.payload.to_bytes())
+            time.sleep(0.1)
+    raise AssertionError("no contact message from the gateway")
+
+
+def test_gateway_publishes_and_logs_contact_events(press_log):
+    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    import json
+
+    _tmp, log, _poses, latest = press_log
+    assert latest["state"] in ("free", "contact") and latest["grid"]["step_mm"] == 2.0
+    docs = [json.loads(m.data) for m in iter_messages_file_order(str(log)) if m.topic == "/contact"]
+    states = [d["state"] for d in docs]
+    assert states[:8] == ["baseline"] * 8 and "contact" in states and "free" in states
+    assert max(d["events"] for d in docs) == 3
+    pressed = [d for d in docs if d["state"] == "contact"]
+    assert all(d["area_mm2"] > 0 and d["peak_depth_mm"] > 0.05 and d["feature_size_mm"] > 0 for d in pressed)
+    assert len(pressed[0]["depth_mm"]) == pressed[0]["grid"]["rows"] * pressed[0]["grid"]["cols"]
+
+
+def test_map_finds_every_press_and_writes_png_and_ply(press_log, capsys):
+    tmp, log, poses, _ = press_log
+    png, ply = tmp / "relief.png", tmp / "relief.ply"
+    assert skinmap_main(["map", str(log), "--poses", str(poses), "--png", str(png), "--ply", str(ply)]) == 0
+    out = capsys.readouterr().out
+    assert "3 contact events" in out and "coverage" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = ply.read_text().splitlines()
+    count = int(next(line for line in text if line.startswith("element vertex")).split()[-1])
+    assert count > 500 and len(text) == text.index("end_header") + 1 + count
+    xyz = np.loadtxt(text[text.index("end_header") + 1:])
+    # every mapped point lies under the sheet at one of the presses (half its diagonal: 59.4 mm)
+    reach = np.min([np.hypot(xyz[:, 0] - x, xyz[:, 1] - y) for x, y, _, _ in PRESSES], axis=0)
+    assert np.all(reach < 42.0 * np.sqrt(2) + 1.0)
+
+
+def test_map_refuses_a_pose_file_that_does_not_match_the_presses(press_log, capsys, tmp_path):
+    _tmp, log, _, _ = press_log
+    short = tmp_path / "short.csv"
+    short.write_text("x_mm,y_mm,angle_deg,depth_mm\n0,0,0,2\n")
+    assert skinmap_main(["map", str(log), "--poses", str(short)]) == 1
+    assert "3 contact events, but" in capsys.readouterr().err
