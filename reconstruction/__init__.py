@@ -12,6 +12,7 @@ Per-geometry precomputation (operators and their factorisations) lives in a
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import OrderedDict
 
@@ -42,10 +43,10 @@ from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
-from .surface import Diagnostics, Surface
+from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
-__all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
+__all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
@@ -87,7 +88,10 @@ def default_subdivision(n: int, m: int) -> int:
 
 class Reconstructor:
     """Reconstruction for one sensor geometry; holds the fine grid, its operators and their
-    factorisations, so that each call only does per-frame work.
+    factorisations, so that each call only does per-frame work.  Not thread-safe: it fills its
+    caches (per validity mask, per noise level) as frames come; use one per thread, or
+    :func:`reconstruct`, which locks each of its cached instances.  What a frame leaves for the
+    next is explicit: :attr:`Surface.state`, read when that surface is passed as ``previous``.
 
     Parameters
     ----------
@@ -277,7 +281,8 @@ class Reconstructor:
             sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
             sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
-            warm = getattr(previous, "_graph_start", None) if previous is not None and graph_warm else None
+            state = previous.state if previous is not None and graph_warm else None
+            warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
             if graph is None or not graph.accepted:
@@ -368,7 +373,7 @@ class Reconstructor:
                                    product_fields, known)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
-        surf._graph_start = (graph.coeffs, earlier) if fit is None else None
+        surf.state = FrameState(graph.coeffs, earlier) if fit is None else FrameState()
         diag.solve_time = time.perf_counter() - t0
         return surf
 
@@ -816,8 +821,12 @@ def _cross3(a, b) -> list[float]:
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
-_CACHE: "OrderedDict[tuple, Reconstructor]" = OrderedDict()
+# reconstruct()'s declared cache: one Reconstructor per geometry (least recently used first),
+# each with its own lock, since a Reconstructor keeps per-mask caches and is not thread-safe;
+# the cache itself is guarded by _CACHE_LOCK.
+_CACHE: "OrderedDict[tuple, tuple[Reconstructor, threading.Lock]]" = OrderedDict()
 _CACHE_SIZE = 8
+_CACHE_LOCK = threading.Lock()
 
 
 def reconstruct(
@@ -847,12 +856,18 @@ def reconstruct(
     if eu.ndim != 3 or eu.shape[0] != 2:
         raise ValueError(f"eps_upper must have shape (2, N, M), got {eu.shape}")
     key = (eu.shape[1], eu.shape[2], float(pitch), float(h_upper), float(h_lower), float(gauge_length), graph_fit)
-    rec = _CACHE.get(key)
-    if rec is None:
-        rec = Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length, graph_fit=graph_fit)
-        _CACHE[key] = rec
-        if len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(key)
-    return rec(eu, eps_lower, strain_sigma=strain_sigma, previous=previous, twist_sign=twist_sign)
+    with _CACHE_LOCK:
+        entry = _CACHE.get(key)
+        if entry is not None:
+            _CACHE.move_to_end(key)
+    if entry is None:
+        # built outside the lock (a second or so on large sheets); a race builds it twice
+        built = (Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length, graph_fit=graph_fit),
+                 threading.Lock())
+        with _CACHE_LOCK:
+            entry = _CACHE.setdefault(key, built)
+            if len(_CACHE) > _CACHE_SIZE:
+                _CACHE.popitem(last=False)
+    rec, lock = entry
+    with lock:
+        return rec(eu, eps_lower, strain_sigma=strain_sigma, previous=previous, twist_sign=twist_sign)

@@ -161,6 +161,17 @@ def hermite_grid_eval(coeffs: np.ndarray, basis_u: sp.csr_matrix, basis_v: sp.cs
     return (basis_v @ y).reshape(-1, 3)
 
 
+@dataclass(frozen=True)
+class FrameState:
+    """What a frame leaves for the next one to start from (pass its :class:`Surface` as
+    ``previous``): the accepted height-graph coefficients and those of the frame before, from
+    which a moving shape is predicted.  None of it changes the answer of a frame that starts
+    cold (``graph_warm=False``), so a log replays bit for bit from such a frame."""
+
+    graph: np.ndarray | None = None
+    graph_before: np.ndarray | None = None
+
+
 class Surface:
     """A reconstructed sheet in the sensor frame (centre of the sheet at the origin, its normal
     +z, the row direction +u along +x; mm).
@@ -175,6 +186,8 @@ class Surface:
     mirror : the other answer (a :class:`Surface`) when the gauges cannot tell two mirror-image
         shapes apart (an oblique cylinder, a saddle at 45°: opposite constant twists), else None;
         ``diagnostics.extra["ambiguous"]`` says the same.
+    state : :class:`FrameState`, what the next frame starts from (when this surface is passed
+        as its ``previous``).
     pitch, shape : grid pitch (mm) and (N, M).
 
     Methods: :meth:`locate` (positions and normals of material points), :meth:`locate_sigma`,
@@ -223,6 +236,7 @@ class Surface:
         self.diagnostics = diagnostics
         # the mirror-image answer when the data cannot tell the two apart, else None
         self.mirror: Surface | None = None
+        self.state = FrameState()
 
     # ------------------------------------------------------------------ uncertainty (lazy)
     @property
