@@ -110,7 +110,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace):
-    from skinmap.daemon.client import SkinmapClient
+    from skinmap.client import SkinmapClient
 
     return SkinmapClient([args.connect], prefix=args.prefix, device=args.device)
 

@@ -45,13 +45,10 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from .mcaplog import (
-    ACTIVE_SUFFIX,
-    LOG_LEVELS,
-    decode_pointcloud,
-    decode_surface_nodes,
-    final_name,
-)
+from skinmap.wire import messages as wire
+
+from .foxglove_log import decode_protobuf
+from .mcaplog import ACTIVE_SUFFIX, LOG_LEVELS, final_name, finish_writer
 
 __all__ = [
     "NotMcapError",
@@ -486,7 +483,7 @@ def _write_recovered(tmp: str, reader: _FileOrderReader, items: Iterator[_Item],
             elif isinstance(rec, Metadata):
                 writer.add_metadata(rec.name, rec.metadata)
                 counts["metadata"] += 1
-        writer.finish()
+        finish_writer(writer, counts["attachments"])
         out.flush()
         os.fsync(out.fileno())
 
@@ -692,6 +689,16 @@ def _clip(text: str) -> str:
 
 
 def _message_issues(m: LoggedMessage) -> list[LogIssue]:
+    if m.topic == "/log" and m.message_encoding == "protobuf":
+        try:
+            entry = decode_protobuf(m.schema_name, m.data)
+        except Exception:  # noqa: BLE001 - protobuf raises its own DecodeError
+            return [LogIssue(m.log_time_ns, m.topic, "ERROR", "message is not a valid "
+                             f"{m.schema_name or 'protobuf'} record")]
+        if entry.level >= LOG_LEVELS["WARNING"]:
+            name = _LEVEL_NAMES.get(entry.level, str(entry.level))
+            return [LogIssue(m.log_time_ns, "/log", name, _clip(f"[{entry.name}] {entry.message}"))]
+        return []
     if m.topic not in ("/log", "/status") or m.message_encoding != "json":
         return []
     try:
@@ -724,6 +731,8 @@ class SurfaceSnapshot:
     seq: int | None
     nodes: np.ndarray | None  # (N, M, 3) mm
     points: np.ndarray | None  # (P, 3) mm
+    sigma: np.ndarray | None = None  # (N, M) mm, node 1-s.d. uncertainty
+    elements: wire.ElementsMessage | None = None  # the elements logged nearest that time
 
 
 def find_surface(path: str | os.PathLike[str], t_s: float | None = None) -> SurfaceSnapshot:
@@ -737,23 +746,34 @@ def find_surface(path: str | os.PathLike[str], t_s: float | None = None) -> Surf
     for m in iter_messages_file_order(path):
         if first_ns is None:
             first_ns = m.log_time_ns
-        if m.topic not in ("/surface/nodes", "/surface"):
+        if m.topic not in ("/surface/nodes", "/surface", "/elements"):
             continue
         err = 0.0 if t_s is None else abs((m.log_time_ns - first_ns) * 1e-9 - t_s)
         if t_s is None or err <= best_err.get(m.topic, math.inf):
             best[m.topic], best_err[m.topic] = m, err
+    elements_msg = best.pop("/elements", None)
     key = "/surface/nodes" if "/surface/nodes" in best else "/surface"
     if key not in best or first_ns is None:
         raise ValueError(f"{os.fspath(path)}: no /surface or /surface/nodes messages")
     chosen = best[key]
-    nodes = seq = points = None
+    nodes = seq = points = sigma = None
     if key == "/surface/nodes":
-        seq, nodes, _ = decode_surface_nodes(chosen.data)
-    cloud = best.get("/surface")
-    if cloud is not None and cloud.log_time_ns == chosen.log_time_ns:
-        points = decode_pointcloud(cloud.data)
+        surface = wire.decode_surface(chosen.data)
+        seq, nodes = surface.seq, surface.nodes * 1e3
+        points = surface.cloud.astype(np.float64) * 1e3 if len(surface.cloud) else None
+        sigma = surface.uncertainty * 1e3
+    else:
+        cloud = decode_protobuf(chosen.schema_name, chosen.data)
+        raw = np.frombuffer(cloud.data, dtype="<f4")
+        points = raw[: len(raw) // 3 * 3].reshape(-1, 3).astype(np.float64) * 1e3
+    elements = None
+    if elements_msg is not None:
+        try:
+            elements = wire.decode_elements(elements_msg.data)
+        except wire.MessageError:
+            elements = None  # drawn without elements; inspect names unusable records
     return SurfaceSnapshot(chosen.log_time_ns, (chosen.log_time_ns - first_ns) * 1e-9, seq,
-                           nodes, points)
+                           nodes, points, sigma, elements)
 
 
 def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
@@ -772,13 +792,39 @@ def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
                             if a is not None])
     if snap.nodes is not None:
         x, y, z = (snap.nodes[..., k] for k in range(3))
-        if min(snap.nodes.shape[:2]) >= 2:
+        if snap.sigma is not None and min(snap.nodes.shape[:2]) >= 2:
+            # Faces coloured by node σ (µm), with a colorbar: where the shape is less certain.
+            from matplotlib import cm, colors
+
+            sig_um = snap.sigma * 1e3
+            norm = colors.Normalize(vmin=0.0, vmax=max(float(np.nanmax(sig_um)), 1e-3))
+            ax.plot_surface(x, y, z, facecolors=cm.viridis(norm(sig_um)), edgecolor="k",
+                            linewidth=0.3, alpha=0.85, shade=False)
+            mappable = cm.ScalarMappable(norm=norm, cmap="viridis")
+            fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.1, label="node σ, 1 s.d. (µm)")
+        elif min(snap.nodes.shape[:2]) >= 2:
             ax.plot_surface(x, y, z, cmap="viridis", edgecolor="k", linewidth=0.3, alpha=0.85)
         else:
             ax.plot(x.ravel(), y.ravel(), z.ravel(), "o-")
     if snap.points is not None:
         p = snap.points[:: max(1, len(snap.points) // 5000)]
-        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c="tab:red", alpha=0.5)
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c="tab:red", alpha=0.3)
+    el = snap.elements
+    if el is not None and el.count:
+        pos, nrm = el.positions * 1e3, el.normals
+        ok = np.isfinite(pos).all(axis=1) & np.isfinite(nrm).all(axis=1)
+        valid = ok & el.valid
+        span = float(np.ptp(every, axis=0).max()) if len(every) else 1.0
+        arrow = 0.08 * max(span, 1.0)
+        for mask, colour, label in ((valid, "tab:green", "element, VALID"),
+                                    (ok & ~el.valid, "tab:orange", "element, not VALID")):
+            if mask.any():
+                ax.quiver(pos[mask, 0], pos[mask, 1], pos[mask, 2], nrm[mask, 0], nrm[mask, 1],
+                          nrm[mask, 2], length=arrow, color=colour, linewidth=0.8, label=label)
+                ax.scatter(pos[mask, 0], pos[mask, 1], pos[mask, 2], s=6, c=colour)
+        if ok.any():
+            every = np.concatenate([every, pos[ok]])
+            ax.legend(loc="upper left", fontsize=7)
     lo, hi = every.min(axis=0), every.max(axis=0)
     centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-3)
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):

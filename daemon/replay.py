@@ -26,11 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from skinmap.daemon import messages
+from skinmap.wire import messages
 from skinmap.daemon.calibration import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
 from skinmap.daemon.mcapinspect import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
-from skinmap.daemon.mcaplog import decode_strains
 from skinmap.daemon.pipeline import FramePipeline, graph_restart
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
 
@@ -165,7 +164,7 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
                 _problem(report, f"unusable {where}: {exc}{keep}")
         elif m.topic == "/strains":
             try:
-                seq = decode_strains(m.data)[0]
+                seq = messages.decode_strains(m.data).seq
             except (ValueError, RecursionError) as exc:
                 _problem(report, f"unusable {where}: {exc}")
                 continue

@@ -30,7 +30,7 @@ from typing import Any, Callable
 import numpy as np
 
 import skinmap
-from skinmap.daemon import messages
+from skinmap.wire import messages
 from skinmap.daemon.calibration import Calibration, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.link import ScannerLink, open_serial
@@ -429,6 +429,10 @@ class Gateway:
         want_strains = self._strains_decimator.due(t_mono)
         gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
             r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
+        # The same strains message is published (at the strains rate) and logged (every scan).
+        strains = messages.encode_strains(
+            r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
+            np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower), gauge_flags)
         pub = self._publisher
         ok = True
         if pub is not None:
@@ -440,9 +444,7 @@ class Gateway:
                         r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
                         r.node_sigma_mm / 1000.0, points / 1000.0))
                 if want_strains:
-                    pub.publish_strains(messages.encode_strains(
-                        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
-                        np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower), gauge_flags))
+                    pub.publish_strains(strains)
                 self.stats.published += 1
             except Exception as exc:  # noqa: BLE001
                 self.stats.publish_errors += 1
@@ -453,11 +455,13 @@ class Gateway:
         self.stats.publish_times.append(time.monotonic())
         # Everything processed is logged (strains of every processed scan, so replay can pick
         # the same scans); surfaces at the surface rate.
-        self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
-        self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
+        self._enqueue_log(("strains", r.host_time_ns, strains))
+        self._enqueue_log(("elements", r.host_time_ns, elements, self.stats.latencies_ms[-1]))
         if self._logger is not None and self._log_surface_decimator.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
-            self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, np.asarray(cloud).reshape(-1, 3)))
+            self._enqueue_log(("surface", r.host_time_ns, messages.encode_surface(
+                r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
+                r.node_sigma_mm / 1000.0, np.asarray(cloud).reshape(-1, 3) / 1000.0)))
         return ok
 
     def _points(self, r: FrameResult) -> np.ndarray:
@@ -517,11 +521,11 @@ class Gateway:
         if kind == "raw":
             lg.log_raw_frame(item[1], item[2])
         elif kind == "strains":
-            lg.log_strains(item[1], item[2], item[3], item[4])
+            lg.log_strains(item[1], item[2])
         elif kind == "elements":
             lg.log_elements(item[1], item[2], item[3])
         elif kind == "surface":
-            lg.log_surface(item[1], item[2], item[3], item[4], item[5])
+            lg.log_surface(item[1], item[2])
         elif kind == "status":
             lg.log_status(item[1], item[2])
         elif kind == "event":

@@ -25,7 +25,7 @@ import serial
 from cobs import cobs
 
 from conftest import free_port, running_gateway
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.link import ScannerLink
 from skinmap.daemon.mcapinspect import iter_messages_file_order

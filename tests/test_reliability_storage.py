@@ -22,7 +22,7 @@ from conftest import CheckedFile, free_port, running_gateway
 from mcap.reader import make_reader
 
 from skinmap.daemon.cli import main as skinmap_main
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.mcapinspect import inspect, iter_messages_file_order
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger

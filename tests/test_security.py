@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from skinmap.daemon import messages as msg
-from skinmap.daemon.client import SkinmapClient
+from skinmap.wire import messages as msg
+from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import free_port, running_gateway
 
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.replay import replay_log
 from skinmap.emulator.device import DeviceConfig

@@ -25,7 +25,7 @@ from conftest import free_port, running_gateway
 
 from skinmap.daemon import service
 from skinmap.daemon.calibration import save_tare, tare_path
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.config import parse_config
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.service import DeviceClockCheck, HostDecimator, load_calibration
