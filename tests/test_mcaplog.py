@@ -109,7 +109,8 @@ def test_every_helper_round_trips(tmp_path):
     st = wire.decode_strains(msgs["/strains"][4])
     assert st.seq == 7 and np.array_equal(st.eps_upper, up) and np.array_equal(st.eps_lower, lo)
     plot = json.loads(msgs["/strains/plot"][4])
-    assert plot["upper_row"] == list(up[0].ravel()) and plot["lower_col"] == list(lo[1].ravel())
+    np.testing.assert_allclose(plot["upper_row"], up[0].ravel(), rtol=1e-6)
+    np.testing.assert_allclose(plot["lower_col"], lo[1].ravel(), rtol=1e-6)
     sf = wire.decode_surface(msgs["/surface/nodes"][4])
     assert sf.seq == 7 and np.array_equal(sf.nodes, nodes / 1000) and np.array_equal(sf.normals, normals)
     assert msgs["/surface"][1] == "foxglove.PointCloud" and msgs["/surface"][2] == "protobuf"
@@ -602,3 +603,49 @@ def test_docs_topic_table_is_the_loggers():
 
     doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "logging.md")).read()
     assert topics_table() in doc
+
+
+def test_inspect_knows_the_configured_decimation_and_lists_real_warnings_first(tmp_path):
+    """A healthy log decimated 50 -> 10 Hz with 1 Hz status and surfaces reports nothing; a
+    real loss and a real stall are reported, after the logged errors."""
+    from skinmap.daemon.config import DEMO_CONFIG
+
+    clock = FakeClock()
+    logger = make_logger(tmp_path, clock)
+    logger.log_config(clock.wall, DEMO_CONFIG, {"gf": [1.24]})
+    seq = 0
+    for k in range(300):  # 30 s at 10 Hz, seq steps 4..6 (host-time decimation)
+        seq += (5, 4, 6)[k % 3]
+        if k == 200:
+            seq += 10  # two processed scans lost
+        if k == 250:
+            clock.advance(4.0)  # the scanner stalled for 4 s
+        logger.log_strains(clock.wall, strains_payload(seq, np.zeros((2, 2, 2)), np.zeros((2, 2, 2))))
+        if k % 10 == 0:
+            nodes, normals, points = _surface(k)
+            logger.log_surface(clock.wall, surface_payload(seq, nodes, normals, points))
+            logger.log_status(clock.wall, {"seq": seq})
+        clock.advance(0.1)
+    logger.log_event(clock.wall, "error", "serial port vanished")
+    logger.close()
+    (path,) = files(tmp_path, ".mcap")
+    report = inspect(path)
+    assert "processed 10 Hz (seq step 5)" in report.rates_source
+    assert report.topics["/status"].expected_hz == 1 and report.topics["/strains"].expected_hz == 10
+    strains_gaps = [(g.after_seq, g.missing) for g in report.sequence_gaps if g.topic == "/strains"]
+    assert len(strains_gaps) == 1 and strains_gaps[0][1] == 2
+    gapped = {t for t, s in report.topics.items() if s.time_gaps}
+    assert gapped == set(report.topics) - {"/config", "/log"}  # the stall, seen on every topic
+    assert all(len(s.time_gaps) == 1 for t, s in report.topics.items() if t in gapped)
+    lines = report.format().splitlines()
+    first_problem = next(i for i, line in enumerate(lines) if "gap" in line or "ERROR" in line)
+    assert "ERROR in /log" in lines[first_problem] and "serial port vanished" in lines[first_problem]
+    assert lines.index(next(line for line in lines if line.strip().startswith("topic"))) > first_problem
+    # Without the config, each topic's own median step decides and says so.
+    logger = make_logger(tmp_path / "nocfg", clock, create_directory=True)
+    for k in range(50):
+        logger.log_strains(clock.wall, strains_payload(5 * k, np.zeros((2, 2, 2)), np.zeros((2, 2, 2))))
+        clock.advance(0.1)
+    logger.close()
+    report = inspect(files(tmp_path / "nocfg", ".mcap")[0])
+    assert report.sequence_gaps == [] and "own median" in report.rates_source
