@@ -117,6 +117,16 @@ def _client(args: argparse.Namespace):
 
 def cmd_echo(args: argparse.Namespace) -> int:
     with _client(args) as client:
+        try:
+            source = client.info(timeout=min(args.timeout, 2.0)).get("source", "live")
+        except (TimeoutError, LookupError):
+            source = "unknown"
+        live = source == "live"
+        if not live:
+            print(f"source: {source}: latency is shown only for live data (these host times are "
+                  "not now)" if source != "unknown" else
+                  "source: unknown (no info answered): latency is shown only for live data",
+                  file=sys.stderr)
         t_last = time.monotonic()
         count = 0
         rate = 0.0
@@ -134,13 +144,16 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 if now - t_last >= 1.0:
                     rate = count / (now - t_last)
                     count, t_last = 0, now
-                latency_ms = (time.time_ns() - msg.host_time_ns) / 1e6
+                # host_time_ns is when the gateway received the scan: now minus it is the
+                # latency only for live data (a replay carries the recorded times).
+                latency = f"latency {(time.time_ns() - msg.host_time_ns) / 1e6:6.2f} ms" if live else \
+                    f"device t {msg.device_time_us / 1e6:9.3f} s"
                 pos = msg.positions * 1000.0
                 k = pos.shape[0]
                 pick = sorted({0, k // 2, k - 1}) if k else []
                 shown = "  ".join(f"#{i}({pos[i, 0]:+7.2f},{pos[i, 1]:+7.2f},{pos[i, 2]:+7.2f})" for i in pick)
                 valid = int(np.count_nonzero(msg.flags & 1))
-                print(f"seq {msg.seq:>7}  {rate:5.1f} Hz  latency {latency_ms:6.2f} ms  valid {valid}/{k}  mm: {shown}", flush=True)
+                print(f"seq {msg.seq:>7}  {rate:5.1f} Hz  {latency}  valid {valid}/{k}  mm: {shown}", flush=True)
         except KeyboardInterrupt:
             pass
     return 0
@@ -178,10 +191,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         publisher_ctx = open_session(make_session_config([args.listen], [],
                                                          deny_remote_writes=f"{args.prefix}/**"))
+    def announce(key: str) -> None:
+        device = key.rsplit("/", 1)[1]
+        print(f"skinmap replay: publishing on {args.listen} under '{key}' (info answered; "
+              f"host times are the recorded ones). Watch with:\n  skinmap echo --connect "
+              f"{args.listen} --prefix {args.prefix} --device {device}", file=sys.stderr, flush=True)
+
     try:
         session = publisher_ctx.__enter__() if publisher_ctx else None
         report = replay_log(args.log, session=session, prefix=args.prefix, speed=args.speed,
-                            progress=not args.quiet, max_record_bytes=_record_limit(args))
+                            progress=not args.quiet, max_record_bytes=_record_limit(args),
+                            on_publish=announce)
     finally:
         if publisher_ctx:
             publisher_ctx.__exit__(None, None, None)

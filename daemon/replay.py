@@ -17,12 +17,13 @@ force before it, and scans with no usable config before them are counted, not re
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -50,6 +51,7 @@ class ReplayReport:
     mismatched: list[int] = field(default_factory=list)
     max_position_diff_m: float = 0.0
     published: int = 0
+    published_as: str = ""  # <prefix>/<device> when republished
     seconds: float = 0.0
     end: str = ""
     results: list[messages.ElementsMessage] = field(default_factory=list)
@@ -185,9 +187,12 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
 
 def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
                progress: bool = False, keep_results: bool = False,
-               max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES) -> ReplayReport:
-    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max).
-    Records over `max_record_bytes` are skipped and named in the report's `problems`."""
+               max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES,
+               on_publish: Callable[[str], None] | None = None) -> ReplayReport:
+    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max),
+    with `info` answered (its `source` names the log). `on_publish("<prefix>/<device>")` is
+    called once the device name is known. Records over `max_record_bytes` are skipped and
+    named in the report's `problems`."""
     from skinmap.daemon.service import limit_blas_threads
 
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
@@ -274,10 +279,19 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                                                              float(np.nanmax(np.abs(a.positions - b.positions), initial=0.0)))
                 if session is not None:
                     if publisher is None:
-                        from skinmap.daemon.service import device_name
+                        from skinmap.daemon.service import device_info, device_name
                         from skinmap.daemon.zenoh_io import SkinmapPublisher
 
-                        publisher = SkinmapPublisher(session, prefix, device_name(hello, _config_from_text(cfg_entry[0])))
+                        replay_cfg = _config_from_text(cfg_entry[0])
+                        device = device_name(hello, replay_cfg)
+                        publisher = SkinmapPublisher(session, prefix, device)
+                        # `info` answers as the live daemon did; `source` tells clients the
+                        # host times are the recorded ones.
+                        publisher.set_info(device_info(device, hello, pipeline, replay_cfg,
+                                                       source=f"replay of {os.path.basename(path)}"))
+                        report.published_as = f"{prefix}/{device}"
+                        if on_publish is not None:
+                            on_publish(report.published_as)
                     if speed > 0:
                         if first_log_ns is None:
                             first_log_ns, t_wall0 = m.log_time_ns, time.perf_counter()

@@ -347,36 +347,8 @@ class Gateway:
             self._publisher.set_info(self.info())
 
     def info(self) -> dict[str, Any]:
-        hello = self._hello
-        assert hello is not None and self._pipeline is not None
-        g = self._pipeline.geometry
-        uv = self._pipeline.element_uv
-        return {
-            "device": self._device,
-            "rows": g.n,
-            "cols": g.m,
-            "pitch_m": g.pitch_mm / 1000.0,
-            "h_upper_m": g.h_upper_mm / 1000.0,
-            "h_lower_m": g.h_lower_mm / 1000.0,
-            "gauge_length_m": g.gauge_length_mm / 1000.0,
-            "serial_number": hello.serial_number,
-            "elements": {
-                "count": int(uv.shape[0]),
-                "layout": self.cfg.elements.layout,
-                "width_m": self.cfg.elements.pitch_u_mm / 1000.0,
-                "height_m": self.cfg.elements.pitch_v_mm / 1000.0,
-                "material_uv_m": (uv / 1000.0).tolist(),
-                "offset_m": (self._pipeline.element_offset / 1000.0).tolist(),
-            },
-            "calibration": self._calibration_doc(self._pipeline.calibration),
-            "versions": {
-                "skinmap": skinmap.__version__,
-                "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",
-                "device_protocol": f"{hello.protocol_major}.{hello.protocol_minor}",
-                "firmware": ".".join(str(x) for x in hello.fw_version),
-            },
-            "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
-        }
+        assert self._hello is not None and self._pipeline is not None
+        return device_info(self._device, self._hello, self._pipeline, self.cfg, source="live")
 
     @staticmethod
     def _calibration_doc(cal: Calibration) -> dict[str, Any]:
@@ -821,6 +793,42 @@ def prepare_reconstruction_kernels() -> None:
     log.info("reconstruction kernels ready (%s) in %.1f s", kernels, time.perf_counter() - t0)
 
 
+def device_info(device: str, hello: Hello, pipeline: Any, cfg: DaemonConfig, *,
+                source: str) -> dict[str, Any]:
+    """The `info` object of a device (skinmap.wire.messages.INFO_FIELDS and more); `source` is
+    'live' for a scanner, or names the log being replayed (clients then know the host times
+    are the recorded ones)."""
+    g = pipeline.geometry
+    uv = pipeline.element_uv
+    return {
+        "device": device,
+        "rows": g.n,
+        "cols": g.m,
+        "pitch_m": g.pitch_mm / 1000.0,
+        "h_upper_m": g.h_upper_mm / 1000.0,
+        "h_lower_m": g.h_lower_mm / 1000.0,
+        "gauge_length_m": g.gauge_length_mm / 1000.0,
+        "serial_number": hello.serial_number,
+        "elements": {
+            "count": int(uv.shape[0]),
+            "layout": cfg.elements.layout,
+            "width_m": cfg.elements.pitch_u_mm / 1000.0,
+            "height_m": cfg.elements.pitch_v_mm / 1000.0,
+            "material_uv_m": (uv / 1000.0).tolist(),
+            "offset_m": (pipeline.element_offset / 1000.0).tolist(),
+        },
+        "calibration": Gateway._calibration_doc(pipeline.calibration),
+        "versions": {
+            "skinmap": skinmap.__version__,
+            "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",
+            "device_protocol": f"{hello.protocol_major}.{hello.protocol_minor}",
+            "firmware": ".".join(str(x) for x in hello.fw_version),
+        },
+        "source": source,
+        "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
+    }
+
+
 def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
     """Run skinmapd until SIGINT/SIGTERM (or `stop_event`); returns an exit code."""
     limit_blas_threads()
@@ -911,7 +919,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"skinmapd: {exc}", file=sys.stderr)
         return 2
     if args.check:
-        print(f"{args.config}: OK")
+        from skinmap.daemon.config import check_environment
+
+        found = check_environment(cfg)
+        for level, message in found:
+            print(f"{args.config}: {level}: {message}", file=sys.stderr if level == "error" else sys.stdout)
+        errors = sum(level == "error" for level, _ in found)
+        if errors:
+            print(f"{args.config}: {errors} problem(s): skinmapd would not run as configured", file=sys.stderr)
+            return 2
+        print(f"{args.config}: OK (syntax, values, and the files and folders it needs)")
         return 0
     try:
         return run_gateway(cfg, console=True if args.console else None)
