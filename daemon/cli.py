@@ -47,15 +47,30 @@ def _wait_for_tcp(host: str, port: int, timeout: float, proc: subprocess.Popen |
     raise RuntimeError(f"nothing listens on {host}:{port} after {timeout:g} s")
 
 
+def _relay_lines(proc: subprocess.Popen, prefix: str) -> None:
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        print(prefix + line.rstrip("\n"), flush=True)
+
+
 def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: float = 50.0,
-                   mechanics: str = "kinematic", extra: list[str] | None = None) -> subprocess.Popen:
+                   mechanics: str = "kinematic", extra: list[str] | None = None,
+                   label_output: bool = False) -> subprocess.Popen:
     """The emulator as a child process serving socket://127.0.0.1:PORT (a fresh interpreter,
     never a fork of one that may hold a Zenoh session).  An elastic scene not yet in the solve
     cache is solved before the port opens (up to minutes for a moving scene), so it is waited
     for longer."""
     cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
            "--shape", shape, "--rate", str(rate), "--mechanics", mechanics, *(extra or [])]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
+    if label_output:
+        # Its lines are relayed prefixed, so they are told apart from the gateway's (and go
+        # above the live status panel, which redirects stdout).
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        threading.Thread(target=_relay_lines, args=(proc, "[emulator] "), daemon=True,
+                         name="skinmap-emulator-output").start()
+    else:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
     try:
         _wait_for_tcp("127.0.0.1", port, 15.0 if mechanics == "kinematic" else 1800.0, proc)
     except Exception:
@@ -92,7 +107,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}', {args.mechanics} mechanics) "
           f"on socket://127.0.0.1:{port}", flush=True)
     emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz,
-                              mechanics=args.mechanics)
+                              mechanics=args.mechanics, label_output=True)
     try:
         print(f"skinmap demo: skinmapd publishing on {', '.join(cfg.zenoh.listen)} under '{cfg.zenoh.prefix}/{cfg.device.name or '<serial>'}', "
               f"logging to {cfg.resolve(cfg.log.directory)}; Ctrl-C stops", flush=True)

@@ -949,6 +949,10 @@ def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
     seq = "" if snap.seq is None else f", seq {snap.seq}"
+    if snap.sigma is not None and np.isfinite(snap.sigma).any():
+        seq += f", node σ {np.nanmin(snap.sigma) * 1e3:.1f}..{np.nanmax(snap.sigma) * 1e3:.1f} µm"
+    if snap.elements is not None:
+        seq += f", {int(snap.elements.valid.sum())}/{snap.elements.count} elements VALID"
     ax.set_title(f"{os.path.basename(os.fspath(path))}\nt+{snap.t_rel_s:.3f} s{seq}",
                  fontsize=9)
     fig.savefig(os.fspath(out_png), format="png")

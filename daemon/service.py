@@ -33,6 +33,7 @@ import skinmap
 from skinmap.wire import messages
 from skinmap.daemon.calibration import Calibration, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
+from skinmap.daemon.console import StatusConsole, shape_summary
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult
@@ -206,7 +207,7 @@ class Gateway:
         zenoh_session: Any = None,
         opener: Callable[[str, int, bool], Any] = open_serial,
         logger_factory: Callable[[DaemonConfig], Any] | None = None,
-        console: Callable[[str], None] | None = None,
+        console: Callable[[dict[str, Any], dict[str, Any]], None] | None = None,
         notifier: SystemdNotifier | None = None,
     ) -> None:
         self.cfg = cfg
@@ -607,24 +608,10 @@ class Gateway:
         self._enqueue_log(("status", st["host_time_ns"], st))
         self.notifier.status(f"{st['link_state']}, {st['publish_rate_hz']:.1f} Hz, seq {st['seq']}")
         if self._console is not None:
-            self._console(self._console_line(st))
+            r = self.results[-1] if self.results else None
+            self._console(st, shape_summary(r.nodes_mm if r is not None else None,
+                                            r.element_positions_mm if r is not None else None))
         self._check_tare()
-
-    def _console_line(self, st: dict[str, Any]) -> str:
-        r = self.results[-1] if self.results else None
-        shape = ""
-        if r is not None:
-            z = r.nodes_mm[..., 2]
-            shape = f" | z {z.min():+6.2f}…{z.max():+6.2f} mm"
-            k = r.element_positions_mm.shape[0]
-            if k:
-                # The sheet centre is the frame origin, so the end elements show the shape best.
-                for name, i in (("first", 0), ("last", k - 1)):
-                    p = r.element_positions_mm[i]
-                    shape += f" | {name} element ({p[0]:+6.2f}, {p[1]:+6.2f}, {p[2]:+6.2f}) mm"
-        return (f"[{st['link_state']:>10}] scans {st['scan_rate_hz']:6.1f}/s  published {st['publish_rate_hz']:5.1f}/s  "
-                f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
-                f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
 
     def _tare_file_mtime(self, hello: Hello) -> float | None:
         from skinmap.daemon.calibration import tare_path
@@ -836,8 +823,9 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
     # the GIL sooner when bytes arrive while the reconstruction runs Python code.
     sys.setswitchinterval(0.001)
     show = cfg.output.console if console is None else console
+    panel = StatusConsole() if show else None
     with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
+        gw = Gateway(cfg, zenoh_session=session, console=panel.update if panel else None)
         unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
         if stop_event is not None:
             threading.Thread(target=lambda: (stop_event.wait(), gw.stop()), daemon=True).start()
@@ -848,6 +836,8 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
             gw.run()
         finally:
             unwatch()
+            if panel is not None:
+                panel.close()
     log.info("skinmapd stopped")
     return 0
 

@@ -74,6 +74,11 @@ def test_inspect_lists_topics_and_draws_a_png(session_run, capsys, tmp_path):
     for topic in ("/raw", "/strains", "/elements", "/surface", "/status", "/config"):
         assert topic in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from skinmap.daemon.mcapinspect import render_surface_png
+
+    snap = render_surface_png(log, None, tmp_path / "again.png")  # what the picture shows
+    assert snap.sigma.shape == snap.nodes.shape[:2] and np.isfinite(snap.sigma).all()
+    assert snap.elements is not None and snap.elements.count > 0 and snap.elements.valid.any()
 
 
 def test_replay_reproduces_the_live_results(session_run, capsys):
