@@ -6,6 +6,9 @@
     skinmap replay LOG.mcap           re-run the pipeline from logged raw frames; compare; republish
     skinmap inspect LOG.mcap          topics, rates, gaps, errors; --png T for a surface snapshot
     skinmap recover LOG.mcap.active   rewrite a cut log as a finished file
+    skinmap router [--listen EP]      a Zenoh router for several gateways and many clients
+    skinmap ls [--connect EP]         the devices alive (liveliness), with their status
+    skinmap record [--device D]...    record one or many gateways to MCAP from anywhere
     skinmap tare --config FILE        record the flat sheet's resting resistances
 """
 from __future__ import annotations
@@ -194,6 +197,88 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------------
+# fleet: router / ls / record
+
+
+def _wait_until_stopped(duration: float) -> None:
+    end = time.monotonic() + duration if duration else None
+    while end is None or time.monotonic() < end:
+        time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from skinmap.daemon.fleet import router_config
+    from skinmap.daemon.zenoh_io import open_session
+
+    config = router_config(args.listen, allow_non_loopback=args.allow_non_loopback,
+                           config_file=args.zenoh_config)
+    with open_session(config):
+        print(f"skinmap router: routing on {', '.join(args.listen)} (no scouting); gateways set "
+              f"[zenoh] connect = {json.dumps(args.listen)}, clients use --connect "
+              f"{args.listen[0]}; Ctrl-C stops", flush=True)
+        try:
+            _wait_until_stopped(args.duration)
+        except KeyboardInterrupt:
+            pass
+    print("skinmap router: stopped", flush=True)
+    return 0
+
+
+def _client_session(args: argparse.Namespace):
+    from skinmap.daemon.zenoh_io import make_session_config, open_session
+
+    return open_session(make_session_config([], [args.connect], mode="client"))
+
+
+def cmd_ls(args: argparse.Namespace) -> int:
+    from skinmap.daemon.fleet import discover
+    from skinmap.wire import messages as wire
+
+    with _client_session(args) as session:
+        devices = discover(session, args.prefix, timeout=args.timeout)
+        if not devices:
+            print(f"no device alive under '{args.prefix}/*' via {args.connect}", file=sys.stderr)
+            return 1
+        for device in devices:
+            line = f"{args.prefix}/{device}"
+            try:
+                reply = next((r for r in session.get(f"{args.prefix}/{device}/status",
+                                                     timeout=args.timeout) if r.ok is not None), None)
+                st = wire.decode_status(reply.ok.payload.to_bytes()) if reply else None
+            except wire.MessageError as exc:
+                st, line = None, line + f"  (status rejected: {exc})"
+            if st is not None:
+                line += (f"  {st.get('link_state', '?')}  seq {st['seq']}  "
+                         f"{st['publish_rate_hz']:.1f} Hz  log {st['log_state']}")
+            elif "rejected" not in line:
+                line += "  (alive; no status published yet)"
+            print(line, flush=True)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from skinmap.daemon.fleet import Recorder, discover
+
+    with _client_session(args) as session:
+        devices = args.device or ["*"]
+        with Recorder(session, args.prefix, devices, args.output) as rec:
+            print(f"skinmap record: recording {', '.join(f'{args.prefix}/{d}' for d in devices)} via "
+                  f"{args.connect} to {args.output}; Ctrl-C stops", flush=True)
+            alive = discover(session, args.prefix, timeout=1.0)
+            print(f"skinmap record: devices alive now: {', '.join(alive) or 'none'}", flush=True)
+            try:
+                _wait_until_stopped(args.duration)
+            except KeyboardInterrupt:
+                pass
+        for device, counts in sorted(rec.counts.items()):
+            kinds = ", ".join(f"{k} {n}" for k, n in sorted(counts.messages.items()))
+            print(f"  {device}: {kinds}; rejected {counts.rejected}", flush=True)
+        print(f"skinmap record: wrote {', '.join(rec.logger.finished_paths) or 'nothing'}"
+              f"{f'; {rec.dropped} message(s) dropped (writer behind)' if rec.dropped else ''}", flush=True)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
 # replay
 
 
@@ -341,6 +426,29 @@ def build_parser() -> argparse.ArgumentParser:
             e.add_argument("--json", action="store_true")
         e.set_defaults(func=func)
 
+    ro = sub.add_parser("router", help="run a Zenoh router for several gateways and clients")
+    ro.add_argument("--listen", action="append", default=None,
+                    help=f"endpoint to listen on (repeatable); default {DEFAULT_CONNECT}")
+    ro.add_argument("--allow-non-loopback", action="store_true",
+                    help="allow endpoints off loopback (use TLS: --zenoh-config)")
+    ro.add_argument("--zenoh-config", help="Zenoh JSON5 file (TLS, access control)")
+    ro.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    ro.set_defaults(func=cmd_router)
+
+    ls = sub.add_parser("ls", help="list the devices alive behind a router or gateway")
+    ls.add_argument("--connect", default=DEFAULT_CONNECT)
+    ls.add_argument("--prefix", default="skinmap")
+    ls.add_argument("--timeout", type=float, default=2.0)
+    ls.set_defaults(func=cmd_ls)
+
+    rec = sub.add_parser("record", help="record one or many gateways to MCAP from another machine")
+    rec.add_argument("--connect", default=DEFAULT_CONNECT)
+    rec.add_argument("--prefix", default="skinmap")
+    rec.add_argument("--device", action="append", help="device to record (repeatable; default: every device)")
+    rec.add_argument("--output", "-o", default="recordings", help="folder for the MCAP files")
+    rec.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    rec.set_defaults(func=cmd_record)
+
     r = sub.add_parser("replay", help="re-run the pipeline from a log's raw frames")
     r.add_argument("log")
     r.add_argument("--publish", action="store_true", help="republish the results over Zenoh")
@@ -376,6 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "func", None) is cmd_router and args.listen is None:
+        args.listen = [DEFAULT_CONNECT]
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

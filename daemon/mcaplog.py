@@ -20,7 +20,7 @@ import errno
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, BinaryIO, Callable, Mapping
 
 import numpy as np
@@ -414,45 +414,56 @@ class McapLogger:
             raise TypeError(f"raw frame must be bytes, got {type(data).__name__}")
         self._log(TOPICS["/raw"], t_ns, bytes(data))
 
-    def log_strains(self, t_ns: int, payload: bytes) -> None:
-        """`/strains`: a wire strains message (skinmap.wire.messages.encode_strains), and its
-        plottable view `/strains/plot`."""
-        st = messages.decode_strains(_payload("strains", payload))
-        self._log(TOPICS["/strains"], t_ns, bytes(payload), st.seq)
-        self._log(TOPICS["/strains/plot"], t_ns, fox.strains_plot(st), st.seq)
+    def _topic(self, topic: str, device: str | None) -> TopicSpec:
+        """The spec of `topic`, under `/<device>` when recording several devices."""
+        spec = TOPICS[topic]
+        return spec if device is None else replace(spec, topic=f"/{device}{spec.topic}")
 
-    def log_surface(self, t_ns: int, payload: bytes) -> None:
+    def log_strains(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
+        """`/strains`: a wire strains message (skinmap.wire.messages.encode_strains), and its
+        plottable view `/strains/plot`. With `device`, under `/<device>/...`."""
+        st = messages.decode_strains(_payload("strains", payload))
+        self._log(self._topic("/strains", device), t_ns, bytes(payload), st.seq)
+        self._log(self._topic("/strains/plot", device), t_ns, fox.strains_plot(st), st.seq)
+
+    def log_surface(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/surface/nodes`: a wire surface message (nodes, normals, σ, dense cloud; metres);
         with its Foxglove views `/surface` (PointCloud of the cloud, or the nodes when the
-        cloud is empty), `/scene` (the sheet as a mesh coloured by σ, legend) and `/tf`."""
+        cloud is empty), `/scene` (the sheet as a mesh coloured by σ, legend) and `/tf`.
+        With `device`, under `/<device>/...` in frame `<device>`."""
         sf = messages.decode_surface(_payload("surface", payload))
         if not (np.isfinite(sf.nodes).all() and np.isfinite(sf.cloud).all()):
             raise ValueError("surface nodes or cloud contain NaN or infinite values")
+        frame = device or fox.FRAME_ID
         points = sf.cloud if len(sf.cloud) else sf.nodes.reshape(-1, 3)
-        cloud = fox.point_cloud(points, t_ns)
-        scene = fox.scene_sheet(sf, t_ns)
-        self._log(TOPICS["/surface/nodes"], t_ns, bytes(payload), sf.seq)
-        self._log(TOPICS["/surface"], t_ns, cloud, sf.seq)
-        self._log(TOPICS["/tf"], t_ns, fox.frame_transform(t_ns))
-        self._log(TOPICS["/scene"], t_ns, scene)
+        cloud = fox.point_cloud(points, t_ns, frame)
+        scene = fox.scene_sheet(sf, t_ns, frame)
+        self._log(self._topic("/surface/nodes", device), t_ns, bytes(payload), sf.seq)
+        self._log(self._topic("/surface", device), t_ns, cloud, sf.seq)
+        self._log(self._topic("/tf", device), t_ns, fox.frame_transform(t_ns, frame))
+        self._log(self._topic("/scene", device), t_ns, scene)
 
-    def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None) -> None:
+    def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None, *,
+                     device: str | None = None) -> None:
         """`/elements`: a wire elements message, unchanged; with its views `/elements/poses`
         (PosesInFrame), `/scene` (entity `elements`: arrows coloured by validity) and
-        `/elements/plot` (per-element σ and flags, the frame's latency)."""
+        `/elements/plot` (per-element σ and flags, the frame's latency). With `device`, under
+        `/<device>/...` in frame `<device>`."""
         el = messages.decode_elements(_payload("elements", payload))
-        views = (fox.element_poses(el, t_ns), fox.scene_elements(el, t_ns),
+        frame = device or fox.FRAME_ID
+        views = (fox.element_poses(el, t_ns, frame), fox.scene_elements(el, t_ns, frame),
                  fox.elements_plot(el, latency_ms))
-        self._log(TOPICS["/elements"], t_ns, bytes(payload))
-        self._log(TOPICS["/elements/poses"], t_ns, views[0])
-        self._log(TOPICS["/scene"], t_ns, views[1])
-        self._log(TOPICS["/elements/plot"], t_ns, views[2])
+        self._log(self._topic("/elements", device), t_ns, bytes(payload))
+        self._log(self._topic("/elements/poses", device), t_ns, views[0])
+        self._log(self._topic("/scene", device), t_ns, views[1])
+        self._log(self._topic("/elements/plot", device), t_ns, views[2])
 
-    def log_status(self, t_ns: int, status: Mapping[str, Any]) -> None:
-        """`/status`: a JSON object."""
+    def log_status(self, t_ns: int, status: Mapping[str, Any], *,
+                   device: str | None = None) -> None:
+        """`/status`: a JSON object (under `/<device>` with `device`)."""
         if not isinstance(status, Mapping):
             raise TypeError(f"status must be a mapping, got {type(status).__name__}")
-        self._log(TOPICS["/status"], t_ns, _to_json(dict(status), "status"))
+        self._log(self._topic("/status", device), t_ns, _to_json(dict(status), "status"))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:
