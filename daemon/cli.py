@@ -9,6 +9,7 @@
     skinmap router [--listen EP]      a Zenoh router for several gateways and many clients
     skinmap ls [--connect EP]         the devices alive (liveliness), with their status
     skinmap record [--device D]...    record one or many gateways to MCAP from anywhere
+    skinmap foxglove [--port 8765]    the live scene for the Foxglove app (WebSocket, loopback)
     skinmap tare --config FILE        record the flat sheet's resting resistances
 """
 from __future__ import annotations
@@ -278,6 +279,24 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    from skinmap.daemon.bridge import FoxgloveBridge
+
+    with _client_session(args) as session:
+        devices = args.device or ["*"]
+        with FoxgloveBridge(session, args.prefix, devices, host=args.host, port=args.port) as bridge:
+            print(f"skinmap foxglove: serving the live scene of {', '.join(f'{args.prefix}/{d}' for d in devices)} "
+                  f"on ws://{args.host}:{bridge.port} (Foxglove: Open connection -> Foxglove WebSocket); "
+                  "Ctrl-C stops", flush=True)
+            try:
+                _wait_until_stopped(args.duration)
+            except KeyboardInterrupt:
+                pass
+        print(f"skinmap foxglove: stopped; {bridge.forwarded} messages forwarded, {bridge.rejected} rejected",
+              flush=True)
+    return 0
+
+
 # ------------------------------------------------------------------------------------------
 # replay
 
@@ -448,6 +467,15 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--output", "-o", default="recordings", help="folder for the MCAP files")
     rec.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
     rec.set_defaults(func=cmd_record)
+
+    fg = sub.add_parser("foxglove", help="serve the live scene to the Foxglove app (WebSocket)")
+    fg.add_argument("--connect", default=DEFAULT_CONNECT)
+    fg.add_argument("--prefix", default="skinmap")
+    fg.add_argument("--device", action="append", help="device to show (repeatable; default: every device)")
+    fg.add_argument("--host", default="127.0.0.1", help="WebSocket host (loopback only)")
+    fg.add_argument("--port", type=int, default=8765)
+    fg.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    fg.set_defaults(func=cmd_foxglove)
 
     r = sub.add_parser("replay", help="re-run the pipeline from a log's raw frames")
     r.add_argument("log")

@@ -212,6 +212,45 @@ def _to_json(value: Any, what: str) -> bytes:
         raise ValueError(f"{what} is not JSON-serialisable: {exc}") from None
 
 
+def device_topic(topic: str, device: str | None = None) -> TopicSpec:
+    """The spec of `topic`, under `/<device>` when several devices share a file or a server."""
+    spec = TOPICS[topic]
+    return spec if device is None else replace(spec, topic=f"/{device}{spec.topic}")
+
+
+def wire_views(kind: str, payload: bytes, t_ns: int, device: str | None = None,
+               latency_ms: float | None = None) -> list[tuple[TopicSpec, bytes, int | None, int]]:
+    """A wire message and its Foxglove views as (topic spec, data, seq or None, time) —
+    what the log stores and the live bridge serves. `kind` is elements, surface or strains;
+    raises MessageError (bad layout) or ValueError (non-finite surface)."""
+    frame = device or fox.FRAME_ID
+    t = device_topic
+    if kind == "strains":
+        st = messages.decode_strains(payload)
+        return [(t("/strains", device), payload, st.seq, t_ns),
+                (t("/strains/plot", device), fox.strains_plot(st), st.seq, t_ns)]
+    if kind == "surface":
+        sf = messages.decode_surface(payload)
+        if not (np.isfinite(sf.nodes).all() and np.isfinite(sf.cloud).all()):
+            raise ValueError("surface nodes or cloud contain NaN or infinite values")
+        points = sf.cloud if len(sf.cloud) else sf.nodes.reshape(-1, 3)
+        cloud = fox.point_cloud(points, t_ns, frame)
+        scene = fox.scene_sheet(sf, t_ns, frame)
+        return [(t("/surface/nodes", device), payload, sf.seq, t_ns),
+                (t("/surface", device), cloud, sf.seq, t_ns),
+                (t("/tf", device), fox.frame_transform(t_ns, frame), None, t_ns),
+                (t("/scene", device), scene, None, t_ns)]
+    if kind == "elements":
+        el = messages.decode_elements(payload)
+        views = (fox.element_poses(el, t_ns, frame), fox.scene_elements(el, t_ns, frame),
+                 fox.elements_plot(el, latency_ms))
+        return [(t("/elements", device), payload, None, t_ns),
+                (t("/elements/poses", device), views[0], None, t_ns),
+                (t("/scene", device), views[1], None, t_ns),
+                (t("/elements/plot", device), views[2], None, t_ns)]
+    raise ValueError(f"unknown wire kind {kind!r}; expected elements, surface or strains")
+
+
 def _payload(kind: str, payload: Any) -> bytes:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise TypeError(f"{kind} payload must be bytes, got {type(payload).__name__}")
@@ -414,34 +453,17 @@ class McapLogger:
             raise TypeError(f"raw frame must be bytes, got {type(data).__name__}")
         self._log(TOPICS["/raw"], t_ns, bytes(data))
 
-    def _topic(self, topic: str, device: str | None) -> TopicSpec:
-        """The spec of `topic`, under `/<device>` when recording several devices."""
-        spec = TOPICS[topic]
-        return spec if device is None else replace(spec, topic=f"/{device}{spec.topic}")
-
     def log_strains(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/strains`: a wire strains message (skinmap.wire.messages.encode_strains), and its
         plottable view `/strains/plot`. With `device`, under `/<device>/...`."""
-        st = messages.decode_strains(_payload("strains", payload))
-        self._log(self._topic("/strains", device), t_ns, bytes(payload), st.seq)
-        self._log(self._topic("/strains/plot", device), t_ns, fox.strains_plot(st), st.seq)
+        self._log_views(wire_views("strains", _payload("strains", payload), t_ns, device))
 
     def log_surface(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/surface/nodes`: a wire surface message (nodes, normals, σ, dense cloud; metres);
         with its Foxglove views `/surface` (PointCloud of the cloud, or the nodes when the
         cloud is empty), `/scene` (the sheet as a mesh coloured by σ, legend) and `/tf`.
         With `device`, under `/<device>/...` in frame `<device>`."""
-        sf = messages.decode_surface(_payload("surface", payload))
-        if not (np.isfinite(sf.nodes).all() and np.isfinite(sf.cloud).all()):
-            raise ValueError("surface nodes or cloud contain NaN or infinite values")
-        frame = device or fox.FRAME_ID
-        points = sf.cloud if len(sf.cloud) else sf.nodes.reshape(-1, 3)
-        cloud = fox.point_cloud(points, t_ns, frame)
-        scene = fox.scene_sheet(sf, t_ns, frame)
-        self._log(self._topic("/surface/nodes", device), t_ns, bytes(payload), sf.seq)
-        self._log(self._topic("/surface", device), t_ns, cloud, sf.seq)
-        self._log(self._topic("/tf", device), t_ns, fox.frame_transform(t_ns, frame))
-        self._log(self._topic("/scene", device), t_ns, scene)
+        self._log_views(wire_views("surface", _payload("surface", payload), t_ns, device))
 
     def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None, *,
                      device: str | None = None) -> None:
@@ -449,21 +471,19 @@ class McapLogger:
         (PosesInFrame), `/scene` (entity `elements`: arrows coloured by validity) and
         `/elements/plot` (per-element σ and flags, the frame's latency). With `device`, under
         `/<device>/...` in frame `<device>`."""
-        el = messages.decode_elements(_payload("elements", payload))
-        frame = device or fox.FRAME_ID
-        views = (fox.element_poses(el, t_ns, frame), fox.scene_elements(el, t_ns, frame),
-                 fox.elements_plot(el, latency_ms))
-        self._log(self._topic("/elements", device), t_ns, bytes(payload))
-        self._log(self._topic("/elements/poses", device), t_ns, views[0])
-        self._log(self._topic("/scene", device), t_ns, views[1])
-        self._log(self._topic("/elements/plot", device), t_ns, views[2])
+        self._log_views(wire_views("elements", _payload("elements", payload), t_ns, device,
+                                   latency_ms))
+
+    def _log_views(self, views: list[tuple[TopicSpec, bytes, int | None, int]]) -> None:
+        for spec, data, seq, t_ns in views:
+            self._log(spec, t_ns, data, seq)
 
     def log_status(self, t_ns: int, status: Mapping[str, Any], *,
                    device: str | None = None) -> None:
         """`/status`: a JSON object (under `/<device>` with `device`)."""
         if not isinstance(status, Mapping):
             raise TypeError(f"status must be a mapping, got {type(status).__name__}")
-        self._log(self._topic("/status", device), t_ns, _to_json(dict(status), "status"))
+        self._log(device_topic("/status", device), t_ns, _to_json(dict(status), "status"))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:
