@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from latency import free_port  # bench/latency.py
 from skinmap.client import check_message
 from skinmap.daemon.cli import start_emulator, stop_process
 from skinmap.daemon.fleet import Recorder, discover, router_config
@@ -34,12 +34,6 @@ PREFIX = "fleet"
 SCAN_HZ = 20.0
 OUTPUT_HZ = 10.0
 EXPECTED_STEP = round(SCAN_HZ / OUTPUT_HZ)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def gateway_config(path: Path, device: str, serial_port: int, router: str) -> None:

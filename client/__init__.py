@@ -30,7 +30,7 @@ import numpy as np
 import zenoh
 
 from skinmap.wire import messages
-from skinmap.wire.keys import ALL_KINDS, DATA_KINDS, key_for
+from skinmap.wire.keys import ALL_KINDS, DATA_KINDS, check_key_segment, key_for
 from skinmap.wire.session import make_session_config
 
 DECODERS: dict[str, Callable[[bytes], Any]] = {
@@ -398,3 +398,15 @@ class SkinmapClient:
         """True if the device's liveliness token is currently declared."""
         replies = self.session.liveliness().get(self._keys["alive"], timeout=timeout)
         return any(reply.ok is not None for reply in replies)
+
+
+def discover(session: zenoh.Session, prefix: str, timeout: float = 2.0) -> list[str]:
+    """Device names whose liveliness token `<prefix>/<device>/alive` is declared now."""
+    check_key_segment("prefix", prefix)
+    found = set()
+    for reply in session.liveliness().get(f"{prefix}/*/alive", timeout=timeout):
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) >= 2 and parts[-1] == "alive":
+                found.add(parts[-2])
+    return sorted(found)

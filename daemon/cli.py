@@ -226,13 +226,13 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def _client_session(args: argparse.Namespace):
-    from skinmap.daemon.zenoh_io import make_session_config, open_session
+    from skinmap.wire.session import make_session_config, open_session
 
     return open_session(make_session_config([], [args.connect], mode="client"))
 
 
 def cmd_ls(args: argparse.Namespace) -> int:
-    from skinmap.daemon.fleet import discover
+    from skinmap.client import discover  # ls needs the light client only
     from skinmap.wire import messages as wire
 
     with _client_session(args) as session:

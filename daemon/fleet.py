@@ -1,5 +1,5 @@
 """Several gateways and many clients through one Zenoh router: the router, discovery by
-liveliness, and a recorder that writes what it receives from one or many gateways to MCAP.
+liveliness (``skinmap.client.discover``, re-exported here), and a recorder that writes what it receives from one or many gateways to MCAP.
 
 Topology (docs/zenoh.md, *Fleet*): gateways and clients connect to the router's endpoint; the
 router routes; nothing scouts (multicast and gossip off), every endpoint is on loopback unless
@@ -18,6 +18,7 @@ from typing import Any, Iterable
 
 import zenoh
 
+from skinmap.client import discover
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
 from skinmap.wire import messages
 from skinmap.wire.keys import check_key_segment
@@ -36,18 +37,6 @@ def router_config(listen: Iterable[str], *, allow_non_loopback: bool = False,
         raise ValueError("a router needs at least one listen endpoint, e.g. tcp/127.0.0.1:7447")
     return make_session_config(listen, [], mode="router", allow_non_loopback=allow_non_loopback,
                                config_file=config_file)
-
-
-def discover(session: zenoh.Session, prefix: str, timeout: float = 2.0) -> list[str]:
-    """Device names whose liveliness token `<prefix>/<device>/alive` is declared now."""
-    check_key_segment("prefix", prefix)
-    found = set()
-    for reply in session.liveliness().get(f"{prefix}/*/alive", timeout=timeout):
-        if reply.ok is not None:
-            parts = str(reply.ok.key_expr).split("/")
-            if len(parts) >= 2 and parts[-1] == "alive":
-                found.add(parts[-2])
-    return sorted(found)
 
 
 @dataclass

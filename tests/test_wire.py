@@ -114,6 +114,10 @@ def test_light_client_receives_over_zenoh_without_gateway_dependencies():
             print("subscribed", flush=True)
             m = c.elements(timeout=20)
             print("got", m.seq, m.count, flush=True)
+        from skinmap.daemon.cli import main  # echo, info and ls need the light client only
+        assert main(["ls", "--connect", "tcp/127.0.0.1:{port}", "--prefix", "wiretest"]) == 0
+        loaded = sorted(m for m in sys.modules if m.split(".")[0] in HEAVY)
+        assert not loaded, loaded
     ''')
     config = make_session_config([f"tcp/127.0.0.1:{port}"], [])
     with open_session(config) as session, SkinmapPublisher(session, "wiretest", "demo") as pub:
@@ -136,7 +140,7 @@ def test_light_client_receives_over_zenoh_without_gateway_dependencies():
             else:
                 out, err = proc.communicate(timeout=30)
             assert proc.returncode == 0, err[-3000:]
-            assert "got 9 3" in out
+            assert "got 9 3" in out and "wiretest/demo  (alive; no status published yet)" in out
         finally:
             if proc.poll() is None:
                 proc.kill()
