@@ -130,6 +130,14 @@ def elements_after(client: SkinmapClient, t_ns: int, timeout: float):
             return msg
 
 
+def has_status(client: SkinmapClient) -> bool:
+    try:
+        client.latest("status", timeout=0.5)
+        return True
+    except LookupError:
+        return False
+
+
 def receive_for(client: SkinmapClient, seconds: float) -> list:
     out, end = [], time.monotonic() + seconds
     while time.monotonic() < end:
@@ -160,6 +168,9 @@ def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(em
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
             wait_for(lambda: loggers[0].messages_flushed > 20, 15, "a first flushed chunk")
+            # Each scan logs several messages (wire payloads and their Foxglove views), so the
+            # chunk can be flushed before the first status: wait for that too.
+            wait_for(lambda: has_status(client), 15, "a first published status")
 
             storage.fail = fault
             t_fail = time.time_ns()
