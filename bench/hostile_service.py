@@ -31,7 +31,7 @@ import zenoh
 
 from latency import free_port  # bench/latency.py
 from skinmap.daemon.calibration import save_tare, tare_path
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import make_session_config
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator

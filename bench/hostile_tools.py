@@ -356,8 +356,8 @@ def scenario_forged_puts(tmp: Path) -> None:
     foreign-write guard on (the default) and off."""
     import zenoh
 
-    from skinmap.daemon import messages
-    from skinmap.daemon.client import SkinmapClient
+    from skinmap.wire import messages
+    from skinmap.client import SkinmapClient
     from skinmap.daemon.config import parse_config
     from skinmap.daemon.service import Gateway, open_zenoh
     from skinmap.daemon.zenoh_io import make_session_config

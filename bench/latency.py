@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from skinmap.daemon.cli import start_emulator, stop_process
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 
 
 WARM_UP_S = 3.0

@@ -41,7 +41,7 @@ import numpy as np
 
 from latency import free_port, proc_cpu_seconds, proc_rss_mb, write_daemon_config  # bench/latency.py
 from skinmap.daemon.cli import start_emulator, stop_process
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 
 DEVICE = "soak"
 

@@ -6,6 +6,10 @@
     skinmap replay LOG.mcap           re-run the pipeline from logged raw frames; compare; republish
     skinmap inspect LOG.mcap          topics, rates, gaps, errors; --png T for a surface snapshot
     skinmap recover LOG.mcap.active   rewrite a cut log as a finished file
+    skinmap router [--listen EP]      a Zenoh router for several gateways and many clients
+    skinmap ls [--connect EP]         the devices alive (liveliness), with their status
+    skinmap record [--device D]...    record one or many gateways to MCAP from anywhere
+    skinmap foxglove [--port 8765]    the live scene for the Foxglove app (WebSocket, loopback)
     skinmap tare --config FILE        record the flat sheet's resting resistances
     skinmap calibrate --config FILE   guided mold calibration: gauge factors and layer offsets
     skinmap map LOG.mcap --poses CSV  a log's presses stitched into the touched wall's relief
@@ -47,15 +51,30 @@ def _wait_for_tcp(host: str, port: int, timeout: float, proc: subprocess.Popen |
     raise RuntimeError(f"nothing listens on {host}:{port} after {timeout:g} s")
 
 
+def _relay_lines(proc: subprocess.Popen, prefix: str) -> None:
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        print(prefix + line.rstrip("\n"), flush=True)
+
+
 def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: float = 50.0,
-                   mechanics: str = "kinematic", extra: list[str] | None = None) -> subprocess.Popen:
+                   mechanics: str = "kinematic", extra: list[str] | None = None,
+                   label_output: bool = False) -> subprocess.Popen:
     """The emulator as a child process serving socket://127.0.0.1:PORT (a fresh interpreter,
     never a fork of one that may hold a Zenoh session).  An elastic scene not yet in the solve
     cache is solved before the port opens (up to minutes for a moving scene), so it is waited
     for longer."""
     cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
            "--shape", shape, "--rate", str(rate), "--mechanics", mechanics, *(extra or [])]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
+    if label_output:
+        # Its lines are relayed prefixed, so they are told apart from the gateway's (and go
+        # above the live status panel, which redirects stdout).
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        threading.Thread(target=_relay_lines, args=(proc, "[emulator] "), daemon=True,
+                         name="skinmap-emulator-output").start()
+    else:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, start_new_session=True)
     try:
         _wait_for_tcp("127.0.0.1", port, 15.0 if mechanics == "kinematic" else 1800.0, proc)
     except Exception:
@@ -92,7 +111,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}', {args.mechanics} mechanics) "
           f"on socket://127.0.0.1:{port}", flush=True)
     emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz,
-                              mechanics=args.mechanics)
+                              mechanics=args.mechanics, label_output=True)
     try:
         print(f"skinmap demo: skinmapd publishing on {', '.join(cfg.zenoh.listen)} under '{cfg.zenoh.prefix}/{cfg.device.name or '<serial>'}', "
               f"logging to {cfg.resolve(cfg.log.directory)}; Ctrl-C stops", flush=True)
@@ -110,13 +129,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace):
-    from skinmap.daemon.client import SkinmapClient
+    from skinmap.client import SkinmapClient
 
     return SkinmapClient([args.connect], prefix=args.prefix, device=args.device)
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
     with _client(args) as client:
+        try:
+            source = client.info(timeout=min(args.timeout, 2.0)).get("source", "live")
+        except (TimeoutError, LookupError):
+            source = "unknown"
+        live = source == "live"
+        if not live:
+            print(f"source: {source}: latency is shown only for live data (these host times are "
+                  "not now)" if source != "unknown" else
+                  "source: unknown (no info answered): latency is shown only for live data",
+                  file=sys.stderr)
         t_last = time.monotonic()
         count = 0
         rate = 0.0
@@ -134,13 +163,16 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 if now - t_last >= 1.0:
                     rate = count / (now - t_last)
                     count, t_last = 0, now
-                latency_ms = (time.time_ns() - msg.host_time_ns) / 1e6
+                # host_time_ns is when the gateway received the scan: now minus it is the
+                # latency only for live data (a replay carries the recorded times).
+                latency = f"latency {(time.time_ns() - msg.host_time_ns) / 1e6:6.2f} ms" if live else \
+                    f"device t {msg.device_time_us / 1e6:9.3f} s"
                 pos = msg.positions * 1000.0
                 k = pos.shape[0]
                 pick = sorted({0, k // 2, k - 1}) if k else []
                 shown = "  ".join(f"#{i}({pos[i, 0]:+7.2f},{pos[i, 1]:+7.2f},{pos[i, 2]:+7.2f})" for i in pick)
                 valid = int(np.count_nonzero(msg.flags & 1))
-                print(f"seq {msg.seq:>7}  {rate:5.1f} Hz  latency {latency_ms:6.2f} ms  valid {valid}/{k}  mm: {shown}", flush=True)
+                print(f"seq {msg.seq:>7}  {rate:5.1f} Hz  {latency}  valid {valid}/{k}  mm: {shown}", flush=True)
         except KeyboardInterrupt:
             pass
     return 0
@@ -172,6 +204,106 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------------
+# fleet: router / ls / record
+
+
+def _wait_until_stopped(duration: float) -> None:
+    end = time.monotonic() + duration if duration else None
+    while end is None or time.monotonic() < end:
+        time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from skinmap.daemon.fleet import router_config
+    from skinmap.daemon.zenoh_io import open_session
+
+    config = router_config(args.listen, allow_non_loopback=args.allow_non_loopback,
+                           config_file=args.zenoh_config)
+    with open_session(config):
+        print(f"skinmap router: routing on {', '.join(args.listen)} (no scouting); gateways set "
+              f"[zenoh] connect = {json.dumps(args.listen)}, clients use --connect "
+              f"{args.listen[0]}; Ctrl-C stops", flush=True)
+        try:
+            _wait_until_stopped(args.duration)
+        except KeyboardInterrupt:
+            pass
+    print("skinmap router: stopped", flush=True)
+    return 0
+
+
+def _client_session(args: argparse.Namespace):
+    from skinmap.wire.session import make_session_config, open_session
+
+    return open_session(make_session_config([], [args.connect], mode="client"))
+
+
+def cmd_ls(args: argparse.Namespace) -> int:
+    from skinmap.client import discover  # ls needs the light client only
+    from skinmap.wire import messages as wire
+
+    with _client_session(args) as session:
+        devices = discover(session, args.prefix, timeout=args.timeout)
+        if not devices:
+            print(f"no device alive under '{args.prefix}/*' via {args.connect}", file=sys.stderr)
+            return 1
+        for device in devices:
+            line = f"{args.prefix}/{device}"
+            try:
+                reply = next((r for r in session.get(f"{args.prefix}/{device}/status",
+                                                     timeout=args.timeout) if r.ok is not None), None)
+                st = wire.decode_status(reply.ok.payload.to_bytes()) if reply else None
+            except wire.MessageError as exc:
+                st, line = None, line + f"  (status rejected: {exc})"
+            if st is not None:
+                line += (f"  {st.get('link_state', '?')}  seq {st['seq']}  "
+                         f"{st['publish_rate_hz']:.1f} Hz  log {st['log_state']}")
+            elif "rejected" not in line:
+                line += "  (alive; no status published yet)"
+            print(line, flush=True)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from skinmap.daemon.fleet import Recorder, discover
+
+    with _client_session(args) as session:
+        devices = args.device or ["*"]
+        with Recorder(session, args.prefix, devices, args.output) as rec:
+            print(f"skinmap record: recording {', '.join(f'{args.prefix}/{d}' for d in devices)} via "
+                  f"{args.connect} to {args.output}; Ctrl-C stops", flush=True)
+            alive = discover(session, args.prefix, timeout=1.0)
+            print(f"skinmap record: devices alive now: {', '.join(alive) or 'none'}", flush=True)
+            try:
+                _wait_until_stopped(args.duration)
+            except KeyboardInterrupt:
+                pass
+        for device, counts in sorted(rec.counts.items()):
+            kinds = ", ".join(f"{k} {n}" for k, n in sorted(counts.messages.items()))
+            print(f"  {device}: {kinds}; rejected {counts.rejected}", flush=True)
+        print(f"skinmap record: wrote {', '.join(rec.logger.finished_paths) or 'nothing'}"
+              f"{f'; {rec.dropped} message(s) dropped (writer behind)' if rec.dropped else ''}", flush=True)
+    return 0
+
+
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    from skinmap.daemon.bridge import FoxgloveBridge
+
+    with _client_session(args) as session:
+        devices = args.device or ["*"]
+        with FoxgloveBridge(session, args.prefix, devices, host=args.host, port=args.port) as bridge:
+            print(f"skinmap foxglove: serving the live scene of {', '.join(f'{args.prefix}/{d}' for d in devices)} "
+                  f"on ws://{args.host}:{bridge.port} (Foxglove: Open connection -> Foxglove WebSocket); "
+                  "Ctrl-C stops", flush=True)
+            try:
+                _wait_until_stopped(args.duration)
+            except KeyboardInterrupt:
+                pass
+        print(f"skinmap foxglove: stopped; {bridge.forwarded} messages forwarded, {bridge.rejected} rejected",
+              flush=True)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
 # replay
 
 
@@ -184,10 +316,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         publisher_ctx = open_session(make_session_config([args.listen], [],
                                                          deny_remote_writes=f"{args.prefix}/**"))
+    def announce(key: str) -> None:
+        device = key.rsplit("/", 1)[1]
+        print(f"skinmap replay: publishing on {args.listen} under '{key}' (info answered; "
+              f"host times are the recorded ones). Watch with:\n  skinmap echo --connect "
+              f"{args.listen} --prefix {args.prefix} --device {device}", file=sys.stderr, flush=True)
+
     try:
         session = publisher_ctx.__enter__() if publisher_ctx else None
         report = replay_log(args.log, session=session, prefix=args.prefix, speed=args.speed,
-                            progress=not args.quiet, max_record_bytes=_record_limit(args))
+                            progress=not args.quiet, max_record_bytes=_record_limit(args),
+                            on_publish=announce)
     finally:
         if publisher_ctx:
             publisher_ctx.__exit__(None, None, None)
@@ -450,6 +589,38 @@ def build_parser() -> argparse.ArgumentParser:
             e.add_argument("--json", action="store_true")
         e.set_defaults(func=func)
 
+    ro = sub.add_parser("router", help="run a Zenoh router for several gateways and clients")
+    ro.add_argument("--listen", action="append", default=None,
+                    help=f"endpoint to listen on (repeatable); default {DEFAULT_CONNECT}")
+    ro.add_argument("--allow-non-loopback", action="store_true",
+                    help="allow endpoints off loopback (use TLS: --zenoh-config)")
+    ro.add_argument("--zenoh-config", help="Zenoh JSON5 file (TLS, access control)")
+    ro.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    ro.set_defaults(func=cmd_router)
+
+    ls = sub.add_parser("ls", help="list the devices alive behind a router or gateway")
+    ls.add_argument("--connect", default=DEFAULT_CONNECT)
+    ls.add_argument("--prefix", default="skinmap")
+    ls.add_argument("--timeout", type=float, default=2.0)
+    ls.set_defaults(func=cmd_ls)
+
+    rec = sub.add_parser("record", help="record one or many gateways to MCAP from another machine")
+    rec.add_argument("--connect", default=DEFAULT_CONNECT)
+    rec.add_argument("--prefix", default="skinmap")
+    rec.add_argument("--device", action="append", help="device to record (repeatable; default: every device)")
+    rec.add_argument("--output", "-o", default="recordings", help="folder for the MCAP files")
+    rec.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    rec.set_defaults(func=cmd_record)
+
+    fg = sub.add_parser("foxglove", help="serve the live scene to the Foxglove app (WebSocket)")
+    fg.add_argument("--connect", default=DEFAULT_CONNECT)
+    fg.add_argument("--prefix", default="skinmap")
+    fg.add_argument("--device", action="append", help="device to show (repeatable; default: every device)")
+    fg.add_argument("--host", default="127.0.0.1", help="WebSocket host (loopback only)")
+    fg.add_argument("--port", type=int, default=8765)
+    fg.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
+    fg.set_defaults(func=cmd_foxglove)
+
     r = sub.add_parser("replay", help="re-run the pipeline from a log's raw frames")
     r.add_argument("log")
     r.add_argument("--publish", action="store_true", help="republish the results over Zenoh")
@@ -517,6 +688,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "func", None) is cmd_router and args.listen is None:
+        args.listen = [DEFAULT_CONNECT]
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -542,3 +543,75 @@ def config_to_toml(cfg: DaemonConfig) -> str:
     for e in explicit:
         lines.append(f"\n[[elements.explicit]]\nu_mm = {e.u_mm!r}\nv_mm = {e.v_mm!r}\noffset_mm = {e.offset_mm!r}")
     return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------
+# What the config needs on this machine (skinmapd --check)
+
+_TLS_FILE_KEYS = ("root_ca_certificate", "listen_private_key", "listen_certificate",
+                  "connect_private_key", "connect_certificate")
+
+
+def _writable_folder(path: Path) -> str | None:
+    """None if `path` is a writable folder or can be created; else why not."""
+    if path.exists():
+        if not path.is_dir():
+            return "exists but is not a folder"
+        return None if os.access(path, os.W_OK | os.X_OK) else "is not writable by this user"
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        return f"does not exist, and {str(parent)!r} does not let this user create it"
+    return None
+
+
+def check_environment(cfg: DaemonConfig) -> list[tuple[str, str]]:
+    """The files and folders the config needs, checked on this machine: (level, message)
+    pairs, level 'error' (skinmapd would fail or lose data) or 'note'. TLS files named in
+    the Zenoh config file are resolved as Zenoh does, from the working directory."""
+    found: list[tuple[str, str]] = []
+    if cfg.log.enabled:
+        folder = Path(cfg.resolve(cfg.log.directory))
+        problem = _writable_folder(folder)
+        if problem:
+            found.append(("error", f"log.directory {str(folder)!r} {problem}"))
+        elif not folder.exists():
+            found.append(("note", f"log.directory {str(folder)!r} does not exist yet; skinmapd "
+                                  "creates it"))
+    state = Path(cfg.resolve(cfg.state.directory))
+    problem = _writable_folder(state)
+    if problem:
+        found.append(("error", f"state.directory {str(state)!r} {problem} (the tare is kept there)"))
+    if cfg.zenoh.enabled and cfg.zenoh.config_file:
+        found += _zenoh_file_needs(Path(cfg.resolve(cfg.zenoh.config_file)))
+    port = cfg.device.port
+    if not port.startswith(("socket://", "rfc2217://", "loop://")) and not Path(port).exists():
+        found.append(("note", f"device.port {port!r} does not exist now; skinmapd waits for it "
+                              "and opens it when it appears"))
+    return found
+
+
+def _zenoh_file_needs(path: Path) -> list[tuple[str, str]]:
+    import zenoh
+
+    try:
+        zcfg = zenoh.Config.from_file(str(path))
+        tls = json.loads(zcfg.get_json("transport/link/tls"))
+    except Exception as exc:  # noqa: BLE001 - zenoh raises its own error type
+        return [("error", f"zenoh.config_file {str(path)!r} cannot be read: {exc}")]
+    found = []
+    for key in _TLS_FILE_KEYS:
+        value = (tls or {}).get(key)
+        if not value:
+            continue
+        file = Path(value).expanduser()
+        if not file.is_absolute():
+            file = Path.cwd() / file
+        if not file.is_file():
+            found.append(("error", f"zenoh.config_file {str(path)!r}: transport/link/tls/{key} "
+                                   f"{str(file)!r} does not exist"))
+        elif not os.access(file, os.R_OK):
+            found.append(("error", f"zenoh.config_file {str(path)!r}: transport/link/tls/{key} "
+                                   f"{str(file)!r} is not readable by this user"))
+    return found

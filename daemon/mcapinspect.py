@@ -45,13 +45,10 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from .mcaplog import (
-    ACTIVE_SUFFIX,
-    LOG_LEVELS,
-    decode_pointcloud,
-    decode_surface_nodes,
-    final_name,
-)
+from skinmap.wire import messages as wire
+
+from .foxglove_log import decode_protobuf
+from .mcaplog import ACTIVE_SUFFIX, LOG_LEVELS, final_name, finish_writer
 
 __all__ = [
     "NotMcapError",
@@ -486,7 +483,7 @@ def _write_recovered(tmp: str, reader: _FileOrderReader, items: Iterator[_Item],
             elif isinstance(rec, Metadata):
                 writer.add_metadata(rec.name, rec.metadata)
                 counts["metadata"] += 1
-        writer.finish()
+        finish_writer(writer, counts["attachments"])
         out.flush()
         os.fsync(out.fileno())
 
@@ -500,8 +497,9 @@ class SequenceGap:
     topic: str
     after_seq: int
     next_seq: int
-    missing: int  # 0 for a repeat, negative for a jump backwards (restart)
+    missing: int  # messages missing at the expected step; 0 repeat, negative jump back
     t_ns: int
+    expected_step: int = 1  # seq step between two messages of this topic when none is lost
 
 
 @dataclass(frozen=True)
@@ -523,6 +521,8 @@ class TopicStats:
     last_ns: int = 0
     time_gaps: list[tuple[int, int]] = field(default_factory=list)  # (from, to) log times
     out_of_order: int = 0
+    expected_hz: float | None = None  # the topic's rate by the logged config (None: unknown)
+    gap_threshold_s: float = 0.0  # the silence that counts as a gap on this topic
 
     @property
     def rate_hz(self) -> float:
@@ -543,6 +543,7 @@ class InspectReport:
     gap_threshold_s: float
     skipped: list[str] = field(default_factory=list)  # records refused as too large
     skipped_count: int = 0
+    rates_source: str = ""  # where the expected rates come from
 
     @property
     def first_ns(self) -> int | None:
@@ -552,7 +553,10 @@ class InspectReport:
     def last_ns(self) -> int | None:
         return max((s.last_ns for s in self.topics.values()), default=None)
 
-    def format(self) -> str:
+    def format(self, max_lines: int = 20) -> str:
+        """The report: state, then what is wrong (errors and warnings from /log and /status,
+        messages missing beyond the configured decimation, silences beyond each topic's own
+        rate), then the topic table. At most `max_lines` lines of each kind are listed."""
         e = self.end
         state = "finished" if e.complete else f"NOT finished: {e.reason}"
         out = [f"{self.path}", f"  state: {state} ({e.valid_bytes} of {e.file_bytes} bytes "
@@ -560,36 +564,56 @@ class InspectReport:
         if self.first_ns is not None and self.last_ns is not None:
             out.append(f"  span: {_utc(self.first_ns)} .. {_utc(self.last_ns)} "
                        f"({(self.last_ns - self.first_ns) * 1e-9:.3f} s)")
-        if self.metadata:
-            out.append("  metadata: " + ", ".join(sorted(self.metadata)))
-        if self.attachments:
-            out.append("  attachments: " + ", ".join(self.attachments))
-        out.append(f"  {'topic':<18} {'count':>7} {'rate Hz':>9} {'bytes':>11}  schema")
-        for s in sorted(self.topics.values(), key=lambda s: s.topic):
-            out.append(f"  {s.topic:<18} {s.count:>7} {s.rate_hz:>9.2f} {s.bytes:>11}  "
-                       f"{s.schema_name} ({s.message_encoding})")
         t0 = self.first_ns or 0
-        for s in sorted(self.topics.values(), key=lambda s: s.topic):
-            for a, b in s.time_gaps:
-                out.append(f"  time gap on {s.topic}: {(b - a) * 1e-9:.3f} s after "
-                           f"t+{(a - t0) * 1e-9:.3f} s (threshold {self.gap_threshold_s} s)")
-            if s.out_of_order:
-                out.append(f"  {s.topic}: {s.out_of_order} messages earlier than the one "
-                           "before")
+
+        def capped(lines: list[str], what: str) -> list[str]:
+            if len(lines) <= max_lines:
+                return lines
+            return lines[:max_lines] + [f"  ... and {len(lines) - max_lines} more {what}"]
+
+        ranked = sorted(self.issues, key=lambda i: (-_LEVEL_RANK.get(i.level, 0), i.t_ns))
+        out += capped([f"  {i.level} in {i.source} at t+{(i.t_ns - t0) * 1e-9:.3f} s: {i.text}"
+                       for i in ranked], "warnings/errors")
+        seq_lines = []
         for g in self.sequence_gaps:
             what = (f"{g.missing} missing" if g.missing > 0 else
-                    "repeated" if g.missing == 0 else "jumped back")
-            out.append(f"  seq gap on {g.topic}: {g.after_seq} -> {g.next_seq} ({what}) at "
-                       f"t+{(g.t_ns - t0) * 1e-9:.3f} s")
-        for i in self.issues:
-            out.append(f"  {i.level} in {i.source} at t+{(i.t_ns - t0) * 1e-9:.3f} s: {i.text}")
+                    "repeated" if g.missing == 0 else "jumped back: scanner restarted")
+            step = f", expected step {g.expected_step}" if g.expected_step != 1 else ""
+            seq_lines.append(f"  seq gap on {g.topic}: {g.after_seq} -> {g.next_seq} ({what}"
+                             f"{step}) at t+{(g.t_ns - t0) * 1e-9:.3f} s")
+        out += capped(seq_lines, "seq gaps")
+        gap_lines = []
+        for st in sorted(self.topics.values(), key=lambda st: st.topic):
+            for a, b in st.time_gaps:
+                gap_lines.append(f"  time gap on {st.topic}: {(b - a) * 1e-9:.3f} s after "
+                                 f"t+{(a - t0) * 1e-9:.3f} s (threshold "
+                                 f"{st.gap_threshold_s:.3g} s)")
+            if st.out_of_order:
+                gap_lines.append(f"  {st.topic}: {st.out_of_order} messages earlier than the "
+                                 "one before")
+        out += capped(gap_lines, "time gaps")
         if self.skipped_count:
             out.append(f"  {self.skipped_count} record(s) skipped unread:")
             out += _skipped_lines(self.skipped, self.skipped_count, "    ")
         if not (self.sequence_gaps or self.issues or self.skipped_count or
-                any(s.time_gaps for s in self.topics.values())):
+                any(st.time_gaps or st.out_of_order for st in self.topics.values())):
             out.append("  no gaps, warnings or errors found")
+        if self.rates_source:
+            out.append(f"  expected rates: {self.rates_source}")
+        if self.metadata:
+            out.append("  metadata: " + ", ".join(sorted(self.metadata)))
+        if self.attachments:
+            out.append("  attachments: " + ", ".join(self.attachments))
+        out.append(f"  {'topic':<18} {'count':>7} {'rate Hz':>9} {'expect':>7} {'bytes':>11}  "
+                   "schema")
+        for st in sorted(self.topics.values(), key=lambda st: st.topic):
+            expect = "" if st.expected_hz is None else f"{st.expected_hz:g}"
+            out.append(f"  {st.topic:<18} {st.count:>7} {st.rate_hz:>9.2f} {expect:>7} "
+                       f"{st.bytes:>11}  {st.schema_name} ({st.message_encoding})")
         return "\n".join(out)
+
+
+_LEVEL_RANK = {"FATAL": 5, "ERROR": 4, "WARNING": 3}
 
 
 def _utc(t_ns: int) -> str:
@@ -635,12 +659,12 @@ def inspect(path: str | os.PathLike[str], *, gap_threshold_s: float = 1.0,
         raise ValueError(f"gap_threshold_s must be > 0, got {gap_threshold_s!r}")
     reader = _FileOrderReader(path, max_record_bytes=max_record_bytes)
     topics: dict[str, TopicStats] = {}
-    last_seq: dict[str, int] = {}
-    seq_gaps: list[SequenceGap] = []
+    times: dict[str, list[int]] = {}
+    seqs: dict[str, list[tuple[int, int]]] = {}  # topic -> [(seq, log time)]
     issues: list[LogIssue] = []
     metadata: dict[str, dict[str, str]] = {}
     attachments: list[str] = []
-    gap_ns = gap_threshold_s * 1e9
+    config_text: str | None = None
     for item in reader.items():
         rec = item.record
         if isinstance(rec, Metadata):
@@ -658,30 +682,119 @@ def inspect(path: str | os.PathLike[str], *, gap_threshold_s: float = 1.0,
                                                  first_ns=m.log_time_ns, last_ns=m.log_time_ns)
         elif m.log_time_ns < stats.last_ns:
             stats.out_of_order += 1
-        elif m.log_time_ns - stats.last_ns > gap_ns:
-            stats.time_gaps.append((stats.last_ns, m.log_time_ns))
+        times.setdefault(m.topic, []).append(m.log_time_ns)
         stats.count += 1
         stats.bytes += len(m.data)
         stats.first_ns = min(stats.first_ns, m.log_time_ns)
         stats.last_ns = max(stats.last_ns, m.log_time_ns)
         if item.channel is not None and item.channel.metadata.get("sequence") == "frame":
-            seq = rec.sequence
-            prev = last_seq.get(m.topic)
-            if prev is not None:
-                step = (seq - prev) % 2**32
-                if step != 1:
-                    missing = step - 1 if step < 2**31 else step - 2**32 - 1
-                    if step == 0:
-                        missing = 0
-                    seq_gaps.append(SequenceGap(m.topic, prev, seq, missing, m.log_time_ns))
-            last_seq[m.topic] = seq
+            seqs.setdefault(m.topic, []).append((rec.sequence, m.log_time_ns))
+        if m.topic == "/config" and config_text is None:
+            config_text = _config_text(m.data)
         if len(issues) < max_issues:
             issues.extend(_message_issues(m))
     assert reader.end is not None
+    rates, source = expected_rates(config_text)
+    seq_gaps: list[SequenceGap] = []
+    for topic, stats in topics.items():
+        hz = rates.get(topic)
+        stats.expected_hz = hz
+        if topic in _EVENT_TOPICS:
+            continue
+        t = np.asarray(times[topic], dtype=np.int64)
+        dt = np.diff(t)
+        if hz:
+            period_s = 1.0 / hz
+        elif dt.size:
+            period_s = float(np.median(dt)) * 1e-9  # unknown topic: its own typical interval
+        else:
+            period_s = 0.0
+        # A silence counts when it is longer than the threshold and than 2.5 periods of the
+        # topic's own rate: a 1 Hz topic is not "gapped" every second.
+        stats.gap_threshold_s = max(gap_threshold_s, 2.5 * period_s)
+        for k in np.flatnonzero(dt > stats.gap_threshold_s * 1e9):
+            stats.time_gaps.append((int(t[k]), int(t[k + 1])))
+        if topic in seqs:
+            seq_gaps += _sequence_gaps(topic, seqs[topic], rates.get(("seq_step", topic)))
+    seq_gaps.sort(key=lambda g: (g.t_ns, g.topic))
     return InspectReport(os.fspath(path), reader.end,
                          reader.header.library if reader.header else "", topics, seq_gaps,
                          issues[:max_issues], metadata, attachments, gap_threshold_s,
-                         reader.skipped, reader.skipped_count)
+                         reader.skipped, reader.skipped_count, source)
+
+
+_EVENT_TOPICS = {"/log", "/config"}
+
+
+def _config_text(data: bytes) -> str | None:
+    try:
+        doc = json.loads(data)
+    except (ValueError, RecursionError):
+        return None
+    text = doc.get("config_text") if isinstance(doc, dict) else None
+    return text if isinstance(text, str) else None
+
+
+def expected_rates(config_text: str | None) -> tuple[dict[Any, float], str]:
+    """Each topic's rate (Hz) and each seq topic's step under the logged config (the daemon's
+    decimation): ({topic: hz, ("seq_step", topic): step}, where that came from). Without a
+    usable config the rates are unknown and gaps are judged by each topic's own median."""
+    if config_text is None:
+        return {}, "unknown (no /config in the file): each topic judged by its own median"
+    try:
+        import tomllib
+
+        from skinmap.daemon.config import ConfigError, parse_config
+
+        cfg = parse_config(tomllib.loads(config_text), source="<logged config>",
+                           text=config_text)
+    except (ValueError, ConfigError, RecursionError) as exc:
+        return {}, (f"unknown (the logged config does not parse: {exc}); each topic judged "
+                    "by its own median")
+    scan = float(cfg.device.scan_rate_hz)
+    out_hz = min(float(cfg.output.rate_hz) or scan, scan)  # 0 = every scan
+    surf_hz = min(float(cfg.log.surface_rate_hz) or out_hz, out_hz)
+    status_hz = float(cfg.output.status_rate_hz)
+    rates: dict[Any, float] = {"/raw": scan, "/status": status_hz}
+    for topic in ("/elements", "/elements/poses", "/elements/plot", "/strains", "/strains/plot",
+                  "/scene"):
+        rates[topic] = out_hz
+    for topic in ("/surface", "/surface/nodes", "/tf"):
+        rates[topic] = surf_hz
+    for topic in ("/strains", "/strains/plot"):
+        rates[("seq_step", topic)] = max(1, round(scan / out_hz))
+    for topic in ("/surface", "/surface/nodes"):
+        rates[("seq_step", topic)] = max(1, round(scan / surf_hz))
+    return rates, (f"from the logged config: scans {scan:g} Hz, processed {out_hz:g} Hz (seq "
+                   f"step {rates[('seq_step', '/strains')]}), logged surfaces {surf_hz:g} Hz "
+                   f"(seq step {rates[('seq_step', '/surface')]}), status {status_hz:g} Hz")
+
+
+def _sequence_gaps(topic: str, seq_times: list[tuple[int, int]],
+                   expected: float | None) -> list[SequenceGap]:
+    """Messages missing on a seq topic at the expected step (the config's decimation, or the
+    topic's median step when the config is unknown). The decimation goes by host time, so a
+    step of 4 or 6 where 5 is expected loses nothing: messages count as missing only when the
+    step is nearer two or more expected steps than one."""
+    seq = np.array([sq for sq, _ in seq_times], dtype=np.int64)
+    steps = np.diff(seq) % 2**32
+    if expected is None:
+        forward = steps[(steps > 0) & (steps < 2**31)]
+        expected = float(np.median(forward)) if forward.size else 1.0
+    expected_step = max(1, int(round(expected)))
+    gaps = []
+    for k, step in enumerate(steps.tolist()):
+        if step == 0:
+            missing = 0
+        elif step >= 2**31:
+            missing = step - 2**32 - 1  # backwards: a restarted scanner
+        else:
+            missing = int(round(step / expected_step)) - 1
+            if missing <= 0:
+                continue
+        gaps.append(SequenceGap(topic, int(seq[k]), int(seq[k + 1]), missing,
+                                seq_times[k + 1][1], expected_step))
+    return gaps
 
 
 _MAX_ISSUE_TEXT = 500
@@ -692,6 +805,16 @@ def _clip(text: str) -> str:
 
 
 def _message_issues(m: LoggedMessage) -> list[LogIssue]:
+    if m.topic == "/log" and m.message_encoding == "protobuf":
+        try:
+            entry = decode_protobuf(m.schema_name, m.data)
+        except Exception:  # noqa: BLE001 - protobuf raises its own DecodeError
+            return [LogIssue(m.log_time_ns, m.topic, "ERROR", "message is not a valid "
+                             f"{m.schema_name or 'protobuf'} record")]
+        if entry.level >= LOG_LEVELS["WARNING"]:
+            name = _LEVEL_NAMES.get(entry.level, str(entry.level))
+            return [LogIssue(m.log_time_ns, "/log", name, _clip(f"[{entry.name}] {entry.message}"))]
+        return []
     if m.topic not in ("/log", "/status") or m.message_encoding != "json":
         return []
     try:
@@ -724,6 +847,8 @@ class SurfaceSnapshot:
     seq: int | None
     nodes: np.ndarray | None  # (N, M, 3) mm
     points: np.ndarray | None  # (P, 3) mm
+    sigma: np.ndarray | None = None  # (N, M) mm, node 1-s.d. uncertainty
+    elements: wire.ElementsMessage | None = None  # the elements logged nearest that time
 
 
 def find_surface(path: str | os.PathLike[str], t_s: float | None = None) -> SurfaceSnapshot:
@@ -737,23 +862,34 @@ def find_surface(path: str | os.PathLike[str], t_s: float | None = None) -> Surf
     for m in iter_messages_file_order(path):
         if first_ns is None:
             first_ns = m.log_time_ns
-        if m.topic not in ("/surface/nodes", "/surface"):
+        if m.topic not in ("/surface/nodes", "/surface", "/elements"):
             continue
         err = 0.0 if t_s is None else abs((m.log_time_ns - first_ns) * 1e-9 - t_s)
         if t_s is None or err <= best_err.get(m.topic, math.inf):
             best[m.topic], best_err[m.topic] = m, err
+    elements_msg = best.pop("/elements", None)
     key = "/surface/nodes" if "/surface/nodes" in best else "/surface"
     if key not in best or first_ns is None:
         raise ValueError(f"{os.fspath(path)}: no /surface or /surface/nodes messages")
     chosen = best[key]
-    nodes = seq = points = None
+    nodes = seq = points = sigma = None
     if key == "/surface/nodes":
-        seq, nodes, _ = decode_surface_nodes(chosen.data)
-    cloud = best.get("/surface")
-    if cloud is not None and cloud.log_time_ns == chosen.log_time_ns:
-        points = decode_pointcloud(cloud.data)
+        surface = wire.decode_surface(chosen.data)
+        seq, nodes = surface.seq, surface.nodes * 1e3
+        points = surface.cloud.astype(np.float64) * 1e3 if len(surface.cloud) else None
+        sigma = surface.uncertainty * 1e3
+    else:
+        cloud = decode_protobuf(chosen.schema_name, chosen.data)
+        raw = np.frombuffer(cloud.data, dtype="<f4")
+        points = raw[: len(raw) // 3 * 3].reshape(-1, 3).astype(np.float64) * 1e3
+    elements = None
+    if elements_msg is not None:
+        try:
+            elements = wire.decode_elements(elements_msg.data)
+        except wire.MessageError:
+            elements = None  # drawn without elements; inspect names unusable records
     return SurfaceSnapshot(chosen.log_time_ns, (chosen.log_time_ns - first_ns) * 1e-9, seq,
-                           nodes, points)
+                           nodes, points, sigma, elements)
 
 
 def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
@@ -772,13 +908,39 @@ def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
                             if a is not None])
     if snap.nodes is not None:
         x, y, z = (snap.nodes[..., k] for k in range(3))
-        if min(snap.nodes.shape[:2]) >= 2:
+        if snap.sigma is not None and min(snap.nodes.shape[:2]) >= 2:
+            # Faces coloured by node σ (µm), with a colorbar: where the shape is less certain.
+            from matplotlib import cm, colors
+
+            sig_um = snap.sigma * 1e3
+            norm = colors.Normalize(vmin=0.0, vmax=max(float(np.nanmax(sig_um)), 1e-3))
+            ax.plot_surface(x, y, z, facecolors=cm.viridis(norm(sig_um)), edgecolor="k",
+                            linewidth=0.3, alpha=0.85, shade=False)
+            mappable = cm.ScalarMappable(norm=norm, cmap="viridis")
+            fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.1, label="node σ, 1 s.d. (µm)")
+        elif min(snap.nodes.shape[:2]) >= 2:
             ax.plot_surface(x, y, z, cmap="viridis", edgecolor="k", linewidth=0.3, alpha=0.85)
         else:
             ax.plot(x.ravel(), y.ravel(), z.ravel(), "o-")
     if snap.points is not None:
         p = snap.points[:: max(1, len(snap.points) // 5000)]
-        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c="tab:red", alpha=0.5)
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=1.5, c="tab:red", alpha=0.3)
+    el = snap.elements
+    if el is not None and el.count:
+        pos, nrm = el.positions * 1e3, el.normals
+        ok = np.isfinite(pos).all(axis=1) & np.isfinite(nrm).all(axis=1)
+        valid = ok & el.valid
+        span = float(np.ptp(every, axis=0).max()) if len(every) else 1.0
+        arrow = 0.08 * max(span, 1.0)
+        for mask, colour, label in ((valid, "tab:green", "element, VALID"),
+                                    (ok & ~el.valid, "tab:orange", "element, not VALID")):
+            if mask.any():
+                ax.quiver(pos[mask, 0], pos[mask, 1], pos[mask, 2], nrm[mask, 0], nrm[mask, 1],
+                          nrm[mask, 2], length=arrow, color=colour, linewidth=0.8, label=label)
+                ax.scatter(pos[mask, 0], pos[mask, 1], pos[mask, 2], s=6, c=colour)
+        if ok.any():
+            every = np.concatenate([every, pos[ok]])
+            ax.legend(loc="upper left", fontsize=7)
     lo, hi = every.min(axis=0), every.max(axis=0)
     centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-3)
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
@@ -787,6 +949,10 @@ def render_surface_png(path: str | os.PathLike[str], t_s: float | None,
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
     seq = "" if snap.seq is None else f", seq {snap.seq}"
+    if snap.sigma is not None and np.isfinite(snap.sigma).any():
+        seq += f", node σ {np.nanmin(snap.sigma) * 1e3:.1f}..{np.nanmax(snap.sigma) * 1e3:.1f} µm"
+    if snap.elements is not None:
+        seq += f", {int(snap.elements.valid.sum())}/{snap.elements.count} elements VALID"
     ax.set_title(f"{os.path.basename(os.fspath(path))}\nt+{snap.t_rel_s:.3f} s{seq}",
                  fontsize=9)
     fig.savefig(os.fspath(out_png), format="png")

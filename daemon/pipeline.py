@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from skinmap.daemon.calibration import Calibration, resistances_to_strains, to_nominal_offsets
-from skinmap.daemon.messages import ElementFlag
+from skinmap.wire.messages import ElementFlag
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator", "reject_implausible_units",
            "turning_noise_rad"]

@@ -17,20 +17,20 @@ force before it, and scans with no usable config before them are counted, not re
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from skinmap.daemon import messages
+from skinmap.wire import messages
 from skinmap.daemon.calibration import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
 from skinmap.daemon.mcapinspect import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
-from skinmap.daemon.mcaplog import decode_strains
 from skinmap.daemon.pipeline import FramePipeline, graph_restart
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
 
@@ -51,6 +51,7 @@ class ReplayReport:
     mismatched: list[int] = field(default_factory=list)
     max_position_diff_m: float = 0.0
     published: int = 0
+    published_as: str = ""  # <prefix>/<device> when republished
     seconds: float = 0.0
     end: str = ""
     results: list[messages.ElementsMessage] = field(default_factory=list)
@@ -169,7 +170,7 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
                 _problem(report, f"unusable {where}: {exc}{keep}")
         elif m.topic == "/strains":
             try:
-                seq = decode_strains(m.data)[0]
+                seq = messages.decode_strains(m.data).seq
             except (ValueError, RecursionError) as exc:
                 _problem(report, f"unusable {where}: {exc}")
                 continue
@@ -191,10 +192,12 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
 def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
                progress: bool = False, keep_results: bool = False,
                max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES,
-               on_result: Any = None) -> ReplayReport:
-    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max).
-    Records over `max_record_bytes` are skipped and named in the report's `problems`.
-    `on_result(result)` is called with every processed scan's FrameResult (its surface included)."""
+               on_result: Any = None, on_publish: Callable[[str], None] | None = None) -> ReplayReport:
+    """Re-run the pipeline over a log; optionally republish on `session` at `speed` (0 = max),
+    with `info` answered (its `source` names the log). `on_publish("<prefix>/<device>")` is
+    called once the device name is known. Records over `max_record_bytes` are skipped and
+    named in the report's `problems`. `on_result(result)` is called with every processed scan's
+    FrameResult (its surface included)."""
     from skinmap.daemon.service import limit_blas_threads
 
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
@@ -283,10 +286,19 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                                                              float(np.nanmax(np.abs(a.positions - b.positions), initial=0.0)))
                 if session is not None:
                     if publisher is None:
-                        from skinmap.daemon.service import device_name
+                        from skinmap.daemon.service import device_info, device_name
                         from skinmap.daemon.zenoh_io import SkinmapPublisher
 
-                        publisher = SkinmapPublisher(session, prefix, device_name(hello, _config_from_text(cfg_entry[0])))
+                        replay_cfg = _config_from_text(cfg_entry[0])
+                        device = device_name(hello, replay_cfg)
+                        publisher = SkinmapPublisher(session, prefix, device)
+                        # `info` answers as the live daemon did; `source` tells clients the
+                        # host times are the recorded ones.
+                        publisher.set_info(device_info(device, hello, pipeline, replay_cfg,
+                                                       source=f"replay of {os.path.basename(path)}"))
+                        report.published_as = f"{prefix}/{device}"
+                        if on_publish is not None:
+                            on_publish(report.published_as)
                     if speed > 0:
                         if first_log_ns is None:
                             first_log_ns, t_wall0 = m.log_time_ns, time.perf_counter()

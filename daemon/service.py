@@ -29,9 +29,10 @@ from typing import Any, Callable
 import numpy as np
 
 import skinmap
-from skinmap.daemon import messages
+from skinmap.wire import messages
 from skinmap.daemon.calibration import Calibration, load_calibration_file, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
+from skinmap.daemon.console import StatusConsole, shape_summary
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult
@@ -214,7 +215,7 @@ class Gateway:
         zenoh_session: Any = None,
         opener: Callable[[str, int, bool], Any] = open_serial,
         logger_factory: Callable[[DaemonConfig], Any] | None = None,
-        console: Callable[[str], None] | None = None,
+        console: Callable[[dict[str, Any], dict[str, Any]], None] | None = None,
         notifier: SystemdNotifier | None = None,
     ) -> None:
         self.cfg = cfg
@@ -357,36 +358,8 @@ class Gateway:
             self._publisher.set_info(self.info())
 
     def info(self) -> dict[str, Any]:
-        hello = self._hello
-        assert hello is not None and self._pipeline is not None
-        g = self._pipeline.geometry
-        uv = self._pipeline.element_uv
-        return {
-            "device": self._device,
-            "rows": g.n,
-            "cols": g.m,
-            "pitch_m": g.pitch_mm / 1000.0,
-            "h_upper_m": g.h_upper_mm / 1000.0,
-            "h_lower_m": g.h_lower_mm / 1000.0,
-            "gauge_length_m": g.gauge_length_mm / 1000.0,
-            "serial_number": hello.serial_number,
-            "elements": {
-                "count": int(uv.shape[0]),
-                "layout": self.cfg.elements.layout,
-                "width_m": self.cfg.elements.pitch_u_mm / 1000.0,
-                "height_m": self.cfg.elements.pitch_v_mm / 1000.0,
-                "material_uv_m": (uv / 1000.0).tolist(),
-                "offset_m": (self._pipeline.element_offset / 1000.0).tolist(),
-            },
-            "calibration": self._calibration_doc(self._pipeline.calibration),
-            "versions": {
-                "skinmap": skinmap.__version__,
-                "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",
-                "device_protocol": f"{hello.protocol_major}.{hello.protocol_minor}",
-                "firmware": ".".join(str(x) for x in hello.fw_version),
-            },
-            "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
-        }
+        assert self._hello is not None and self._pipeline is not None
+        return device_info(self._device, self._hello, self._pipeline, self.cfg, source="live")
 
     @staticmethod
     def _calibration_doc(cal: Calibration) -> dict[str, Any]:
@@ -445,6 +418,10 @@ class Gateway:
         want_strains = self._strains_decimator.due(t_mono)
         gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
             r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
+        # The same strains message is published (at the strains rate) and logged (every scan).
+        strains = messages.encode_strains(
+            r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
+            np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower), gauge_flags)
         pub = self._publisher
         ok = True
         if pub is not None:
@@ -456,9 +433,7 @@ class Gateway:
                         r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
                         r.node_sigma_mm / 1000.0, points / 1000.0))
                 if want_strains:
-                    pub.publish_strains(messages.encode_strains(
-                        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns,
-                        np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower), gauge_flags))
+                    pub.publish_strains(strains)
                 self.stats.published += 1
             except Exception as exc:  # noqa: BLE001
                 self.stats.publish_errors += 1
@@ -469,12 +444,14 @@ class Gateway:
         self.stats.publish_times.append(time.monotonic())
         # Everything processed is logged (strains of every processed scan, so replay can pick
         # the same scans); surfaces at the surface rate.
-        self._enqueue_log(("strains", r.host_time_ns, r.seq, r.eps_upper, r.eps_lower))
-        self._enqueue_log(("elements", r.host_time_ns, elements, r.element_positions_mm))
+        self._enqueue_log(("strains", r.host_time_ns, strains))
+        self._enqueue_log(("elements", r.host_time_ns, elements, self.stats.latencies_ms[-1]))
         self._track_contact(r)
         if self._logger is not None and self._log_surface_decimator.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
-            self._enqueue_log(("surface", r.host_time_ns, r.seq, r.nodes_mm, r.normals, np.asarray(cloud).reshape(-1, 3)))
+            self._enqueue_log(("surface", r.host_time_ns, messages.encode_surface(
+                r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
+                r.node_sigma_mm / 1000.0, np.asarray(cloud).reshape(-1, 3) / 1000.0)))
         return ok
 
     def _track_contact(self, r: FrameResult) -> None:
@@ -553,11 +530,11 @@ class Gateway:
         if kind == "raw":
             lg.log_raw_frame(item[1], item[2])
         elif kind == "strains":
-            lg.log_strains(item[1], item[2], item[3], item[4])
+            lg.log_strains(item[1], item[2])
         elif kind == "elements":
             lg.log_elements(item[1], item[2], item[3])
         elif kind == "surface":
-            lg.log_surface(item[1], item[2], item[3], item[4], item[5])
+            lg.log_surface(item[1], item[2])
         elif kind == "status":
             lg.log_status(item[1], item[2])
         elif kind == "contact":
@@ -669,24 +646,10 @@ class Gateway:
         self._enqueue_log(("status", st["host_time_ns"], st))
         self.notifier.status(f"{st['link_state']}, {st['publish_rate_hz']:.1f} Hz, seq {st['seq']}")
         if self._console is not None:
-            self._console(self._console_line(st))
+            r = self.results[-1] if self.results else None
+            self._console(st, shape_summary(r.nodes_mm if r is not None else None,
+                                            r.element_positions_mm if r is not None else None))
         self._check_tare()
-
-    def _console_line(self, st: dict[str, Any]) -> str:
-        r = self.results[-1] if self.results else None
-        shape = ""
-        if r is not None:
-            z = r.nodes_mm[..., 2]
-            shape = f" | z {z.min():+6.2f}…{z.max():+6.2f} mm"
-            k = r.element_positions_mm.shape[0]
-            if k:
-                # The sheet centre is the frame origin, so the end elements show the shape best.
-                for name, i in (("first", 0), ("last", k - 1)):
-                    p = r.element_positions_mm[i]
-                    shape += f" | {name} element ({p[0]:+6.2f}, {p[1]:+6.2f}, {p[2]:+6.2f}) mm"
-        return (f"[{st['link_state']:>10}] scans {st['scan_rate_hz']:6.1f}/s  published {st['publish_rate_hz']:5.1f}/s  "
-                f"seq {st['seq']:>7}  solver {st['solver_time_ms']:5.2f} ms  latency p99 {st['latency_ms_p99']:6.2f} ms  "
-                f"dropped {st['frames_dropped']}  crc {st['crc_errors']}  reconnects {st['reconnects']}  log {st['log_state']}{shape}")
 
     def _tare_file_mtime(self, hello: Hello) -> tuple[float | None, float | None] | None:
         """Modification times of the tare and the calibration file (None: neither exists)."""
@@ -860,6 +823,42 @@ def prepare_reconstruction_kernels() -> None:
     log.info("reconstruction kernels ready (%s) in %.1f s", kernels, time.perf_counter() - t0)
 
 
+def device_info(device: str, hello: Hello, pipeline: Any, cfg: DaemonConfig, *,
+                source: str) -> dict[str, Any]:
+    """The `info` object of a device (skinmap.wire.messages.INFO_FIELDS and more); `source` is
+    'live' for a scanner, or names the log being replayed (clients then know the host times
+    are the recorded ones)."""
+    g = pipeline.geometry
+    uv = pipeline.element_uv
+    return {
+        "device": device,
+        "rows": g.n,
+        "cols": g.m,
+        "pitch_m": g.pitch_mm / 1000.0,
+        "h_upper_m": g.h_upper_mm / 1000.0,
+        "h_lower_m": g.h_lower_mm / 1000.0,
+        "gauge_length_m": g.gauge_length_mm / 1000.0,
+        "serial_number": hello.serial_number,
+        "elements": {
+            "count": int(uv.shape[0]),
+            "layout": cfg.elements.layout,
+            "width_m": cfg.elements.pitch_u_mm / 1000.0,
+            "height_m": cfg.elements.pitch_v_mm / 1000.0,
+            "material_uv_m": (uv / 1000.0).tolist(),
+            "offset_m": (pipeline.element_offset / 1000.0).tolist(),
+        },
+        "calibration": Gateway._calibration_doc(pipeline.calibration),
+        "versions": {
+            "skinmap": skinmap.__version__,
+            "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",
+            "device_protocol": f"{hello.protocol_major}.{hello.protocol_minor}",
+            "firmware": ".".join(str(x) for x in hello.fw_version),
+        },
+        "source": source,
+        "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
+    }
+
+
 def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
     """Run skinmapd until SIGINT/SIGTERM (or `stop_event`); returns an exit code."""
     limit_blas_threads()
@@ -882,8 +881,9 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
 
 
 def _run_gateway_locked(cfg: DaemonConfig, show: bool, stop_event: threading.Event | None) -> int:
+    panel = StatusConsole() if show else None
     with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, zenoh_session=session, console=(lambda line: print(line, flush=True)) if show else None)
+        gw = Gateway(cfg, zenoh_session=session, console=panel.update if panel else None)
         unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
         if stop_event is not None:
             threading.Thread(target=lambda: (stop_event.wait(), gw.stop()), daemon=True).start()
@@ -894,6 +894,8 @@ def _run_gateway_locked(cfg: DaemonConfig, show: bool, stop_event: threading.Eve
             gw.run()
         finally:
             unwatch()
+            if panel is not None:
+                panel.close()
     log.info("skinmapd stopped")
     return 0
 
@@ -965,7 +967,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"skinmapd: {exc}", file=sys.stderr)
         return 2
     if args.check:
-        print(f"{args.config}: OK")
+        from skinmap.daemon.config import check_environment
+
+        found = check_environment(cfg)
+        for level, message in found:
+            print(f"{args.config}: {level}: {message}", file=sys.stderr if level == "error" else sys.stdout)
+        errors = sum(level == "error" for level, _ in found)
+        if errors:
+            print(f"{args.config}: {errors} problem(s): skinmapd would not run as configured", file=sys.stderr)
+            return 2
+        print(f"{args.config}: OK (syntax, values, and the files and folders it needs)")
         return 0
     try:
         return run_gateway(cfg, console=True if args.console else None)

@@ -70,6 +70,11 @@ def test_inspect_lists_topics_and_draws_a_png(session_run, capsys, tmp_path):
     for topic in ("/raw", "/strains", "/elements", "/surface", "/status", "/config"):
         assert topic in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from skinmap.daemon.mcapinspect import render_surface_png
+
+    snap = render_surface_png(log, None, tmp_path / "again.png")  # what the picture shows
+    assert snap.sigma.shape == snap.nodes.shape[:2] and np.isfinite(snap.sigma).all()
+    assert snap.elements is not None and snap.elements.count > 0 and snap.elements.valid.any()
 
 
 def test_replay_reproduces_the_live_results(session_run, capsys):
@@ -138,3 +143,58 @@ def test_tare_from_log_refuses_a_bent_sheet_and_a_stored_tare_is_used(session_ru
 def test_bad_log_path_is_a_clear_error(capsys, tmp_path):
     assert skinmap_main(["inspect", str(tmp_path / "missing.mcap")]) == 1
     assert "missing.mcap" in capsys.readouterr().err
+
+
+def test_healthy_log_inspects_clean_and_passes_the_doctor(session_run, capsys):
+    """The gateway's own log: no false seq or time gaps at the configured decimation, and the
+    MCAP doctor finds no error."""
+    import os
+    import subprocess
+    import sys
+
+    tmp, _cfg, _ = session_run
+    log = next((tmp / "logs").glob("*.mcap"))
+    assert skinmap_main(["inspect", str(log)]) == 0
+    out = capsys.readouterr().out
+    assert "processed 15 Hz (seq step 2)" in out
+    assert "seq gap" not in out and "time gap" not in out, out
+    doctor = os.path.join(os.path.dirname(sys.executable), "pymcap-cli")
+    result = subprocess.run([doctor, "doctor", str(log), "--format", "jsonl"], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0 and '"severity":"error"' not in result.stdout, result.stdout[-2000:]
+
+
+def test_replay_publish_announces_where_answers_info_and_echo_shows_no_false_latency(
+        session_run, capsys):
+    import threading
+
+    from skinmap.client import SkinmapClient
+
+    tmp, _cfg, _ = session_run
+    log = next((tmp / "logs").glob("*.mcap"))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rc: list[int] = []
+    replay = threading.Thread(target=lambda: rc.append(skinmap_main(
+        ["replay", str(log), "--publish", "--listen", endpoint, "--speed", "1", "--quiet"])))
+    replay.start()
+    try:
+        with SkinmapClient([endpoint], prefix="skinmap-replay", device="cli") as client:
+            deadline = time.monotonic() + 30
+            info = None
+            while info is None and time.monotonic() < deadline:
+                try:
+                    info = client.info(timeout=1.0)
+                except LookupError:
+                    time.sleep(0.1)
+            assert info is not None and info["source"] == f"replay of {log.name}"
+            assert info["rows"] == 4 and info["cols"] == 5
+        assert skinmap_main(["echo", "--connect", endpoint, "--prefix", "skinmap-replay",
+                             "--device", "cli", "--duration", "1.0"]) == 0
+    finally:
+        replay.join(timeout=60)
+    captured = capsys.readouterr()
+    assert f"publishing on {endpoint} under 'skinmap-replay/cli'" in captured.err
+    assert "latency is shown only for live data" in captured.err
+    lines = [line for line in captured.out.splitlines() if line.startswith("seq")]
+    assert lines and all("device t" in line and "latency" not in line for line in lines)
+    assert rc == [0]

@@ -116,3 +116,35 @@ def test_tls_on_loopback_needs_the_same_opt_in_as_the_session():
 def test_graph_fit_is_on_unless_turned_off():
     assert parse_config({}).reconstruction.graph_fit is True
     assert parse_config({"reconstruction": {"graph_fit": False}}).reconstruction.graph_fit is False
+
+
+def test_check_verifies_the_files_and_folders_the_config_needs(tmp_path):
+    """skinmapd --check: a Zenoh file naming missing TLS files and a log folder that cannot be
+    created are errors (exit 2, each named); once they exist the same config is OK."""
+    import subprocess
+    import sys
+
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the log folder's parent should be")
+    zfile = tmp_path / "zenoh.json5"
+    zfile.write_text('{ transport: { link: { tls: { root_ca_certificate: "%s", '
+                     'listen_certificate: "%s", listen_private_key: "%s" } } } }'
+                     % (tmp_path / "ca.pem", tmp_path / "gw.pem", tmp_path / "gw.key"))
+    cfg = tmp_path / "gw.toml"
+    cfg.write_text('[zenoh]\nlisten = ["tcp/127.0.0.1:7447"]\nconfig_file = "zenoh.json5"\n'
+                   '[log]\ndirectory = "blocked/logs"\n')
+
+    def check():
+        return subprocess.run([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg),
+                               "--check"], capture_output=True, text=True, timeout=120)
+
+    bad = check()
+    assert bad.returncode == 2, bad.stdout + bad.stderr
+    for name in ("ca.pem", "gw.pem", "gw.key", "log.directory"):
+        assert name in bad.stderr, (name, bad.stderr)
+    for name in ("ca.pem", "gw.pem", "gw.key"):
+        (tmp_path / name).write_text("x")
+    blocked.unlink()
+    good = check()
+    assert good.returncode == 0 and "OK" in good.stdout, good.stdout + good.stderr
+    assert "does not exist yet; skinmapd creates it" in good.stdout

@@ -9,6 +9,8 @@ import os
 import random
 import shutil
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -22,15 +24,9 @@ from skinmap.daemon.mcapinspect import (
     recover,
     render_surface_png,
 )
-from skinmap.daemon.mcaplog import (
-    FOXGLOVE_POINTCLOUD_SCHEMA,
-    LogStorageError,
-    McapLogger,
-    decode_pointcloud,
-    decode_strains,
-    decode_surface_nodes,
-    encode_strains,
-)
+from skinmap.daemon.foxglove_log import decode_protobuf
+from skinmap.daemon.mcaplog import LogStorageError, McapLogger
+from skinmap.wire import messages as wire
 
 T0 = 1_795_000_000_000_000_000  # 2026-11-18, a plausible wall-clock time in ns
 
@@ -60,6 +56,24 @@ def read_all(path):
                 for s, c, m in reader.iter_messages(log_time_order=False)]
 
 
+def strains_payload(seq, up, lo):
+    return wire.encode_strains(seq, 0, 0, up, lo, np.full(np.shape(up), 3, dtype=np.uint8))
+
+
+def surface_payload(seq, nodes_mm, normals, points_mm=None):
+    n, m = np.shape(nodes_mm)[:2]
+    cloud = None if points_mm is None else np.asarray(points_mm) / 1000.0
+    return wire.encode_surface(seq, 0, 0, np.asarray(nodes_mm) / 1000.0, normals,
+                               np.full((n, m), 2e-5), cloud)
+
+
+def elements_payload(seq, positions_mm):
+    k = len(positions_mm)
+    normals = np.tile([0.0, 0.0, 1.0], (k, 1))
+    return wire.encode_elements(seq, 0, 0, np.asarray(positions_mm) / 1000.0, normals,
+                                np.full(k, 1e-5), np.ones(k, dtype=np.uint8))
+
+
 def files(directory, suffix):
     return sorted(str(p) for p in directory.iterdir() if p.name.endswith(suffix))
 
@@ -77,9 +91,9 @@ def test_every_helper_round_trips(tmp_path):
     logger = make_logger(tmp_path, metadata={"device": "emulator", "grid": [3, 4]})
     logger.log_config(T0, "[scanner]\nport = 'x'\n", {"gf": np.full(4, 1.24), "r0": 6.55})
     logger.log_raw_frame(T0 + 1, frame)
-    logger.log_strains(T0 + 2, 7, up, lo)
-    logger.log_surface(T0 + 3, 7, nodes, normals, points)
-    logger.log_elements(T0 + 4, b"\x00elements\xff", positions=points[:5])
+    logger.log_strains(T0 + 2, strains_payload(7, up, lo))
+    logger.log_surface(T0 + 3, surface_payload(7, nodes, normals, points))
+    logger.log_elements(T0 + 4, elements_payload(7, points[:5]), latency_ms=12.5)
     logger.log_status(T0 + 5, {"state": "running", "rate_hz": 10.0})
     logger.log_event(T0 + 6, "warning", "scanner slow", name="serial")
     logger.write("/custom", T0 + 7, b"xyz", schema_name="my.Thing", schema_encoding="",
@@ -88,27 +102,32 @@ def test_every_helper_round_trips(tmp_path):
     logger.close()
     (path,) = files(tmp_path, ".mcap")
     msgs = {m[0]: m for m in read_all(path)}
-    assert set(msgs) == {"/config", "/raw", "/strains", "/surface", "/surface/nodes",
-                         "/elements", "/elements/points", "/status", "/log", "/custom"}
+    assert set(msgs) == {"/config", "/raw", "/strains", "/strains/plot", "/surface",
+                         "/surface/nodes", "/scene", "/tf", "/elements", "/elements/poses",
+                         "/elements/plot", "/status", "/log", "/custom"}
     assert msgs["/raw"][4] == frame and msgs["/raw"][2] == "skinmap.cobs-frame"
-    seq, got_up, got_lo = decode_strains(msgs["/strains"][4])
-    assert seq == 7 and np.array_equal(got_up, up) and np.array_equal(got_lo, lo)
-    seq, got_nodes, got_normals = decode_surface_nodes(msgs["/surface/nodes"][4])
-    assert seq == 7 and np.array_equal(got_nodes, nodes) and np.array_equal(got_normals, normals)
-    cloud = json.loads(msgs["/surface"][4])
-    assert msgs["/surface"][1] == "foxglove.PointCloud"
-    assert set(cloud) == set(FOXGLOVE_POINTCLOUD_SCHEMA["properties"])
-    assert cloud["timestamp"] == {"sec": (T0 + 3) // 10**9, "nsec": (T0 + 3) % 10**9}
-    assert cloud["point_stride"] == 12
-    np.testing.assert_allclose(decode_pointcloud(msgs["/surface"][4]), points, rtol=1e-6,
-                               atol=1e-4)
-    assert msgs["/elements"][4] == b"\x00elements\xff"
-    assert msgs["/elements"][2] == "skinmap.elements.v1"
-    np.testing.assert_allclose(decode_pointcloud(msgs["/elements/points"][4]), points[:5],
+    st = wire.decode_strains(msgs["/strains"][4])
+    assert st.seq == 7 and np.array_equal(st.eps_upper, up) and np.array_equal(st.eps_lower, lo)
+    plot = json.loads(msgs["/strains/plot"][4])
+    np.testing.assert_allclose(plot["upper_row"], up[0].ravel(), rtol=1e-6)
+    np.testing.assert_allclose(plot["lower_col"], lo[1].ravel(), rtol=1e-6)
+    sf = wire.decode_surface(msgs["/surface/nodes"][4])
+    assert sf.seq == 7 and np.array_equal(sf.nodes, nodes / 1000) and np.array_equal(sf.normals, normals)
+    assert msgs["/surface"][1] == "foxglove.PointCloud" and msgs["/surface"][2] == "protobuf"
+    cloud = decode_protobuf("foxglove.PointCloud", msgs["/surface"][4])
+    assert (cloud.timestamp.seconds, cloud.timestamp.nanos) == ((T0 + 3) // 10**9, (T0 + 3) % 10**9)
+    assert cloud.point_stride == 12 and [f.name for f in cloud.fields] == ["x", "y", "z"]
+    np.testing.assert_allclose(np.frombuffer(cloud.data, "<f4").reshape(-1, 3) * 1e3, points,
                                rtol=1e-6, atol=1e-4)
+    assert msgs["/elements"][4] == elements_payload(7, points[:5])
+    assert msgs["/elements"][2] == "skinmap.elements/1"
+    poses = decode_protobuf("foxglove.PosesInFrame", msgs["/elements/poses"][4])
+    got = np.array([[p.position.x, p.position.y, p.position.z] for p in poses.poses]) * 1e3
+    np.testing.assert_allclose(got, points[:5], rtol=1e-9, atol=1e-9)
+    assert json.loads(msgs["/elements/plot"][4])["latency_ms"] == 12.5
     assert json.loads(msgs["/status"][4]) == {"state": "running", "rate_hz": 10.0}
-    log = json.loads(msgs["/log"][4])
-    assert (log["level"], log["message"], log["name"]) == (3, "scanner slow", "serial")
+    log = decode_protobuf("foxglove.Log", msgs["/log"][4])
+    assert (log.level, log.message, log.name) == (3, "scanner slow", "serial")
     assert msgs["/custom"][1:] == ("my.Thing", "application/octet-stream", T0 + 7, b"xyz")
     config = json.loads(msgs["/config"][4])
     assert config["calibration"] == {"gf": [1.24] * 4, "r0": 6.55}
@@ -125,7 +144,7 @@ def test_every_helper_round_trips(tmp_path):
     assert [(m.topic, m.schema_name, m.message_encoding, m.log_time_ns, m.data)
             for m in it] == read_all(path)
     assert it.end.complete and it.end.valid_bytes == os.path.getsize(path)
-    assert logger.messages_written == 10 and logger.files_finished == 1
+    assert logger.messages_written == 15 and logger.files_finished == 1
     assert logger.bytes_written == os.path.getsize(path)
 
 
@@ -232,7 +251,8 @@ def _write_sample_log(directory, compression="zstd"):
     for i in range(60):
         t = T0 + i * 50_000_000
         logger.log_raw_frame(t, rng.bytes(40) + b"\x00")
-        logger.log_strains(t, i, rng.normal(size=(2, 2, 3)), rng.normal(size=(2, 2, 3)))
+        logger.log_strains(t, strains_payload(i, rng.normal(size=(2, 2, 3)),
+                                              rng.normal(size=(2, 2, 3))))
         if i % 10 == 0:
             logger.log_event(t, "info", f"tick {i}")
     logger.close()
@@ -244,7 +264,7 @@ def _write_sample_log(directory, compression="zstd"):
 def test_cut_at_random_offsets_yields_a_prefix(tmp_path, compression):
     path = _write_sample_log(tmp_path, compression)
     full = list(iter_messages_file_order(path))
-    assert len(full) == 1 + 60 + 60 + 6
+    assert len(full) == 1 + 60 + 2 * 60 + 6
     data = open(path, "rb").read()
     rnd = random.Random(42)
     offsets = sorted({0, 1, 7, 8, 9, 20, len(data) - 1, len(data) - 8}
@@ -409,20 +429,18 @@ def test_bad_input_is_rejected_clearly(tmp_path):
     with pytest.raises(ValueError, match="max_bytes"):
         McapLogger(tmp_path, max_bytes=10)
     logger = make_logger(tmp_path)
-    with pytest.raises(ValueError, match=r"eps_upper must have shape \(2xNxN\)|eps_upper"):
-        logger.log_strains(T0, 1, np.zeros((3, 2, 2)), np.zeros((3, 2, 2)))
-    with pytest.raises(ValueError, match="differ in shape"):
-        logger.log_strains(T0, 1, np.zeros((2, 2, 2)), np.zeros((2, 2, 3)))
-    with pytest.raises(ValueError, match="nodes"):
-        logger.log_surface(T0, 1, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((1, 3)))
-    with pytest.raises(ValueError, match="points"):
-        logger.log_surface(T0, 1, np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), np.zeros((4, 2)))
+    with pytest.raises(wire.MessageError, match="expected a strains message"):
+        logger.log_strains(T0, elements_payload(1, np.zeros((2, 3))))
+    with pytest.raises(wire.MessageError, match="truncated"):
+        logger.log_surface(T0, surface_payload(1, np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))[:-1])
+    with pytest.raises(ValueError, match="NaN"):
+        logger.log_surface(T0, surface_payload(1, np.full((2, 2, 3), np.nan), np.zeros((2, 2, 3))))
+    with pytest.raises(TypeError, match="elements payload must be bytes"):
+        logger.log_elements(T0, "text")
     with pytest.raises(ValueError, match="log level"):
         logger.log_event(T0, "loud", "x")
     with pytest.raises(ValueError, match="t_ns"):
         logger.log_raw_frame(-1, b"x")
-    with pytest.raises(ValueError, match="seq"):
-        logger.log_strains(T0, -3, np.zeros((2, 2, 2)), np.zeros((2, 2, 2)))
     with pytest.raises(TypeError, match="raw frame must be bytes"):
         logger.log_raw_frame(T0, "text")
     with pytest.raises(ValueError, match="status is not JSON"):
@@ -430,8 +448,6 @@ def test_bad_input_is_rejected_clearly(tmp_path):
     with pytest.raises(ValueError, match="already logged"):
         logger.write("/raw", T0, b"x", schema_name="other", schema_encoding="",
                      schema_data=b"", message_encoding="x")
-    with pytest.raises(ValueError, match="skinmap.strains.v1"):
-        decode_strains(encode_strains(1, np.zeros((2, 2, 2)), np.zeros((2, 2, 2)))[:-1])
     logger.close()
 
 
@@ -457,8 +473,8 @@ def test_inspect_reports_counts_gaps_and_problems(tmp_path):
         if k == 5:
             clock.advance(2.5)  # a stall
         nodes, normals, points = _surface(k)
-        logger.log_surface(clock.wall, seq, nodes, normals, points)
-        logger.log_strains(clock.wall, seq, np.zeros((2, 4, 5)), np.zeros((2, 4, 5)))
+        logger.log_surface(clock.wall, surface_payload(seq, nodes, normals, points))
+        logger.log_strains(clock.wall, strains_payload(seq, np.zeros((2, 4, 5)), np.zeros((2, 4, 5))))
         clock.advance(0.1)
     logger.log_event(clock.wall, "error", "serial port vanished")
     logger.log_event(clock.wall, "info", "all fine")
@@ -471,7 +487,8 @@ def test_inspect_reports_counts_gaps_and_problems(tmp_path):
     assert report.topics["/surface"].rate_hz == pytest.approx(6 / 3.1)
     assert sorted((g.topic, g.after_seq, g.next_seq, g.missing)
                   for g in report.sequence_gaps) == [
-        ("/strains", 3, 6, 2), ("/surface", 3, 6, 2), ("/surface/nodes", 3, 6, 2)]
+        ("/strains", 3, 6, 2), ("/strains/plot", 3, 6, 2), ("/surface", 3, 6, 2),
+        ("/surface/nodes", 3, 6, 2)]
     assert report.topics["/surface"].time_gaps[0][1] - report.topics["/surface"].time_gaps[0][
         0] == pytest.approx(2.6e9)
     levels = sorted((i.source, i.level) for i in report.issues)
@@ -495,7 +512,7 @@ def test_inspect_and_png_on_a_cut_file(tmp_path):
     logger = make_logger(tmp_path, clock, chunk_size=2000)
     for seq in range(30):
         nodes, normals, points = _surface(seq)
-        logger.log_surface(clock.wall, seq, nodes, normals, points)
+        logger.log_surface(clock.wall, surface_payload(seq, nodes, normals, points))
         clock.advance(0.1)
     cut = tmp_path / "cut.mcap.active"
     shutil.copy(logger.current_path, cut)
@@ -534,3 +551,102 @@ def test_fsync_policy(tmp_path, monkeypatch, policy):
         assert during == 0 and len(synced) >= 1
     else:
         assert synced == []
+
+
+# --------------------------------------------------------------------------------------------
+# every file passes the MCAP doctor; the docs' topic table is the logger's
+
+
+def doctor(path) -> subprocess.CompletedProcess:
+    exe = os.path.join(os.path.dirname(sys.executable), "pymcap-cli")
+    return subprocess.run([exe, "doctor", os.fspath(path), "--format", "jsonl"],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_every_kind_of_file_passes_the_mcap_doctor(tmp_path):
+    clock = FakeClock()
+    logger = make_logger(tmp_path, clock, chunk_size=4000, max_bytes=40_000)
+    for seq in range(40):  # several rotations; a file with config, files without
+        if seq == 0:
+            logger.log_config(clock.wall, "a = 1\n", {"gf": [1.24]})
+        nodes, normals, points = _surface(seq)
+        logger.log_raw_frame(clock.wall, bytes([3, seq % 250 + 1, 7, 0]))
+        logger.log_strains(clock.wall, strains_payload(seq, np.zeros((2, 4, 5)), np.zeros((2, 4, 5))))
+        logger.log_elements(clock.wall, elements_payload(seq, points[:3]), latency_ms=1.0)
+        logger.log_surface(clock.wall, surface_payload(seq, nodes, normals, points))
+        logger.log_status(clock.wall, {"seq": seq})
+        logger.log_event(clock.wall, "info", f"frame {seq}")
+        clock.advance(0.1)
+    logger.close()
+    paths = files(tmp_path, ".mcap")
+    assert len(paths) >= 2
+    for path in paths:
+        result = doctor(path)
+        errors = [line for line in result.stdout.splitlines() if '"error"' in line]
+        assert result.returncode == 0 and not errors, (path, result.stdout[-2000:], result.stderr[-500:])
+    # A cut file is repaired by recover into one the doctor accepts too.
+    logger = make_logger(tmp_path / "cut", clock, create_directory=True, chunk_size=2000)
+    for seq in range(20):
+        logger.log_strains(clock.wall, strains_payload(seq, np.zeros((2, 2, 2)), np.zeros((2, 2, 2))))
+        clock.advance(0.1)
+    cut = tmp_path / "cut" / "cut.mcap.active"
+    shutil.copy(logger.current_path, cut)
+    logger.close()
+    recover(cut)
+    fixed = [p for p in files(tmp_path / "cut", ".mcap") if "cut" in os.path.basename(p)]
+    assert fixed, os.listdir(tmp_path / "cut")
+    for path in fixed:
+        assert doctor(path).returncode == 0, doctor(path).stdout[-2000:]
+
+
+def test_docs_topic_table_is_the_loggers():
+    from skinmap.daemon.mcaplog import topics_table
+
+    doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "logging.md")).read()
+    assert topics_table() in doc
+
+
+def test_inspect_knows_the_configured_decimation_and_lists_real_warnings_first(tmp_path):
+    """A healthy log decimated 50 -> 10 Hz with 1 Hz status and surfaces reports nothing; a
+    real loss and a real stall are reported, after the logged errors."""
+    from skinmap.daemon.config import DEMO_CONFIG
+
+    clock = FakeClock()
+    logger = make_logger(tmp_path, clock)
+    logger.log_config(clock.wall, DEMO_CONFIG, {"gf": [1.24]})
+    seq = 0
+    for k in range(300):  # 30 s at 10 Hz, seq steps 4..6 (host-time decimation)
+        seq += (5, 4, 6)[k % 3]
+        if k == 200:
+            seq += 10  # two processed scans lost
+        if k == 250:
+            clock.advance(4.0)  # the scanner stalled for 4 s
+        logger.log_strains(clock.wall, strains_payload(seq, np.zeros((2, 2, 2)), np.zeros((2, 2, 2))))
+        if k % 10 == 0:
+            nodes, normals, points = _surface(k)
+            logger.log_surface(clock.wall, surface_payload(seq, nodes, normals, points))
+            logger.log_status(clock.wall, {"seq": seq})
+        clock.advance(0.1)
+    logger.log_event(clock.wall, "error", "serial port vanished")
+    logger.close()
+    (path,) = files(tmp_path, ".mcap")
+    report = inspect(path)
+    assert "processed 10 Hz (seq step 5)" in report.rates_source
+    assert report.topics["/status"].expected_hz == 1 and report.topics["/strains"].expected_hz == 10
+    strains_gaps = [(g.after_seq, g.missing) for g in report.sequence_gaps if g.topic == "/strains"]
+    assert len(strains_gaps) == 1 and strains_gaps[0][1] == 2
+    gapped = {t for t, s in report.topics.items() if s.time_gaps}
+    assert gapped == set(report.topics) - {"/config", "/log"}  # the stall, seen on every topic
+    assert all(len(s.time_gaps) == 1 for t, s in report.topics.items() if t in gapped)
+    lines = report.format().splitlines()
+    first_problem = next(i for i, line in enumerate(lines) if "gap" in line or "ERROR" in line)
+    assert "ERROR in /log" in lines[first_problem] and "serial port vanished" in lines[first_problem]
+    assert lines.index(next(line for line in lines if line.strip().startswith("topic"))) > first_problem
+    # Without the config, each topic's own median step decides and says so.
+    logger = make_logger(tmp_path / "nocfg", clock, create_directory=True)
+    for k in range(50):
+        logger.log_strains(clock.wall, strains_payload(5 * k, np.zeros((2, 2, 2)), np.zeros((2, 2, 2))))
+        clock.advance(0.1)
+    logger.close()
+    report = inspect(files(tmp_path / "nocfg", ".mcap")[0])
+    assert report.sequence_gaps == [] and "own median" in report.rates_source

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from skinmap.daemon import messages as msg
+from skinmap.wire import messages as msg
 
 
 def _elements(k=5, seed=0):

@@ -8,7 +8,7 @@ import pytest
 
 from skinmap.daemon.calibration import Calibration
 from skinmap.daemon.config import ConfigError, parse_config
-from skinmap.daemon.messages import ElementFlag
+from skinmap.wire.messages import ElementFlag
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
 from skinmap.emulator import physics as ph
 

@@ -25,7 +25,8 @@ import serial
 from cobs import cobs
 
 from conftest import explicit_elements, free_port, gateway_config, running_gateway
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
+from skinmap.daemon.foxglove_log import decode_protobuf
 from skinmap.daemon.link import ScannerLink
 from skinmap.daemon.mcapinspect import iter_messages_file_order
 from skinmap.emulator.device import ScannerSpec
@@ -222,8 +223,8 @@ class Rig:
         texts, statuses = [], []
         for path in sorted((self.tmp_path / "logs").glob("*.mcap*")):
             for m in iter_messages_file_order(path):
-                if m.topic == "/log":
-                    texts.append(json.loads(m.data)["message"])
+                if m.topic == "/log":  # foxglove.Log, protobuf
+                    texts.append(decode_protobuf(m.schema_name, m.data).message)
                 elif m.topic == "/status":
                     statuses.append(json.loads(m.data))
         return texts, statuses

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from skinmap.daemon.calibration import Calibration
-from skinmap.daemon.messages import ElementFlag
+from skinmap.wire.messages import ElementFlag
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, reject_implausible_units
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.protocol import RES_OPEN, RES_SATURATED, Scan

@@ -23,7 +23,7 @@ from conftest import (CheckedFile, free_port, gateway_config, pty_emulator, rece
 from mcap.reader import make_reader
 
 from skinmap.daemon.cli import main as skinmap_main
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.mcapinspect import inspect, iter_messages_file_order
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
 from skinmap.daemon.pipeline import GRAPH_RESTART_SCANS
@@ -111,6 +111,21 @@ def elements_after(client: SkinmapClient, t_ns: int, timeout: float):
             return msg
 
 
+def has_status(client: SkinmapClient) -> bool:
+    try:
+        client.latest("status", timeout=0.5)
+        return True
+    except LookupError:
+        return False
+
+
+def receive_for(client: SkinmapClient, seconds: float) -> list:
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        out.append(client.elements(timeout=5.0))
+    return out
+
+
 def longest_gap_s(msgs: list) -> float:
     t = np.array([m.host_time_ns for m in msgs], dtype=np.float64) / 1e9
     return float(np.diff(t).max()) if len(t) > 1 else float("inf")
@@ -134,6 +149,9 @@ def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(em
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
             wait_for(lambda: loggers[0].messages_flushed > 20, 30, "a first flushed chunk")
+            # Each scan logs several messages (wire payloads and their Foxglove views), so the
+            # chunk can be flushed before the first status: wait for that too.
+            wait_for(lambda: has_status(client), 30, "a first published status")
 
             storage.fail = fault
             t_fail = time.time_ns()

@@ -23,7 +23,7 @@ import zenoh
 from conftest import free_port
 
 from skinmap.daemon.cli import start_emulator, stop_process
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import key_for, make_session_config
 
 pytestmark = pytest.mark.slow

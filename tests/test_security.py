@@ -22,8 +22,8 @@ import pytest
 import zenoh
 from conftest import free_port, python_for_other_users, wait_until
 
-from skinmap.daemon import messages as msg
-from skinmap.daemon.client import SkinmapClient
+from skinmap.wire import messages as msg
+from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,7 +12,7 @@ import pytest
 from conftest import (explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway,
                       wait_for)
 
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.replay import replay_log
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig

@@ -24,7 +24,7 @@ from conftest import free_port, gateway_config, pty_emulator, running_gateway, w
 
 from skinmap.daemon import service
 from skinmap.daemon.calibration import save_tare, tare_path
-from skinmap.daemon.client import SkinmapClient
+from skinmap.client import SkinmapClient
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.service import DeviceClockCheck, HostDecimator, load_calibration
 from skinmap.daemon.zenoh_io import make_session_config

@@ -209,7 +209,7 @@ def _demo_config(endpoint: str, **zenoh_keys):
 def _elements(seq: int, k: int = 8, *, nan: bool = False) -> bytes:
     import numpy as np
 
-    from skinmap.daemon import messages as msg
+    from skinmap.wire import messages as msg
 
     pos = np.full((k, 3), np.nan) if nan else np.arange(3 * k, dtype=np.float64).reshape(k, 3) * 1e-3
     return msg.encode_elements(seq, seq, 10**18 + seq, pos, np.tile([0.0, 0.0, 1.0], (k, 1)),
@@ -327,7 +327,7 @@ def test_guard_keeps_a_config_file_with_its_own_access_control():
 def test_client_rejects_forged_elements_and_names_why():
     """Guard off, so forged puts arrive: SkinmapClient hands out only the real elements and
     counts and names every forged one it dropped."""
-    from skinmap.daemon.client import SkinmapClient
+    from skinmap.client import SkinmapClient
 
     cfg = _demo_config(f"tcp/127.0.0.1:{free_port()}", deny_remote_writes=False)
     run = _ForgeryRun(cfg)
@@ -369,8 +369,8 @@ def test_client_rejects_forged_elements_and_names_why():
 def test_check_message_applies_the_layout_rules():
     import numpy as np
 
-    from skinmap.daemon import messages as msg
-    from skinmap.daemon.client import RejectedMessage, check_message
+    from skinmap.wire import messages as msg
+    from skinmap.client import RejectedMessage, check_message
 
     k = 4
     pos = np.zeros((k, 3))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import free_port, wait_until
 
-from skinmap.daemon import messages as msg
-from skinmap.daemon.client import SkinmapClient
+from skinmap.wire import messages as msg
+from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
 DEVICE = "skin-test"

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skinmap.daemon import messages as msg
+from skinmap.wire import messages as msg
 
 _PATH = Path(__file__).resolve().parents[1] / "docs" / "examples" / "uff_probe.py"
 _spec = importlib.util.spec_from_file_location("uff_probe", _PATH)

@@ -7,7 +7,7 @@ convention as ``uff.point``. A flat sheet facing +z therefore has theta = phi = 
 
 Run against a running daemon:
 
-    python docs/examples/uff_probe.py --connect tcp/127.0.0.1:7447 --device skin0
+    python docs/examples/uff_probe.py --connect tcp/127.0.0.1:7447 --device demo
 
 or self-contained, with an in-process publisher of a synthetic curved array:
 
@@ -24,8 +24,8 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from skinmap.daemon.client import SkinmapClient
-from skinmap.daemon.messages import ElementsMessage
+from skinmap.client import SkinmapClient
+from skinmap.wire.messages import ElementsMessage
 
 UFF_COLUMNS = ("x", "y", "z", "theta", "phi", "width", "height")
 
@@ -81,7 +81,7 @@ def format_probe(geometry: np.ndarray, valid: np.ndarray | None = None) -> str:
 
 def _start_demo(stack: ExitStack, endpoint: str, device: str) -> None:
     """Publish a cylindrical 4 x 8 array (radius 40 mm, pitch 6 mm) in-process."""
-    from skinmap.daemon import messages
+    from skinmap.wire import messages
     from skinmap.daemon.zenoh_io import SkinmapPublisher, make_session_config, open_session
 
     rows, cols, pitch, radius = 4, 8, 0.006, 0.040
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447")
     parser.add_argument("--prefix", default="skinmap")
-    parser.add_argument("--device", default="skin0")
+    parser.add_argument("--device", default="demo")
     parser.add_argument("--width", type=float, help="element width, m (default: from info)")
     parser.add_argument("--height", type=float, help="element height, m (default: from info)")
     parser.add_argument("--scans", type=int, default=1, help="scans to print")

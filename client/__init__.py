@@ -1,8 +1,10 @@
-"""Python client for skinmapd's Zenoh data: subscribe and query only, numpy arrays out.
+"""skinmap.client: the light client of skinmapd's Zenoh data; subscribe and query only, numpy
+arrays out. Needs only numpy and eclipse-zenoh (``pip install 'skinmap[client]'``): it imports
+nothing of the gateway.
 
-    from skinmap.daemon.client import SkinmapClient
+    from skinmap.client import SkinmapClient
 
-    with SkinmapClient(["tcp/127.0.0.1:7447"], prefix="skinmap", device="skin0") as client:
+    with SkinmapClient(["tcp/127.0.0.1:7447"], prefix="skinmap", device="demo") as client:
         print(client.info()["rows"])
         first = client.latest("elements")          # newest cached scan, at once
         for msg in client.iter_elements(timeout=2.0):
@@ -27,8 +29,9 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 import zenoh
 
-from skinmap.daemon import messages
-from skinmap.daemon.zenoh_io import ALL_KINDS, DATA_KINDS, key_for, make_session_config
+from skinmap.wire import messages
+from skinmap.wire.keys import ALL_KINDS, DATA_KINDS, check_key_segment, key_for
+from skinmap.wire.session import make_session_config
 
 DECODERS: dict[str, Callable[[bytes], Any]] = {
     "elements": messages.decode_elements,
@@ -200,7 +203,7 @@ class SkinmapClient:
     """
 
     def __init__(self, connect: Iterable[str] = ("tcp/127.0.0.1:7447",), prefix: str = "skinmap",
-                 device: str = "skin0", *, mode: str = "peer", allow_non_loopback: bool = False,
+                 device: str = "demo", *, mode: str = "peer", allow_non_loopback: bool = False,
                  config_file: str | Path | None = None, queue_size: int = 16) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be >= 1, got {queue_size}")
@@ -395,3 +398,15 @@ class SkinmapClient:
         """True if the device's liveliness token is currently declared."""
         replies = self.session.liveliness().get(self._keys["alive"], timeout=timeout)
         return any(reply.ok is not None for reply in replies)
+
+
+def discover(session: zenoh.Session, prefix: str, timeout: float = 2.0) -> list[str]:
+    """Device names whose liveliness token `<prefix>/<device>/alive` is declared now."""
+    check_key_segment("prefix", prefix)
+    found = set()
+    for reply in session.liveliness().get(f"{prefix}/*/alive", timeout=timeout):
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) >= 2 and parts[-1] == "alive":
+                found.add(parts[-2])
+    return sorted(found)

@@ -18,7 +18,8 @@ offset   size  type            field
 A kind-specific block of counts follows, padded so that every float64 array starts on an
 8-byte boundary (``np.frombuffer`` views are then aligned). Arrays are C-ordered and
 little-endian. All lengths are in METRES in the sensor frame (docs/architecture.md).
-The byte tables of every kind are in docs/zenoh.md.
+The byte tables of every kind are ``LAYOUT_TABLES`` below; docs/zenoh.md shows them as
+rendered by ``layout_table`` (a test keeps the two equal).
 
 Status and info are UTF-8 JSON objects; their fields are listed in ``STATUS_FIELDS`` and
 ``INFO_FIELDS``.
@@ -141,6 +142,81 @@ class StrainsMessage:
     @property
     def valid_lower(self) -> np.ndarray:
         return (self.gauge_flags & int(GaugeFlag.LOWER_VALID)) != 0
+
+
+# ---------------------------------------------------------------------------------------
+# byte tables (the single description of every binary layout; docs/zenoh.md renders them)
+
+# A size is {symbol: coefficient}; "" is the constant term. Offsets are the running sums.
+Size = dict[str, int]
+
+LAYOUT_TABLES: dict[str, list[tuple[Size, str, str]]] = {
+    "header": [
+        ({"": 4}, "bytes", "magic `SKMP` (`53 4B 4D 50`)"),
+        ({"": 1}, "u8", "layout version, currently 1"),
+        ({"": 1}, "u8", "kind: 1 elements, 2 surface, 3 strains"),
+        ({"": 2}, "u16", "reserved, 0"),
+        ({"": 4}, "u32", "sequence number: the scanner's `sample_index` of the scan (below)"),
+        ({"": 4}, "u32", "total message length in bytes, header included"),
+        ({"": 8}, "u64", "device sample time, µs (scanner clock)"),
+        ({"": 8}, "u64", "host receive time, ns since the Unix epoch (UTC)"),
+    ],
+    "elements": [
+        ({"": 4}, "u32", "K, number of elements"),
+        ({"": 4}, "u32", "reserved, 0"),
+        ({"K": 24}, "f64 (K, 3)", "positions x, y, z [m]"),
+        ({"K": 24}, "f64 (K, 3)", "unit normals, toward the upper (+normal) side"),
+        ({"K": 8}, "f64 (K)", "position uncertainty, 1 s.d. [m]"),
+        ({"K": 1}, "u8 (K)", "flags (below)"),
+    ],
+    "surface": [
+        ({"": 4}, "u32", "N, rows"),
+        ({"": 4}, "u32", "M, columns"),
+        ({"": 4}, "u32", "P, points in the dense cloud (may be 0)"),
+        ({"": 1}, "u8", "s, bytes per cloud coordinate: 4 (f32) or 8 (f64)"),
+        ({"": 3}, "–", "padding, 0"),
+        ({"N·M": 24}, "f64 (N, M, 3)", "cell-centre nodes x, y, z [m]"),
+        ({"N·M": 24}, "f64 (N, M, 3)", "unit normals at the nodes"),
+        ({"N·M": 8}, "f64 (N, M)", "node position uncertainty, 1 s.d. [m]"),
+        ({"P·s": 3}, "f32/f64 (P, 3)", "dense point cloud [m]"),
+    ],
+    "strains": [
+        ({"": 4}, "u32", "N"),
+        ({"": 4}, "u32", "M"),
+        ({"N·M": 16}, "f64 (2, N, M)", "upper-layer strain `eps_upper[k, i, j]`"),
+        ({"N·M": 16}, "f64 (2, N, M)", "lower-layer strain `eps_lower[k, i, j]`"),
+        ({"N·M": 2}, "u8 (2, N, M)", "gauge flags: 0x01 upper gauge valid, 0x02 lower gauge valid"),
+    ],
+}
+
+
+def _format_size(size: Size) -> str:
+    terms = [str(size[""])] if size.get("") else []
+    terms += [sym if c == 1 else f"{c}·{sym}" for sym, c in size.items() if sym and c]
+    return " + ".join(terms) or "0"
+
+
+def layout_size(kind: str) -> Size:
+    """Total length of a ``kind`` message as {symbol: coefficient}, header included."""
+    total: Size = {}
+    rows = LAYOUT_TABLES["header"] + ([] if kind == "header" else LAYOUT_TABLES[kind])
+    for size, _type, _field in rows:
+        for sym, c in size.items():
+            total[sym] = total.get(sym, 0) + c
+    return total
+
+
+def layout_table(kind: str) -> str:
+    """The markdown byte table of ``kind`` ('header', 'elements', 'surface', 'strains')."""
+    if kind not in LAYOUT_TABLES:
+        raise ValueError(f"unknown layout {kind!r}; expected one of {tuple(LAYOUT_TABLES)}")
+    offset: Size = {} if kind == "header" else {"": HEADER_SIZE}
+    lines = ["| offset | size | type | field |", "|---|---|---|---|"]
+    for size, type_, field in LAYOUT_TABLES[kind]:
+        lines.append(f"| {_format_size(offset)} | {_format_size(size)} | {type_} | {field} |")
+        for sym, c in size.items():
+            offset[sym] = offset.get(sym, 0) + c
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------------------
