@@ -27,6 +27,11 @@ CLEAN = [
     "skinmap.protocol",  # the whole package
     "skinmap.emulator.linkfaults",
     "skinmap.emulator.transport",
+    "skinmap.wire",
+    "skinmap.client",
+    "skinmap.reconstruction.productnoise",
+    "skinmap.reconstruction.forward",
+    "skinmap.reconstruction.surface",
 ]
 
 

@@ -381,7 +381,8 @@ class SkinmapClient:
                 except messages.MessageError as exc:
                     errors.append(f"rejected reply: {exc}")
                     continue
-            errors.append(reply.err.payload.to_string())
+            if reply.err is not None:
+                errors.append(reply.err.payload.to_string())
         detail = f": {'; '.join(errors)}" if errors else ""
         raise LookupError(f"no {kind} available on {key!r} (is skinmapd running and has it "
                           f"published one yet?){detail}")

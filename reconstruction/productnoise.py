@@ -68,13 +68,13 @@ def measure_product_noise(maps, valid: np.ndarray, inner, draws: int = DRAWS) ->
     stretch = np.ones(valid.shape)
     kept = []
     products = np.empty(draws)
-    total = None
+    total = np.zeros(np.shape(maps(np.zeros(valid.shape), stretch)[0]))
     for d in range(draws):
         turning = np.where(valid, rng.standard_normal(valid.shape), 0.0)
         k_u, k_v, tau0 = (np.asarray(f, dtype=float) for f in maps(turning, stretch)[:3])
         tau0 = tau0 - tau0.sum() / tau0.size
         here = k_u * k_v - tau0 * tau0
-        total = here if total is None else total + here
+        total = total + here
         ku, kv, tt = (np.ascontiguousarray(f[inner]).ravel() for f in (k_u, k_v, tau0))
         products[d] = float(ku @ kv - tt @ tt) / ku.size
         kept.append(np.stack([ku, kv, tt]))

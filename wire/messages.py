@@ -32,7 +32,7 @@ import json
 import math
 import struct
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -437,8 +437,8 @@ def decode_strains(buf: Any) -> StrainsMessage:
     return StrainsMessage(header.seq, header.device_time_us, header.host_time_ns, up, lo, fl)
 
 
-_DECODERS = {MessageKind.ELEMENTS: decode_elements, MessageKind.SURFACE: decode_surface,
-             MessageKind.STRAINS: decode_strains}
+_DECODERS: dict[MessageKind, Callable[[Any], "ElementsMessage | SurfaceMessage | StrainsMessage"]] = {
+    MessageKind.ELEMENTS: decode_elements, MessageKind.SURFACE: decode_surface, MessageKind.STRAINS: decode_strains}
 
 
 def decode(buf: Any) -> ElementsMessage | SurfaceMessage | StrainsMessage:
