@@ -7,6 +7,7 @@ only a failing test waits them out): a loaded machine makes things slower, not w
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 import socket
 import threading
 import time
@@ -179,6 +180,13 @@ def _link_tree(src: str, dst: str) -> None:
                     ignore=shutil.ignore_patterns("__editable__*", "skinmap-*.dist-info"))
 
 
+def _declared_packages() -> list[str]:
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    return list(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+
+
 @contextlib.contextmanager
 def python_for_other_users(*extra_dirs: str) -> Iterator[tuple[str, dict[str, str], dict[str, str]]]:
     """(interpreter, environment additions, {dir: its readable copy}) with which another user
@@ -195,7 +203,8 @@ def python_for_other_users(*extra_dirs: str) -> Iterator[tuple[str, dict[str, st
     import sysconfig
     import tempfile
 
-    names = ("skinmap", "skinmap.protocol", "skinmap.emulator", "skinmap.reconstruction", "skinmap.daemon")
+    # every subpackage the project declares (pyproject's package list: one source of truth)
+    names = [name for name in _declared_packages() if name.count(".") == 1] + ["skinmap"]
     packages = {name: list(importlib.import_module(name).__path__)[0] for name in names}
     site = sysconfig.get_paths()["purelib"]
     needed = [sys.executable, site, *packages.values(), *extra_dirs]

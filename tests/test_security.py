@@ -475,7 +475,13 @@ directory = "state"
         try:
             with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap",
                                device=DEVICE) as client:
-                assert client.elements(timeout=30.0).valid.any()
+                try:
+                    first = client.elements(timeout=30.0)
+                except TimeoutError:
+                    daemon.kill()
+                    pytest.fail("no elements from the unprivileged daemon; its log:\n"
+                                + daemon.stderr.read().decode()[-3000:])
+                assert first.valid.any()
                 proc_status = dict(line.split(":", 1) for line in
                                    Path(f"/proc/{daemon.pid}/status").read_text().splitlines())
                 assert proc_status["Uid"].split()[:2] == [str(uid), str(uid)]
