@@ -232,3 +232,21 @@ def python_for_other_users(*extra_dirs: str) -> Iterator[tuple[str, dict[str, st
         yield python, env, copies
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def notify_socket(path: Path, timeout: float = 0.05) -> socket.socket:
+    """A bound datagram socket standing in for systemd's NOTIFY_SOCKET."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(timeout)
+    return sock
+
+
+def drain_notify(sock: socket.socket) -> list[str]:
+    """Every sd_notify message waiting on ``sock``."""
+    out = []
+    while True:
+        try:
+            out.append(sock.recv(4096).decode())
+        except (socket.timeout, BlockingIOError):
+            return out

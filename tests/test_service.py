@@ -3,14 +3,13 @@ replays to identical results.
 """
 from __future__ import annotations
 
-import socket
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import (explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway,
-                      wait_for)
+from conftest import (drain_notify, explicit_elements, free_port, gateway_config, pty_emulator, rigid_motion, running_gateway,
+                      notify_socket, wait_for)
 
 from skinmap.client import SkinmapClient
 from skinmap.daemon.replay import replay_log
@@ -88,22 +87,6 @@ def test_daemon_survives_unplug_and_replug_behind_the_same_link(emulator, tmp_pa
     assert gw.link.stats.disconnects >= 1
 
 
-def _notify_socket(path: Path) -> socket.socket:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(str(path))
-    sock.settimeout(0.1)
-    return sock
-
-
-def _drain(sock: socket.socket) -> list[str]:
-    out = []
-    while True:
-        try:
-            out.append(sock.recv(4096).decode())
-        except (socket.timeout, BlockingIOError):
-            return out
-
-
 def test_skinmapd_process_notifies_systemd_and_stops_cleanly_on_sigterm(emulator, tmp_path):
     import signal
     import subprocess
@@ -123,7 +106,7 @@ directory = "logs"
 [state]
 directory = "state"
 """)
-    sock = _notify_socket(tmp_path / "notify.sock")
+    sock = notify_socket(tmp_path / "notify.sock", 0.1)
     env = {**__import__("os").environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "1000000"}
     proc = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg_file)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -133,7 +116,7 @@ directory = "state"
         while time.monotonic() < deadline and not (
             any(m.startswith("READY=1") for m in messages_seen) and any("WATCHDOG=1" in m for m in messages_seen)
         ):
-            messages_seen += _drain(sock)
+            messages_seen += drain_notify(sock)
         assert any(m.startswith("READY=1") for m in messages_seen), messages_seen
         assert any("WATCHDOG=1" in m for m in messages_seen)
     finally:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -20,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from conftest import free_port, gateway_config, pty_emulator, running_gateway, wait_for
+from conftest import drain_notify, free_port, gateway_config, notify_socket, pty_emulator, running_gateway, wait_for
 
 from skinmap.daemon import service
 from skinmap.daemon.calibration import save_tare, tare_path
@@ -48,22 +47,6 @@ def emulator(tmp_path):
 def faults_config(tmp_path: Path, zport: int, **output):
     return gateway_config(tmp_path, zport, tmp_path / "tty", DEVICE, 40, device={"stall_timeout_s": 1.0},
                           output=output)
-
-
-def notify_socket(path: Path) -> socket.socket:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(str(path))
-    sock.settimeout(0.05)
-    return sock
-
-
-def drain(sock: socket.socket) -> list[str]:
-    out = []
-    while True:
-        try:
-            out.append(sock.recv(4096).decode())
-        except (socket.timeout, BlockingIOError):
-            return out
 
 
 def emulator_hello(emulator: Emulator):
@@ -142,7 +125,7 @@ def test_bad_tare_at_start_and_on_reload_streams_on_the_factory_calibration(emul
     with running_gateway(faults_config(tmp_path, zport), notifier=notifier) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
-            wait_for(lambda: any(m.startswith("READY=1") for m in drain(sock)), 30, "READY=1")
+            wait_for(lambda: any(m.startswith("READY=1") for m in drain_notify(sock)), 30, "READY=1")
             st = gw.status()
             assert st["calibration"] == "factory"
             assert any(w.startswith(f"ignoring tare {path}: not a JSON object") for w in st["warnings"]), st["warnings"]
@@ -279,14 +262,14 @@ def test_watchdog_is_not_fed_while_every_scan_fails_and_is_fed_again_after(emula
     notifier = SystemdNotifier(str(tmp_path / "notify.sock"))
     with running_gateway(faults_config(tmp_path, free_port()), notifier=notifier) as gw:
         wait_for(lambda: gw.stats.results > 5, 30, "scans processed")
-        wait_for(lambda: any("WATCHDOG=1" in m for m in drain(sock)), 30, "WATCHDOG=1 while scans are processed")
+        wait_for(lambda: any("WATCHDOG=1" in m for m in drain_notify(sock)), 30, "WATCHDOG=1 while scans are processed")
         broken["on"] = True
         wait_for(lambda: not gw.watchdog_fed, 30, "the watchdog to be starved")
-        drain(sock)
+        drain_notify(sock)
         seen: list[str] = []
         t_end = time.monotonic() + 2.5
         while time.monotonic() < t_end:
-            seen += drain(sock)
+            seen += drain_notify(sock)
         assert not any("WATCHDOG=1" in m for m in seen), seen
         assert gw.link.streaming.is_set()  # the link is fine; the data path is not
         st = gw.status()
@@ -294,7 +277,7 @@ def test_watchdog_is_not_fed_while_every_scan_fails_and_is_fed_again_after(emula
         assert any("systemd watchdog not fed" in w and "injected solver failure" in w for w in st["warnings"]), \
             st["warnings"]
         broken["on"] = False
-        wait_for(lambda: any("WATCHDOG=1" in m for m in drain(sock)), 30, "WATCHDOG=1 once scans process again")
+        wait_for(lambda: any("WATCHDOG=1" in m for m in drain_notify(sock)), 30, "WATCHDOG=1 once scans process again")
         assert gw.watchdog_fed
     sock.close()
 
@@ -309,8 +292,8 @@ def test_watchdog_is_fed_while_the_scanner_is_quiet(emulator, tmp_path, monkeypa
         wait_for(lambda: gw.stats.results > 5, 30, "scans processed")
         emulator.stall(4.0)
         wait_for(lambda: gw.link.stats.state == "stalled", 30, "the link to see the stall")
-        drain(sock)
-        wait_for(lambda: any("WATCHDOG=1" in m for m in drain(sock)), 3, "WATCHDOG=1 during the stall")
+        drain_notify(sock)
+        wait_for(lambda: any("WATCHDOG=1" in m for m in drain_notify(sock)), 3, "WATCHDOG=1 during the stall")
         assert gw.watchdog_fed
     sock.close()
 
@@ -348,14 +331,14 @@ def test_sigterm_is_honoured_while_the_main_loop_is_blocked(emulator, tmp_path):
         seen: list[str] = []
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not any(m.startswith("READY=1") for m in seen):
-            seen += drain(sock)
+            seen += drain_notify(sock)
         assert any(m.startswith("READY=1") for m in seen), seen
         # About 2 s of console lines fill the pipe; then no WATCHDOG=1 for a whole second.
         deadline = time.monotonic() + 60
         last_feed = time.monotonic()
         while time.monotonic() - last_feed < 1.5:
             assert time.monotonic() < deadline, "the watchdog kept being fed with the main loop blocked"
-            if any("WATCHDOG=1" in m for m in drain(sock)):
+            if any("WATCHDOG=1" in m for m in drain_notify(sock)):
                 last_feed = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
