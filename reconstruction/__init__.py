@@ -247,6 +247,23 @@ class Reconstructor:
                 answer._fine_sigma_fn = self._one_blas_thread(answer._fine_sigma_fn)
         return surf
 
+    def prepare(self, strain_sigma: float = DEFAULT_STRAIN_SIGMA) -> None:
+        """Do now the one-off work the first frames would otherwise pay for: numba's kernels (done
+        at construction), then the caches that a first frame read at this noise level fills, namely
+        the all-valid fits, the noise's own curvature product and the general model's measured
+        answer to noise (:meth:`_noise_response`, tens of milliseconds at 5×5, about a second at
+        32×32), and the uncertainty maps.  A flat frame is reconstructed and its uncertainty read
+        here; skinmapd calls this when a scanner's HELLO gives the geometry, so that its first
+        published frames are not the slow ones."""
+        flat = np.zeros((2, self.n, self.m))
+        surf = self(flat, flat, strain_sigma=strain_sigma)
+        centre = np.zeros((1, 2))
+        _ = surf.node_sigma, surf.locate_sigma(centre)
+        # and the same for a bent sheet: the graph fit and the posterior check's other branches
+        bent = np.full((2, self.n, self.m), 1e-3)
+        surf = self(bent, -bent, strain_sigma=strain_sigma, previous=surf)
+        _ = surf.node_sigma, surf.locate_sigma(centre)
+
     def _one_blas_thread(self, fn):
         """``fn`` run with BLAS on one thread."""
         def run():
