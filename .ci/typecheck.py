@@ -27,6 +27,8 @@ CLEAN = [
     "skinmap.protocol",  # the whole package
     "skinmap.emulator.linkfaults",
     "skinmap.emulator.transport",
+    "skinmap.emulator.loopback",
+    "skinmap.ports",  # the whole package
     "skinmap.wire",
     "skinmap.client",
     "skinmap.reconstruction.productnoise",
