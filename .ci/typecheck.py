@@ -28,7 +28,10 @@ CLEAN = [
     "skinmap.emulator.linkfaults",
     "skinmap.emulator.transport",
     "skinmap.emulator.loopback",
+    "skinmap.emulator.electrical",
     "skinmap.ports",  # the whole package
+    "skinmap.strains",  # the whole package
+    "skinmap.elements",  # the whole package
     "skinmap.wire",
     "skinmap.client",
     "skinmap.reconstruction.productnoise",

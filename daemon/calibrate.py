@@ -208,7 +208,7 @@ def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, 
                     attempts: int = 3, say: Callable[[str], None] = print) -> CalibrationRun:
     """The whole procedure; writes the tare and the calibration file into ``state_dir`` (None:
     nothing written)."""
-    from skinmap.daemon.calibration import compute_tare, save_calibration, save_tare
+    from skinmap.strains import compute_tare, save_calibration, save_tare
 
     if not poses or poses[0].kind != "flat":
         raise ValueError("the procedure starts with the flat pose (it is the tare)")

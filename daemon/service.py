@@ -30,7 +30,7 @@ import numpy as np
 
 import skinmap
 from skinmap.wire import messages
-from skinmap.daemon.calibration import Calibration, load_calibration_file, load_tare
+from skinmap.strains import Calibration, load_calibration_file, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.console import StatusConsole, shape_summary
 from skinmap.daemon.link import ScannerLink
@@ -654,7 +654,7 @@ class Gateway:
 
     def _tare_file_mtime(self, hello: Hello) -> tuple[float | None, float | None] | None:
         """Modification times of the tare and the calibration file (None: neither exists)."""
-        from skinmap.daemon.calibration import calibration_path, tare_path
+        from skinmap.strains import calibration_path, tare_path
 
         state = self.cfg.resolve(self.cfg.state.directory)
         times = []
