@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from types import TracebackType
 from typing import Callable
 
 __all__ = ["PortError", "PortOpenError", "PortVanished", "PortWriteTimeout", "PortClosed", "ScannerPort",
@@ -105,8 +104,7 @@ class ScannerPort(ABC):
     def __enter__(self) -> "ScannerPort":
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __repr__(self) -> str:
