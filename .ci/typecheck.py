@@ -32,6 +32,8 @@ CLEAN = [
     "skinmap.ports",  # the whole package
     "skinmap.strains",  # the whole package
     "skinmap.elements",  # the whole package
+    "skinmap.daemon.link",
+    "skinmap.daemon.pipeline",
     "skinmap.wire",
     "skinmap.client",
     "skinmap.reconstruction.productnoise",

@@ -460,7 +460,7 @@ class ScannerLink:
 
     # -- commands --------------------------------------------------------------------------
 
-    def _request(self, msg: Message, what: str, retries: int = 3) -> Ack:
+    def _request(self, msg: Stop | SetScanRate | Start, what: str, retries: int = 3) -> Ack:
         """Send a command and wait for its ACK; retries reuse the request id (idempotent)."""
         deadline_each = self.cfg.handshake_timeout_s / retries
         for attempt in range(retries):

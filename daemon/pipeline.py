@@ -171,7 +171,7 @@ class FramePipeline:
         g = self.geometry
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
         cal = self.calibration
-        if cal.h_upper_mm is not None:
+        if cal.h_upper_mm is not None and cal.h_lower_mm is not None:  # they come in pairs
             eps_u, eps_l = to_nominal_offsets(eps_u, eps_l, cal.h_upper_mm, cal.h_lower_mm, g.h_upper_mm, g.h_lower_mm)
         eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g.gauge_length_mm,
                                                                     g.h_upper_mm, g.h_lower_mm)
