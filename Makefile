@@ -24,7 +24,7 @@ test-slow: $(STAMP)
 # Static checks: mypy on the modules that are clean (.ci/typecheck.py), dead code (vulture).
 check: $(STAMP)
 	$(VENV)/bin/python .ci/typecheck.py
-	$(VENV)/bin/vulture --min-confidence 80 skinmap protocol firmware-host reconstruction daemon wire client tests bench
+	$(VENV)/bin/vulture --min-confidence 80 skinmap protocol firmware-host reconstruction daemon wire client ports strains elements tests bench
 
 bench: $(STAMP)
 	$(VENV)/bin/python bench/run_all.py

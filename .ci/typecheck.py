@@ -27,6 +27,13 @@ CLEAN = [
     "skinmap.protocol",  # the whole package
     "skinmap.emulator.linkfaults",
     "skinmap.emulator.transport",
+    "skinmap.emulator.loopback",
+    "skinmap.emulator.electrical",
+    "skinmap.ports",  # the whole package
+    "skinmap.strains",  # the whole package
+    "skinmap.elements",  # the whole package
+    "skinmap.daemon.link",
+    "skinmap.daemon.pipeline",
     "skinmap.wire",
     "skinmap.client",
     "skinmap.reconstruction.productnoise",

@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.daemon.calibrate import EmulatedPlacer, LinkFeed, run_calibration  # noqa: E402
-from skinmap.daemon.calibration import Calibration, resistances_to_strains, to_nominal_offsets  # noqa: E402
+from skinmap.strains import Calibration, resistances_to_strains, to_nominal_offsets  # noqa: E402
 from skinmap.daemon.config import ScannerSpec as LinkConfig  # noqa: E402
 from skinmap.daemon.moldcal import standard_poses  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402

@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterator
 import zenoh
 
 from latency import free_port  # bench/latency.py
-from skinmap.daemon.calibration import save_tare, tare_path
+from skinmap.strains import save_tare, tare_path
 from skinmap.client import SkinmapClient
 from skinmap.daemon.zenoh_io import make_session_config
 from skinmap.emulator.device import ScannerSpec

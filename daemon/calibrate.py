@@ -20,6 +20,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
+from skinmap.strains import gauge_strain
 from skinmap.daemon.moldcal import MoldFit, Pose, check_pose, fit_mold_calibration
 
 __all__ = ["CalibrationAborted", "ScanFeed", "LinkFeed", "PromptPlacer", "EmulatedPlacer", "CalibrationRun",
@@ -147,12 +148,6 @@ class EmulatedPlacer:
         self.emulator.set_shape(self._scenes[pose])
 
 
-def strains_of(scans: np.ndarray, gauge_factor: np.ndarray, base_resistance: np.ndarray) -> np.ndarray:
-    """(K, 2, 2, N, M) strains of resistance scans: ε = (R/R0 − 1)/GF (NaN stays NaN)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return (np.asarray(scans, dtype=float) / base_resistance - 1.0) / gauge_factor
-
-
 def motion(strains: np.ndarray) -> float:
     """Largest change of a gauge's mean strain from the first to the last third of a window."""
     k = max(1, strains.shape[0] // 3)
@@ -169,7 +164,7 @@ def take_static(feed: ScanFeed, gauge_factor: np.ndarray, base_resistance: np.nd
     worst = float("inf")
     while time.monotonic() < deadline:
         scans = np.stack(feed.scans(window, max(1.0, deadline - time.monotonic() + 5.0)))
-        eps = strains_of(scans, gauge_factor, base_resistance)
+        eps = gauge_strain(scans, gauge_factor, base_resistance)
         worst = motion(eps)
         if worst <= STATIC_TOLERANCE:
             return scans, eps
@@ -181,7 +176,7 @@ def take_static(feed: ScanFeed, gauge_factor: np.ndarray, base_resistance: np.nd
 def tare_problem(scans: np.ndarray, gauge_factor: np.ndarray, base_resistance: np.ndarray,
                  h_upper_mm: float, h_lower_mm: float) -> str:
     """Why these scans are no tare ('' if they are one): the sheet moved, or it is not flat."""
-    eps = strains_of(scans, gauge_factor, base_resistance)
+    eps = gauge_strain(scans, gauge_factor, base_resistance)
     moved = motion(eps)
     if moved > STATIC_TOLERANCE:
         return (f"the sheet is moving (a gauge changed by {moved:.1e} strain over the scans, the limit is "
@@ -208,7 +203,7 @@ def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, 
                     attempts: int = 3, say: Callable[[str], None] = print) -> CalibrationRun:
     """The whole procedure; writes the tare and the calibration file into ``state_dir`` (None:
     nothing written)."""
-    from skinmap.daemon.calibration import compute_tare, save_calibration, save_tare
+    from skinmap.strains import compute_tare, save_calibration, save_tare
 
     if not poses or poses[0].kind != "flat":
         raise ValueError("the procedure starts with the flat pose (it is the tare)")
@@ -227,7 +222,7 @@ def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, 
             scans, eps = take_static(feed, gf0, tare, window, timeout_s, say)
             if pose.kind == "flat":
                 tare = compute_tare(scans)
-                eps = strains_of(scans, gf0, tare)
+                eps = gauge_strain(scans, gf0, tare)
             with np.errstate(invalid="ignore"):
                 mean = np.nanmean(eps, axis=0)
             problem = check_pose(pose, mean, h_upper_mm, h_lower_mm)

@@ -374,7 +374,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 def cmd_tare(args: argparse.Namespace) -> int:
     from skinmap.daemon.calibrate import tare_problem
-    from skinmap.daemon.calibration import compute_tare, save_tare
+    from skinmap.strains import compute_tare, save_tare
     from skinmap.daemon.config import ConfigError, load_config
     from skinmap.daemon.portlock import PortBusy, PortLock
     from skinmap.daemon.replay import resistances_from_log

@@ -13,16 +13,15 @@ rate-limited events, and turns the status unhealthy while it lasts.
 from __future__ import annotations
 
 import collections
+import functools
 import random
-import select
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import serial
-
 from skinmap.daemon.config import DeviceConfig
+from skinmap.ports import PortError, PortFactory, PortWriteTimeout, ScannerPort, SerialScannerPort
 from skinmap.protocol import (
     Ack,
     DeviceState,
@@ -45,9 +44,8 @@ from skinmap.protocol import (
 )
 from skinmap.protocol import ErrorCode, hello_compatibility
 
-__all__ = ["LinkError", "LinkStats", "ScannerLink", "open_serial", "validate_hello"]
+__all__ = ["LinkError", "LinkStats", "ScannerLink", "serial_port_factory", "validate_hello"]
 
-READ_CHUNK = 65536
 READ_TIMEOUT_S = 0.02
 # StreamDecoder counters of damaged frames it refused (the decoder's last_error says why).
 # Intact frames of an unknown type are not damage: they are `unknown_frames`.
@@ -85,15 +83,10 @@ class DeviceRefused(LinkError):
     rebooting. Retried more slowly than a vanished port."""
 
 
-def open_serial(port: str, baudrate: int, exclusive: bool) -> serial.SerialBase:
-    """Open a device path or a pyserial URL; exclusive access on real ttys (flock)."""
-    # Non-blocking reads: the link waits with select() itself, then takes everything available
-    # at once (a blocking read(n) would sit out its timeout, and `in_waiting` of socket://
-    # ports only says 0 or 1).
-    kwargs: dict[str, Any] = {"baudrate": baudrate, "timeout": 0, "write_timeout": 1.0}
-    if exclusive and "://" not in port:
-        kwargs["exclusive"] = True
-    return serial.serial_for_url(port, **kwargs)
+def serial_port_factory(cfg: DeviceConfig) -> PortFactory:
+    """Opens ``cfg.port`` (a device path or a pyserial URL) afresh at every call; exclusive
+    access on real ttys when ``cfg.exclusive``."""
+    return functools.partial(SerialScannerPort, cfg.port, cfg.baudrate, exclusive=cfg.exclusive)
 
 
 def validate_hello(hello: Hello, cfg: DeviceConfig) -> None:
@@ -179,17 +172,18 @@ class ScannerLink:
         on_frame: Callable[[Frame, int], None] = lambda f, t: None,
         on_event: Callable[[str, str], None] = lambda level, text: None,
         on_alive: Callable[[], None] = lambda: None,
-        opener: Callable[[str, int, bool], Any] = open_serial,
+        port_factory: PortFactory | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self.cfg = cfg
         self._on_hello, self._on_scan, self._on_frame = on_hello, on_scan, on_frame
         self._on_event, self._on_alive = on_event, on_alive
-        self._opener = opener
+        # Opened by its path each time: a device that returns behind the same name is found again.
+        self._port_factory = port_factory or serial_port_factory(cfg)
         self._clock_ns = clock_ns
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._port: Any = None
+        self._port: ScannerPort | None = None
         self._decoder = StreamDecoder()
         self._tx_seq = 0
         # A device that was not power-cycled remembers its last answers by request id and replays
@@ -250,7 +244,7 @@ class ScannerLink:
                 self._handshake()
                 session_start = time.monotonic()
                 self._stream()
-            except (serial.SerialException, OSError) as exc:
+            except OSError as exc:  # a PortError, or an OS error a port implementation let through
                 self._fault("warning", "disconnected", f"serial port {self.cfg.port}: {exc}")
                 self.stats.disconnects += 1
                 if self.streaming.is_set() or self._trouble_until:
@@ -296,25 +290,22 @@ class ScannerLink:
 
     def _connect(self) -> None:
         self.stats.state = "connecting"
-        self._port = self._opener(self.cfg.port, self.cfg.baudrate, self.cfg.exclusive)
+        self._port = port = self._port_factory()
         self._decoder.reset()
         self._last_sample = None
         self._tx_seq = 0  # PROTOCOL.md §5: the host numbers its frames from 0 on every open
         self._query_until = 0.0
         self.stats.connects += 1
         try:
-            self._port.reset_input_buffer()
-        except (serial.SerialException, OSError, AttributeError):
-            pass
+            port.reset_input()  # bytes of an earlier session are not this one's
+        except PortError:
+            pass  # a port gone already says so at the first recv
         self._on_event("info", f"opened {self.cfg.port}")
 
     def _close_port(self) -> None:
         port, self._port = self._port, None
         if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001 - closing a vanished port may fail in many ways
-                pass
+            port.close()  # never raises, whatever state the device is in
 
     # -- I/O helpers -----------------------------------------------------------------------
 
@@ -326,7 +317,9 @@ class ScannerLink:
             # HELLOs within the handshake timeout answer it (retries are answered from the
             # device's memory, ACK and HELLO again).
             self._query_until = time.monotonic() + self.cfg.handshake_timeout_s
-        self._port.write(encode_frame(msg, self._tx_seq))
+        if self._port is None:
+            raise PortError(f"serial port {self.cfg.port} is not open")
+        self._port.send(encode_frame(msg, self._tx_seq))
         self._tx_seq = (self._tx_seq + 1) & 0xFFFF
 
     def _next_request_id(self) -> int:
@@ -334,14 +327,9 @@ class ScannerLink:
         return self._request_id
 
     def _read_frames(self) -> list[Frame]:
-        port = self._port
-        fileno = getattr(port, "fileno", None)
-        if fileno is not None:
-            readable, _, _ = select.select([fileno()], [], [], READ_TIMEOUT_S)
-            # pyserial raises SerialException when a readable port yields nothing (unplugged).
-            data = port.read(READ_CHUNK) if readable else b""
-        else:
-            data = port.read(min(max(port.in_waiting, 1), READ_CHUNK))
+        if self._port is None:
+            raise PortError(f"serial port {self.cfg.port} is not open")
+        data = self._port.recv(READ_TIMEOUT_S)  # b"" on a timeout; PortVanished when unplugged
         if not data:
             return []
         self.stats.bytes_in += len(data)
@@ -472,7 +460,7 @@ class ScannerLink:
 
     # -- commands --------------------------------------------------------------------------
 
-    def _request(self, msg: Message, what: str, retries: int = 3) -> Ack:
+    def _request(self, msg: Stop | SetScanRate | Start, what: str, retries: int = 3) -> Ack:
         """Send a command and wait for its ACK; retries reuse the request id (idempotent)."""
         deadline_each = self.cfg.handshake_timeout_s / retries
         for attempt in range(retries):
@@ -497,7 +485,7 @@ class ScannerLink:
         try:
             if self._port is not None:
                 self._send(Stop(self._next_request_id()))
-        except (serial.SerialException, OSError):
+        except OSError:
             pass
 
     # -- protocol steps --------------------------------------------------------------------
@@ -694,8 +682,8 @@ class ScannerLink:
     def _send_quietly(self, msg: Message) -> None:
         try:
             self._send(msg)
-        except serial.SerialTimeoutException:
-            pass
+        except PortWriteTimeout:
+            pass  # a stuck device: the stall handling deals with it
 
 
 class _Rebooted(Exception):

@@ -1,4 +1,6 @@
-"""One scan in, one published result out: strains → surface → element coordinates.
+"""One scan in, one published result out: the data path's stages in order, resistances →
+strains (skinmap.strains) → surface (skinmap.reconstruction) → element coordinates
+(skinmap.elements).
 
 `FramePipeline.process` is deterministic given the same sequence of scans, which is what lets
 `skinmap replay` reproduce a live run bit for bit from the logged raw frames. It does no I/O.
@@ -11,25 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from skinmap.daemon.calibration import Calibration, resistances_to_strains, to_nominal_offsets
-from skinmap.wire.messages import ElementFlag
+from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
+                              locate_elements, prior_elements)
+from skinmap.strains import (Calibration, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
+                             turning_noise_rad)
 
-__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator", "reject_implausible_units",
-           "turning_noise_rad"]
-
-# An element whose 1-s.d. position uncertainty exceeds this is flagged DEGRADED.
-DEGRADED_SIGMA_MM = 0.5
-# A sensing unit whose upper and lower strains imply that its gauge turns by more than half a
-# circle (bend radius < L/π ≈ 3 mm for a 10 mm gauge) is not a film we can bend: both gauges
-# are rejected as implausible (which of the pair is wrong cannot be told).
-MAX_UNIT_TURNING_RAD = float(np.pi)
-# Fit misfit (rad per gauge) above which a scan's strains are inconsistent with any one smooth
-# sheet: every element is flagged DEGRADED. Legitimate shapes of the forward model stay below
-# 1.7e-3 rad (8x8 and 16x16: palm, membrane, balloon, tight cylinders and spheres); independent
-# random bends of ±2.5 rad per gauge give 0.006-0.016. The limit grows with the strain noise.
-INCONSISTENT_RESIDUAL_RAD = 0.005
-INCONSISTENT_RESIDUAL_SIGMAS = 5.0
-
+__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator"]
 
 @dataclass(frozen=True)
 class ArrayGeometry:
@@ -119,10 +108,7 @@ class FramePipeline:
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
-        self.element_uv = np.asarray(element_uv_mm, dtype=np.float64).reshape(-1, 2)
-        self.element_offset = np.asarray(element_offset_mm, dtype=np.float64).reshape(-1)
-        if self.element_offset.shape[0] != self.element_uv.shape[0]:
-            raise ValueError("element offsets and element coordinates differ in count")
+        self.elements = element_layout(element_uv_mm, element_offset_mm, geometry.cell_uv(), geometry.pitch_mm)
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
         self.convex_solver = convex_solver
@@ -138,12 +124,16 @@ class FramePipeline:
         # lets replay reproduce live results bit for bit. Built on first use (it is costly) unless
         # taken over from the pipeline this one replaces.
         self._reconstructor: Any = None
-        half_u = (geometry.m - 1) / 2 * geometry.pitch_mm
-        half_v = (geometry.n - 1) / 2 * geometry.pitch_mm
-        cells = geometry.cell_uv().reshape(-1, 2)
-        dist = np.abs(self.element_uv[:, None, :] - cells[None, :, :]).max(axis=2)
-        self._neighbour_cells = dist <= 1.5 * geometry.pitch_mm  # (K, N·M)
-        self._extrapolated = (np.abs(self.element_uv[:, 0]) > half_u + 1e-9) | (np.abs(self.element_uv[:, 1]) > half_v + 1e-9)
+
+    @property
+    def element_uv(self) -> np.ndarray:
+        """(K, 2) material coordinates of the elements, mm."""
+        return self.elements.uv_mm
+
+    @property
+    def element_offset(self) -> np.ndarray:
+        """(K,) offsets of the elements along the upper normal, mm."""
+        return self.elements.offset_mm
 
     def set_calibration(self, calibration: Calibration) -> None:
         self.calibration = calibration
@@ -181,9 +171,10 @@ class FramePipeline:
         g = self.geometry
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
         cal = self.calibration
-        if cal.h_upper_mm is not None:
+        if cal.h_upper_mm is not None and cal.h_lower_mm is not None:  # they come in pairs
             eps_u, eps_l = to_nominal_offsets(eps_u, eps_l, cal.h_upper_mm, cal.h_lower_mm, g.h_upper_mm, g.h_lower_mm)
-        eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g)
+        eps_u, eps_l, valid, implausible = reject_implausible_units(eps_u, eps_l, valid, g.gauge_length_mm,
+                                                                    g.h_upper_mm, g.h_lower_mm)
         t0 = time.perf_counter()
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.twist_sign is not None:
@@ -196,33 +187,15 @@ class FramePipeline:
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
-        pos, nrm, sig = _locate(surf, self.element_uv)
-        pos = pos + self.element_offset[:, None] * nrm
+        pos, nrm, sig = locate_elements(surf, self.elements)
         solve_s = time.perf_counter() - t0
 
-        flags = np.full(self.element_uv.shape[0], int(ElementFlag.VALID), dtype=np.uint8)
-        flags[self._extrapolated] |= int(ElementFlag.EXTRAPOLATED)
-        flags[sig > DEGRADED_SIGMA_MM] |= int(ElementFlag.DEGRADED)
-        if not valid.all():
-            # Elements near a gauge the scan could not use rest on the prior there.
-            bad_cells = (~valid).any(axis=(0, 1)).ravel()
-            flags[self._neighbour_cells[:, bad_cells].any(axis=1)] |= int(ElementFlag.DEGRADED)
-            # With no usable unit (both layers read) anywhere near, the position is the prior
-            # alone, not a current estimate.
-            measured_cells = (valid[0] & valid[1]).any(axis=0).ravel()
-            unmeasured = ~self._neighbour_cells[:, measured_cells].any(axis=1)
-            flags[unmeasured] = (flags[unmeasured] & (0xFF ^ int(ElementFlag.VALID))) | int(ElementFlag.DEGRADED)
-        if getattr(surf, "mirror", None) is not None:
-            # the gauges cannot tell this shape from its mirror image (Surface.mirror)
-            flags |= int(ElementFlag.AMBIGUOUS)
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
-        residual = diagnostics.get("residual", 0.0)
-        limit = max(INCONSISTENT_RESIDUAL_RAD,
-                    INCONSISTENT_RESIDUAL_SIGMAS * turning_noise_rad(self.strain_sigma, g))
-        diagnostics["inconsistent"] = bool(residual > limit)
-        if diagnostics["inconsistent"]:
-            flags |= int(ElementFlag.DEGRADED)
+        noise = turning_noise_rad(self.strain_sigma, g.gauge_length_mm, g.h_upper_mm, g.h_lower_mm)
+        diagnostics["inconsistent"] = fit_inconsistent(diagnostics.get("residual", 0.0), noise)
+        flags = element_flags(self.elements, sig, valid, ambiguous=getattr(surf, "mirror", None) is not None,
+                              inconsistent=diagnostics["inconsistent"])
         finite = np.isfinite(nodes).all() and np.isfinite(normals).all() and np.isfinite(pos).all() and np.isfinite(nrm).all()
         if not finite:
             # Never publish NaN: hold the last good frame and say so.
@@ -238,10 +211,10 @@ class FramePipeline:
             gauge_valid=valid,
             nodes_mm=nodes,
             normals=normals,
-            node_sigma_mm=np.where(np.isfinite(node_sigma), node_sigma, 1e3),
+            node_sigma_mm=np.where(np.isfinite(node_sigma), node_sigma, UNKNOWN_SIGMA_MM),
             element_positions_mm=pos,
             element_normals=nrm,
-            element_sigma_mm=np.where(np.isfinite(sig), sig, 1e3),
+            element_sigma_mm=np.where(np.isfinite(sig), sig, UNKNOWN_SIGMA_MM),
             element_flags=flags,
             solve_time_s=solve_s,
             diagnostics=diagnostics,
@@ -252,59 +225,19 @@ class FramePipeline:
 
     def _stale(self, seq, device_time_us, host_time_ns, eps_u, eps_l, valid, solve_s) -> FrameResult:
         g = self.geometry
-        k = self.element_uv.shape[0]
         if self._last_good is not None:
             prev = self._last_good
             nodes, normals, node_sigma = prev.nodes_mm, prev.normals, prev.node_sigma_mm
             pos, nrm, sig = prev.element_positions_mm, prev.element_normals, prev.element_sigma_mm
-            flags = (prev.element_flags | int(ElementFlag.STALE)).astype(np.uint8)
+            flags = held_flags(prev.element_flags)
         else:
             uv = g.cell_uv()
             nodes = np.concatenate([uv, np.zeros((g.n, g.m, 1))], axis=-1)
             normals = np.broadcast_to([0.0, 0.0, 1.0], nodes.shape).copy()
-            node_sigma = np.full((g.n, g.m), 1e3)
-            pos = np.concatenate([self.element_uv, self.element_offset[:, None]], axis=1)
-            nrm = np.broadcast_to([0.0, 0.0, 1.0], (k, 3)).copy()
-            sig = np.full(k, 1e3)
-            flags = np.full(k, int(ElementFlag.STALE), dtype=np.uint8)
+            node_sigma = np.full((g.n, g.m), UNKNOWN_SIGMA_MM)
+            pos, nrm, sig, flags = prior_elements(self.elements)
         return FrameResult(seq, device_time_us, host_time_ns, eps_u, eps_l, valid, nodes, normals, node_sigma,
                            pos, nrm, sig, flags, solve_s, {"status": "non-finite solution; held last good frame"}, None)
-
-
-def turning_noise_rad(strain_sigma: float, geometry: ArrayGeometry) -> float:
-    """1-s.d. turning angle of one gauge due to strain noise: √2·σε·L / (h_u + h_l)."""
-    return float(np.sqrt(2.0) * strain_sigma * geometry.gauge_length_mm / (geometry.h_upper_mm + geometry.h_lower_mm))
-
-
-def reject_implausible_units(
-    eps_upper: np.ndarray, eps_lower: np.ndarray, valid: np.ndarray, geometry: ArrayGeometry
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Mark both gauges of a unit unusable when together they imply an impossible bend.
-
-    eps_* (2, N, M) with NaN for unusable gauges, valid (2, 2, N, M). Returns new arrays (the
-    inputs are not modified) and the number of units rejected here.
-    """
-    turning = (eps_upper - eps_lower) * geometry.gauge_length_mm / (geometry.h_upper_mm + geometry.h_lower_mm)
-    with np.errstate(invalid="ignore"):
-        bad = valid[0] & valid[1] & ~(np.abs(turning) <= MAX_UNIT_TURNING_RAD)
-    if not bad.any():
-        return eps_upper, eps_lower, valid, 0
-    valid = valid & ~bad[None]
-    return np.where(bad, np.nan, eps_upper), np.where(bad, np.nan, eps_lower), valid, int(bad.sum())
-
-
-def _locate(surf: Any, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if uv.shape[0] == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    out = surf.locate(uv)
-    pos, nrm = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.float64)
-    if len(out) > 2:
-        sig = np.asarray(out[2], dtype=np.float64)
-    elif hasattr(surf, "locate_sigma"):
-        sig = np.asarray(surf.locate_sigma(uv), dtype=np.float64)
-    else:
-        sig = np.full(uv.shape[0], np.nan)
-    return pos, nrm, sig
 
 
 def _diagnostics_dict(diag: Any) -> dict[str, Any]:

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from skinmap.wire import messages
-from skinmap.daemon.calibration import Calibration
+from skinmap.strains import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
 from skinmap.daemon.mcapinspect import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
 from skinmap.daemon.pipeline import FramePipeline, graph_restart

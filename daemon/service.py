@@ -30,11 +30,12 @@ import numpy as np
 
 import skinmap
 from skinmap.wire import messages
-from skinmap.daemon.calibration import Calibration, load_calibration_file, load_tare
+from skinmap.strains import Calibration, load_calibration_file, load_tare
 from skinmap.daemon.config import ConfigError, DaemonConfig, config_to_toml, load_config
 from skinmap.daemon.console import StatusConsole, shape_summary
-from skinmap.daemon.link import ScannerLink, open_serial
+from skinmap.daemon.link import ScannerLink
 from skinmap.daemon.notify import SystemdNotifier
+from skinmap.ports import PortFactory
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, FrameResult
 from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, FaultFlag, Frame, Hello, Scan, encode_frame
 
@@ -213,7 +214,7 @@ class Gateway:
         cfg: DaemonConfig,
         *,
         zenoh_session: Any = None,
-        opener: Callable[[str, int, bool], Any] = open_serial,
+        port_factory: PortFactory | None = None,
         logger_factory: Callable[[DaemonConfig], Any] | None = None,
         console: Callable[[dict[str, Any], dict[str, Any]], None] | None = None,
         notifier: SystemdNotifier | None = None,
@@ -264,7 +265,7 @@ class Gateway:
             on_frame=self._on_frame,
             on_event=self._on_event,
             on_alive=self._on_link_alive,
-            opener=opener,
+            port_factory=port_factory,
         )
         self.results: collections.deque[FrameResult] = collections.deque(maxlen=4)  # for tests and the console
         self._threads: list[threading.Thread] = []
@@ -653,7 +654,7 @@ class Gateway:
 
     def _tare_file_mtime(self, hello: Hello) -> tuple[float | None, float | None] | None:
         """Modification times of the tare and the calibration file (None: neither exists)."""
-        from skinmap.daemon.calibration import calibration_path, tare_path
+        from skinmap.strains import calibration_path, tare_path
 
         state = self.cfg.resolve(self.cfg.state.directory)
         times = []

@@ -1,6 +1,8 @@
 """Electrical model of the gauges: strain -> resistance -> ADC code on the wire.
 
-R = R0 · (1 + GF · ε_h + drift) + noise, then a 24-bit ADC over [0, full scale):
+R = R0 · (1 + GF · ε_h + drift) + noise, then a 24-bit ADC over [0, full scale). The gauge law
+itself is the host's (:func:`skinmap.strains.gauge_resistance`; the host inverts it with
+:func:`skinmap.strains.gauge_strain`): the emulator adds only what a real gauge and ADC do on top.
 
 - per-gauge gauge factor GF (1.24 ± 0.19) and base resistance R0 (6.55 ± 0.72 Ω) are the
   device's factory calibration, drawn once from a seed and reported in HELLO;
@@ -28,6 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from skinmap.protocol import RES_MAX_VALID, RES_OPEN, RES_SATURATED
+from skinmap.strains import gauge_resistance
 
 __all__ = [
     "GaugeConstants",
@@ -40,7 +43,6 @@ __all__ = [
     "lag_step",
     "strain_to_resistance",
     "quantise",
-    "resistance_to_strain",
 ]
 
 GF_MEAN, GF_SD = 1.24, 0.19
@@ -55,7 +57,7 @@ class GaugeConstants:
     gauge_factor: np.ndarray
     base_resistance_ohm: np.ndarray
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         gf, r0 = np.asarray(self.gauge_factor), np.asarray(self.base_resistance_ohm)
         if gf.ndim != 4 or gf.shape[:2] != (2, 2) or r0.shape != gf.shape:
             raise ValueError(
@@ -66,7 +68,8 @@ class GaugeConstants:
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
-        return tuple(np.shape(self.gauge_factor))  # type: ignore[return-value]
+        n_layers, n_dirs, n, m = np.shape(self.gauge_factor)
+        return n_layers, n_dirs, n, m
 
     def micro_units(self) -> tuple[np.ndarray, np.ndarray]:
         """(GF × 1e6, R0 in µΩ) as uint32, the HELLO representation."""
@@ -154,21 +157,19 @@ class ElectricalConfig:
 
     def without(self, *effects: str) -> "ElectricalConfig":
         """A copy with the named effects off: 'hysteresis', 'noise', 'drift', 'quantise', 'lag'."""
-        changes = {}
+        known = ("hysteresis", "noise", "drift", "quantise", "lag")
         for e in effects:
-            if e == "hysteresis":
-                changes["hysteresis"] = 0.0
-            elif e == "noise":
-                changes["noise_rel_sd"] = 0.0
-            elif e == "drift":
-                changes["drift_rel_sd"] = 0.0
-            elif e == "quantise":
-                changes["quantise"] = False
-            elif e == "lag":
-                changes["response_tau_s"] = 0.0
-            else:
-                raise ValueError(f"unknown effect {e!r}; known: hysteresis, noise, drift, quantise, lag")
-        return replace(self, **changes)
+            if e not in known:
+                raise ValueError(f"unknown effect {e!r}; known: {', '.join(known)}")
+        off = set(effects)
+        return replace(
+            self,
+            hysteresis=0.0 if "hysteresis" in off else self.hysteresis,
+            noise_rel_sd=0.0 if "noise" in off else self.noise_rel_sd,
+            drift_rel_sd=0.0 if "drift" in off else self.drift_rel_sd,
+            quantise=False if "quantise" in off else self.quantise,
+            response_tau_s=0.0 if "lag" in off else self.response_tau_s,
+        )
 
     @property
     def lsb_ohm(self) -> float:
@@ -213,7 +214,7 @@ def strain_to_resistance(
     rng: np.random.Generator | None = None,
 ) -> np.ndarray:
     """R = R0 (1 + GF ε + drift) plus white noise of s.d. noise_rel_sd · R (ohms)."""
-    r = calibration.base_resistance_ohm * (1.0 + calibration.gauge_factor * strain + drift)
+    r = gauge_resistance(strain, calibration.gauge_factor, calibration.base_resistance_ohm, drift)
     if noise_rel_sd:
         if rng is None:
             raise ValueError("noise needs a numpy Generator (rng)")
@@ -244,15 +245,6 @@ def quantise(
     if open_mask is not None:
         out[np.asarray(open_mask, dtype=bool)] = RES_OPEN
     return out
-
-
-def resistance_to_strain(resistance_uohm: np.ndarray, calibration: GaugeConstants) -> np.ndarray:
-    """Inverse of the ideal model for checks: ε = (R/R0 − 1)/GF, NaN for sentinels."""
-    raw = np.asarray(resistance_uohm)
-    r = raw.astype(float) * 1e-6
-    eps = (r / calibration.base_resistance_ohm - 1.0) / calibration.gauge_factor
-    eps[raw > RES_MAX_VALID] = np.nan
-    return eps
 
 
 @dataclass

@@ -10,7 +10,7 @@ import pytest
 from skinmap.daemon import cli
 from skinmap.daemon.calibrate import (CalibrationAborted, EmulatedPlacer, LinkFeed, run_calibration, take_static,
                                       tare_problem)
-from skinmap.daemon.calibration import (Calibration, calibration_path, load_calibration_file, parse_calibration,
+from skinmap.strains import (Calibration, calibration_path, load_calibration_file, parse_calibration,
                                         resistances_to_strains, to_nominal_offsets)
 from skinmap.daemon.config import DeviceConfig as LinkConfig
 from skinmap.daemon.moldcal import Pose, check_pose, fit_mold_calibration, standard_poses

@@ -110,7 +110,7 @@ def test_tare_from_log_refuses_a_bent_sheet_and_a_stored_tare_is_used(session_ru
     assert "not a tare" in err and "bent" in err and "nothing written" in err
     assert not list((tmp / "state").glob("tare-*.json"))
 
-    from skinmap.daemon.calibration import compute_tare, save_tare
+    from skinmap.strains import compute_tare, save_tare
     from skinmap.daemon.replay import resistances_from_log as scans_of
 
     serial, scans = scans_of(log, count=10)

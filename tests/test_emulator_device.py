@@ -6,7 +6,8 @@ import pytest
 
 from skinmap import protocol as p
 from skinmap.emulator.device import Device, ScannerSpec
-from skinmap.emulator.electrical import ElectricalConfig, resistance_to_strain
+from skinmap.emulator.electrical import ElectricalConfig
+from skinmap.strains import gauge_strain
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.protocol.framing import encode_body
 
@@ -101,7 +102,7 @@ def test_scan_values_are_the_forward_model():
     dev, host, _ = make(shape=shape)
     host.send(p.Start(1), 100.0)
     scan = only(host.poll(100.1), p.MsgType.SCAN)[0]
-    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    eps = gauge_strain(scan.resistances_ohm(), dev.calibration.gauge_factor, dev.calibration.base_resistance_ohm)
     eu, el = gauge_strains(shape, 5, 5)
     np.testing.assert_allclose(eps, np.stack([eu, el]), atol=3e-7)  # 1 µΩ quantum
 
@@ -111,7 +112,7 @@ def test_time_varying_shape_is_sampled_at_each_units_tdm_step():
     dev, host, _ = make(shape=shape, rate=5.0)
     host.send(p.Start(1), 100.0)
     scan = only(host.poll(100.45), p.MsgType.SCAN)[0]
-    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    eps = gauge_strain(scan.resistances_ohm(), dev.calibration.gauge_factor, dev.calibration.base_resistance_ohm)
     times = p.unit_sample_times_us(scan.timestamp_us, scan.step_period_ns, dev.drive_line) * 1e-6
     # the device clock started at boot (t=100 s) together with the shape clock
     skewed = np.stack(gauge_strains(shape, 5, 5, t=times, samples=8, panels=1))
@@ -388,7 +389,7 @@ def test_any_size_from_2x2_to_32x32(n, m):
     scan = only(host.poll(100.2), p.MsgType.SCAN)[0]
     assert scan.resistance_uohm.shape == (2, 2, n, m)
     assert scan.step_period_ns == round(1e12 / (5000 * 2 * min(n, m)))
-    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    eps = gauge_strain(scan.resistances_ohm(), dev.calibration.gauge_factor, dev.calibration.base_resistance_ohm)
     np.testing.assert_allclose(eps, np.stack(gauge_strains(shape, n, m)), atol=3e-7)
 
 

@@ -8,7 +8,8 @@ import pytest
 from skinmap import protocol as p
 from skinmap.emulator import cli
 from skinmap.emulator.device import Device, ScannerSpec
-from skinmap.emulator.electrical import ElectricalConfig, resistance_to_strain
+from skinmap.emulator.electrical import ElectricalConfig
+from skinmap.strains import gauge_strain
 from skinmap.emulator.physics import gauge_strains, ground_truth, make_shape
 from skinmap.emulator.scenes import KeyframedSheet, SheetShape, make_scene, parse_scene_spec
 
@@ -32,7 +33,7 @@ def test_device_streams_the_elastic_sphere_not_the_geodesic_map(cache):
     dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=10.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
     dev.poll(100.0)
     scan = scans(dev, 100.0, 100.1)[0]
-    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    eps = gauge_strain(scan.resistances_ohm(), dev.calibration.gauge_factor, dev.calibration.base_resistance_ohm)
     np.testing.assert_allclose(eps, np.stack(gauge_strains(shape, 5, 5)), atol=3e-7)  # the 1 µΩ quantum
     kinematic = np.stack(gauge_strains(make_shape("sphere", radius=60.0), 5, 5))
     # a film sliding on the sphere is stretched at its centre; the geodesic map only shortens circles
@@ -51,7 +52,7 @@ def test_moving_elastic_scene_is_sampled_at_each_units_tdm_step(cache):
     dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=5.0, electrical=ElectricalConfig.ideal()), shape, now_s=100.0)
     dev.poll(100.0)
     scan = scans(dev, 100.0, 100.45)[0]
-    eps = resistance_to_strain(scan.resistance_uohm, dev.calibration)
+    eps = gauge_strain(scan.resistances_ohm(), dev.calibration.gauge_factor, dev.calibration.base_resistance_ohm)
     times = p.unit_sample_times_us(scan.timestamp_us, scan.step_period_ns, dev.drive_line) * 1e-6
     skewed = np.stack(gauge_strains(shape, 5, 5, t=times, samples=8, panels=1))  # as the device asks
     np.testing.assert_allclose(eps, skewed, atol=3e-7)

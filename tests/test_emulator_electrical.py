@@ -11,10 +11,10 @@ from skinmap.emulator.electrical import (
     draw_calibration,
     hysteresis_step,
     quantise,
-    resistance_to_strain,
     strain_to_resistance,
 )
 from skinmap.protocol import RES_OPEN, RES_SATURATED
+from skinmap.strains import gauge_strain
 
 
 def test_calibration_statistics_and_determinism():
@@ -39,7 +39,7 @@ def test_ideal_chain_inverts_exactly_to_wire_resolution():
     ro = GaugeReadout(cal, ElectricalConfig.ideal(), rng)
     wire = ro.read(strain, 0.0)
     assert wire.dtype == np.uint32
-    back = resistance_to_strain(wire, cal)
+    back = gauge_strain(wire * 1e-6, cal.gauge_factor, cal.base_resistance_ohm)
     # 1 µΩ of 6.5 Ω at GF 1.24 is ~1.2e-7 strain
     np.testing.assert_allclose(back, strain, atol=0.6e-6 / (cal.base_resistance_ohm * cal.gauge_factor).min())
 
@@ -116,7 +116,8 @@ def test_response_lag_is_first_order_and_off_by_default():
     ro = GaugeReadout(cal, cfg, np.random.default_rng(0))
     zero, step = np.zeros((2, 2, 2, 2)), np.full((2, 2, 2, 2), 0.01)
     ro.read(zero, 0.0)
-    eps = [resistance_to_strain(ro.read(step, 0.01 * k), cal) for k in range(1, 31)]
+    eps = [gauge_strain(ro.read(step, 0.01 * k) * 1e-6, cal.gauge_factor, cal.base_resistance_ohm)
+           for k in range(1, 31)]
     eps = np.array(eps)[:, 0, 0, 0, 0]
     expected = 0.01 * (1 - np.exp(-0.01 * np.arange(1, 31) / 0.05))
     np.testing.assert_allclose(eps, expected, atol=2e-7)

@@ -12,15 +12,17 @@ import time
 import pytest
 
 from skinmap.daemon.config import DeviceConfig as LinkConfig
-from skinmap.daemon.link import ScannerLink, open_serial
+from skinmap.daemon.link import ScannerLink, serial_port_factory
 from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.emulator import Emulator
+from skinmap.emulator.loopback import DeviceLoopback
 from skinmap.emulator.physics import make_shape
 from skinmap.emulator.transport import SharedTcpTransport
+from skinmap.ports import PortFactory, ScannerPort
 from skinmap.protocol import DeviceState, Start, StreamDecoder, encode_frame, step_period_ns
 
 from conftest import wait_until
-from test_link import CFG, FakePort, Recorder, make_device
+from test_link import CFG, Recorder, make_device
 
 
 class ScanLog(Recorder):
@@ -30,13 +32,14 @@ class ScanLog(Recorder):
         super().__init__()
         self.periods: list[int] = []
 
-    def link(self, cfg: LinkConfig, opener) -> ScannerLink:
+    def link(self, cfg: LinkConfig, port_factory: PortFactory) -> ScannerLink:
         def on_scan(scan, frame, t):
             self.scans.append(scan.sample_index)
             self.periods.append(scan.step_period_ns)
 
         return ScannerLink(cfg, on_hello=self.hellos.append, on_scan=on_scan,
-                           on_event=lambda level, text: self.events.append((level, text)), opener=opener)
+                           on_event=lambda level, text: self.events.append((level, text)),
+                           port_factory=port_factory)
 
 
 
@@ -44,16 +47,10 @@ def texts(rec: Recorder, word: str) -> list[str]:
     return [t for _, t in rec.events if word in t]
 
 
-def running(dev: Device, rec: Recorder, cfg: LinkConfig = CFG, port: FakePort | None = None) -> ScannerLink:
-    port = port or FakePort(dev)
-    link = rec.link(cfg, lambda *a: port)
+def running(dev: Device, rec: Recorder, cfg: LinkConfig = CFG, loop: DeviceLoopback | None = None) -> ScannerLink:
+    link = rec.link(cfg, (loop or DeviceLoopback(dev)).open)
     link.start()
     return link
-
-
-def reboot_on_port(port: FakePort, dev: Device) -> None:
-    with port.lock:  # the firmware restarts and announces itself (or not) with HELLO seq 0
-        port._append(dev._reboot_now(time.monotonic(), True))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -102,14 +99,15 @@ def test_major_version_mismatch_stops_the_device_and_backs_off_beyond_the_reconn
 def test_reboot_into_an_incompatible_protocol_stops_the_device():
     dev = make_device()
     rec = Recorder()
-    port = FakePort(dev)
-    link = running(dev, rec, port=port)
+    loop = DeviceLoopback(dev)
+    link = running(dev, rec, loop=loop)
     try:
         assert wait_until(lambda: len(rec.scans) >= 5)
         dev.hostile.hello_protocol_major = 2
-        reboot_on_port(port, dev)
+        loop.reboot()
         assert wait_until(lambda: link.stats.handshake_failures >= 1)
-        _start_scanning(dev)  # the new firmware starts by itself: the next refusal stops it again
+        with loop.lock:
+            _start_scanning(dev)  # the new firmware starts by itself: the next refusal stops it again
         assert wait_until(lambda: link.stats.handshake_failures >= 2 and dev.state == DeviceState.IDLE)
     finally:
         link.stop()
@@ -124,12 +122,12 @@ def test_lost_boot_hello_still_gets_the_configured_rate_before_start():
     # boot default 20 scans/s, configured 100
     dev = Device(ScannerSpec(n=5, m=5, scan_rate_hz=20.0, seed=3), make_shape("flat"), now_s=time.monotonic())
     rec = ScanLog()
-    port = FakePort(dev)
-    link = running(dev, rec, port=port)
+    loop = DeviceLoopback(dev)
+    link = running(dev, rec, loop=loop)
     try:
         assert wait_until(lambda: len(rec.scans) >= 10)
         dev.hostile.lose_boot_hello = True
-        reboot_on_port(port, dev)  # IDLE, at its boot rate, and the host was not told
+        loop.reboot()  # IDLE, at its boot rate, and the host was not told
         assert wait_until(lambda: link.stats.stalls >= 1)
         n = len(rec.scans)
         assert wait_until(lambda: len(rec.scans) > n + 20)
@@ -232,12 +230,12 @@ def test_scans_dropped_by_the_device_are_not_counted_as_link_loss():
 def test_lost_start_ack_after_a_reboot_counts_one_reboot():
     dev = make_device()
     rec = Recorder()
-    port = FakePort(dev)
-    link = running(dev, rec, port=port)
+    loop = DeviceLoopback(dev)
+    link = running(dev, rec, loop=loop)
     try:
         assert wait_until(lambda: len(rec.scans) >= 20)
         dev.hostile.lose_start_acks = 1
-        reboot_on_port(port, dev)
+        loop.reboot()
         assert wait_until(lambda: link.stats.reboots >= 1)
         n = len(rec.scans)
         assert wait_until(lambda: len(rec.scans) > n + 20)
@@ -268,29 +266,36 @@ def test_host_sequence_numbers_start_at_zero_on_every_open():
     dev = make_device()
     written: list[list[int]] = []
 
-    class RecordingPort(FakePort):
-        def __init__(self, device):
-            super().__init__(device)
-            self.decoder = StreamDecoder()
+    class RecordingPort(ScannerPort):
+        """Passes everything on; decodes what the host writes."""
+
+        def __init__(self, inner: ScannerPort) -> None:
+            super().__init__(inner.name)
+            self.inner, self.decoder = inner, StreamDecoder()
             written.append([])
 
-        def write(self, data):
-            written[-1].extend(f.seq for f in self.decoder.feed(bytes(data)))
-            return super().write(data)
+        def _send_internal(self, data: bytes) -> None:
+            written[-1].extend(f.seq for f in self.decoder.feed(data))
+            self.inner.send(data)
 
-    ports: list[FakePort] = []
+        def _recv_internal(self, timeout: float | None) -> bytes:
+            return self.inner.recv(timeout)
 
-    def opener(*_a):
-        ports.append(RecordingPort(dev))
-        return ports[-1]
+        def _reset_input_internal(self) -> None:
+            self.inner.reset_input()
 
+        def _close_internal(self) -> None:
+            self.inner.close()
+
+    loop = DeviceLoopback(dev)
     rec = Recorder()
-    link = rec.link(CFG, opener)
+    link = rec.link(CFG, lambda: RecordingPort(loop.open()))
     link.start()
     try:
         assert wait_until(lambda: len(rec.scans) >= 5)
-        ports[-1].unplugged = True
-        assert wait_until(lambda: len(ports) >= 2 and len(rec.scans) > 20)
+        loop.unplug()
+        loop.replug(power_cycle=False)  # the line glitched; the scanner kept its power
+        assert wait_until(lambda: len(written) >= 2 and len(rec.scans) > 20)
     finally:
         link.stop()
     assert [w[0] for w in written[:2]] == [0, 0]
@@ -325,12 +330,12 @@ def test_hello_storm_without_reboot_costs_no_scans_and_is_unhealthy_while_it_las
 def test_reboot_storm_backs_off_with_a_clear_error():
     dev = make_device()
     rec = Recorder()
-    port = FakePort(dev)
-    link = running(dev, rec, port=port)
+    loop = DeviceLoopback(dev)
+    link = running(dev, rec, loop=loop)
     try:
         assert wait_until(lambda: len(rec.scans) >= 5)
         for _ in range(6):
-            reboot_on_port(port, dev)
+            loop.reboot()
             assert wait_until(lambda: link.stats.state != "handshake")
             time.sleep(0.05)
         assert wait_until(lambda: link.stats.handshake_failures >= 1)
@@ -341,20 +346,16 @@ def test_reboot_storm_backs_off_with_a_clear_error():
 
 def test_a_port_lost_again_and_again_is_reported_unstable_while_it_streams():
     dev = make_device()
-    ports: list[FakePort] = []
-
-    def opener(*_a):
-        ports.append(FakePort(dev))
-        return ports[-1]
-
+    loop = DeviceLoopback(dev)
     rec = Recorder()
-    link = rec.link(CFG, opener)
+    link = rec.link(CFG, loop.open)
     link.start()
     try:
         for _ in range(3):  # as when another host takes a socket:// port over in turn
             n = len(rec.scans)
             assert wait_until(lambda: len(rec.scans) >= n + 5)
-            ports[-1].unplugged = True
+            loop.unplug()
+            loop.replug(power_cycle=False)
         n = len(rec.scans)
         assert wait_until(lambda: len(rec.scans) >= n + 5)
         during = (link.streaming.is_set(), link.stats.state, link.stats.last_error)
@@ -375,7 +376,7 @@ def test_two_hosts_on_a_shared_socket_are_both_told_and_unhealthy():
     try:
         for _ in range(2):
             rec = Recorder()
-            link = rec.link(cfg, open_serial)
+            link = rec.link(cfg, serial_port_factory(cfg))
             link.start()
             links.append(link)
             recs.append(rec)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skinmap.daemon.calibration import Calibration
+from skinmap.strains import Calibration
 from skinmap.daemon.config import ConfigError, parse_config
 from skinmap.wire.messages import ElementFlag
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline

@@ -15,9 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from skinmap.daemon.calibration import Calibration
+from skinmap.strains import Calibration, reject_implausible_units
 from skinmap.wire.messages import ElementFlag
-from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, reject_implausible_units
+from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.protocol import RES_OPEN, RES_SATURATED, Scan
 
@@ -185,7 +185,8 @@ def test_reject_implausible_units_leaves_its_inputs_alone():
     eu, el = EPS_U.copy(), EPS_L.copy()
     eu[0, 1, 1], el[0, 1, 1] = 0.2, -0.2  # 0.4 strain across 0.4 mm: a 10 rad turn over 10 mm
     valid = np.ones((2, 2, N, M), bool)
-    eu2, el2, valid2, count = reject_implausible_units(eu, el, valid, GEOMETRY)
+    eu2, el2, valid2, count = reject_implausible_units(eu, el, valid, GEOMETRY.gauge_length_mm,
+                                                        GEOMETRY.h_upper_mm, GEOMETRY.h_lower_mm)
     assert count == 1 and valid.all() and eu[0, 1, 1] == 0.2
     assert not valid2[:, 0, 1, 1].any() and np.isnan(eu2[0, 1, 1]) and np.isnan(el2[0, 1, 1])
     assert valid2.sum() == valid.size - 2

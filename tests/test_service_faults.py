@@ -22,7 +22,7 @@ import zenoh
 from conftest import drain_notify, free_port, gateway_config, notify_socket, pty_emulator, running_gateway, wait_for
 
 from skinmap.daemon import service
-from skinmap.daemon.calibration import save_tare, tare_path
+from skinmap.strains import save_tare, tare_path
 from skinmap.client import SkinmapClient
 from skinmap.daemon.notify import SystemdNotifier
 from skinmap.daemon.service import DeviceClockCheck, HostDecimator, load_calibration

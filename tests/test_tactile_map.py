@@ -72,7 +72,7 @@ directory = "state"
 def _write_calibration(state, emu) -> None:
     """A mold calibration in force for the run (gauge factors 2 % above HELLO's, offsets off
     nominal), so that the log carries it and replay must use it."""
-    from skinmap.daemon.calibration import save_calibration
+    from skinmap.strains import save_calibration
 
     gf = emu.device.calibration.gauge_factor * 1.02
     hu, hl = np.full((2, 8, 8), 0.21), np.full((2, 8, 8), 0.19)

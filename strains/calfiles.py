@@ -1,19 +1,10 @@
-"""Resistances → calibrated strains, and the flat-sheet tare.
+"""The tare and the mold calibration file: their formats, writing them atomically, and reading
+them back with an error that names the file and what is wrong with it.
 
-The scanner reports each gauge's resistance; it also stores a factory calibration
-(gauge factor GF and base resistance R0 per gauge) that it sends in HELLO. A tare of the flat,
-unloaded sheet replaces R0 by the measured resting resistance, which removes the
-channel-to-channel offsets and the slow drift that a factory R0 cannot know about.
-
-    eps = (R / R0 − 1) / GF
-
-Arrays are shaped (2 layers, 2 directions, N, M), layer 0 = upper, 1 = lower.
-
-A mold calibration (``skinmap calibrate``, :mod:`skinmap.daemon.moldcal`) adds per-gauge gauge
-factors and per-unit layer offsets, stored in a versioned calibration file next to the tare.
-The reconstruction takes one pair of nominal offsets, so strains measured on a unit whose true
-offsets differ are mapped to the strains that unit would read at the nominal offsets
-(:func:`to_nominal_offsets`): the same stretch and turning, read at h_u and h_l.
+The tare (``tare-SERIAL.json``) holds each gauge's resting resistance of the flat, unloaded
+sheet; the calibration file (``calibration-SERIAL.json``, :data:`CALIBRATION_FORMAT`) holds the
+gauge factors and layer offsets a mold calibration found (docs/calibration.md). Both live in
+the state directory.
 """
 from __future__ import annotations
 
@@ -21,81 +12,14 @@ import json
 import os
 import stat
 import time
-from dataclasses import dataclass
+import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["Calibration", "resistances_to_strains", "to_nominal_offsets", "compute_tare", "save_tare", "load_tare",
-           "tare_path", "calibration_path", "save_calibration", "load_calibration_file", "CALIBRATION_FORMAT"]
-
-# A gauge whose strain reads beyond this is treated as faulty (the gauges are linear to 50 %).
-MAX_PLAUSIBLE_STRAIN = 0.6
-
-
-@dataclass(frozen=True)
-class Calibration:
-    gauge_factor: np.ndarray  # (2, 2, N, M)
-    base_resistance: np.ndarray  # (2, 2, N, M) ohm
-    source: str = "factory"  # "factory", "tare <iso time>", "calibration <iso time>" or both
-    h_upper_mm: np.ndarray | None = None  # (2, N, M) per-unit layer offsets of a mold calibration
-    h_lower_mm: np.ndarray | None = None
-    summary: dict | None = None  # what the calibration file says of itself (method, date, residuals)
-
-    def __post_init__(self) -> None:
-        if (self.h_upper_mm is None) != (self.h_lower_mm is None):
-            raise ValueError("calibration: layer offsets come in pairs (h_upper_mm and h_lower_mm)")
-        if self.h_upper_mm is not None:
-            want = self.gauge_factor.shape[1:]
-            for name in ("h_upper_mm", "h_lower_mm"):
-                h = getattr(self, name)
-                if h.shape != want or not (np.all(np.isfinite(h)) and np.all(h > 0)):
-                    raise ValueError(f"calibration: {name} must be {list(want)} finite offsets > 0 mm")
-        gf, r0 = self.gauge_factor, self.base_resistance
-        if gf.shape != r0.shape or gf.ndim != 4 or gf.shape[:2] != (2, 2):
-            raise ValueError(f"calibration arrays must both be (2, 2, N, M); got {gf.shape} and {r0.shape}")
-        if not (np.all(np.isfinite(gf)) and np.all(gf > 0)):
-            raise ValueError("calibration: every gauge factor must be finite and > 0")
-        if not (np.all(np.isfinite(r0)) and np.all(r0 > 0)):
-            raise ValueError("calibration: every base resistance must be finite and > 0 ohm")
-
-    def with_tare(self, base_resistance: np.ndarray, source: str) -> "Calibration":
-        tared = np.where(np.isfinite(base_resistance) & (base_resistance > 0), base_resistance, self.base_resistance)
-        return Calibration(self.gauge_factor, tared, source, self.h_upper_mm, self.h_lower_mm, self.summary)
-
-    def with_mold_fit(self, gauge_factor: np.ndarray, h_upper_mm: np.ndarray, h_lower_mm: np.ndarray,
-                      source: str, summary: dict | None = None) -> "Calibration":
-        """These gauge factors and layer offsets, the base resistances kept."""
-        return Calibration(gauge_factor, self.base_resistance, source, h_upper_mm, h_lower_mm, summary)
-
-
-def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np.ndarray, h_lower: np.ndarray,
-                       h_upper_nominal: float, h_lower_nominal: float) -> tuple[np.ndarray, np.ndarray]:
-    """Strains of units with layer offsets (h_upper, h_lower) as units at the nominal offsets
-    would read them: the stretch (ε_u h_l + ε_l h_u)/(h_u + h_l) and the turning
-    (ε_u − ε_l)/(h_u + h_l) are kept (Kirchhoff–Love, to first order in h)."""
-    total = h_upper + h_lower
-    stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
-    turning = (eps_upper - eps_lower) / total
-    return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
-
-
-def resistances_to_strains(
-    resistance_ohm: np.ndarray, cal: Calibration
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Calibrated strains from resistances.
-
-    Returns (eps_upper, eps_lower, valid): eps_* are (2, N, M) with NaN where a gauge is open,
-    saturated or implausible; valid is the (2, 2, N, M) boolean mask of usable gauges.
-    """
-    r = np.asarray(resistance_ohm, dtype=np.float64)
-    if r.shape != cal.gauge_factor.shape:
-        raise ValueError(f"resistance array shape {r.shape} does not match calibration {cal.gauge_factor.shape}")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        eps = (r / cal.base_resistance - 1.0) / cal.gauge_factor
-    valid = np.isfinite(eps) & (np.abs(eps) <= MAX_PLAUSIBLE_STRAIN)
-    eps = np.where(valid, eps, np.nan)
-    return eps[0], eps[1], valid
+__all__ = ["compute_tare", "save_tare", "parse_tare", "load_tare", "tare_path", "calibration_path",
+           "save_calibration", "parse_calibration", "load_calibration_file", "CALIBRATION_FORMAT", "MAX_TARE_BYTES"]
 
 
 def compute_tare(resistance_scans: np.ndarray) -> np.ndarray:
@@ -104,8 +28,6 @@ def compute_tare(resistance_scans: np.ndarray) -> np.ndarray:
     if scans.ndim != 5 or scans.shape[0] < 1:
         raise ValueError(f"tare needs scans shaped (K, 2, 2, N, M); got {scans.shape}")
     with np.errstate(all="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             return np.nanmedian(scans, axis=0)

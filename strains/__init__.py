@@ -1,0 +1,22 @@
+"""skinmap.strains: resistances → calibrated strains (the gauge law, one definition both ways),
+the tare and the mold calibration file.
+
+- :mod:`~skinmap.strains.gauges`: :class:`Calibration`, the gauge law
+  (:func:`gauge_resistance`, :func:`gauge_strain`), :func:`resistances_to_strains`, the
+  mapping to nominal layer offsets and the rejection of impossible units (pure numpy);
+- :mod:`~skinmap.strains.calfiles`: the tare and calibration files (format, atomic writes,
+  loading with errors that name the file).
+"""
+from __future__ import annotations
+
+from skinmap.strains.calfiles import (CALIBRATION_FORMAT, MAX_TARE_BYTES, calibration_path, compute_tare,
+                                      load_calibration_file, load_tare, parse_calibration, parse_tare,
+                                      save_calibration, save_tare, tare_path)
+from skinmap.strains.gauges import (MAX_PLAUSIBLE_STRAIN, MAX_UNIT_TURNING_RAD, Calibration, gauge_resistance,
+                                    gauge_strain, reject_implausible_units, resistances_to_strains,
+                                    to_nominal_offsets, turning_noise_rad)
+
+__all__ = ["CALIBRATION_FORMAT", "MAX_TARE_BYTES", "calibration_path", "compute_tare", "load_calibration_file",
+           "load_tare", "parse_calibration", "parse_tare", "save_calibration", "save_tare", "tare_path",
+           "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "Calibration", "gauge_resistance", "gauge_strain",
+           "reject_implausible_units", "resistances_to_strains", "to_nominal_offsets", "turning_noise_rad"]

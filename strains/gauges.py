@@ -1,0 +1,142 @@
+"""Resistances → calibrated strains: the one definition of the gauge law, both ways.
+
+Each gauge's resistance follows its strain linearly (docs/architecture.md, "Electrical model"):
+
+    R = R0 · (1 + GF · ε)          ε = (R / R0 − 1) / GF
+
+with the per-gauge gauge factor GF and base resistance R0. The emulator's electrical model
+computes readings with :func:`gauge_resistance` (plus its non-idealities); the host inverts them
+with :func:`gauge_strain`. The scanner stores a factory calibration (GF, R0 per gauge) and
+sends it in HELLO; a tare of the flat, unloaded sheet replaces R0 by the measured resting
+resistance, which removes the channel-to-channel offsets and the slow drift that a factory R0
+cannot know about.
+
+Arrays are shaped (2 layers, 2 directions, N, M), layer 0 = upper, 1 = lower.
+
+A mold calibration (``skinmap calibrate``, :mod:`skinmap.daemon.moldcal`) adds per-gauge gauge
+factors and per-unit layer offsets, stored in a versioned calibration file next to the tare
+(:mod:`skinmap.strains.calfiles`). The reconstruction takes one pair of nominal offsets, so
+strains measured on a unit whose true offsets differ are mapped to the strains that unit would
+read at the nominal offsets (:func:`to_nominal_offsets`): the same stretch and turning, read at
+h_u and h_l.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
+           "reject_implausible_units", "turning_noise_rad", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
+
+
+def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
+                     drift: np.ndarray | float = 0.0) -> np.ndarray:
+    """R = R0 (1 + GF ε + drift), ohms; ``drift`` is a relative change of R that no strain
+    explains (the emulator's slow drift; the host's tare takes it up)."""
+    return base_resistance_ohm * (1.0 + gauge_factor * strain + drift)
+
+
+def gauge_strain(resistance_ohm: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray) -> np.ndarray:
+    """ε = (R / R0 − 1) / GF, the inverse of :func:`gauge_resistance` without drift; NaN
+    resistances (open or saturated gauges) give NaN."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (np.asarray(resistance_ohm, dtype=np.float64) / base_resistance_ohm - 1.0) / gauge_factor
+
+
+# A gauge whose strain reads beyond this is treated as faulty (the gauges are linear to 50 %).
+MAX_PLAUSIBLE_STRAIN = 0.6
+
+
+@dataclass(frozen=True)
+class Calibration:
+    gauge_factor: np.ndarray  # (2, 2, N, M)
+    base_resistance: np.ndarray  # (2, 2, N, M) ohm
+    source: str = "factory"  # "factory", "tare <iso time>", "calibration <iso time>" or both
+    h_upper_mm: np.ndarray | None = None  # (2, N, M) per-unit layer offsets of a mold calibration
+    h_lower_mm: np.ndarray | None = None
+    summary: dict[str, Any] | None = None  # what the calibration file says of itself (method, date, residuals)
+
+    def __post_init__(self) -> None:
+        if (self.h_upper_mm is None) != (self.h_lower_mm is None):
+            raise ValueError("calibration: layer offsets come in pairs (h_upper_mm and h_lower_mm)")
+        if self.h_upper_mm is not None:
+            want = self.gauge_factor.shape[1:]
+            for name in ("h_upper_mm", "h_lower_mm"):
+                h = getattr(self, name)
+                if h.shape != want or not (np.all(np.isfinite(h)) and np.all(h > 0)):
+                    raise ValueError(f"calibration: {name} must be {list(want)} finite offsets > 0 mm")
+        gf, r0 = self.gauge_factor, self.base_resistance
+        if gf.shape != r0.shape or gf.ndim != 4 or gf.shape[:2] != (2, 2):
+            raise ValueError(f"calibration arrays must both be (2, 2, N, M); got {gf.shape} and {r0.shape}")
+        if not (np.all(np.isfinite(gf)) and np.all(gf > 0)):
+            raise ValueError("calibration: every gauge factor must be finite and > 0")
+        if not (np.all(np.isfinite(r0)) and np.all(r0 > 0)):
+            raise ValueError("calibration: every base resistance must be finite and > 0 ohm")
+
+    def with_tare(self, base_resistance: np.ndarray, source: str) -> "Calibration":
+        tared = np.where(np.isfinite(base_resistance) & (base_resistance > 0), base_resistance, self.base_resistance)
+        return Calibration(self.gauge_factor, tared, source, self.h_upper_mm, self.h_lower_mm, self.summary)
+
+    def with_mold_fit(self, gauge_factor: np.ndarray, h_upper_mm: np.ndarray, h_lower_mm: np.ndarray,
+                      source: str, summary: dict[str, Any] | None = None) -> "Calibration":
+        """These gauge factors and layer offsets, the base resistances kept."""
+        return Calibration(gauge_factor, self.base_resistance, source, h_upper_mm, h_lower_mm, summary)
+
+
+def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np.ndarray, h_lower: np.ndarray,
+                       h_upper_nominal: float, h_lower_nominal: float) -> tuple[np.ndarray, np.ndarray]:
+    """Strains of units with layer offsets (h_upper, h_lower) as units at the nominal offsets
+    would read them: the stretch (ε_u h_l + ε_l h_u)/(h_u + h_l) and the turning
+    (ε_u − ε_l)/(h_u + h_l) are kept (Kirchhoff–Love, to first order in h)."""
+    total = h_upper + h_lower
+    stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
+    turning = (eps_upper - eps_lower) / total
+    return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
+
+
+def resistances_to_strains(
+    resistance_ohm: np.ndarray, cal: Calibration
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Calibrated strains from resistances.
+
+    Returns (eps_upper, eps_lower, valid): eps_* are (2, N, M) with NaN where a gauge is open,
+    saturated or implausible; valid is the (2, 2, N, M) boolean mask of usable gauges.
+    """
+    r = np.asarray(resistance_ohm, dtype=np.float64)
+    if r.shape != cal.gauge_factor.shape:
+        raise ValueError(f"resistance array shape {r.shape} does not match calibration {cal.gauge_factor.shape}")
+    eps = gauge_strain(r, cal.gauge_factor, cal.base_resistance)
+    valid = np.isfinite(eps) & (np.abs(eps) <= MAX_PLAUSIBLE_STRAIN)
+    eps = np.where(valid, eps, np.nan)
+    return eps[0], eps[1], valid
+
+
+# A sensing unit whose upper and lower strains imply that its gauge turns by more than half a
+# circle (bend radius < L/π ≈ 3 mm for a 10 mm gauge) is not a film we can bend: both gauges
+# are rejected as implausible (which of the pair is wrong cannot be told).
+MAX_UNIT_TURNING_RAD = float(np.pi)
+
+
+def turning_noise_rad(strain_sigma: float, gauge_length_mm: float, h_upper_mm: float, h_lower_mm: float) -> float:
+    """1-s.d. turning angle of one gauge due to strain noise: √2·σε·L / (h_u + h_l)."""
+    return float(np.sqrt(2.0) * strain_sigma * gauge_length_mm / (h_upper_mm + h_lower_mm))
+
+
+def reject_implausible_units(
+    eps_upper: np.ndarray, eps_lower: np.ndarray, valid: np.ndarray, gauge_length_mm: float, h_upper_mm: float,
+    h_lower_mm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Mark both gauges of a unit unusable when together they imply an impossible bend.
+
+    eps_* (2, N, M) with NaN for unusable gauges, valid (2, 2, N, M). Returns new arrays (the
+    inputs are not modified) and the number of units rejected here.
+    """
+    turning = (eps_upper - eps_lower) * gauge_length_mm / (h_upper_mm + h_lower_mm)
+    with np.errstate(invalid="ignore"):
+        bad = valid[0] & valid[1] & ~(np.abs(turning) <= MAX_UNIT_TURNING_RAD)
+    if not bad.any():
+        return eps_upper, eps_lower, valid, 0
+    valid = valid & ~bad[None]
+    return np.where(bad, np.nan, eps_upper), np.where(bad, np.nan, eps_lower), valid, int(bad.sum())

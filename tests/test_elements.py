@@ -1,0 +1,83 @@
+"""skinmap.elements: element positions, normals, uncertainty and flags on a located surface."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap.elements import (DEGRADED_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
+                              locate_elements, prior_elements)
+from skinmap.wire.messages import ElementFlag
+
+VALID, EXTRAPOLATED, DEGRADED, STALE, AMBIGUOUS = (int(f) for f in (
+    ElementFlag.VALID, ElementFlag.EXTRAPOLATED, ElementFlag.DEGRADED, ElementFlag.STALE, ElementFlag.AMBIGUOUS))
+
+
+def cells(n: int = 3, m: int = 3, pitch: float = 10.0) -> np.ndarray:
+    u = (np.arange(m) - (m - 1) / 2) * pitch
+    v = (np.arange(n) - (n - 1) / 2) * pitch
+    uu, vv = np.meshgrid(u, v)
+    return np.stack([uu, vv], axis=-1)
+
+
+class TiltedPlane:
+    """z = 0.1 u, σ growing with |u|: positions, normals and σ known in closed form."""
+
+    def locate(self, uv):
+        uv = np.asarray(uv, float)
+        pos = np.stack([uv[:, 0], uv[:, 1], 0.1 * uv[:, 0]], axis=1)
+        n = np.array([-0.1, 0.0, 1.0]) / np.sqrt(1.01)
+        return pos, np.broadcast_to(n, pos.shape).copy()
+
+    def locate_sigma(self, uv):
+        return 0.01 * np.abs(np.asarray(uv, float)[:, 0])
+
+
+def test_layout_knows_neighbours_and_extrapolation():
+    layout = element_layout([[0.0, 0.0], [25.0, 0.0], [-10.0, 10.0]], [0.0, 0.0, 0.0], cells(), 10.0)
+    assert layout.count == 3 and list(layout.extrapolated) == [False, True, False]
+    assert layout.neighbour_cells.shape == (3, 9) and layout.neighbour_cells[0].all()
+    with pytest.raises(ValueError, match="2 element offsets for 3"):
+        element_layout(np.zeros((3, 2)), [0.0, 0.0], cells(), 10.0)
+
+
+def test_elements_are_located_and_moved_along_the_normal_by_their_offset():
+    layout = element_layout([[0.0, 0.0], [10.0, -5.0]], [0.0, -2.0], cells(), 10.0)
+    pos, nrm, sig = locate_elements(TiltedPlane(), layout)
+    n = np.array([-0.1, 0.0, 1.0]) / np.sqrt(1.01)
+    np.testing.assert_allclose(nrm, [n, n])
+    np.testing.assert_allclose(pos[0], [0, 0, 0])
+    np.testing.assert_allclose(pos[1], np.array([10.0, -5.0, 1.0]) - 2.0 * n)
+    np.testing.assert_allclose(sig, [0.0, 0.1])
+    empty = element_layout(np.zeros((0, 2)), np.zeros(0), cells(), 10.0)
+    assert [a.shape for a in locate_elements(TiltedPlane(), empty)] == [(0, 3), (0, 3), (0,)]
+
+
+def test_flags_from_uncertainty_gauges_ambiguity_and_misfit():
+    layout = element_layout([[-10.0, -10.0], [10.0, 10.0], [30.0, 0.0]], np.zeros(3), cells(), 10.0)
+    valid = np.ones((2, 2, 3, 3), bool)
+    sigma = np.array([0.1, DEGRADED_SIGMA_MM * 2, 0.1])
+    flags = element_flags(layout, sigma, valid, ambiguous=False, inconsistent=False)
+    assert list(flags) == [VALID, VALID | DEGRADED, VALID | EXTRAPOLATED]
+    # every gauge of the far corner cells gone: the element there rests on the prior alone
+    valid[:, :, 2, 2] = False
+    valid[:, :, 1, :] = False
+    valid[:, :, :, 1:] = False
+    flags = element_flags(layout, np.full(3, 0.1), valid, ambiguous=True, inconsistent=False)
+    assert flags[0] == VALID | DEGRADED | AMBIGUOUS  # near a lost gauge, still measured
+    assert flags[1] & VALID == 0 and flags[1] & DEGRADED
+    flags = element_flags(layout, np.full(3, 0.1), np.ones((2, 2, 3, 3), bool), ambiguous=False, inconsistent=True)
+    assert (flags & DEGRADED).all() and (flags & VALID).all()
+
+
+def test_misfit_limit_grows_with_the_noise():
+    assert not fit_inconsistent(0.004, 1e-4) and fit_inconsistent(0.006, 1e-4)
+    assert not fit_inconsistent(0.006, 0.002) and fit_inconsistent(0.011, 0.002)
+
+
+def test_prior_and_held_elements_are_stale():
+    layout = element_layout([[1.0, 2.0]], [0.5], cells(), 10.0)
+    pos, nrm, sig, flags = prior_elements(layout)
+    np.testing.assert_allclose(pos, [[1.0, 2.0, 0.5]])
+    np.testing.assert_allclose(nrm, [[0, 0, 1]])
+    assert sig[0] >= 1e3 and list(flags) == [STALE]
+    assert list(held_flags(np.array([VALID, VALID | DEGRADED], np.uint8))) == [VALID | STALE, VALID | DEGRADED | STALE]
