@@ -158,6 +158,17 @@ class FramePipeline:
     def reconstructor(self, value: Any) -> None:
         self._reconstructor = value
 
+    def prepare(self) -> bool:
+        """Build the reconstructor and do its first frame's one-off work now (skinmapd: when the
+        HELLO arrives, before the scanner is started), unless it was taken over from the pipeline
+        this one replaces.  Answers are unchanged.  True if there was work to do."""
+        if self._reconstructor is not None:
+            return False
+        prepare = getattr(self.reconstructor, "prepare", None)
+        if prepare is not None:
+            prepare(self.strain_sigma)
+        return True
+
     def continue_from(self, earlier: "FramePipeline | None") -> None:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
         reconnect or a new HELLO) when the geometry is the same."""

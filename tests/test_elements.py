@@ -81,3 +81,31 @@ def test_prior_and_held_elements_are_stale():
     np.testing.assert_allclose(nrm, [[0, 0, 1]])
     assert sig[0] >= 1e3 and list(flags) == [STALE]
     assert list(held_flags(np.array([VALID, VALID | DEGRADED], np.uint8))) == [VALID | STALE, VALID | DEGRADED | STALE]
+
+
+def test_a_prepared_pipeline_gives_the_same_elements_and_a_continued_one_has_nothing_to_prepare():
+    """FramePipeline.prepare() (skinmapd: at HELLO, before START) builds the reconstructor and
+    fills its first-frame caches; the elements are those of an unprepared pipeline, and a
+    pipeline that takes over its predecessor's reconstructor does no work again."""
+    from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
+    from skinmap.emulator import physics as ph
+    from skinmap.strains import Calibration
+
+    geometry = ArrayGeometry(5, 5, 12.0, 0.2, 0.2)
+    gf, r0 = np.full((2, 2, 5, 5), 1.24), np.full((2, 2, 5, 5), 6.55)
+    uv = np.array([[-18.0, 0.0], [0.0, 0.0], [6.0, 12.0]])
+
+    def make() -> FramePipeline:
+        return FramePipeline(geometry, Calibration(gf, r0), uv, np.zeros(len(uv)))
+
+    eu, el = ph.gauge_strains(ph.make_shape("gaussian", height=3.0, fwhm=20.0), 5, 5, pitch=12.0)
+    ohm = r0 * (1.0 + gf * np.stack([eu, el]))
+    prepared, plain = make(), make()
+    assert prepared.prepare() is True
+    assert prepared.reconstructor._noise_responses  # the first frame's Monte Carlo is done
+    a, b = prepared.process(ohm, 0, 0, 0), plain.process(ohm, 0, 0, 0)
+    np.testing.assert_array_equal(a.element_positions_mm, b.element_positions_mm)
+    np.testing.assert_array_equal(a.element_sigma_mm, b.element_sigma_mm)
+    successor = make()
+    successor.continue_from(prepared)
+    assert successor.prepare() is False
