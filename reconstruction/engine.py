@@ -343,7 +343,7 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
     """Least-norm node fields F (..., nf, mf) whose mixed difference over every cell equals
     ``cell`` (..., nf−1, mf−1): a double cumulative sum solves it exactly; removing the row and
     column means (double centring) projects out the free part f(u) + g(v)."""
-    f = np.zeros(cell.shape[:-2] + (cell.shape[-2] + 1, cell.shape[-1] + 1))
+    f: np.ndarray = np.zeros(cell.shape[:-2] + (cell.shape[-2] + 1, cell.shape[-1] + 1))
     f[..., 1:, 1:] = cell.cumsum(axis=-2).cumsum(axis=-1)
     col_mean = f.sum(axis=-2, keepdims=True) * (1.0 / f.shape[-2])
     row_mean = f.sum(axis=-1, keepdims=True) * (1.0 / f.shape[-1])
