@@ -536,6 +536,7 @@ class Device:
             return
         self.scans_dropped += count
         self.sample_index = (self.sample_index + count) & 0xFFFFFFFF
+        assert self._next_t0 is not None  # scans are dropped only while scanning
         self._next_t0 += count * period
         self._dropped_since_last = True
 
