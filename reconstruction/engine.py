@@ -29,7 +29,6 @@ _EYE3 = np.eye(3)
 
 __all__ = [
     "unit_data",
-    "solve_fields",
     "potential_curvatures",
     "metric_terms",
     "Metric",
@@ -54,12 +53,6 @@ def unit_data(
     stretch = np.where(valid, 1.0 + eps_s, 1.0)
     turning = np.where(valid, kappa * stretch, 0.0)  # Θ/g = κ̂ L/g
     return turning, stretch, valid
-
-
-def solve_fields(grid: FineGrid, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray):
-    """Fine-grid fields k_u, k_v, τ (from one bending potential, so that they satisfy the
-    linearised Codazzi equations) and λ_u, λ_v (smoothed stretch) fitting the unit data."""
-    return grid.field_maps(valid)(turning, stretch)[:5]
 
 
 def potential_curvatures(grid: FineGrid, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
