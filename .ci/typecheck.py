@@ -25,7 +25,14 @@ VIEW = ROOT / "build" / "typecheck"
 
 CLEAN = [
     "skinmap.protocol",  # the whole package
+    "skinmap.emulator.__init__",  # the package's own module (its __init__.py) alone
+    "skinmap.emulator.cli",
+    "skinmap.emulator.device",
+    "skinmap.emulator.emulator",
     "skinmap.emulator.linkfaults",
+    "skinmap.emulator.mechanics",
+    "skinmap.emulator.physics",
+    "skinmap.emulator.scenes",
     "skinmap.emulator.transport",
     "skinmap.emulator.loopback",
     "skinmap.emulator.electrical",
@@ -36,9 +43,26 @@ CLEAN = [
     "skinmap.daemon.pipeline",
     "skinmap.wire",
     "skinmap.client",
-    "skinmap.reconstruction.productnoise",
+    "skinmap.reconstruction.decouple",
+    "skinmap.reconstruction.engine",
     "skinmap.reconstruction.forward",
+    "skinmap.reconstruction.graphfit",
+    "skinmap.reconstruction.graphsheet",
+    "skinmap.reconstruction.grid",
+    "skinmap.reconstruction.kernels",
+    "skinmap.reconstruction.leaveout",
+    "skinmap.reconstruction.linalg",
+    "skinmap.reconstruction.productnoise",
+    "skinmap.reconstruction.robust",
     "skinmap.reconstruction.surface",
+    "skinmap.reconstruction.uncertainty",
+    "skinmap.daemon.bridge",
+    "skinmap.daemon.calibrate",
+    "skinmap.daemon.cli",
+    "skinmap.daemon.config",
+    "skinmap.daemon.fleet",
+    "skinmap.daemon.moldcal",
+    "skinmap.daemon.notify",
 ]
 
 
@@ -64,7 +88,10 @@ def mypy(targets: list[str]) -> tuple[int, str]:
     args = [sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"),
             "--python-executable", sys.executable, "--no-error-summary"]
     for t in targets:
-        args += ["-p" if (VIEW / Path(*t.split("."))).is_dir() else "-m", t]
+        if t.endswith(".__init__"):  # a package's own module, without its submodules
+            args += ["-m", t.removesuffix(".__init__")]
+        else:
+            args += ["-p" if (VIEW / Path(*t.split("."))).is_dir() else "-m", t]
     proc = subprocess.run(args, cwd=make_view(), capture_output=True, text=True,
                           env={**os.environ, "MYPY_CACHE_DIR": str(ROOT / "build" / "mypy-cache")})
     return proc.returncode, proc.stdout + proc.stderr

@@ -111,7 +111,8 @@ class FoxgloveBridge:
             return
         if kind == "status":
             spec = device_topic("/status", device)
-            views = [(spec, messages.encode_status(msg), None, int(msg["host_time_ns"]))]
+            views: list[tuple[TopicSpec, bytes, int | None, int]] = [
+                (spec, messages.encode_status(msg), None, int(msg["host_time_ns"]))]
         else:
             latency = (time.time_ns() - msg.host_time_ns) / 1e6 if kind == "elements" else None
             views = wire_views(kind, payload, msg.host_time_ns, device, latency)

@@ -66,6 +66,7 @@ def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: f
     for longer."""
     cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
            "--shape", shape, "--rate", str(rate), "--mechanics", mechanics, *(extra or [])]
+    proc: subprocess.Popen[str] | subprocess.Popen[bytes]
     if label_output:
         # Its lines are relayed prefixed, so they are told apart from the gateway's (and go
         # above the live status panel, which redirects stdout).
@@ -492,16 +493,18 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from skinmap.emulator.transport import TcpTransport
 
         n, m = (int(x) for x in args.emulate.lower().split("x"))
+        tcp = TcpTransport(0)
         emulator = Emulator(EmulatedDevice(n=n, m=m, scan_rate_hz=50.0, seed=args.seed, gf_spread=args.gf_spread,
-                                           offset_spread=args.offset_spread), Flat(), TcpTransport(0))
+                                           offset_spread=args.offset_spread), Flat(), tcp)
         placer: Any = EmulatedPlacer(emulator, args.mechanics, args.seed, args.axis_error, args.offset)
         print(f"skinmap calibrate: emulated {n}x{m} scanner ({args.mechanics} molds; hidden gauge-factor spread "
               f"{100 * args.gf_spread:g} %, offset spread {100 * args.offset_spread:g} %); solving the poses", flush=True)
         placer.prepare(poses)
         emulator.start()
-        device_cfg = DeviceConfig(port=emulator.transport.url, scan_rate_hz=50.0)
+        device_cfg = DeviceConfig(port=tcp.url, scan_rate_hz=50.0)
     else:
         placer = PromptPlacer()
+        assert cfg is not None  # without --emulate, --config is required (checked above)
         device_cfg = cfg.device
     feed = LinkFeed(device_cfg, on_event=lambda level, text: print(f"  {level}: {text}", file=sys.stderr)
                     if level != "info" else None)
@@ -550,10 +553,12 @@ def cmd_map(args: argparse.Namespace) -> int:
     report = map_log(args.log, args.poses, baseline_frames=args.baseline_frames, step_mm=args.step, k=args.k,
                      min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell)
     print(report.format())
-    if args.png:
+    if (args.png or args.ply) and report.relief is None:
+        print("skinmap map: the log holds no relief to write", file=sys.stderr)
+    if args.png and report.relief is not None:
         write_png(report.relief, args.png)
         print(f"height map written to {args.png}")
-    if args.ply:
+    if args.ply and report.relief is not None:
         count = write_ply(report.relief, args.ply)
         print(f"{count} relief points written to {args.ply}")
     return 0

@@ -13,7 +13,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal, get_args
 
 __all__ = [
     "ConfigError",
@@ -37,6 +37,14 @@ class ConfigError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------
+# Options: each is one Literal, which the TOML's strings are checked against (_choice)
+
+ConvexSolver = Literal["factorized", "clarabel"]
+TwistSign = Literal["auto", "positive", "negative"]
+ElementLayout = Literal["grid", "explicit", "none"]
+ZenohMode = Literal["peer", "client"]
+LogCompression = Literal["zstd", "lz4", "none"]
+
 # Sections
 
 
@@ -62,14 +70,14 @@ class ReconstructionConfig:
     strain_sigma: float = 5.7e-5  # strain-noise s.d. used for uncertainty estimates
     warm_start: bool = True
     # the field fit's solver: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md)
-    convex_solver: str = "factorized"
+    convex_solver: ConvexSolver = "factorized"
     # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
     # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md
     graph_fit: bool = True
     # the sign of a constant twist the gauges cannot observe (mirror-image shapes such as an
     # oblique cylinder): "auto" reports both (AMBIGUOUS), "positive"/"negative" fix it for a
     # sheet whose mounting is known (docs/reconstruction.md, "Mirror images")
-    twist_sign: str = "auto"
+    twist_sign: TwistSign = "auto"
 
 
 @dataclass(frozen=True)
@@ -91,7 +99,7 @@ class ElementSpec:
 
 @dataclass(frozen=True)
 class ElementsConfig:
-    layout: str = "grid"  # "grid" | "explicit" | "none"
+    layout: ElementLayout = "grid"
     rows: int = 1
     cols: int = 16
     pitch_u_mm: float = 3.0
@@ -122,7 +130,7 @@ class ElementsConfig:
 @dataclass(frozen=True)
 class ZenohConfig:
     prefix: str = "skinmap"
-    mode: str = "peer"
+    mode: ZenohMode = "peer"
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     allow_non_loopback: bool = False
@@ -141,7 +149,7 @@ class LogConfig:
     basename: str = "skinmap"
     max_file_mb: float = 256.0
     max_file_minutes: float = 60.0
-    compression: str = "zstd"
+    compression: LogCompression = "zstd"
     chunk_kb: int = 256
     fsync: bool = True
     queue_size: int = 4096
@@ -223,7 +231,10 @@ def _boolean(key: str, value: Any) -> bool:
     return value
 
 
-def _choice(*options: str) -> Callable[[str, Any], str]:
+def _choice(options_type: Any) -> Callable[[str, Any], str]:
+    """A check that the value is one of the Literal type's strings."""
+    options: tuple[str, ...] = get_args(options_type)
+
     def check(key: str, value: Any) -> str:
         if value not in options:
             raise _fail(key, value, "must be one of " + ", ".join(repr(o) for o in options))
@@ -306,9 +317,9 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "h_lower_mm": _number(0, 10),
         "strain_sigma": _number(0, 0.01),
         "warm_start": _boolean,
-        "convex_solver": _choice("factorized", "clarabel"),
+        "convex_solver": _choice(ConvexSolver),
         "graph_fit": _boolean,
-        "twist_sign": _choice("auto", "positive", "negative"),
+        "twist_sign": _choice(TwistSign),
     },
     "output": {
         "rate_hz": _number(0, 2000),
@@ -319,7 +330,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "console": _boolean,
     },
     "elements": {
-        "layout": _choice("grid", "explicit", "none"),
+        "layout": _choice(ElementLayout),
         "rows": _number(1, 1024, integer=True),
         "cols": _number(1, 1024, integer=True),
         "pitch_u_mm": _number(0, 1000, lo_open=True),
@@ -330,7 +341,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
     },
     "zenoh": {
         "prefix": _string(_KEY_SEGMENT, "must be a Zenoh key without wildcards, e.g. 'skinmap' or 'lab/skinmap'"),
-        "mode": _choice("peer", "client"),
+        "mode": _choice(ZenohMode),
         "listen": _string_list(_endpoint),
         "connect": _string_list(_endpoint),
         "allow_non_loopback": _boolean,
@@ -344,7 +355,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "basename": _string(r"[A-Za-z0-9_\-]{1,64}", "must be 1–64 characters of letters, digits, '_' or '-'"),
         "max_file_mb": _number(0.01, 1_000_000, lo_open=True),
         "max_file_minutes": _number(0.01, 10_080, lo_open=True),
-        "compression": _choice("zstd", "lz4", "none"),
+        "compression": _choice(LogCompression),
         "chunk_kb": _number(1, 65_536, integer=True),
         "fsync": _boolean,
         "queue_size": _number(16, 1_000_000, integer=True),

@@ -197,14 +197,16 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"skinmap-emulator: cannot open the link: {exc}", file=sys.stderr)
         return 1
+    device = emu.device
+    assert device is not None  # open() created it
     if args.hidden_truth_file is not None:
         truth = {k: v.tolist() for k, v in emu.hidden_truth().items()}
-        args.hidden_truth_file.write_text(json.dumps({"serial": emu.device.serial_number, **truth}), encoding="utf-8")
+        args.hidden_truth_file.write_text(json.dumps({"serial": device.serial_number, **truth}), encoding="utf-8")
     emu.set_open(dead)
     emu.set_saturated(saturated)
     where = transport.url if isinstance(transport, TcpTransport) else f"{transport.link} -> {transport.path}"
     print(f"skinmap-emulator: {cfg.n}x{cfg.m} pitch {cfg.pitch_mm:g} mm, shape {shape!r}, "
-          f"{cfg.scan_rate_hz:g} scans/s (max {cfg.max_scan_rate_hz:g}), serial {emu.device.serial_number}",
+          f"{cfg.scan_rate_hz:g} scans/s (max {cfg.max_scan_rate_hz:g}), serial {device.serial_number}",
           flush=True)
     print(f"skinmap-emulator: serving {where}", flush=True)
 

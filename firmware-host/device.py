@@ -197,7 +197,6 @@ class Device:
         self.history: OrderedDict[tuple[int, int], ScanRecord] = OrderedDict()
         self.history_limit = 4096
         self._static_strain: np.ndarray | None = None
-        self.last_strain: np.ndarray | None = None
         #: called with the ScanRecord of every scan sent (ground-truth logging)
         self.on_scan: Callable[[ScanRecord], None] | None = None
         #: fault injection: maps the true clock (µs since boot) to the one the firmware reports
@@ -536,6 +535,7 @@ class Device:
             return
         self.scans_dropped += count
         self.sample_index = (self.sample_index + count) & 0xFFFFFFFF
+        assert self._next_t0 is not None  # scans are dropped only while scanning
         self._next_t0 += count * period
         self._dropped_since_last = True
 
@@ -624,7 +624,6 @@ class Device:
         if not h.repeat_sample_index:
             self.sample_index = (self.sample_index + 1) & 0xFFFFFFFF
         self.scans_sent += 1
-        self.last_strain = strain
         frame = self._frame(msg)
         if self.on_scan is not None:
             self.on_scan(record)
@@ -661,10 +660,6 @@ class Device:
         if not duration_s >= 0:
             raise ValueError(f"stall duration must be >= 0 s, got {duration_s!r}")
         self._stall_until = max(self._stall_until, now_s + duration_s)
-
-    @property
-    def stalled_until(self) -> float:
-        return self._stall_until
 
     def reboot(self, now_s: float, watchdog: bool = True) -> None:
         """Unexpected reboot (watchdog / brown-out): sequence numbers and sample index restart,

@@ -89,6 +89,13 @@ class Emulator:
 
     # ------------------------------------------------------------------ lifecycle
 
+    @property
+    def _device(self) -> Device:
+        """The device, once :meth:`open` (or :meth:`start`, :meth:`run`) has created it."""
+        if self.device is None:
+            raise RuntimeError("the emulator is not open: call open(), start() or run() first")
+        return self.device
+
     def open(self) -> None:
         """Create the device and open the transport (the scanner powers up with its link)."""
         with self._lock:
@@ -188,7 +195,7 @@ class Emulator:
         with self._lock:
             now = self.clock()
             self._run_schedule(now)
-            dev = self.device
+            dev = self._device
             out = []
             for fd in readable:
                 if isinstance(t, TcpTransport) and t.server is not None and fd == t.server.fileno():
@@ -212,7 +219,7 @@ class Emulator:
         if self._reconnect_at is not None:
             wake = min(wake, self._reconnect_at)
         elif self.transport.connected:
-            wake = min(wake, self.device.next_event_s())
+            wake = min(wake, self._device.next_event_s())
         return wake
 
     def _run_schedule(self, now: float) -> None:
@@ -234,13 +241,13 @@ class Emulator:
     def stall(self, duration_s: float) -> None:
         """The firmware hangs: nothing sent or answered for ``duration_s``."""
         with self._lock:
-            self.device.stall(self.clock(), duration_s)
+            self._device.stall(self.clock(), duration_s)
             self.stalls += 1
 
     def reboot(self) -> None:
         """Watchdog reboot: sequence numbers and sample index restart, HELLO again, IDLE."""
         with self._lock:
-            self.device.reboot(self.clock(), watchdog=True)
+            self._device.reboot(self.clock(), watchdog=True)
             self.reboots += 1
 
     def disconnect(self, reconnect_after_s: float | None) -> None:
@@ -255,7 +262,7 @@ class Emulator:
     def _reconnect(self, now: float) -> None:
         self._reconnect_at = None
         self.transport.open()
-        self.device.reboot(now, watchdog=False)
+        self._device.reboot(now, watchdog=False)
 
     def set_shape(self, shape: Shape) -> None:
         """Put the emulated sheet into another shape (e.g. a calibration pose)."""
@@ -267,29 +274,29 @@ class Emulator:
     def hidden_truth(self) -> dict[str, np.ndarray]:
         """The device's hidden truths (true gauge factors and layer offsets); see Device."""
         with self._lock:
-            return self.device.hidden_truth()
+            return self._device.hidden_truth()
 
     def set_open(self, mask: np.ndarray) -> None:
         with self._lock:
-            self.device.set_open(mask)
+            self._device.set_open(mask)
 
     def set_saturated(self, mask: np.ndarray) -> None:
         with self._lock:
-            self.device.set_saturated(mask)
+            self._device.set_saturated(mask)
 
     # ------------------------------------------------------------------ truth and status
 
     def ground_truth(self, sample_index: int, boot: int | None = None) -> GroundTruth:
         """True geometry of a scan that was sent (at the shape time of its TDM step 0)."""
         with self._lock:
-            return self.device.ground_truth(sample_index, boot, self.element_uv)
+            return self._device.ground_truth(sample_index, boot, self.element_uv)
 
     def _record_truth(self, record: ScanRecord) -> None:
         if self.on_scan is not None:
             self.on_scan(record)
         if self._truth_file is None:
             return
-        gt = self.device.ground_truth(record.sample_index, record.boot, self.element_uv)
+        gt = self._device.ground_truth(record.sample_index, record.boot, self.element_uv)
         line = {
             "boot": record.boot,
             "sample_index": record.sample_index,
@@ -299,7 +306,7 @@ class Emulator:
             "nodes": np.round(gt.nodes, 6).tolist(),
             "normals": np.round(gt.normals, 9).tolist(),
         }
-        if gt.element_positions is not None:
+        if gt.element_uv is not None and gt.element_positions is not None and gt.element_normals is not None:
             line["element_uv"] = gt.element_uv.tolist()
             line["element_positions"] = np.round(gt.element_positions, 6).tolist()
             line["element_normals"] = np.round(gt.element_normals, 9).tolist()
@@ -307,7 +314,7 @@ class Emulator:
 
     def status_line(self) -> str:
         with self._lock:
-            d = self.device
+            d = self._device
             now = self.clock()
             up = now - (self.started_at or now)
             link = self.transport.describe() if self.transport.connected else "disconnected"

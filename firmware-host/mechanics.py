@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Protocol, Sequence, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -254,7 +254,10 @@ class FunctionHeight:
 class GapField(Protocol):
     """A rigid body's signed gap at the sheet's nodes: g (K,), ∇g (K, 3); g ≥ 0 is admissible."""
 
-    bilateral: bool
+    @property
+    def bilateral(self) -> bool:
+        """True: held at g = 0 (laminated); False: only kept at g ≥ 0."""
+        ...
 
     def gap(self, x: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
         ...
@@ -549,6 +552,7 @@ class _Energy:
 
     def _balloon(self, x: np.ndarray, xe: np.ndarray, f: np.ndarray, hessian: bool):
         bal = self.p.balloon
+        assert bal is not None  # called only for a problem with a balloon
         xq = np.einsum("qa,eai->eqi", self.asm.n, xe) - np.asarray(bal.centre, float)
         a, b = f[..., 0], f[..., 1]
         t, pr = bal.tension, bal.pressure
@@ -607,7 +611,7 @@ class _Energy:
             d = x[:, :2] - self.reference
             energy += 0.5 * float(np.sum(kt[:, None] * d * d))
             grad[:, :2] += kt[:, None] * d
-            if hessian:
+            if hess is not None:
                 hess[:, 0, 0] += kt
                 hess[:, 1, 1] += kt
         return energy, grad, hess
@@ -718,7 +722,7 @@ class _Factor:
         self.w = a.w
         if a.w is not None:
             self.sw = self.lu.solve(a.w)  # S⁻¹W
-            self.small = np.linalg.inv(np.diag(1.0 / a.c) + a.w.T @ self.sw)
+            self.small = np.linalg.inv(np.diag(1.0 / cast(np.ndarray, a.c)) + a.w.T @ self.sw)  # c comes with w
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         x = self.lu.solve(b)
@@ -925,7 +929,7 @@ def solve(problem: SheetProblem, x0: np.ndarray, tol: float | None = None, max_i
             alpha = 1.0
             while alpha > 1e-3:
                 trial = y.copy()
-                trial[free] += alpha * step
+                trial[free] += alpha * cast(np.ndarray, step)  # a descent direction: not None
                 e_new, g_new, _ = evaluate(trial, hessian=False)
                 # near the minimum the energy change is below its round-off: judge by the forces
                 tiny = abs(slope) * alpha < 1e-12 * max(abs(energy), 1e-30)

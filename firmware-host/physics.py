@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Sequence, TypedDict, cast
 
 import numpy as np
 
@@ -268,7 +268,9 @@ class GraphShape(Shape):
 class GraphSum(GraphShape):
     """Sum of the heights of several graph shapes (e.g. several bumps on a saddle)."""
 
-    def __init__(self, parts: Sequence[GraphShape]):
+    parts: list[GraphShape]
+
+    def __init__(self, parts: Sequence[Shape]):
         flat: list[GraphShape] = []
         for p in parts:
             if not isinstance(p, GraphShape):
@@ -340,6 +342,17 @@ def _bump(uv: np.ndarray, centre: np.ndarray, sigma: float) -> tuple[np.ndarray,
     return g, -d * (g / (sigma * sigma))[..., None]
 
 
+class Bump(TypedDict, total=False):
+    """One bump of :class:`GaussianBumps`: height and full width at half maximum (mm), centred
+    at ``centre`` = (u, v) or at ``u0``, ``v0`` (material mm)."""
+
+    height: float
+    fwhm: float
+    u0: float
+    v0: float
+    centre: Sequence[float]
+
+
 class GaussianBumps(GraphShape):
     """One or several Gaussian bumps z = Σ h_k exp(-|uv - c_k|² / 2σ_k²), σ = FWHM / 2.3548,
     as a graph mapping (see :class:`GraphShape`).  Negative heights make dimples."""
@@ -351,10 +364,10 @@ class GaussianBumps(GraphShape):
         u0: float = 0.0,
         v0: float = 0.0,
         centre: Sequence[float] | None = None,
-        bumps: Sequence[Mapping[str, float]] | None = None,
+        bumps: Sequence[Bump] | None = None,
     ):
         if bumps is None:
-            bumps = [dict(height=height, fwhm=fwhm, centre=centre if centre is not None else (u0, v0))]
+            bumps = [Bump(height=height, fwhm=fwhm, centre=centre if centre is not None else (u0, v0))]
         self.bumps: list[tuple[float, float, tuple[float, float]]] = []
         for k, b in enumerate(bumps):
             unknown = set(b) - {"height", "fwhm", "u0", "v0", "centre"}
@@ -482,7 +495,7 @@ def _scaled(shape: Shape, amplitude: float) -> Shape:
     if isinstance(shape, Saddle):
         return Saddle(shape.radius / a, shape.axis_angle)
     if isinstance(shape, GaussianBumps):
-        return GaussianBumps(bumps=[dict(height=h * a, fwhm=f, centre=c) for h, f, c in shape.bumps])
+        return GaussianBumps(bumps=[Bump(height=h * a, fwhm=f, centre=c) for h, f, c in shape.bumps])
     if isinstance(shape, GraphSum):
         return GraphSum([_scaled(p, a) for p in shape.parts])
     raise ValueError(
@@ -572,7 +585,7 @@ class PalmGesture(Shape):
         point_group = group[inverse]
         order = np.argsort(point_group, kind="stable")
         bounds = np.searchsorted(point_group[order], np.arange(len(shapes) + 1))
-        outs = None
+        outs: tuple[np.ndarray, ...] | None = None
         for g in np.unique(group):
             idx = order[bounds[g] : bounds[g + 1]]
             res = getattr(shapes[g], method)(flat_uv[idx])
@@ -581,8 +594,8 @@ class PalmGesture(Shape):
                 outs = tuple(np.empty((flat_uv.shape[0], 3)) for _ in res)
             for o, r in zip(outs, res):
                 o[idx] = r
-        outs = tuple(o.reshape(uv.shape[:-1] + (3,)) for o in outs)
-        return outs if method == "position_and_normal" else outs[0]
+        full = tuple(o.reshape(uv.shape[:-1] + (3,)) for o in cast(tuple[np.ndarray, ...], outs))  # >= 1 group
+        return full if method == "position_and_normal" else full[0]
 
     def position(self, uv: ArrayLike, t: ArrayLike = 0.0) -> np.ndarray:
         return self._per_instant(uv, t, "position")

@@ -29,7 +29,6 @@ _EYE3 = np.eye(3)
 
 __all__ = [
     "unit_data",
-    "solve_fields",
     "potential_curvatures",
     "metric_terms",
     "Metric",
@@ -54,12 +53,6 @@ def unit_data(
     stretch = np.where(valid, 1.0 + eps_s, 1.0)
     turning = np.where(valid, kappa * stretch, 0.0)  # Θ/g = κ̂ L/g
     return turning, stretch, valid
-
-
-def solve_fields(grid: FineGrid, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray):
-    """Fine-grid fields k_u, k_v, τ (from one bending potential, so that they satisfy the
-    linearised Codazzi equations) and λ_u, λ_v (smoothed stretch) fitting the unit data."""
-    return grid.field_maps(valid)(turning, stretch)[:5]
 
 
 def potential_curvatures(grid: FineGrid, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -343,7 +336,7 @@ def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
     """Least-norm node fields F (..., nf, mf) whose mixed difference over every cell equals
     ``cell`` (..., nf−1, mf−1): a double cumulative sum solves it exactly; removing the row and
     column means (double centring) projects out the free part f(u) + g(v)."""
-    f = np.zeros(cell.shape[:-2] + (cell.shape[-2] + 1, cell.shape[-1] + 1))
+    f: np.ndarray = np.zeros(cell.shape[:-2] + (cell.shape[-2] + 1, cell.shape[-1] + 1))
     f[..., 1:, 1:] = cell.cumsum(axis=-2).cumsum(axis=-1)
     col_mean = f.sum(axis=-2, keepdims=True) * (1.0 / f.shape[-2])
     row_mean = f.sum(axis=-1, keepdims=True) * (1.0 / f.shape[-1])

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
@@ -167,8 +167,8 @@ class GraphFit:
         self.wq = np.concatenate([wq / (2.0 * panels)] * panels)  # weights of a mean over the gauge
         q = len(s)
         # Quadrature points of every gauge, (2, n, m, q): u gauges along u, v gauges along v.
-        pu = np.empty((2, n, m, q))
-        pv = np.empty((2, n, m, q))
+        pu: np.ndarray = np.empty((2, n, m, q))
+        pv: np.ndarray = np.empty((2, n, m, q))
         pu[0] = uc[None, :, None] + s
         pv[0] = vc[:, None, None]
         pu[1] = uc[None, :, None]
@@ -204,7 +204,7 @@ class GraphFit:
         # the centre coefficient (the height offset is seen by no datum).
         gu = [_gram(ku, nbu, d) for d in range(4)]
         gv = [_gram(kv, nbv, d) for d in range(4)]
-        prior = _PRIOR_SCALE * sum(wt * np.kron(gv[b], gu[a]) for a, b, wt in _PRIOR_WEIGHTS)
+        prior = cast(np.ndarray, _PRIOR_SCALE * sum(wt * np.kron(gv[b], gu[a]) for a, b, wt in _PRIOR_WEIGHTS))
         prior[np.diag_indices(nc)] += _RIDGE
         self.pin = (nbv // 2) * nbu + nbu // 2
         prior[self.pin, self.pin] += 1.0
@@ -215,8 +215,8 @@ class GraphFit:
         self.prior_band = np.zeros((bw + 1, nc))
         for d in range(bw + 1):
             self.prior_band[d, : nc - d] = np.diagonal(prior, -d)
-        d, j = np.nonzero(np.ones((bw + 1, nc), dtype=bool))
-        self._band_index = (d[j + d < nc], j[j + d < nc])  # the band's entries, for _dense
+        off, col = np.nonzero(np.ones((bw + 1, nc), dtype=bool))
+        self._band_index = (off[col + off < nc], col[col + off < nc])  # the band's entries, for _dense
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
@@ -346,7 +346,7 @@ class GraphFit:
         return scipy.linalg.cho_solve(f, rhs, check_finite=False)
 
     def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, curvature=(0.0, 0.0),
-                 reuse: float = _REUSE_RATIO):
+                 reuse: float = _REUSE_RATIO) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float]:
         """Gauss-Newton with a backtracking line search.  The factorised matrix is reused for the
         next step while the steps keep shrinking (by at least the factor ``reuse``: it changes
         little near the optimum) and refreshed otherwise or when a step with it fails.  Returns

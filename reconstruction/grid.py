@@ -6,6 +6,7 @@ valid-gauge mask), never on the measured strains, so it is built once and reused
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -335,7 +336,7 @@ class FineGrid:
             misfit = average @ curv[: 2 * n_fine] - np.eye(2 * n_units)  # (2NM, 2NM)
             if keep:
                 self._dense = {"curv": curv, "stretch": stretch_maps, "misfit": misfit}
-                self._leave_outs = {"potential": LeaveOut(hat=misfit + np.eye(2 * n_units))}
+                self._leave_outs: dict[str | tuple[str, int], LeaveOut] = {"potential": LeaveOut(hat=misfit + np.eye(2 * n_units))}
                 for d in (0, 1):
                     self._leave_outs[("stretch", d)] = LeaveOut(hat=self.average[d] @ stretch_maps[d])
 
@@ -415,10 +416,10 @@ class FineGrid:
             curv_ops, average = self.curvature_operator, self.unit_average
             obs = self.potential_observation()
             obs_miss = obs[miss_p]
-            p_solver, obs_t = lo_p.solver, self.transposed("potential")
+            p_solver, obs_t = cast(FixedSolver, lo_p.solver), self.transposed("potential")
             y_p = lo_p.solution_columns(miss_p)
             y_s = [lo_s[d].solution_columns(miss_s[d]) for d in (0, 1)]
-            s_solvers = [(lo_s[d].solver, self.transposed("stretch", d)) for d in (0, 1)]
+            s_solvers = [(cast(FixedSolver, lo_s[d].solver), self.transposed("stretch", d)) for d in (0, 1)]
 
             def fn(turning, stretch):
                 d = turning.ravel()

@@ -7,18 +7,20 @@ grid is hundreds of small array operations whose per-call overhead, not arithmet
 time.  Results agree with the reference to rounding (tested); the loops are sequential and use
 no fast-math reordering, so a frame's result is a function of its input alone.
 
-The entry points keep their machine code in numba's on-disk cache, so a process loads it
-instead of compiling: the first writable of ``NUMBA_CACHE_DIR``, ``__pycache__`` next to this
-file and the user's cache directory, else this ``__pycache__`` read-only (see
-docs/reconstruction.md, "Compiled kernels").  A cache that cannot be used only costs time: the
-kernels are then compiled in memory.  :func:`warm_up` (called when a
-:class:`~skinmap.reconstruction.Reconstructor` is built) compiles or loads them before the
-first frame; ``python -m skinmap.reconstruction.kernels`` fills the cache ahead of use.
+The entry points keep their machine code in numba's on-disk cache (``cache=True``), so a
+process loads it instead of compiling: the first writable of ``NUMBA_CACHE_DIR``,
+``__pycache__`` next to this file and the user's cache directory (numba's own search; see
+docs/reconstruction.md, "Compiled kernels").  With none writable, or a cache that cannot be
+read or written, the kernels are compiled in memory: a cache only ever saves time.
+:func:`warm_up` (called when a :class:`~skinmap.reconstruction.Reconstructor` is built)
+compiles or loads them before the first frame; ``python -m skinmap.reconstruction.kernels``
+fills the cache ahead of use.
 """
 from __future__ import annotations
 
 import math
 import os
+from typing import Any, Callable, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -28,7 +30,7 @@ from .linalg import cholesky_band
 try:
     import numba
 except ImportError:  # the numpy reference still works without it
-    numba = None
+    numba = None  # type: ignore[assignment]
 
 __all__ = [
     "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
@@ -40,11 +42,19 @@ AVAILABLE = numba is not None
 # Sequential loops without fast-math keep the reference's rounding order; division by zero
 # gives inf/NaN as in numpy (the caller checks the result) instead of raising; nogil lets a
 # host that runs frames on several threads use its cores.
-_OPTIONS = {"error_model": "numpy", "nogil": True}
-_state: dict[str, object] = {"cached": False, "cache_locator": None}
+_OPTIONS: dict[str, Any] = {"error_model": "numpy", "nogil": True}
 
 
-def _helper(fn):
+class _CacheState(TypedDict):
+    cached: bool  # the entry points run with numba's on-disk cache
+    cache_dir: str | None  # where it is
+
+
+_state: _CacheState = {"cached": False, "cache_dir": None}
+_ENTRY_POINTS: list[str] = []
+
+
+def _helper(fn: Callable[..., Any]) -> Callable[..., Any]:
     """A helper of the entry points: compiled once and linked into its callers, whose cache
     entries then hold its code too (so it needs no cache entry of its own)."""
     if numba is None:
@@ -52,60 +62,32 @@ def _helper(fn):
     return numba.njit(**_OPTIONS)(fn)
 
 
-def _function_cache(fn):
-    """numba's on-disk cache for ``fn``, searched as numba does (``NUMBA_CACHE_DIR``, the
-    package's ``__pycache__``, the user's cache directory: the first writable one), then, when
-    none is writable, the package's ``__pycache__`` read-only: an install whose owner filled
-    it (``python -m skinmap.reconstruction.kernels``) serves every user without compiling.
-    Raises RuntimeError when there is nothing to use (numba's message)."""
-    from numba.core import caching
-
-    class ReadOnlyPackageCache(caching.InTreeCacheLocator):
-        def ensure_cache_path(self) -> None:
-            path = self.get_cache_path()
-            if not (os.path.isdir(path) and os.access(path, os.R_OK | os.X_OK)):
-                raise OSError(f"no readable cache in {path}")
-
-    class Impl(caching.CompileResultCacheImpl):
-        _locator_classes = [*caching.CompileResultCacheImpl._locator_classes, ReadOnlyPackageCache]
-
-    class Cache(caching.FunctionCache):
-        """A cache that can only cost time: a missing, unreadable or corrupt entry is a miss
-        (compiled instead), a failed write leaves the code in memory."""
-
-        _impl_class = Impl
-
-        def load_overload(self, sig, target_context):
-            try:
-                return super().load_overload(sig, target_context)
-            except Exception:  # noqa: BLE001 - whatever the file holds, compiling is the answer
-                _state["cached"] = False
-                return None
-
-        def save_overload(self, sig, data) -> None:
-            try:
-                super().save_overload(sig, data)
-            except OSError:
-                _state["cached"] = False
-
-    cache = Cache(fn)
-    _state["cache_locator"] = type(cache._impl.locator).__name__
-    return cache
-
-
-def _compiled(fn):
-    """Compile ``fn`` lazily, with an on-disk cache when numba finds a location for it, else
-    in memory only (a read-only install must still run)."""
+def _compiled(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Compile ``fn`` lazily with numba's on-disk cache (``cache=True``: ``NUMBA_CACHE_DIR``,
+    else ``__pycache__`` next to this file, else the user's cache directory, the first that
+    is writable), or in memory only when numba finds none of them writable (a read-only
+    install run by a user without a cache directory must still run)."""
     if numba is None:
         return fn
-    disp = numba.njit(**_OPTIONS)(fn)
-    try:
-        # what numba.njit(cache=True) does, with the read-only fallback above
-        disp._cache = _function_cache(fn)
-        _state["cached"] = True
-    except (RuntimeError, ImportError, AttributeError):  # nowhere to cache (or another numba)
-        _state["cache_locator"] = None
-    return disp
+    if not _ENTRY_POINTS or _state["cached"]:
+        try:
+            disp = numba.njit(cache=True, **_OPTIONS)(fn)
+        except RuntimeError:  # numba found no writable location ("cannot cache function ...")
+            _in_memory()  # the entry points before this one too: all or none
+        else:
+            _ENTRY_POINTS.append(fn.__name__)
+            _state["cached"], _state["cache_dir"] = True, disp.stats.cache_path
+            return disp
+    _ENTRY_POINTS.append(fn.__name__)
+    return numba.njit(**_OPTIONS)(fn)
+
+
+def _in_memory() -> None:
+    """Rebind every entry point to a dispatcher without a cache (same function, same options,
+    so the same machine code): the cache numba chose could not be used."""
+    for name in _ENTRY_POINTS:
+        globals()[name] = numba.njit(**_OPTIONS)(globals()[name].py_func)
+    _state["cached"], _state["cache_dir"] = False, None
 
 
 # ------------------------------------------------------------------------------ grid helpers
@@ -739,8 +721,21 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
     """Compile (or load from the cache) every kernel with the argument types of a frame, on a
     flat sheet of this grid, so that the first frame does not pay for it.  Returns whether the
-    kernels came from or went to an on-disk cache (a cache that cannot be read or written only
-    means compiling in memory)."""
+    kernels came from or went to an on-disk cache.  A cache entry that cannot be read (corrupt,
+    its directory gone) or written only costs the compile: the kernels are then compiled in
+    memory."""
+    if numba is not None and _state["cached"]:
+        try:
+            _warm(h, a0, b0, band, shear_passes, corrections)
+        except Exception:  # noqa: BLE001 - whatever the cache holds or lacks, compiling is the answer
+            _in_memory()  # and a fault of the kernels themselves shows again below
+        else:
+            return True
+    _warm(h, a0, b0, band, shear_passes, corrections)
+    return _state["cached"]
+
+
+def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> None:
     nf, mf = band.shape[1] // (2 * b0 + 1), 2 * b0 + 1
     zero, one = np.zeros((nf, mf)), np.ones((nf, mf))
     metric = metric_terms(float(h), one, one)
@@ -757,7 +752,6 @@ def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, cor
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
                            np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res, np.zeros((2, 4)))
-    return bool(_state["cached"])
 
 
 if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use
@@ -765,6 +759,5 @@ if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the
     from skinmap.reconstruction import kernels as _installed
 
     Reconstructor(5, 5)  # its warm-up compiles the kernels, or loads them when already cached
-    locator = _installed._state["cache_locator"]
-    where = os.environ.get("NUMBA_CACHE_DIR") if locator == "UserProvidedCacheLocator" else locator
-    print(f"reconstruction kernels {'cached (' + str(where) + ')' if _installed._state['cached'] else 'compiled, no cache'}")
+    where = _installed._state["cache_dir"]
+    print(f"reconstruction kernels {f'cached ({where})' if _installed._state['cached'] else 'compiled, no cache'}")

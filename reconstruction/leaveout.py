@@ -14,6 +14,7 @@ left-out fit: the data no longer enter, the prior fills the gap.
 from __future__ import annotations
 
 from collections import OrderedDict
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,7 +46,7 @@ def woodbury_weights(h_jj: np.ndarray) -> np.ndarray:
     cond = np.inf if inv is None else float(np.abs(cap).sum(axis=0).max() * np.abs(inv).sum(axis=0).max())
     if not cond <= _MAX_CONDITION:
         raise IllConditioned(f"leaving {k} unit(s) out leaves the fit undetermined (condition {cond:.3g})")
-    return inv
+    return cast(np.ndarray, inv)  # not None: its condition is finite
 
 
 class LeaveOut:
@@ -76,7 +77,7 @@ class LeaveOut:
         self.hat = hat
         self.solver = solver
         self.obs = None if obs is None else sp.csr_matrix(obs)
-        self.units = hat.shape[0] if hat is not None else self.obs.shape[0]
+        self.units: int = hat.shape[0] if hat is not None else cast(sp.csr_matrix, self.obs).shape[0]
         self.capacity = int(capacity)
         self.budget = min(int(budget), self.capacity)
         self._columns: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
@@ -92,7 +93,7 @@ class LeaveOut:
             if j not in self._columns:
                 # one unit at a time: a column's digits must not depend on which other units
                 # happened to be solved with it (batched products may sum in another order)
-                y = self.solver.solve(self.obs[j].toarray().ravel())
+                y = cast(FixedSolver, self.solver).solve(cast(sp.csr_matrix, self.obs)[j].toarray().ravel())
                 self._columns[j] = (y, self.obs @ y)
         out = []
         for j in missing.tolist():
@@ -117,13 +118,13 @@ class LeaveOut:
         if self.dense:
             raise ValueError("dense leave-out: take Y_J from the dense field maps")
         if missing.size == 0:
-            return np.zeros((self.solver.size, 0))
+            return np.zeros((cast(FixedSolver, self.solver).size, 0))
         return np.stack([c[0] for c in self._fetch(missing)], axis=1)
 
     def hat_columns(self, missing: np.ndarray) -> np.ndarray:
         """H[:, J], (units, k)."""
         if self.dense:
-            return self.hat[missing].T  # symmetric: a contiguous row gather
+            return cast(np.ndarray, self.hat)[missing].T  # symmetric: a contiguous row gather
         if missing.size == 0:
             return np.zeros((self.units, 0))
         return np.stack([c[1] for c in self._fetch(missing)], axis=1)

@@ -8,31 +8,13 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 
 __all__ = [
-    "diff_u", "diff_v", "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "cayley_t", "matmul_t", "cross", "cross_t", "unit",
+    "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "cayley_t", "matmul_t", "cross_t",
     "FixedSolver", "cholesky_band",
 ]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
 # (Python overhead dominates); above it the banded factor wins on memory and time.
 _DENSE_LIMIT = 200
-
-
-def diff_u(f: np.ndarray, h: float) -> np.ndarray:
-    """∂/∂u by central differences (one-sided at the edges), like np.gradient but cheaper."""
-    out = np.empty_like(f)
-    out[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2.0 * h)
-    out[:, 0] = (f[:, 1] - f[:, 0]) / h
-    out[:, -1] = (f[:, -1] - f[:, -2]) / h
-    return out
-
-
-def diff_v(f: np.ndarray, h: float) -> np.ndarray:
-    """∂/∂v by central differences (one-sided at the edges)."""
-    out = np.empty_like(f)
-    out[1:-1] = (f[2:] - f[:-2]) / (2.0 * h)
-    out[0] = (f[1] - f[0]) / h
-    out[-1] = (f[-1] - f[-2]) / h
-    return out
 
 
 def diff_u_t(f: np.ndarray, h: float) -> np.ndarray:
@@ -72,21 +54,6 @@ def aligned_distances(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 def edge_mean(f: np.ndarray, axis: int) -> np.ndarray:
     """Mean of the two end values of every grid edge along ``axis`` (0: v-edges, 1: u-edges)."""
     return 0.5 * (f[:-1] + f[1:]) if axis == 0 else 0.5 * (f[:, :-1] + f[:, 1:])
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product along the last axis (np.cross's axis handling costs more than the
-    arithmetic on the small arrays here)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
-
-
-def unit(v: np.ndarray) -> np.ndarray:
-    """Vectors along the last axis scaled to unit length."""
-    return v / np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:
@@ -184,7 +151,6 @@ class FixedSolver:
             w, v = scipy.linalg.eigh(a.toarray(), check_finite=False)
             keep = w > rtol * w[-1]
             self._pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
-            self._lu = None
         else:
             self._pinv = None
             self._band = cholesky_band(a)

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from typing import cast
 
 import numpy as np
 
 from .grid import FineGrid
 from .leaveout import IllConditioned
+from .linalg import FixedSolver
 
 __all__ = ["height_response", "fine_sigma", "resolution_sigma"]
 
@@ -49,7 +51,7 @@ def _all_valid_response(grid: FineGrid) -> dict:
     base = grid.__dict__.get("_sigma_base")
     if base is None:
         r = height_response(grid, np.ones((2, grid.n, grid.m), dtype=bool))
-        base = grid._sigma_base = {"rowsq": (r * r).sum(axis=1), "r": r if grid.dense_maps else None, "columns": OrderedDict()}
+        base = grid.__dict__["_sigma_base"] = {"rowsq": (r * r).sum(axis=1), "r": r if grid.dense_maps else None, "columns": OrderedDict()}
     return base
 
 
@@ -72,7 +74,7 @@ def _unit_columns(grid: FineGrid, base: dict, missing: np.ndarray) -> tuple[np.n
         h_j = lo.hat_columns(jj)[:, 0]
         # R H e_j = T A⁻¹ Oᵀ (O Y_j): one more solve with the all-valid factor
         r_j = _heights(grid, lo.solution_columns(jj))[:, 0]
-        g_j = _heights(grid, lo.solver.solve(grid.transposed("potential") @ h_j)[:, None])[:, 0]
+        g_j = _heights(grid, cast(FixedSolver, lo.solver).solve(grid.transposed("potential") @ h_j)[:, None])[:, 0]
         cols[j] = (r_j, g_j)
     for j in missing.tolist():
         cols.move_to_end(j)
@@ -121,7 +123,7 @@ def _probe_sums(grid: FineGrid, valid: np.ndarray, probes: int = 32) -> tuple[np
     obs_t = grid.transposed("potential")
     solver, _ = grid.potential_solver(valid)  # this mask's own factor (the fields built it)
     measured = _heights(grid, solver.solve(obs_t @ np.where(v[:, None], xi, 0.0)))
-    missing = _heights(grid, grid.leave_out("potential").solver.solve(obs_t @ np.where(v[:, None], 0.0, xi)))
+    missing = _heights(grid, cast(FixedSolver, grid.leave_out("potential").solver).solve(obs_t @ np.where(v[:, None], 0.0, xi)))
     return (measured * measured).mean(axis=1), (missing * missing).mean(axis=1)
 
 
@@ -225,7 +227,7 @@ def fine_sigma(
     sig_stretch = strain_sigma * np.hypot(h_upper, h_lower) / (h_upper + h_lower)
     walk = grid.__dict__.get("_sigma_walk")
     if walk is None:  # |u| + |v| times the pitch, the same every frame
-        walk = grid._sigma_walk = (np.abs(grid.u)[None, :] + np.abs(grid.v)[:, None]) * grid.pitch
+        walk = grid.__dict__["_sigma_walk"] = (np.abs(grid.u)[None, :] + np.abs(grid.v)[:, None]) * grid.pitch
     sigma = np.sqrt(var.reshape(grid.nf, grid.mf) + walk * sig_stretch**2)
     if all_valid:
         sigma.flags.writeable = False  # shared by every all-valid frame at this noise level

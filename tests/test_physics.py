@@ -130,10 +130,12 @@ def test_symmetries():
     a_u, a_l = gauge_strains(Saddle(60.0), 4, 4)
     b_u, b_l = gauge_strains(Saddle(-60.0), 4, 4)
     np.testing.assert_allclose(a_u[0], b_u[1].T, atol=1e-10)
+    np.testing.assert_allclose(a_l[0], b_l[1].T, atol=1e-10)
     # upper/lower of a convex shape are the lower/upper of its concave mirror image
     c_u, c_l = gauge_strains(Cylinder(50.0), 3, 4)
     d_u, d_l = gauge_strains(Cylinder(-50.0), 3, 4)
     np.testing.assert_allclose(c_u, d_l, atol=1e-10)
+    np.testing.assert_allclose(c_l, d_u, atol=1e-10)
 
 
 def test_saddle_signs_and_bump_is_convex_on_top():

@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 import numpy as np
@@ -148,7 +149,7 @@ _SCRIPT = textwrap.dedent(
             digest.update(np.ascontiguousarray(arr).tobytes())
         prev = s
     stats = kernels.surface_positions.stats
-    print(rec.kernels, kernels._state["cached"], digest.hexdigest(), kernels._state["cache_locator"],
+    print(rec.kernels, kernels._state["cached"], digest.hexdigest(), kernels._state["cache_dir"],
           "hits" if sum(stats.cache_hits.values()) else "no-hits", f"misses={sum(stats.cache_misses.values())}")
     """
 )
@@ -177,8 +178,9 @@ def _result(proc: subprocess.Popen) -> list[str]:
 def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
     """Replay relies on a fresh process reproducing a frame sequence exactly: code loaded from
     the cache, code compiled in memory because no cache location is writable, code whose
-    cache vanished after import, and (as root) an unprivileged user reading the package's cache
-    without writing it all give identical bytes, and none of them fails."""
+    cache vanished after import, and (as root) an unprivileged user with no writable cache
+    location or with a cache directory of its own that root filled (the service's
+    `CacheDirectory`) all give identical bytes, and none of them fails."""
     broken = tmp_path / "broken"
     broken.mkdir()
     only_user_dir = {"NUMBA_CACHE_LOCATOR_CLASSES": "UserProvidedCacheLocator"}
@@ -190,6 +192,7 @@ def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
     results = [first] + [_result(p) for p in procs]
     assert [r[0] for r in results] == ["compiled"] * 3
     assert [r[1] for r in results] == ["True", "False", "False"]
+    assert [r[3] for r in results[1:]] == ["None", "None"]
     assert len({r[2] for r in results}) == 1
     # and the same as this process computes
     import hashlib
@@ -204,14 +207,26 @@ def test_fresh_processes_agree_bit_for_bit_with_or_without_a_cache(tmp_path):
                 digest.update(np.ascontiguousarray(arr).tobytes())
             prev = s
     assert digest.hexdigest() == results[0][2]
-    package_cache = os.path.join(os.path.dirname(kernels.__file__), "__pycache__")
-    if os.geteuid() == 0 and shutil.which("setpriv") and kernels._state["cache_locator"] == "InTreeCacheLocator":
-        # the service's user cannot write the package directory: it loads what root compiled
-        # (from a readable copy when this checkout lies in a private directory; the copy keeps
-        # the cache files and their sources' mtimes)
+    if os.geteuid() == 0 and shutil.which("setpriv"):
+        # the service's user cannot write the package directory nor has a home: it compiles in
+        # memory, or loads what root compiled into a cache directory it owns (from a readable
+        # copy of the package when this checkout lies in a private directory)
         with python_for_other_users(TESTS_DIR) as (python, env_extra, copies):
-            nobody = _result(_run({"HOME": "/nonexistent", **env_extra}, user=65534, python=python,
-                                  tests_dir=copies[TESTS_DIR]))
-        assert nobody[:2] == ["compiled", "True"] and nobody[2] == results[0][2]
-        assert nobody[3] == "ReadOnlyPackageCache" and nobody[4:] == ["hits", "misses=0"]
-        assert os.path.isdir(package_cache)
+            shared = tempfile.mkdtemp(prefix="skinmap-numba-cache-")
+            try:
+                fill = _result(_run({"NUMBA_CACHE_DIR": shared, **env_extra}, python=python,
+                                    tests_dir=copies[TESTS_DIR]))
+                assert fill[:3] == ["compiled", "True", results[0][2]] and fill[3].startswith(shared)
+                for root, dirs, files in os.walk(shared):
+                    for name in [*dirs, *files]:
+                        os.chown(os.path.join(root, name), 65534, 65534)
+                os.chown(shared, 65534, 65534)
+                nobody = [_run({"HOME": "/nonexistent", **extra, **env_extra}, user=65534, python=python,
+                               tests_dir=copies[TESTS_DIR])
+                          for extra in ({}, {"NUMBA_CACHE_DIR": shared})]
+                uncached, cached = (_result(p) for p in nobody)
+            finally:
+                shutil.rmtree(shared, ignore_errors=True)
+        assert uncached[:4] == ["compiled", "False", results[0][2], "None"]
+        assert cached[:3] == ["compiled", "True", results[0][2]]
+        assert cached[4:] == ["hits", "misses=0"]

@@ -119,13 +119,6 @@ def has_status(client: SkinmapClient) -> bool:
         return False
 
 
-def receive_for(client: SkinmapClient, seconds: float) -> list:
-    out, end = [], time.monotonic() + seconds
-    while time.monotonic() < end:
-        out.append(client.elements(timeout=5.0))
-    return out
-
-
 def longest_gap_s(msgs: list) -> float:
     t = np.array([m.host_time_ns for m in msgs], dtype=np.float64) / 1e9
     return float(np.diff(t).max()) if len(t) > 1 else float("inf")

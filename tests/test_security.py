@@ -461,7 +461,6 @@ directory = "state"
     if os.geteuid() == 0:
         os.chown(work, uid, uid)
         os.chown(cfg, uid, uid)
-    emulator = start_emulator(serial_port, size="4x4", shape="flat", rate=20.0)
     # setpriv (util-linux) switches user and group and execs, as systemd does for the unit
     drop = ["setpriv", f"--reuid={uid}", f"--regid={uid}", "--clear-groups"] \
         if os.geteuid() == 0 else []
@@ -469,9 +468,15 @@ directory = "state"
         pytest.skip("setpriv is needed to drop to an unprivileged user")
     # a checkout in a private directory is out of the unprivileged user's reach: use a copy
     with python_for_other_users() as (python, env_extra, _):
+        # as the unit: a cache directory of the service's own, filled before the daemon starts
+        env = {**os.environ, **env_extra, "NUMBA_CACHE_DIR": str(work / "numba-cache")}
+        fill = subprocess.run([*drop, python, "-m", "skinmap.reconstruction.kernels"], cwd=work, env=env,
+                              stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=600)
+        assert fill.returncode == 0 and "cached" in fill.stdout.split(), fill.stdout + fill.stderr
+        emulator = start_emulator(serial_port, size="4x4", shape="flat", rate=20.0)
         daemon = subprocess.Popen([*drop, python, "-m", "skinmap.daemon.service", "--config",
                                    str(cfg)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.PIPE, cwd=work, env={**os.environ, **env_extra})
+                                  stderr=subprocess.PIPE, cwd=work, env=env)
         try:
             with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap",
                                device=DEVICE) as client:

@@ -21,8 +21,9 @@ little-endian. All lengths are in METRES in the sensor frame (docs/architecture.
 The byte tables of every kind are ``LAYOUT_TABLES`` below; docs/zenoh.md shows them as
 rendered by ``layout_table`` (a test keeps the two equal).
 
-Status and info are UTF-8 JSON objects; their fields are listed in ``STATUS_FIELDS`` and
-``INFO_FIELDS``.
+Status and info are UTF-8 JSON objects; their required fields are the TypedDicts
+``StatusReport`` and ``DeviceInfo``, from which ``STATUS_FIELDS`` and ``INFO_FIELDS`` (accepted
+JSON types and meaning of each) are derived.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import json
 import math
 import struct
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, TypedDict, cast, get_origin, get_type_hints
 
 import numpy as np
 
@@ -453,31 +454,79 @@ def decode(buf: Any) -> ElementsMessage | SurfaceMessage | StrainsMessage:
 STATUS_SCHEMA = "skinmap.status/1"
 INFO_SCHEMA = "skinmap.info/1"
 
-# field -> (accepted types, meaning). Required fields; extra fields are allowed and kept.
-STATUS_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
-    "device": ((str,), "device name (the <device> key segment)"),
-    "host_time_ns": ((int,), "host time of this report, ns since the Unix epoch"),
-    "connected": ((bool,), "scanner link is up"),
-    "seq": ((int,), "sequence number of the last published scan"),
-    "scan_rate_hz": ((int, float), "scans received per second (recent mean)"),
-    "publish_rate_hz": ((int, float), "shapes published per second (recent mean)"),
-    "frames_dropped": ((int,), "scans skipped since start (sequence gaps + solver overruns)"),
-    "crc_errors": ((int,), "frames rejected by CRC since start"),
-    "reconnects": ((int,), "serial reconnections since start"),
-    "solver_time_ms": ((int, float), "reconstruction time of the last scan, ms"),
-    "log_state": ((str,), "MCAP logger: 'off', 'recording' or 'error'"),
+class _StatusReportRequired(TypedDict):
+    device: str
+    host_time_ns: int
+    connected: bool
+    seq: int
+    scan_rate_hz: float
+    publish_rate_hz: float
+    frames_dropped: int
+    crc_errors: int
+    reconnects: int
+    solver_time_ms: float
+    log_state: str
+
+
+class StatusReport(_StatusReportRequired, total=False):
+    """A status report: the required fields (STATUS_FIELDS says what each means) and what else
+    the gateway sends (counters, conditions; kept by decoding) as far as tools read it."""
+
+    link_state: str  # the gateway's link state machine
+
+
+class DeviceInfo(TypedDict):
+    """The device description: the required fields (INFO_FIELDS says what each means); more
+    are allowed and kept."""
+
+    device: str
+    rows: int
+    cols: int
+    pitch_m: float
+    elements: dict[str, Any]
+    calibration: dict[str, Any]
+    versions: dict[str, Any]
+
+
+_STATUS_MEANINGS = {
+    "device": "device name (the <device> key segment)",
+    "host_time_ns": "host time of this report, ns since the Unix epoch",
+    "connected": "scanner link is up",
+    "seq": "sequence number of the last published scan",
+    "scan_rate_hz": "scans received per second (recent mean)",
+    "publish_rate_hz": "shapes published per second (recent mean)",
+    "frames_dropped": "scans skipped since start (sequence gaps + solver overruns)",
+    "crc_errors": "frames rejected by CRC since start",
+    "reconnects": "serial reconnections since start",
+    "solver_time_ms": "reconstruction time of the last scan, ms",
+    "log_state": "MCAP logger: 'off', 'recording' or 'error'",
 }
 
-INFO_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
-    "device": ((str,), "device name"),
-    "rows": ((int,), "N, cell rows"),
-    "cols": ((int,), "M, cell columns"),
-    "pitch_m": ((int, float), "cell pitch, metres"),
-    "elements": ((dict,), "element layout: {'count': K, 'width_m', 'height_m', "
-                          "'material_uv_m': K x [u, v] on the flat sheet}"),
-    "calibration": ((dict,), "{'gauge_factor': [...], 'r0_ohm': [...], 'source': ...}"),
-    "versions": ((dict,), "{'skinmap': ..., 'protocol': ..., 'firmware': ...}"),
+_INFO_MEANINGS = {
+    "device": "device name",
+    "rows": "N, cell rows",
+    "cols": "M, cell columns",
+    "pitch_m": "cell pitch, metres",
+    "elements": "element layout: {'count': K, 'width_m', 'height_m', 'material_uv_m': K x [u, v] on the flat sheet}",
+    "calibration": "{'gauge_factor': [...], 'r0_ohm': [...], 'source': ...}",
+    "versions": "{'skinmap': ..., 'protocol': ..., 'firmware': ...}",
 }
+
+
+def _fields(payload: Any, meanings: dict[str, str]) -> dict[str, tuple[tuple[type, ...], str]]:
+    """field -> (accepted JSON types, meaning) of a payload's required fields, from its
+    TypedDict (a float field also takes a JSON integer)."""
+    hints = get_type_hints(payload)
+    required = [name for name in hints if name in payload.__required_keys__]
+    if sorted(required) != sorted(meanings):
+        raise RuntimeError(f"{payload.__name__}: meanings for {sorted(meanings)}, fields {sorted(required)}")
+    accepted = {str: (str,), int: (int,), bool: (bool,), float: (int, float), dict: (dict,)}
+    return {name: (accepted[get_origin(hints[name]) or hints[name]], meanings[name]) for name in required}
+
+
+# field -> (accepted types, meaning). Required fields; extra fields are allowed and kept.
+STATUS_FIELDS = _fields(StatusReport, _STATUS_MEANINGS)
+INFO_FIELDS = _fields(DeviceInfo, _INFO_MEANINGS)
 
 
 def _check_fields(kind: str, obj: Mapping[str, Any],
@@ -530,8 +579,8 @@ def encode_status(status: Mapping[str, Any]) -> bytes:
     return _encode_json("status", STATUS_SCHEMA, status, STATUS_FIELDS)
 
 
-def decode_status(buf: Any) -> dict[str, Any]:
-    return _decode_json("status", STATUS_SCHEMA, buf, STATUS_FIELDS)
+def decode_status(buf: Any) -> StatusReport:
+    return cast(StatusReport, _decode_json("status", STATUS_SCHEMA, buf, STATUS_FIELDS))
 
 
 def encode_info(info: Mapping[str, Any]) -> bytes:
@@ -539,5 +588,5 @@ def encode_info(info: Mapping[str, Any]) -> bytes:
     return _encode_json("info", INFO_SCHEMA, info, INFO_FIELDS)
 
 
-def decode_info(buf: Any) -> dict[str, Any]:
-    return _decode_json("info", INFO_SCHEMA, buf, INFO_FIELDS)
+def decode_info(buf: Any) -> DeviceInfo:
+    return cast(DeviceInfo, _decode_json("info", INFO_SCHEMA, buf, INFO_FIELDS))
