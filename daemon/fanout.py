@@ -141,10 +141,6 @@ class Notifier:
         self._lock = threading.Lock()
         self._listeners: tuple[Listener, ...] = tuple(listeners)
 
-    @property
-    def listeners(self) -> tuple[Listener, ...]:
-        return self._listeners
-
     def add_listener(self, listener: Listener) -> None:
         with self._lock:
             self._listeners = (*self._listeners, listener)
@@ -231,10 +227,6 @@ class QueuedListener(Listener):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
-
-    @property
-    def stopping(self) -> bool:
-        return self._stop.is_set()
 
     def _run(self) -> None:
         try:

@@ -62,7 +62,6 @@ class Gateway:
         self._stop = threading.Event()
         self._shutdown_lock = threading.Lock()
         self._shutting_down = threading.Event()
-        self._ready_sent = False
         self.records = Notifier()
         self.scanner = ScannerState(cfg)
         self.monitor = ScanMonitor(self._on_event)
@@ -145,7 +144,6 @@ class Gateway:
         self._log_config()
 
     def _on_first_result(self) -> None:
-        self._ready_sent = True
         self.notifier.ready(f"streaming from {self.cfg.device.port}")
 
     def _log_config(self) -> None:

@@ -136,7 +136,6 @@ class MemoryLogSink(LogSink):
         self.records: list[tuple[str, int, Any]] = []
         self.before_write = before_write
         self.closed = False
-        self.ticks = 0
         self._error: LogStorageError | None = None
 
     def _keep(self, kind: str, t_ns: int, value: Any) -> None:
@@ -180,9 +179,6 @@ class MemoryLogSink(LogSink):
 
     def log_config(self, t_ns: int, config_text: str, calibration: Mapping[str, Any]) -> None:
         self._keep("config", t_ns, (config_text, dict(calibration)))
-
-    def tick(self) -> None:
-        self.ticks += 1
 
     def close(self) -> None:
         self.closed = True
