@@ -17,7 +17,7 @@ import queue
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Iterable, Literal, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal, Mapping
 
 from skinmap.protocol import Scan
 
@@ -245,7 +245,7 @@ class QueuedListener(Listener):
         finally:
             self._guarded(self.finish)
 
-    def _guarded(self, fn: Any, *args: Any) -> None:
+    def _guarded(self, fn: Callable[..., None], *args: Record) -> None:
         try:
             fn(*args)
         except Exception:  # noqa: BLE001 - the thread must outlive any one record

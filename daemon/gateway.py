@@ -22,7 +22,7 @@ from skinmap.daemon.config import DaemonConfig, config_to_toml
 from skinmap.daemon.console import shape_summary
 from skinmap.daemon.device_setup import ScannerState, calibration_doc, device_info, device_name
 from skinmap.daemon.fanout import ConfigRecord, Event, Notifier, RawFrame, ScanReceived, StatusRecord
-from skinmap.daemon.health import GatewayStats, Health, ScanMonitor
+from skinmap.daemon.health import DeviceClockCheck, GatewayStats, Health, ScanMonitor
 from skinmap.daemon.link import ScannerLink, open_serial
 from skinmap.daemon.logsink import LogListener, LogSink, NullLogSink
 from skinmap.daemon.notify import SystemdNotifier
@@ -98,7 +98,7 @@ class Gateway:
         return self.processing.results
 
     @property
-    def clock(self) -> Any:
+    def clock(self) -> DeviceClockCheck:
         return self.monitor.clock
 
     @property

@@ -8,7 +8,7 @@ import collections
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -18,6 +18,9 @@ from skinmap.daemon.pacing import HostDecimator
 from skinmap.daemon.pipeline import FramePipeline, FrameResult
 from skinmap.daemon.publisher import NullPublisher, Publisher, PublisherFactory
 from skinmap.wire import messages
+
+if TYPE_CHECKING:
+    from skinmap.daemon.tactile import ContactTracker
 
 __all__ = ["OutputStats", "ResultOutput", "MAX_CLOUD_POINTS"]
 
@@ -52,7 +55,7 @@ class ResultOutput:
         self._surface = HostDecimator(cfg.output.surface_rate_hz)
         self._strains = HostDecimator(cfg.output.strains_rate_hz)
         self._log_surface = HostDecimator(cfg.log.surface_rate_hz)
-        self._contact: Any = None  # the tactile ContactTracker, rebuilt after every (re)connect
+        self._contact: ContactTracker | None = None  # rebuilt after every (re)connect
 
     def use_device(self, name: str, info: Callable[[], dict[str, Any]]) -> None:
         """Publish as `name` from now on; `info()` is its description."""
