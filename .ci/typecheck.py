@@ -44,6 +44,7 @@ CLEAN = [
     "skinmap.daemon.logsink",
     "skinmap.daemon.zenoh_io",
     "skinmap.daemon.mcaplog",
+    "skinmap.daemon.mcapfile",
     "skinmap.daemon.mcapschema",
     "skinmap.daemon.rotation",
     "skinmap.daemon.mcapread",

@@ -11,80 +11,25 @@ writer is synchronous and NOT thread-safe: the daemon calls it from one log thre
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import time
-from typing import IO, Any, BinaryIO, Callable, Mapping, cast
+from typing import Any, BinaryIO, Callable, Mapping
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
 from skinmap.daemon.logsink import LogSink, LogStorageError
+from skinmap.daemon.mcapfile import COMPRESSION, McapFile, default_open, fsync_directory
 from skinmap.daemon.mcapschema import TOPICS, TopicSpec, as_payload, check_seq, device_topic, log_message, \
     to_json, wire_views
-from skinmap.daemon.rotation import RotationPolicy, final_name
+from skinmap.daemon.rotation import RotationPolicy
 
-__all__ = ["LogStorageError", "McapLogger", "finish_writer"]
+__all__ = ["LogStorageError", "McapLogger"]
 
 MiB = 1024 * 1024
 LIBRARY = "skinmap.daemon.mcaplog"
 
 
-def finish_writer(writer: Writer, attachments: int) -> None:
-    """``writer.finish()``, leaving out the attachment index of a file without attachments:
-    mcap's Writer writes a summary offset for the empty group, which ``pymcap-cli doctor``
-    rightly reports as an error."""
-    if not attachments:
-        writer._Writer__index_types &= ~IndexType.ATTACHMENT  # type: ignore[attr-defined]
-    writer.finish()
-
-
-# --------------------------------------------------------------------------------------------
-# The writing edge.
-
-
-class _CountingFile:
-    """Write-only stream for mcap.Writer: writes fully (loops on short writes), counts bytes
-    and keeps its own position so no OS call is needed for tell()."""
-
-    def __init__(self, raw: BinaryIO):
-        self.raw = raw
-        self.position = 0
-
-    def write(self, data: bytes | bytearray | memoryview) -> int:
-        view = memoryview(data).cast("B")
-        total = len(view)
-        while view:
-            n = self.raw.write(view)
-            if not n:
-                raise OSError(errno.EIO, "short write: the file accepted no more bytes")
-            view = view[n:]
-        self.position += total
-        return total
-
-    def tell(self) -> int:
-        return self.position
-
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def fsync(self) -> None:
-        self.raw.flush()
-        os.fsync(self.raw.fileno())
-
-    def close(self) -> None:
-        self.raw.close()
-
-
-def _default_open(path: str) -> BinaryIO:
-    # Unbuffered: every write reaches the OS at once, so a storage error surfaces in the call
-    # that caused it, never later from a buffer flush.
-    return open(path, "xb", buffering=0)
-
-
-_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                "none": CompressionType.NONE}
 _FSYNC_POLICIES = ("chunk", "close", "never")
 
 
@@ -128,10 +73,10 @@ class McapLogger(LogSink):
         create_directory: bool = False,
         clock: Callable[[], int] = time.time_ns,
         monotonic: Callable[[], int] = time.monotonic_ns,
-        open_file: Callable[[str], BinaryIO] = _default_open,
+        open_file: Callable[[str], BinaryIO] = default_open,
     ):
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, "
+        if compression not in COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, "
                              f"got {compression!r}")
         if compression == "lz4":
             try:
@@ -173,17 +118,7 @@ class McapLogger(LogSink):
         self._extra_topics: dict[str, TopicSpec] = {}
         self._config: tuple[int, str, Any] | None = None
 
-        # Per-file state.
-        self._writer: Writer | None = None
-        self._stream: _CountingFile | None = None
-        self._path: str | None = None
-        self._channels: dict[str, int] = {}
-        self._schemas: dict[tuple[str, str, bytes], int] = {}
-        self._opened_mono = 0
-        self._chunk_opened_mono: int | None = None
-        self._pending_bytes = 0
-        self._pending_messages = 0
-        self._attachments_in_file = 0
+        self._file: McapFile | None = None  # the file being written
 
         self._retry_at: int | None = None
         self.last_error: LogStorageError | None = None
@@ -208,12 +143,12 @@ class McapLogger(LogSink):
     @property
     def bytes_written(self) -> int:
         """Bytes written to log files so far (all files, including the current one)."""
-        return self._bytes_in_closed_files + (self._stream.position if self._stream else 0)
+        return self._bytes_in_closed_files + (self._file.stream.position if self._file else 0)
 
     @property
     def current_path(self) -> str | None:
         """The `.mcap.active` file being written, or None."""
-        return self._path
+        return self._file.path if self._file else None
 
     # ---------------------------------------------------------------- typed helpers
 
@@ -277,10 +212,10 @@ class McapLogger(LogSink):
         to_json(dict(calibration), "calibration")  # fail now, not at the next rotation
         self._check_time(t_ns)
         self._config = (int(t_ns), config_text, dict(calibration))
-        path_before = self._path
+        path_before = self.current_path
         if not self._ready(t_ns):
             return
-        if self._path == path_before:  # a freshly opened file already holds it
+        if self.current_path == path_before:  # a freshly opened file already holds it
             self._guard("writing to", lambda: self._write_config(int(t_ns)))
 
     def write(self, topic: str, t_ns: int, data: bytes, *, schema_name: str,
@@ -309,7 +244,7 @@ class McapLogger(LogSink):
 
     def flush(self) -> None:
         """Close the open chunk and make everything written so far durable (per policy)."""
-        if self._writer is None:
+        if self._file is None:
             return
         self._guard("flushing", self._flush_chunk)
 
@@ -317,12 +252,11 @@ class McapLogger(LogSink):
         """Housekeeping for idle periods (call about once a second when nothing is logged):
         close a chunk older than `max_chunk_age_s` and finish a file whose time is up, so
         data does not sit in memory while no messages arrive."""
-        if self._writer is None:
+        if self._file is None:
             return
         if self._rotation_due():
             self._guard("finishing", self._finish_file)
-        elif self._chunk_opened_mono is not None and \
-                self._monotonic() - self._chunk_opened_mono >= self.max_chunk_age_s * 1e9:
+        elif self._chunk_too_old(self._file):
             self._guard("flushing", self._flush_chunk)
 
     def close(self) -> None:
@@ -330,7 +264,7 @@ class McapLogger(LogSink):
         if self._closed:
             return
         self._closed = True
-        if self._writer is not None:
+        if self._file is not None:
             self._guard("finishing", self._finish_file)
 
     def __enter__(self) -> McapLogger:
@@ -364,7 +298,7 @@ class McapLogger(LogSink):
         """Make sure a file is open (rotating if due). False: drop this message."""
         if self._closed:
             raise ValueError("the MCAP logger is closed")
-        if self._writer is None:
+        if self._file is None:
             now = self._monotonic()
             if self._retry_at is not None and now < self._retry_at:
                 self.messages_dropped += 1
@@ -385,7 +319,7 @@ class McapLogger(LogSink):
         except OSError as exc:
             if isinstance(exc, LogStorageError):
                 raise
-            where = path or self._path or self.directory
+            where = path or self.current_path or self.directory
             error = LogStorageError(where, exc, action)
             self._abandon_file()
             self.last_error = error
@@ -395,158 +329,86 @@ class McapLogger(LogSink):
 
     def _abandon_file(self) -> None:
         # The writer's state no longer matches the disk; keep the cut file for recovery.
-        if self._stream is not None:
-            self._bytes_in_closed_files += self._stream.position
-            try:
-                self._stream.close()
-            except OSError:
-                pass
-        if self._path is not None:
-            self.abandoned_paths.append(self._path)
-        # Messages of the unfinished chunk may not have reached the disk.
-        self.messages_lost += self._pending_messages
-        self._writer = self._stream = self._path = None
-        self._channels.clear()
-        self._schemas.clear()
-        self._chunk_opened_mono = None
-        self._pending_bytes = self._pending_messages = 0
+        f, self._file = self._file, None
+        if f is None:
+            return
+        self._bytes_in_closed_files += f.stream.position
+        f.close_quietly()
+        self.abandoned_paths.append(f.path)
+        self.messages_lost += f.pending_messages  # the unfinished chunk may not be on disk
 
     def _rotation_due(self) -> bool:
-        assert self._stream is not None
-        return self.rotation.due(self._stream.position + self._pending_bytes,
-                                 self._monotonic() - self._opened_mono)
+        assert self._file is not None
+        return self.rotation.due(self._file.size(), self._monotonic() - self._file.opened_mono)
+
+    def _chunk_too_old(self, f: McapFile) -> bool:
+        return f.chunk_opened_mono is not None and \
+            self._monotonic() - f.chunk_opened_mono >= self.max_chunk_age_s * 1e9
 
     def _open_file_now(self, t_ns: int) -> None:
         if self.create_directory:
             os.makedirs(self.directory, exist_ok=True)
         path = self.rotation.next_path(self.directory, self._clock())
-        raw = self._open_file(path)
-        stream = _CountingFile(raw)
         # Set at once so a failure below abandons (and closes) this file.
-        self._stream, self._path = stream, path
-        # mcap's Writer calls only write, tell and flush, which _CountingFile provides.
-        writer = Writer(cast(IO[bytes], stream), chunk_size=self.chunk_size,
-                        compression=_COMPRESSION[self.compression])
-        self._writer = writer
-        self._attachments_in_file = 0
-        writer.start(profile="", library=LIBRARY)
+        f = self._file = McapFile(path, self._open_file(path), chunk_size=self.chunk_size,
+                                  compression=self.compression, fsync_chunk=self.fsync_policy == "chunk")
+        f.writer.start(profile="", library=LIBRARY)
         start = dict(self.metadata)
         start.update({"basename": self.rotation.basename, "file_index": str(self.rotation.file_index),
                       "created_unix_ns": str(self._clock()), "writer": LIBRARY})
-        writer.add_metadata("skinmap.start", start)
+        f.writer.add_metadata("skinmap.start", start)
         if self._config is not None:
             self._write_config(t_ns)
-        self._opened_mono = self._monotonic()
-        self._chunk_opened_mono = None
-        self._pending_bytes = self._pending_messages = 0
-        self._sync(force=self.fsync_policy == "chunk")
+        f.opened_mono = self._monotonic()
+        f.chunk_opened_mono = None
+        f.pending_bytes = f.pending_messages = 0
+        f.sync()
         if self.fsync_policy == "chunk":
-            self._fsync_directory()
+            fsync_directory(self.directory)
         self._retry_at = None
         self.last_error = None
 
     def _write_config(self, t_ns: int) -> None:
-        assert self._writer is not None
-        logged_at, text, calibration = self._config  # type: ignore[misc]
+        f = self._file
+        assert f is not None and self._config is not None
+        logged_at, text, calibration = self._config
         calib_json = to_json(calibration, "calibration")
-        self._attachments_in_file += 2
-        self._writer.add_attachment(create_time=logged_at, log_time=t_ns, name="config.toml",
-                                    media_type="application/toml", data=text.encode())
-        self._writer.add_attachment(create_time=logged_at, log_time=t_ns,
-                                    name="calibration.json", media_type="application/json",
-                                    data=calib_json)
-        self._writer.add_metadata("skinmap.config", {"config_text": text,
-                                                     "calibration": calib_json.decode(),
-                                                     "logged_at_ns": str(logged_at)})
-        self._sync(force=self.fsync_policy == "chunk")
+        f.attachments += 2
+        f.writer.add_attachment(create_time=logged_at, log_time=t_ns, name="config.toml",
+                                media_type="application/toml", data=text.encode())
+        f.writer.add_attachment(create_time=logged_at, log_time=t_ns, name="calibration.json",
+                                media_type="application/json", data=calib_json)
+        f.writer.add_metadata("skinmap.config", {"config_text": text, "calibration": calib_json.decode(),
+                                                 "logged_at_ns": str(logged_at)})
+        f.sync()
         message = json.dumps({"config_text": text, "calibration": json.loads(calib_json),
                               "logged_at_ns": logged_at}, separators=(",", ":")).encode()
         self._add(TOPICS["/config"], t_ns, message, None)
 
-    def _channel_id(self, spec: TopicSpec) -> int:
-        channel = self._channels.get(spec.topic)
-        if channel is None:
-            assert self._writer is not None
-            key = (spec.schema_name, spec.schema_encoding, spec.schema_data)
-            schema = self._schemas.get(key)
-            if schema is None:
-                schema = self._writer.register_schema(spec.schema_name, spec.schema_encoding,
-                                                      spec.schema_data)
-                self._schemas[key] = schema
-                self._pending_bytes += len(spec.schema_data) + 64
-            channel = self._writer.register_channel(spec.topic, spec.message_encoding, schema,
-                                                    spec.channel_metadata())
-            self._channels[spec.topic] = channel
-            self._pending_bytes += 64
-        return channel
-
     def _add(self, spec: TopicSpec, t_ns: int, data: bytes, seq: int | None) -> None:
-        assert self._writer is not None and self._stream is not None
-        channel = self._channel_id(spec)
-        before = self._stream.position
-        try:
-            self._writer.add_message(channel_id=channel, log_time=t_ns, publish_time=t_ns,
-                                     data=data, sequence=0 if seq is None else seq % 2**32)
-        except OSError:
-            self._pending_messages += 1  # it was in the chunk whose write failed
-            raise
+        f = self._file
+        assert f is not None
+        emitted = f.add(spec, t_ns, data, seq)
         self.messages_written += 1
-        self._pending_messages += 1
-        self._pending_bytes += len(data) + 31
-        if self._stream.position != before:
-            # The writer emitted a chunk, which held every pending message including this one.
-            self._chunk_written()
-        elif self._chunk_opened_mono is None:
-            self._chunk_opened_mono = self._monotonic()
-        elif self._monotonic() - self._chunk_opened_mono >= self.max_chunk_age_s * 1e9:
-            self._flush_chunk()
-
-    def _chunk_written(self) -> None:
-        self.messages_flushed += self._pending_messages
-        self._pending_messages = self._pending_bytes = 0
-        self._chunk_opened_mono = None
-        self._sync(force=self.fsync_policy == "chunk")
+        if emitted:
+            self.messages_flushed += f.chunk_done()
+        elif f.chunk_opened_mono is None:
+            f.chunk_opened_mono = self._monotonic()
+        elif self._chunk_too_old(f):
+            self.messages_flushed += f.flush_chunk()
 
     def _flush_chunk(self) -> None:
-        assert self._writer is not None and self._stream is not None
-        self._writer.flush()
-        self._chunk_written()
-
-    def _sync(self, force: bool) -> None:
-        assert self._stream is not None
-        if force:
-            self._stream.fsync()
-        else:
-            self._stream.flush()
-
-    def _fsync_directory(self) -> None:
-        try:
-            fd = os.open(self.directory, os.O_RDONLY)
-        except OSError:
-            return  # some file systems do not allow opening folders; the data is synced
-        try:
-            os.fsync(fd)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
+        assert self._file is not None
+        self.messages_flushed += self._file.flush_chunk()
 
     def _finish_file(self) -> None:
-        assert self._writer is not None and self._stream is not None and self._path
-        finish_writer(self._writer, self._attachments_in_file)
-        self.messages_flushed += self._pending_messages
-        self._pending_messages = self._pending_bytes = 0
+        f = self._file
+        assert f is not None
+        self.messages_flushed += f.end_writer()
+        done = f.close_and_rename(fsync=self.fsync_policy != "never")
         if self.fsync_policy != "never":
-            self._stream.fsync()
-        self._stream.close()
-        done = final_name(self._path)
-        os.replace(self._path, done)
-        if self.fsync_policy != "never":
-            self._fsync_directory()
+            fsync_directory(self.directory)
         self.finished_paths.append(done)
         self.files_finished += 1
-        self._bytes_in_closed_files += self._stream.position
-        self._writer = self._stream = self._path = None
-        self._channels.clear()
-        self._schemas.clear()
-        self._chunk_opened_mono = None
+        self._bytes_in_closed_files += f.stream.position
+        self._file = None

@@ -11,7 +11,7 @@ from typing import Iterator
 from mcap.records import Attachment, Message, Metadata
 from mcap.writer import CompressionType, Writer
 
-from skinmap.daemon.mcaplog import finish_writer
+from skinmap.daemon.mcapfile import finish_writer
 from skinmap.daemon.mcapread import (DEFAULT_MAX_RECORD_BYTES, FileOrderReader, ReadEnd, _Item,
                                      skipped_lines)
 from skinmap.daemon.rotation import ACTIVE_SUFFIX, final_name
