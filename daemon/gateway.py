@@ -227,7 +227,7 @@ def default_log_sink(cfg: DaemonConfig) -> LogSink:
                                 max_seconds=lc.max_file_minutes * 60.0),
         chunk_size=lc.chunk_kb * 1024,
         compression=lc.compression,
-        fsync="chunk" if lc.fsync else "none",
+        fsync="chunk" if lc.fsync else "never",  # [log] fsync = false: leave syncing to the OS
         metadata={"skinmap_version": skinmap.__version__, "config_source": cfg.source},
         create_directory=True,
     )

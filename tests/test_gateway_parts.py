@@ -274,3 +274,15 @@ def test_publishing_failures_are_counted_and_processing_goes_on(emulator, tmp_pa
         gw.stop()
         runner.join(30)
     assert not runner.is_alive()
+
+
+def test_the_default_log_sink_follows_the_log_table(tmp_path):
+    from skinmap.daemon.gateway import default_log_sink
+
+    for fsync, policy in ((True, "chunk"), (False, "never")):
+        cfg = gateway_config(tmp_path, free_port(), tmp_path / "tty", "cfg", 40,
+                             log={"fsync": fsync, "basename": "run", "max_file_mb": 1})
+        sink = default_log_sink(cfg)
+        assert sink.fsync_policy == policy  # type: ignore[attr-defined]
+        assert sink.rotation.basename == "run" and sink.rotation.max_bytes == 1024 * 1024  # type: ignore[attr-defined]
+        sink.close()
