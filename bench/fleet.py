@@ -26,7 +26,7 @@ from latency import free_port  # bench/latency.py
 from skinmap.client import check_message
 from skinmap.daemon.cli import start_emulator, stop_process
 from skinmap.daemon.fleet import Recorder, discover, router_config
-from skinmap.daemon.mcapinspect import iter_messages_file_order
+from skinmap.daemon.mcapread import iter_messages_file_order
 from skinmap.daemon.zenoh_io import make_session_config, open_session
 from skinmap.wire import messages as wire
 

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from skinmap.daemon.config import parse_config
-from skinmap.daemon.service import Gateway, open_zenoh
+from skinmap.daemon.service import Gateway, open_zenoh, zenoh_publishers
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
@@ -74,7 +74,7 @@ class Running:
 
     def __init__(self, cfg: Any) -> None:
         self._zcm = open_zenoh(cfg)
-        self.gw = Gateway(cfg, zenoh_session=self._zcm.__enter__())
+        self.gw = Gateway(cfg, publishers=zenoh_publishers(cfg, self._zcm.__enter__()))
         self.thread = threading.Thread(target=self.gw.run, daemon=True)
         self.thread.start()
 

@@ -204,9 +204,9 @@ def rewrite_log(source: Path, out: Path, edit) -> Path:
     of payloads to write in its place (none drops it, several insert)."""
     from mcap.writer import Writer
 
-    from skinmap.daemon.mcapinspect import _FileOrderReader
+    from skinmap.daemon.mcapread import FileOrderReader
 
-    reader = _FileOrderReader(source)
+    reader = FileOrderReader(source)
     with open(out, "wb") as f:
         w = Writer(f)
         w.start(profile="", library="hostile_tools rewrite")
@@ -359,7 +359,7 @@ def scenario_forged_puts(tmp: Path) -> None:
     from skinmap.wire import messages
     from skinmap.client import SkinmapClient
     from skinmap.daemon.config import parse_config
-    from skinmap.daemon.service import Gateway, open_zenoh
+    from skinmap.daemon.service import Gateway, open_zenoh, zenoh_publishers
     from skinmap.daemon.zenoh_io import make_session_config
     from skinmap.emulator.device import ScannerSpec
     from skinmap.emulator.emulator import Emulator
@@ -386,7 +386,7 @@ def scenario_forged_puts(tmp: Path) -> None:
                            source="<hostile>")
         try:
             with open_zenoh(cfg) as session:
-                gw = Gateway(cfg, zenoh_session=session)
+                gw = Gateway(cfg, publishers=zenoh_publishers(cfg, session))
                 runner = threading.Thread(target=gw.run, daemon=True)
                 runner.start()
                 raw = {"forged": 0, "real": 0}

@@ -138,7 +138,7 @@ def check_files(logs: Path, result: SoakResult, replay: bool) -> None:
     """Read every MCAP file in ``logs``; replay one finished file (``replay``)."""
     from skinmap.daemon.mcapinspect import inspect
     from skinmap.daemon.replay import replay_log
-    from skinmap.daemon.service import limit_blas_threads
+    from skinmap.daemon.gateway import limit_blas_threads
 
     # The daemon solves with one BLAS thread; a multi-threaded BLAS sums in another order and
     # the replay would differ in the last bits. Must run before this process's first solve.

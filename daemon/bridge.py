@@ -3,7 +3,7 @@
 
 The bridge only subscribes (and queries each device's latest values once, for an at-once
 picture). Every message is checked as the client checks it; its Foxglove views are the very
-ones the MCAP log stores (``skinmap.daemon.mcaplog.wire_views``), under ``/<device>/...``:
+ones the MCAP log stores (``skinmap.daemon.mcapschema.wire_views``), under ``/<device>/...``:
 ``scene``, ``elements/poses``, ``elements/plot``, ``strains/plot``, ``surface`` (point cloud),
 ``tf`` and ``status``. The skinmap binary layouts themselves are not served (Foxglove cannot
 decode them).
@@ -20,7 +20,7 @@ from typing import Any, Iterable
 import foxglove
 import zenoh
 
-from skinmap.daemon.mcaplog import LAYOUT_SCHEMA_ENCODING, TopicSpec, device_topic, wire_views
+from skinmap.daemon.mcapschema import LAYOUT_SCHEMA_ENCODING, TopicSpec, device_topic, wire_views
 from skinmap.wire import messages
 from skinmap.wire.keys import check_key_segment
 from skinmap.wire.session import check_loopback_endpoint

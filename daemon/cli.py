@@ -351,7 +351,8 @@ def _add_record_limit(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from skinmap.daemon.mcapinspect import inspect, render_surface_png
+    from skinmap.daemon.mcapinspect import inspect
+    from skinmap.daemon.mcapsnapshot import render_surface_png
 
     report = inspect(args.log, gap_threshold_s=args.gap, max_record_bytes=_record_limit(args))
     print(report.format())
@@ -362,7 +363,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    from skinmap.daemon.mcapinspect import recover
+    from skinmap.daemon.mcaprecover import recover
 
     report = recover(args.log, args.output, max_record_bytes=_record_limit(args))
     print(report.format())
@@ -416,7 +417,7 @@ def cmd_tare(args: argparse.Namespace) -> int:
 
 def _hello_from_log(log_path: str) -> Any:
     """The scanner's HELLO as logged with the config (None if the log has none)."""
-    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    from skinmap.daemon.mcapread import iter_messages_file_order
     from skinmap.protocol import Hello, StreamDecoder
 
     decoder = StreamDecoder()

@@ -1,333 +1,45 @@
-"""Rotating, crash-safe MCAP logger for skinmapd.
+"""Rotating, crash-safe MCAP logger for skinmapd: `McapLogger`, the MCAP `LogSink`.
 
 Everything the daemon sees and computes is written to chunked, compressed MCAP files so that a
 session can be inspected afterwards and replayed bit-exactly (`/raw` holds the serial frames
 exactly as received). See docs/logging.md for the topics, layouts and guarantees.
 
-Layout of this module:
-
-- the topics (`TOPICS`): binary payloads are the wire messages of `skinmap.wire.messages`,
-  exactly as published; Foxglove views come from `skinmap.daemon.foxglove_log` (foxglove-sdk
-  protobuf messages);
-- `McapLogger`, the writing edge. It is synchronous and NOT thread-safe: the daemon calls it
-  from one dedicated writer thread.
+What is written is defined in `skinmap.daemon.mcapschema` (topics, schemas, payload codecs);
+when a file ends and what it is called, by a `skinmap.daemon.rotation.RotationPolicy`. The
+writer is synchronous and NOT thread-safe: the daemon calls it from one log thread.
 """
 
 from __future__ import annotations
 
-import base64
-import errno
 import json
 import os
 import time
-from dataclasses import dataclass, replace
 from typing import Any, BinaryIO, Callable, Mapping
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
-from skinmap.daemon import foxglove_log as fox
-from skinmap.wire import messages
+from skinmap.daemon.logsink import LogSink, LogStorageError
+from skinmap.daemon.mcapfile import COMPRESSION, McapFile, default_open, fsync_directory
+from skinmap.daemon.mcapschema import TOPICS, TopicSpec, as_payload, check_seq, device_topic, log_message, \
+    to_json, wire_views
+from skinmap.daemon.rotation import RotationPolicy
 
-__all__ = [
-    "LogStorageError",
-    "McapLogger",
-    "TopicSpec",
-    "TOPICS",
-    "LOG_LEVELS",
-    "log_message",
-    "topics_table",
-    "final_name",
-]
+__all__ = ["LogStorageError", "McapLogger"]
 
 MiB = 1024 * 1024
-ACTIVE_SUFFIX = ".mcap.active"
-FINISHED_SUFFIX = ".mcap"
 LIBRARY = "skinmap.daemon.mcaplog"
 
 
-class LogStorageError(OSError):
-    """The log storage refused a write: disk full, read-only or missing folder, I/O error.
-
-    Raised by the logger call that hit the problem. `path` is the file or folder involved,
-    `errno` / `strerror` are those of the underlying OS error. The logger stays usable.
-    """
-
-    def __init__(self, path: str, cause: OSError, action: str):
-        code = cause.errno if cause.errno is not None else errno.EIO
-        reason = cause.strerror or str(cause) or type(cause).__name__
-        super().__init__(code, f"MCAP log storage failed while {action} {path!r}: {reason}")
-        self.path = path
-        self.action = action
-        self.__cause__ = cause
-
-    def __str__(self) -> str:
-        return self.strerror or super().__str__()
-
-
-# --------------------------------------------------------------------------------------------
-# Topics. Binary payloads are the wire messages of skinmap.wire.messages, exactly as published;
-# Foxglove views are the foxglove-sdk's protobuf messages (skinmap.daemon.foxglove_log).
-
-LOG_LEVELS = {name: i for i, name in enumerate(fox.LOG_LEVEL_NAMES)}
-
-RAW_LAYOUT = (
-    "skinmap.cobs-frame: one scanner frame exactly as received on the serial port, "
-    "COBS-encoded, including its 0x00 delimiter; see protocol/PROTOCOL.md. "
-    "Replay writes these bytes back unchanged."
-)
-
-
-def _wire_layout(kind: str, what: str) -> bytes:
-    header = messages.layout_table("header")
-    body = messages.layout_table(kind)
-    return (f"skinmap.{kind}/1: the {kind} message exactly as published on Zenoh ({what}; "
-            "skinmap.wire.messages, little-endian, lengths in metres).\n\nCommon header:\n"
-            f"{header}\n\n{kind}:\n{body}\n").encode()
-
-
-LAYOUT_SCHEMA_ENCODING = "skinmap.layout-text"
-
-
-@dataclass(frozen=True)
-class TopicSpec:
-    """How one topic is stored: schema and message encoding, and whether it carries a seq."""
-
-    topic: str
-    schema_name: str
-    schema_encoding: str
-    schema_data: bytes
-    message_encoding: str
-    has_sequence: bool = False
-
-    def channel_metadata(self) -> dict[str, str]:
-        return {"sequence": "frame"} if self.has_sequence else {}
-
-
-def _json_schema(schema: Mapping[str, Any]) -> bytes:
-    return json.dumps(schema, separators=(",", ":")).encode()
-
-
-def _foxglove(topic: str, key: str, has_sequence: bool = False) -> TopicSpec:
-    schema = fox.SCHEMAS[key]
-    return TopicSpec(topic, schema.name, schema.encoding, bytes(schema.data), "protobuf",
-                     has_sequence)
-
-
-TOPICS: dict[str, TopicSpec] = {
-    spec.topic: spec
-    for spec in (
-        TopicSpec("/raw", "skinmap.CobsFrame", LAYOUT_SCHEMA_ENCODING, RAW_LAYOUT.encode(),
-                  "skinmap.cobs-frame"),
-        TopicSpec("/strains", "skinmap.Strains", LAYOUT_SCHEMA_ENCODING,
-                  _wire_layout("strains", "every processed scan"), "skinmap.strains/1",
-                  has_sequence=True),
-        TopicSpec("/strains/plot", "skinmap.StrainsPlot", "jsonschema",
-                  _json_schema(fox.STRAINS_PLOT_SCHEMA), "json", has_sequence=True),
-        TopicSpec("/surface", "foxglove.PointCloud", "protobuf",
-                  bytes(fox.SCHEMAS["cloud"].data), "protobuf", has_sequence=True),
-        TopicSpec("/surface/nodes", "skinmap.Surface", LAYOUT_SCHEMA_ENCODING,
-                  _wire_layout("surface", "nodes, normals, σ and the dense cloud"),
-                  "skinmap.surface/1", has_sequence=True),
-        TopicSpec("/elements", "skinmap.Elements", LAYOUT_SCHEMA_ENCODING,
-                  _wire_layout("elements", "unchanged"), "skinmap.elements/1"),
-        _foxglove("/elements/poses", "poses"),
-        TopicSpec("/elements/plot", "skinmap.ElementsPlot", "jsonschema",
-                  _json_schema(fox.ELEMENTS_PLOT_SCHEMA), "json"),
-        _foxglove("/scene", "scene"),
-        _foxglove("/tf", "tf"),
-        TopicSpec("/contact", "skinmap.Contact", "jsonschema",
-                  _json_schema({"title": "skinmap.Contact", "type": "object"}), "json"),
-        TopicSpec("/status", "skinmap.Status", "jsonschema", _json_schema(fox.status_schema()),
-                  "json"),
-        _foxglove("/log", "log"),
-        TopicSpec("/config", "skinmap.Config", "jsonschema",
-                  _json_schema({
-                      "title": "skinmap.Config",
-                      "type": "object",
-                      "properties": {
-                          "config_text": {"type": "string"},
-                          "calibration": {"type": "object"},
-                          "logged_at_ns": {"type": "integer"},
-                      },
-                  }), "json"),
-    )
-}
-TOPICS["/surface"] = _foxglove("/surface", "cloud", has_sequence=True)
-
-
-def topics_table() -> str:
-    """The markdown table of logged topics (docs/logging.md shows it; a test keeps them equal)."""
-    lines = ["| topic | schema name (encoding) | message encoding |", "|---|---|---|"]
-    for spec in TOPICS.values():
-        lines.append(f"| `{spec.topic}` | `{spec.schema_name}` (`{spec.schema_encoding}`) | "
-                     f"`{spec.message_encoding}` |")
-    return "\n".join(lines)
-
-
-# --------------------------------------------------------------------------------------------
-# Pure payload helpers.
-
-
-def _check_seq(seq: int) -> int:
-    if isinstance(seq, bool) or not isinstance(seq, (int, np.integer)) or not 0 <= seq < 2**64:
-        raise ValueError(f"seq must be an integer in [0, 2**64), got {seq!r}")
-    return int(seq)
-
-
-def _level_number(level: int | str) -> int:
-    if isinstance(level, str):
-        key = level.strip().upper()
-        key = {"WARN": "WARNING", "CRITICAL": "FATAL"}.get(key, key)
-        if key not in LOG_LEVELS:
-            raise ValueError(f"unknown log level {level!r}; use one of {sorted(LOG_LEVELS)}")
-        return LOG_LEVELS[key]
-    if isinstance(level, (int, np.integer)) and not isinstance(level, bool):
-        if 0 <= level <= 5:
-            return int(level)
-        # Python logging numbers (10 DEBUG .. 50 CRITICAL) map onto Foxglove's 1..5.
-        if level in (10, 20, 30, 40, 50):
-            return int(level) // 10
-    raise ValueError(f"log level must be a name, 0..5 or a logging level, got {level!r}")
-
-
-def log_message(t_ns: int, level: int | str, message: str, name: str = "skinmapd") -> bytes:
-    """A foxglove.Log message (protobuf)."""
-    return fox.log_entry(t_ns, _level_number(level), message, name)
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, (bytes, bytearray)):
-        return base64.b64encode(bytes(value)).decode("ascii")
-    raise TypeError(f"value of type {type(value).__name__} cannot be logged as JSON")
-
-
-def _to_json(value: Any, what: str) -> bytes:
-    try:
-        return json.dumps(value, default=_json_default, separators=(",", ":"),
-                          allow_nan=True).encode()
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{what} is not JSON-serialisable: {exc}") from None
-
-
-def device_topic(topic: str, device: str | None = None) -> TopicSpec:
-    """The spec of `topic`, under `/<device>` when several devices share a file or a server."""
-    spec = TOPICS[topic]
-    return spec if device is None else replace(spec, topic=f"/{device}{spec.topic}")
-
-
-def wire_views(kind: str, payload: bytes, t_ns: int, device: str | None = None,
-               latency_ms: float | None = None) -> list[tuple[TopicSpec, bytes, int | None, int]]:
-    """A wire message and its Foxglove views as (topic spec, data, seq or None, time) —
-    what the log stores and the live bridge serves. `kind` is elements, surface or strains;
-    raises MessageError (bad layout) or ValueError (non-finite surface)."""
-    frame = device or fox.FRAME_ID
-    t = device_topic
-    if kind == "strains":
-        st = messages.decode_strains(payload)
-        return [(t("/strains", device), payload, st.seq, t_ns),
-                (t("/strains/plot", device), fox.strains_plot(st), st.seq, t_ns)]
-    if kind == "surface":
-        sf = messages.decode_surface(payload)
-        if not (np.isfinite(sf.nodes).all() and np.isfinite(sf.cloud).all()):
-            raise ValueError("surface nodes or cloud contain NaN or infinite values")
-        points = sf.cloud if len(sf.cloud) else sf.nodes.reshape(-1, 3)
-        cloud = fox.point_cloud(points, t_ns, frame)
-        scene = fox.scene_sheet(sf, t_ns, frame)
-        return [(t("/surface/nodes", device), payload, sf.seq, t_ns),
-                (t("/surface", device), cloud, sf.seq, t_ns),
-                (t("/tf", device), fox.frame_transform(t_ns, frame), None, t_ns),
-                (t("/scene", device), scene, None, t_ns)]
-    if kind == "elements":
-        el = messages.decode_elements(payload)
-        views = (fox.element_poses(el, t_ns, frame), fox.scene_elements(el, t_ns, frame),
-                 fox.elements_plot(el, latency_ms))
-        return [(t("/elements", device), payload, None, t_ns),
-                (t("/elements/poses", device), views[0], None, t_ns),
-                (t("/scene", device), views[1], None, t_ns),
-                (t("/elements/plot", device), views[2], None, t_ns)]
-    raise ValueError(f"unknown wire kind {kind!r}; expected elements, surface or strains")
-
-
-def _payload(kind: str, payload: Any) -> bytes:
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise TypeError(f"{kind} payload must be bytes, got {type(payload).__name__}")
-    return bytes(payload)
-
-
-def finish_writer(writer: Writer, attachments: int) -> None:
-    """``writer.finish()``, leaving out the attachment index of a file without attachments:
-    mcap's Writer writes a summary offset for the empty group, which ``pymcap-cli doctor``
-    rightly reports as an error."""
-    if not attachments:
-        writer._Writer__index_types &= ~IndexType.ATTACHMENT  # type: ignore[attr-defined]
-    writer.finish()
-
-
-def final_name(path: str) -> str:
-    """The finished name of a file being written: `x.mcap.active` -> `x.mcap`."""
-    if not path.endswith(ACTIVE_SUFFIX):
-        raise ValueError(f"{path!r} does not end with {ACTIVE_SUFFIX!r}")
-    return path[: -len(ACTIVE_SUFFIX)] + FINISHED_SUFFIX
-
-
-# --------------------------------------------------------------------------------------------
-# The writing edge.
-
-
-class _CountingFile:
-    """Write-only stream for mcap.Writer: writes fully (loops on short writes), counts bytes
-    and keeps its own position so no OS call is needed for tell()."""
-
-    def __init__(self, raw: BinaryIO):
-        self.raw = raw
-        self.position = 0
-
-    def write(self, data: bytes | bytearray | memoryview) -> int:
-        view = memoryview(data).cast("B")
-        total = len(view)
-        while view:
-            n = self.raw.write(view)
-            if not n:
-                raise OSError(errno.EIO, "short write: the file accepted no more bytes")
-            view = view[n:]
-        self.position += total
-        return total
-
-    def tell(self) -> int:
-        return self.position
-
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def fsync(self) -> None:
-        self.raw.flush()
-        os.fsync(self.raw.fileno())
-
-    def close(self) -> None:
-        self.raw.close()
-
-
-def _default_open(path: str) -> BinaryIO:
-    # Unbuffered: every write reaches the OS at once, so a storage error surfaces in the call
-    # that caused it, never later from a buffer flush.
-    return open(path, "xb", buffering=0)
-
-
-_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                "none": CompressionType.NONE}
 _FSYNC_POLICIES = ("chunk", "close", "never")
 
 
-class McapLogger:
+class McapLogger(LogSink):
     """Rotating MCAP writer. Synchronous and not thread-safe: call it from one thread.
 
-    Files are named `<basename>-<UTC yyyymmddThhmmssZ>-<index:04d>.mcap.active` while being
-    written and renamed to `.mcap` when finished (rotation or close). The first file is opened
+    `rotation` decides when a file ends and names the files (`basename`, `max_bytes` and
+    `max_seconds` are a shorthand for `RotationPolicy(basename, max_bytes, max_seconds)`):
+    `<basename>-<UTC yyyymmddThhmmssZ>-<index:04d>.mcap.active` while being written, renamed
+    to `.mcap` when finished (rotation or close). The first file is opened
     lazily by the first logging call. Each file stands alone: it repeats the start metadata,
     the last configuration/calibration and every schema/channel it uses.
 
@@ -341,16 +53,17 @@ class McapLogger:
     call tries to open a fresh file. Messages that may not have reached the disk because of
     the error (the unfinished chunk of the abandoned file, the message being written) are
     counted in `messages_lost`. A file cut by an error stays as `.mcap.active` and is
-    readable with `skinmap.daemon.mcapinspect.recover`.
+    readable with `skinmap.daemon.mcaprecover.recover`.
     """
 
     def __init__(
         self,
         directory: str | os.PathLike[str],
         *,
-        basename: str = "skinmap",
-        max_bytes: int = 256 * MiB,
-        max_seconds: float = 3600.0,
+        rotation: RotationPolicy | None = None,
+        basename: str | None = None,
+        max_bytes: int | None = None,
+        max_seconds: float | None = None,
         chunk_size: int = 512 * 1024,
         max_chunk_age_s: float = 1.0,
         compression: str = "zstd",
@@ -360,10 +73,10 @@ class McapLogger:
         create_directory: bool = False,
         clock: Callable[[], int] = time.time_ns,
         monotonic: Callable[[], int] = time.monotonic_ns,
-        open_file: Callable[[str], BinaryIO] = _default_open,
+        open_file: Callable[[str], BinaryIO] = default_open,
     ):
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, "
+        if compression not in COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, "
                              f"got {compression!r}")
         if compression == "lz4":
             try:
@@ -373,26 +86,27 @@ class McapLogger:
                                  "installed; use 'zstd'") from None
         if fsync not in _FSYNC_POLICIES:
             raise ValueError(f"fsync must be one of {_FSYNC_POLICIES}, got {fsync!r}")
-        if not basename or os.sep in basename or (os.altsep and os.altsep in basename):
-            raise ValueError(f"basename must be a plain file-name prefix, got {basename!r}")
-        for name, value, low in (("max_bytes", max_bytes, 4096), ("chunk_size", chunk_size, 1)):
-            if not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-        for name, value in (("max_seconds", max_seconds), ("max_chunk_age_s", max_chunk_age_s),
+        if rotation is None:
+            rotation = RotationPolicy("skinmap" if basename is None else basename,
+                                      256 * MiB if max_bytes is None else max_bytes,
+                                      3600.0 if max_seconds is None else max_seconds)
+        elif (basename, max_bytes, max_seconds) != (None, None, None):
+            raise ValueError("give either rotation or basename/max_bytes/max_seconds, not both")
+        if not isinstance(chunk_size, int) or chunk_size < 1:
+            raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
+        for name, value in (("max_chunk_age_s", max_chunk_age_s),
                             ("retry_interval_s", retry_interval_s)):
             if not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         self.directory = os.fspath(directory)
-        self.basename = basename
-        self.max_bytes = max_bytes
-        self.max_seconds = float(max_seconds)
+        self.rotation = rotation
         self.chunk_size = chunk_size
         self.max_chunk_age_s = float(max_chunk_age_s)
         self.compression = compression
         self.fsync_policy = fsync
         # MCAP metadata values are strings; anything else is stored as JSON.
         self.metadata = {
-            str(k): v if isinstance(v, str) else _to_json(v, f"metadata[{k!r}]").decode()
+            str(k): v if isinstance(v, str) else to_json(v, f"metadata[{k!r}]").decode()
             for k, v in (metadata or {}).items()
         }
         self.retry_interval_s = float(retry_interval_s)
@@ -403,19 +117,8 @@ class McapLogger:
 
         self._extra_topics: dict[str, TopicSpec] = {}
         self._config: tuple[int, str, Any] | None = None
-        self._file_index = 0
 
-        # Per-file state.
-        self._writer: Writer | None = None
-        self._stream: _CountingFile | None = None
-        self._path: str | None = None
-        self._channels: dict[str, int] = {}
-        self._schemas: dict[tuple[str, str, bytes], int] = {}
-        self._opened_mono = 0
-        self._chunk_opened_mono: int | None = None
-        self._pending_bytes = 0
-        self._pending_messages = 0
-        self._attachments_in_file = 0
+        self._file: McapFile | None = None  # the file being written
 
         self._retry_at: int | None = None
         self.last_error: LogStorageError | None = None
@@ -440,12 +143,12 @@ class McapLogger:
     @property
     def bytes_written(self) -> int:
         """Bytes written to log files so far (all files, including the current one)."""
-        return self._bytes_in_closed_files + (self._stream.position if self._stream else 0)
+        return self._bytes_in_closed_files + (self._file.stream.position if self._file else 0)
 
     @property
     def current_path(self) -> str | None:
         """The `.mcap.active` file being written, or None."""
-        return self._path
+        return self._file.path if self._file else None
 
     # ---------------------------------------------------------------- typed helpers
 
@@ -458,14 +161,14 @@ class McapLogger:
     def log_strains(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/strains`: a wire strains message (skinmap.wire.messages.encode_strains), and its
         plottable view `/strains/plot`. With `device`, under `/<device>/...`."""
-        self._log_views(wire_views("strains", _payload("strains", payload), t_ns, device))
+        self._log_views(wire_views("strains", as_payload("strains", payload), t_ns, device))
 
     def log_surface(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/surface/nodes`: a wire surface message (nodes, normals, σ, dense cloud; metres);
         with its Foxglove views `/surface` (PointCloud of the cloud, or the nodes when the
         cloud is empty), `/scene` (the sheet as a mesh coloured by σ, legend) and `/tf`.
         With `device`, under `/<device>/...` in frame `<device>`."""
-        self._log_views(wire_views("surface", _payload("surface", payload), t_ns, device))
+        self._log_views(wire_views("surface", as_payload("surface", payload), t_ns, device))
 
     def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None, *,
                      device: str | None = None) -> None:
@@ -473,7 +176,7 @@ class McapLogger:
         (PosesInFrame), `/scene` (entity `elements`: arrows coloured by validity) and
         `/elements/plot` (per-element σ and flags, the frame's latency). With `device`, under
         `/<device>/...` in frame `<device>`."""
-        self._log_views(wire_views("elements", _payload("elements", payload), t_ns, device,
+        self._log_views(wire_views("elements", as_payload("elements", payload), t_ns, device,
                                    latency_ms))
 
     def _log_views(self, views: list[tuple[TopicSpec, bytes, int | None, int]]) -> None:
@@ -485,13 +188,13 @@ class McapLogger:
         """`/status`: a JSON object (under `/<device>` with `device`)."""
         if not isinstance(status, Mapping):
             raise TypeError(f"status must be a mapping, got {type(status).__name__}")
-        self._log(device_topic("/status", device), t_ns, _to_json(dict(status), "status"))
+        self._log(device_topic("/status", device), t_ns, to_json(dict(status), "status"))
 
     def log_contact(self, t_ns: int, contact: Mapping[str, Any]) -> None:
         """`/contact`: a JSON object (docs/tactile.md)."""
         if not isinstance(contact, Mapping):
             raise TypeError(f"contact must be a mapping, got {type(contact).__name__}")
-        self._log(TOPICS["/contact"], t_ns, _to_json(dict(contact), "contact"))
+        self._log(TOPICS["/contact"], t_ns, to_json(dict(contact), "contact"))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:
@@ -506,13 +209,13 @@ class McapLogger:
             raise TypeError(f"config_text must be str, got {type(config_text).__name__}")
         if not isinstance(calibration, Mapping):
             raise TypeError(f"calibration must be a mapping, got {type(calibration).__name__}")
-        _to_json(dict(calibration), "calibration")  # fail now, not at the next rotation
+        to_json(dict(calibration), "calibration")  # fail now, not at the next rotation
         self._check_time(t_ns)
         self._config = (int(t_ns), config_text, dict(calibration))
-        path_before = self._path
+        path_before = self.current_path
         if not self._ready(t_ns):
             return
-        if self._path == path_before:  # a freshly opened file already holds it
+        if self.current_path == path_before:  # a freshly opened file already holds it
             self._guard("writing to", lambda: self._write_config(int(t_ns)))
 
     def write(self, topic: str, t_ns: int, data: bytes, *, schema_name: str,
@@ -541,7 +244,7 @@ class McapLogger:
 
     def flush(self) -> None:
         """Close the open chunk and make everything written so far durable (per policy)."""
-        if self._writer is None:
+        if self._file is None:
             return
         self._guard("flushing", self._flush_chunk)
 
@@ -549,12 +252,11 @@ class McapLogger:
         """Housekeeping for idle periods (call about once a second when nothing is logged):
         close a chunk older than `max_chunk_age_s` and finish a file whose time is up, so
         data does not sit in memory while no messages arrive."""
-        if self._writer is None:
+        if self._file is None:
             return
         if self._rotation_due():
             self._guard("finishing", self._finish_file)
-        elif self._chunk_opened_mono is not None and \
-                self._monotonic() - self._chunk_opened_mono >= self.max_chunk_age_s * 1e9:
+        elif self._chunk_too_old(self._file):
             self._guard("flushing", self._flush_chunk)
 
     def close(self) -> None:
@@ -562,7 +264,7 @@ class McapLogger:
         if self._closed:
             return
         self._closed = True
-        if self._writer is not None:
+        if self._file is not None:
             self._guard("finishing", self._finish_file)
 
     def __enter__(self) -> McapLogger:
@@ -583,7 +285,7 @@ class McapLogger:
     def _log(self, spec: TopicSpec, t_ns: int, data: bytes, seq: int | None = None) -> None:
         self._check_time(t_ns)
         if seq is not None:
-            _check_seq(seq)
+            check_seq(seq)
         try:
             if not self._ready(t_ns):
                 return
@@ -596,7 +298,7 @@ class McapLogger:
         """Make sure a file is open (rotating if due). False: drop this message."""
         if self._closed:
             raise ValueError("the MCAP logger is closed")
-        if self._writer is None:
+        if self._file is None:
             now = self._monotonic()
             if self._retry_at is not None and now < self._retry_at:
                 self.messages_dropped += 1
@@ -617,7 +319,7 @@ class McapLogger:
         except OSError as exc:
             if isinstance(exc, LogStorageError):
                 raise
-            where = path or self._path or self.directory
+            where = path or self.current_path or self.directory
             error = LogStorageError(where, exc, action)
             self._abandon_file()
             self.last_error = error
@@ -627,167 +329,86 @@ class McapLogger:
 
     def _abandon_file(self) -> None:
         # The writer's state no longer matches the disk; keep the cut file for recovery.
-        if self._stream is not None:
-            self._bytes_in_closed_files += self._stream.position
-            try:
-                self._stream.close()
-            except OSError:
-                pass
-        if self._path is not None:
-            self.abandoned_paths.append(self._path)
-        # Messages of the unfinished chunk may not have reached the disk.
-        self.messages_lost += self._pending_messages
-        self._writer = self._stream = self._path = None
-        self._channels.clear()
-        self._schemas.clear()
-        self._chunk_opened_mono = None
-        self._pending_bytes = self._pending_messages = 0
+        f, self._file = self._file, None
+        if f is None:
+            return
+        self._bytes_in_closed_files += f.stream.position
+        f.close_quietly()
+        self.abandoned_paths.append(f.path)
+        self.messages_lost += f.pending_messages  # the unfinished chunk may not be on disk
 
     def _rotation_due(self) -> bool:
-        assert self._stream is not None
-        if self._stream.position + self._pending_bytes >= self.max_bytes:
-            return True
-        return self._monotonic() - self._opened_mono >= self.max_seconds * 1e9
+        assert self._file is not None
+        return self.rotation.due(self._file.size(), self._monotonic() - self._file.opened_mono)
 
-    def _next_path(self) -> str:
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._clock() / 1e9))
-        while True:
-            self._file_index += 1
-            path = os.path.join(self.directory,
-                                f"{self.basename}-{stamp}-{self._file_index:04d}{ACTIVE_SUFFIX}")
-            if not os.path.exists(path) and not os.path.exists(final_name(path)):
-                return path
+    def _chunk_too_old(self, f: McapFile) -> bool:
+        return f.chunk_opened_mono is not None and \
+            self._monotonic() - f.chunk_opened_mono >= self.max_chunk_age_s * 1e9
 
     def _open_file_now(self, t_ns: int) -> None:
         if self.create_directory:
             os.makedirs(self.directory, exist_ok=True)
-        path = self._next_path()
-        raw = self._open_file(path)
-        stream = _CountingFile(raw)
+        path = self.rotation.next_path(self.directory, self._clock())
         # Set at once so a failure below abandons (and closes) this file.
-        self._stream, self._path = stream, path
-        writer = Writer(stream, chunk_size=self.chunk_size,
-                        compression=_COMPRESSION[self.compression])
-        self._writer = writer
-        self._attachments_in_file = 0
-        writer.start(profile="", library=LIBRARY)
+        f = self._file = McapFile(path, self._open_file(path), chunk_size=self.chunk_size,
+                                  compression=self.compression, fsync_chunk=self.fsync_policy == "chunk")
+        f.writer.start(profile="", library=LIBRARY)
         start = dict(self.metadata)
-        start.update({"basename": self.basename, "file_index": str(self._file_index),
+        start.update({"basename": self.rotation.basename, "file_index": str(self.rotation.file_index),
                       "created_unix_ns": str(self._clock()), "writer": LIBRARY})
-        writer.add_metadata("skinmap.start", start)
+        f.writer.add_metadata("skinmap.start", start)
         if self._config is not None:
             self._write_config(t_ns)
-        self._opened_mono = self._monotonic()
-        self._chunk_opened_mono = None
-        self._pending_bytes = self._pending_messages = 0
-        self._sync(force=self.fsync_policy == "chunk")
+        f.opened_mono = self._monotonic()
+        f.chunk_opened_mono = None
+        f.pending_bytes = f.pending_messages = 0
+        f.sync()
         if self.fsync_policy == "chunk":
-            self._fsync_directory()
+            fsync_directory(self.directory)
         self._retry_at = None
         self.last_error = None
 
     def _write_config(self, t_ns: int) -> None:
-        assert self._writer is not None
-        logged_at, text, calibration = self._config  # type: ignore[misc]
-        calib_json = _to_json(calibration, "calibration")
-        self._attachments_in_file += 2
-        self._writer.add_attachment(create_time=logged_at, log_time=t_ns, name="config.toml",
-                                    media_type="application/toml", data=text.encode())
-        self._writer.add_attachment(create_time=logged_at, log_time=t_ns,
-                                    name="calibration.json", media_type="application/json",
-                                    data=calib_json)
-        self._writer.add_metadata("skinmap.config", {"config_text": text,
-                                                     "calibration": calib_json.decode(),
-                                                     "logged_at_ns": str(logged_at)})
-        self._sync(force=self.fsync_policy == "chunk")
+        f = self._file
+        assert f is not None and self._config is not None
+        logged_at, text, calibration = self._config
+        calib_json = to_json(calibration, "calibration")
+        f.attachments += 2
+        f.writer.add_attachment(create_time=logged_at, log_time=t_ns, name="config.toml",
+                                media_type="application/toml", data=text.encode())
+        f.writer.add_attachment(create_time=logged_at, log_time=t_ns, name="calibration.json",
+                                media_type="application/json", data=calib_json)
+        f.writer.add_metadata("skinmap.config", {"config_text": text, "calibration": calib_json.decode(),
+                                                 "logged_at_ns": str(logged_at)})
+        f.sync()
         message = json.dumps({"config_text": text, "calibration": json.loads(calib_json),
                               "logged_at_ns": logged_at}, separators=(",", ":")).encode()
         self._add(TOPICS["/config"], t_ns, message, None)
 
-    def _channel_id(self, spec: TopicSpec) -> int:
-        channel = self._channels.get(spec.topic)
-        if channel is None:
-            assert self._writer is not None
-            key = (spec.schema_name, spec.schema_encoding, spec.schema_data)
-            schema = self._schemas.get(key)
-            if schema is None:
-                schema = self._writer.register_schema(spec.schema_name, spec.schema_encoding,
-                                                      spec.schema_data)
-                self._schemas[key] = schema
-                self._pending_bytes += len(spec.schema_data) + 64
-            channel = self._writer.register_channel(spec.topic, spec.message_encoding, schema,
-                                                    spec.channel_metadata())
-            self._channels[spec.topic] = channel
-            self._pending_bytes += 64
-        return channel
-
     def _add(self, spec: TopicSpec, t_ns: int, data: bytes, seq: int | None) -> None:
-        assert self._writer is not None and self._stream is not None
-        channel = self._channel_id(spec)
-        before = self._stream.position
-        try:
-            self._writer.add_message(channel_id=channel, log_time=t_ns, publish_time=t_ns,
-                                     data=data, sequence=0 if seq is None else seq % 2**32)
-        except OSError:
-            self._pending_messages += 1  # it was in the chunk whose write failed
-            raise
+        f = self._file
+        assert f is not None
+        emitted = f.add(spec, t_ns, data, seq)
         self.messages_written += 1
-        self._pending_messages += 1
-        self._pending_bytes += len(data) + 31
-        if self._stream.position != before:
-            # The writer emitted a chunk, which held every pending message including this one.
-            self._chunk_written()
-        elif self._chunk_opened_mono is None:
-            self._chunk_opened_mono = self._monotonic()
-        elif self._monotonic() - self._chunk_opened_mono >= self.max_chunk_age_s * 1e9:
-            self._flush_chunk()
-
-    def _chunk_written(self) -> None:
-        self.messages_flushed += self._pending_messages
-        self._pending_messages = self._pending_bytes = 0
-        self._chunk_opened_mono = None
-        self._sync(force=self.fsync_policy == "chunk")
+        if emitted:
+            self.messages_flushed += f.chunk_done()
+        elif f.chunk_opened_mono is None:
+            f.chunk_opened_mono = self._monotonic()
+        elif self._chunk_too_old(f):
+            self.messages_flushed += f.flush_chunk()
 
     def _flush_chunk(self) -> None:
-        assert self._writer is not None and self._stream is not None
-        self._writer.flush()
-        self._chunk_written()
-
-    def _sync(self, force: bool) -> None:
-        assert self._stream is not None
-        if force:
-            self._stream.fsync()
-        else:
-            self._stream.flush()
-
-    def _fsync_directory(self) -> None:
-        try:
-            fd = os.open(self.directory, os.O_RDONLY)
-        except OSError:
-            return  # some file systems do not allow opening folders; the data is synced
-        try:
-            os.fsync(fd)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
+        assert self._file is not None
+        self.messages_flushed += self._file.flush_chunk()
 
     def _finish_file(self) -> None:
-        assert self._writer is not None and self._stream is not None and self._path
-        finish_writer(self._writer, self._attachments_in_file)
-        self.messages_flushed += self._pending_messages
-        self._pending_messages = self._pending_bytes = 0
+        f = self._file
+        assert f is not None
+        self.messages_flushed += f.end_writer()
+        done = f.close_and_rename(fsync=self.fsync_policy != "never")
         if self.fsync_policy != "never":
-            self._stream.fsync()
-        self._stream.close()
-        done = final_name(self._path)
-        os.replace(self._path, done)
-        if self.fsync_policy != "never":
-            self._fsync_directory()
+            fsync_directory(self.directory)
         self.finished_paths.append(done)
         self.files_finished += 1
-        self._bytes_in_closed_files += self._stream.position
-        self._writer = self._stream = self._path = None
-        self._channels.clear()
-        self._schemas.clear()
-        self._chunk_opened_mono = None
+        self._bytes_in_closed_files += f.stream.position
+        self._file = None

@@ -30,7 +30,7 @@ import numpy as np
 from skinmap.wire import messages
 from skinmap.strains import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
-from skinmap.daemon.mcapinspect import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
+from skinmap.daemon.mcapread import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
 from skinmap.daemon.pipeline import FramePipeline, graph_restart
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
 
@@ -198,7 +198,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
     called once the device name is known. Records over `max_record_bytes` are skipped and
     named in the report's `problems`. `on_result(result)` is called with every processed scan's
     FrameResult (its surface included)."""
-    from skinmap.daemon.service import limit_blas_threads
+    from skinmap.daemon.gateway import limit_blas_threads
 
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
     path = str(path)
@@ -253,7 +253,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                 if pipeline is None or cfg_entry is not active_config:
                     cfg = _config_from_text(cfg_entry[0])
                     if pipeline is None:
-                        from skinmap.daemon.service import pipeline_for_hello
+                        from skinmap.daemon.device_setup import pipeline_for_hello
 
                         pipeline = pipeline_for_hello(hello, cfg)
                         pipeline.continue_from(earlier)  # as the live daemon does after a new HELLO
@@ -286,7 +286,7 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                                                              float(np.nanmax(np.abs(a.positions - b.positions), initial=0.0)))
                 if session is not None:
                     if publisher is None:
-                        from skinmap.daemon.service import device_info, device_name
+                        from skinmap.daemon.device_setup import device_info, device_name
                         from skinmap.daemon.zenoh_io import SkinmapPublisher
 
                         replay_cfg = _config_from_text(cfg_entry[0])

@@ -10,19 +10,19 @@ elements message at once, and ``get("<prefix>/<device>/*")`` with everything cac
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from typing import Any, Mapping
 
 import zenoh
 
+from skinmap.daemon.publisher import Publisher
 from skinmap.wire import messages
 from skinmap.wire.keys import ALL_KINDS, DATA_KINDS, ENCODINGS, check_key_segment, key_for
 from skinmap.wire.session import (ZenohOpenError, check_loopback_endpoint, foreign_write_guard,
                                   make_session_config, open_session)
 
-__all__ = ["SkinmapPublisher", "ALL_KINDS", "DATA_KINDS", "ENCODINGS", "check_key_segment",
+__all__ = ["SkinmapPublisher", "ZenohPublishers", "ALL_KINDS", "DATA_KINDS", "ENCODINGS", "check_key_segment",
            "key_for", "ZenohOpenError", "check_loopback_endpoint", "foreign_write_guard",
            "make_session_config", "open_session"]
 
@@ -44,8 +44,8 @@ _PRIORITIES = {
 REPLY_THREADS_MAX = 256
 
 
-class SkinmapPublisher:
-    """Publishes one device's messages and serves the latest of each to late joiners.
+class SkinmapPublisher(Publisher):
+    """Publishes one device's messages over Zenoh and serves the latest of each to late joiners.
 
     The session is owned by the caller. Publish methods are thread-safe and never block on a
     slow subscriber (congestion control DROP; data keys are express).
@@ -77,7 +77,7 @@ class SkinmapPublisher:
     def keys(self) -> dict[str, str]:
         return dict(self._keys)
 
-    def _put(self, kind: str, payload: bytes) -> None:
+    def send(self, kind: str, payload: bytes) -> None:
         if not isinstance(payload, (bytes, bytearray, memoryview)):
             raise TypeError(f"{kind} payload must be bytes, got {type(payload).__name__}")
         payload = bytes(payload)
@@ -86,24 +86,6 @@ class SkinmapPublisher:
                 raise RuntimeError("SkinmapPublisher is closed")
             self._latest[kind] = payload
             self._publishers[kind].put(payload)
-
-    def publish_elements(self, payload: bytes) -> None:
-        """Put an encoded elements message (messages.encode_elements)."""
-        self._put("elements", payload)
-
-    def publish_surface(self, payload: bytes) -> None:
-        self._put("surface", payload)
-
-    def publish_strains(self, payload: bytes) -> None:
-        self._put("strains", payload)
-
-    def publish_status(self, status: Mapping[str, Any]) -> None:
-        """Validate, encode and put a status report (messages.STATUS_FIELDS)."""
-        self._put("status", messages.encode_status(status))
-
-    def publish_contact(self, contact: Mapping[str, Any]) -> None:
-        """Put a `contact` message (skinmap.daemon.tactile.ContactTracker.update) as JSON."""
-        self._put("contact", json.dumps(dict(contact), separators=(",", ":")).encode())
 
     def set_info(self, info: Mapping[str, Any]) -> None:
         """Replace the device description served on the ``info`` queryable (never put)."""
@@ -161,8 +143,14 @@ class SkinmapPublisher:
             pub.undeclare()
         self._server.join(timeout=2.0)
 
-    def __enter__(self) -> "SkinmapPublisher":
-        return self
 
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
+
+class ZenohPublishers:
+    """The gateway's PublisherFactory over one Zenoh session (owned by the caller)."""
+
+    def __init__(self, session: zenoh.Session, prefix: str) -> None:
+        self.session = session
+        self.prefix = prefix
+
+    def __call__(self, device: str) -> SkinmapPublisher:
+        return SkinmapPublisher(self.session, self.prefix, device)

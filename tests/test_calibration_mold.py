@@ -219,7 +219,7 @@ def _calibrate_emulated(tmp_path, n=3, seed=11):
 def test_procedure_writes_a_calibration_file_that_skinmapd_and_replay_use(tmp_path):
     from skinmap.daemon.config import DaemonConfig, StateConfig
     from skinmap.daemon.replay import _calibration_from_doc
-    from skinmap.daemon.service import Gateway, load_calibration
+    from skinmap.daemon.device_setup import calibration_doc, load_calibration
 
     run, hello, truth, said = _calibrate_emulated(tmp_path)
     assert any(line.startswith("[10/10]") for line in said)
@@ -232,7 +232,7 @@ def test_procedure_writes_a_calibration_file_that_skinmapd_and_replay_use(tmp_pa
     cal, problem = load_calibration(hello, cfg)
     assert problem == "" and cal.source.startswith("calibration ") and "tare" in cal.source
     assert np.allclose(cal.h_upper_mm, run.fit.h_upper_mm) and np.allclose(cal.gauge_factor, run.fit.gauge_factor)
-    logged = Gateway._calibration_doc(cal)
+    logged = calibration_doc(cal)
     back = _calibration_from_doc(json.loads(json.dumps(logged)))
     assert np.array_equal(back.h_lower_mm, cal.h_lower_mm) and np.array_equal(back.gauge_factor, cal.gauge_factor)
     assert logged["fit"]["method"].startswith("mold fit")
@@ -240,7 +240,7 @@ def test_procedure_writes_a_calibration_file_that_skinmapd_and_replay_use(tmp_pa
 
 def test_a_damaged_calibration_file_is_named_and_the_factory_values_kept(tmp_path):
     from skinmap.daemon.config import DaemonConfig, StateConfig
-    from skinmap.daemon.service import load_calibration
+    from skinmap.daemon.device_setup import load_calibration
 
     dev = Device(ScannerSpec(n=3, m=3, seed=12), ph.Flat())
     hello = dev.hello()

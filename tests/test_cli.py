@@ -71,7 +71,7 @@ def test_inspect_lists_topics_and_draws_a_png(session_run, capsys, tmp_path):
     for topic in ("/raw", "/strains", "/elements", "/surface", "/status", "/config"):
         assert topic in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    from skinmap.daemon.mcapinspect import render_surface_png
+    from skinmap.daemon.mcapsnapshot import render_surface_png
 
     snap = render_surface_png(log, None, tmp_path / "again.png")  # what the picture shows
     assert snap.sigma.shape == snap.nodes.shape[:2] and np.isfinite(snap.sigma).all()
@@ -122,8 +122,8 @@ def test_tare_from_log_refuses_a_bent_sheet_and_a_stored_tare_is_used(session_ru
     assert all(v is None or 4.0 < v < 10.0 for v in doc["base_resistance_ohm"])
 
     from skinmap.daemon.config import load_config
-    from skinmap.daemon.service import calibration_for_hello
-    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    from skinmap.daemon.device_setup import calibration_for_hello
+    from skinmap.daemon.mcapread import iter_messages_file_order
     from skinmap.protocol import Hello, StreamDecoder
 
     hello = None

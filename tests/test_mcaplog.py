@@ -17,13 +17,10 @@ import pytest
 from conftest import CheckedFile
 from mcap.reader import make_reader
 
-from skinmap.daemon.mcapinspect import (
-    NotMcapError,
-    inspect,
-    iter_messages_file_order,
-    recover,
-    render_surface_png,
-)
+from skinmap.daemon.mcapinspect import inspect
+from skinmap.daemon.mcapread import NotMcapError, iter_messages_file_order
+from skinmap.daemon.mcaprecover import recover
+from skinmap.daemon.mcapsnapshot import render_surface_png
 from skinmap.daemon.foxglove_log import decode_protobuf
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
 from skinmap.wire import messages as wire
@@ -600,7 +597,7 @@ def test_every_kind_of_file_passes_the_mcap_doctor(tmp_path):
 
 
 def test_docs_topic_table_is_the_loggers():
-    from skinmap.daemon.mcaplog import topics_table
+    from skinmap.daemon.mcapschema import topics_table
 
     doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "logging.md")).read()
     assert topics_table() in doc

@@ -13,7 +13,8 @@ import textwrap
 import pytest
 from mcap.reader import make_reader
 
-from skinmap.daemon.mcapinspect import iter_messages_file_order, recover
+from skinmap.daemon.mcapread import iter_messages_file_order
+from skinmap.daemon.mcaprecover import recover
 
 CHILD = textwrap.dedent("""
     import struct, sys, time

@@ -28,7 +28,7 @@ from conftest import explicit_elements, free_port, gateway_config, running_gatew
 from skinmap.client import SkinmapClient
 from skinmap.daemon.foxglove_log import decode_protobuf
 from skinmap.daemon.link import ScannerLink
-from skinmap.daemon.mcapinspect import iter_messages_file_order
+from skinmap.daemon.mcapread import iter_messages_file_order
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.emulator.emulator import Emulator

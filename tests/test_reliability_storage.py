@@ -24,11 +24,13 @@ from mcap.reader import make_reader
 
 from skinmap.daemon.cli import main as skinmap_main
 from skinmap.client import SkinmapClient
-from skinmap.daemon.mcapinspect import inspect, iter_messages_file_order
+from skinmap.daemon.mcapinspect import inspect
+from skinmap.daemon.mcapread import iter_messages_file_order
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
 from skinmap.daemon.pipeline import GRAPH_RESTART_SCANS
 from skinmap.daemon.replay import replay_log
-from skinmap.daemon.service import Gateway, _default_logger
+from skinmap.daemon.gateway import default_log_sink
+from skinmap.daemon.service import Gateway
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
 from skinmap.emulator.physics import make_shape
@@ -132,13 +134,13 @@ def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(em
     storage = SwitchableStorage()
     loggers: list[McapLogger] = []
 
-    def logger_factory(c):
+    def log_sink_factory(c):
         lg = McapLogger(log_dir, basename="skinmap", chunk_size=8192, retry_interval_s=0.5,
                         create_directory=True, open_file=storage.open)
         loggers.append(lg)
         return lg
 
-    with running_gateway(cfg, logger_factory=logger_factory) as gw:
+    with running_gateway(cfg, log_sink_factory=log_sink_factory) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
             wait_for(lambda: loggers[0].messages_flushed > 20, 30, "a first flushed chunk")
@@ -199,11 +201,11 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
     Gateway(cfg)  # constructing with the default logger must not fail on the folder
 
     def default_logger_retrying_fast(c):
-        lg = _default_logger(c)
+        lg = default_log_sink(c)
         lg.retry_interval_s = 0.5  # skinmapd retries every 5 s; the test need not wait that long
         return lg
 
-    with running_gateway(cfg, logger_factory=default_logger_retrying_fast) as gw:
+    with running_gateway(cfg, log_sink_factory=default_logger_retrying_fast) as gw:
         with SkinmapClient([f"tcp/127.0.0.1:{zport}"], prefix="skinmap", device=DEVICE) as client:
             client.elements(timeout=30.0)
             wait_for(lambda: gw.status()["log_state"] == "error", 30, "log_state 'error'")
@@ -314,7 +316,7 @@ directory = "state"
 
 REPLAY_SCRIPT = """
 import json, sys
-from skinmap.daemon.service import limit_blas_threads
+from skinmap.daemon.gateway import limit_blas_threads
 limit_blas_threads()  # before any solve: the solver caches what it builds
 from skinmap.daemon.replay import replay_log
 out = {}

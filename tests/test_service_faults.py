@@ -21,11 +21,13 @@ import pytest
 import zenoh
 from conftest import drain_notify, free_port, gateway_config, notify_socket, pty_emulator, running_gateway, wait_for
 
-from skinmap.daemon import service
+from skinmap.daemon import health, service
 from skinmap.strains import save_tare, tare_path
 from skinmap.client import SkinmapClient
 from skinmap.daemon.notify import SystemdNotifier
-from skinmap.daemon.service import DeviceClockCheck, HostDecimator, load_calibration
+from skinmap.daemon.device_setup import load_calibration
+from skinmap.daemon.health import DeviceClockCheck
+from skinmap.daemon.pacing import HostDecimator
 from skinmap.daemon.zenoh_io import make_session_config
 from skinmap.emulator.device import ScannerSpec
 from skinmap.emulator.emulator import Emulator
@@ -248,7 +250,7 @@ def test_watchdog_is_not_fed_while_every_scan_fails_and_is_fed_again_after(emula
     from skinmap.daemon.pipeline import FramePipeline
 
     monkeypatch.setenv("WATCHDOG_USEC", "1000000")
-    monkeypatch.setattr(service, "DATA_PATH_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(health, "DATA_PATH_TIMEOUT_S", 1.0)
     original = FramePipeline.process
     broken = {"on": False}
 
@@ -285,7 +287,7 @@ def test_watchdog_is_not_fed_while_every_scan_fails_and_is_fed_again_after(emula
 def test_watchdog_is_fed_while_the_scanner_is_quiet(emulator, tmp_path, monkeypatch):
     """No scans to process (firmware stalled) is not a data-path fault: restarting would not help."""
     monkeypatch.setenv("WATCHDOG_USEC", "1000000")
-    monkeypatch.setattr(service, "DATA_PATH_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(health, "DATA_PATH_TIMEOUT_S", 1.0)
     sock = notify_socket(tmp_path / "notify.sock")
     notifier = SystemdNotifier(str(tmp_path / "notify.sock"))
     with running_gateway(faults_config(tmp_path, free_port()), notifier=notifier) as gw:

@@ -84,7 +84,7 @@ def _write_calibration(state, emu) -> None:
 def test_a_calibrated_run_logs_its_calibration_and_replays_identically(press_log, capsys):
     import json
 
-    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    from skinmap.daemon.mcapread import iter_messages_file_order
 
     _tmp, log, _poses, _ = press_log
     config = next(json.loads(m.data) for m in iter_messages_file_order(str(log)) if m.topic == "/config")
@@ -110,7 +110,7 @@ def _latest_contact(zport: int) -> dict:
 
 
 def test_gateway_publishes_and_logs_contact_events(press_log):
-    from skinmap.daemon.mcapinspect import iter_messages_file_order
+    from skinmap.daemon.mcapread import iter_messages_file_order
     import json
 
     _tmp, log, _poses, latest = press_log

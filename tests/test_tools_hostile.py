@@ -14,7 +14,9 @@ import pytest
 from conftest import free_port, wait_until
 
 from skinmap.daemon.cli import main as skinmap_main
-from skinmap.daemon.mcapinspect import NotRegularFileError, inspect, iter_messages_file_order, recover
+from skinmap.daemon.mcapinspect import inspect
+from skinmap.daemon.mcapread import NotRegularFileError, iter_messages_file_order
+from skinmap.daemon.mcaprecover import recover
 from skinmap.daemon.replay import replay_log
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))

@@ -45,7 +45,7 @@ def test_encoders_follow_the_tables():
 
 def test_logged_layouts_are_the_published_ones():
     """The MCAP schema text of every binary topic is the wire module's byte table."""
-    from skinmap.daemon.mcaplog import TOPICS
+    from skinmap.daemon.mcapschema import TOPICS
 
     for topic, kind in (("/strains", "strains"), ("/surface/nodes", "surface"),
                         ("/elements", "elements")):

@@ -1,0 +1,288 @@
+"""The gateway's parts behind their interfaces: the Notifier and its queued listeners (bounded,
+drops counted), the log listener over an in-memory sink (a slow or failing disk), the in-memory
+and null publishers, the rotation policy, and a whole Gateway fed by the emulator on a
+pseudo-terminal publishing into memory and logging into memory (no Zenoh, no MCAP).
+"""
+from __future__ import annotations
+
+import errno
+import os
+import threading
+
+import numpy as np
+import pytest
+from conftest import explicit_elements, free_port, gateway_config, pty_emulator, wait_for
+
+from skinmap.daemon.fanout import Event, Listener, Notifier, QueuedListener, RawFrame, Record, ScanReceived
+from skinmap.daemon.gateway import Gateway
+from skinmap.daemon.logsink import LogListener, LogStorageError, MemoryLogSink, NullLogSink
+from skinmap.daemon.publisher import MemoryPublisher, MemoryPublishers, NullPublisher
+from skinmap.daemon.rotation import RotationPolicy, final_name
+from skinmap.emulator.device import ScannerSpec
+from skinmap.emulator.physics import make_shape
+from skinmap.protocol import decode_frame
+from skinmap.wire import messages
+
+
+class Recorder(Listener):
+    def __init__(self) -> None:
+        self.seen: list[Record] = []
+
+    def on_record(self, record: Record) -> None:
+        self.seen.append(record)
+
+
+class Gated(QueuedListener):
+    """Handles records only once `gate` is set; `entered` tells it holds one."""
+
+    def __init__(self, maxsize: int, keep: str, drain: bool) -> None:
+        super().__init__("test-gated", maxsize, keep=keep, drain=drain)  # type: ignore[arg-type]
+        self.gate = threading.Event()
+        self.entered = threading.Event()
+        self.handled: list[Record] = []
+
+    def handle(self, record: Record) -> None:
+        self.entered.set()
+        self.gate.wait(30)
+        self.handled.append(record)
+
+
+def events(n: int, start: int = 0) -> list[Event]:
+    return [Event(i, "info", f"event {i}") for i in range(start, start + n)]
+
+
+def test_notifier_passes_every_record_to_every_listener_in_order():
+    a, b = Recorder(), Recorder()
+    notifier = Notifier([a])
+    notifier.add_listener(b)
+    for e in events(5):
+        notifier.notify(e)
+    notifier.remove_listener(a)
+    notifier.notify(Event(99, "info", "only b"))
+    assert [e.t_ns for e in a.seen] == [0, 1, 2, 3, 4]  # type: ignore[attr-defined]
+    assert [e.t_ns for e in b.seen] == [0, 1, 2, 3, 4, 99]  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("keep", ["newest", "oldest"])
+def test_a_full_queue_counts_what_it_drops_and_keeps_the_configured_end(keep):
+    listener = Gated(3, keep, drain=True)
+    listener.start()
+    listener.on_record(Event(-1, "info", "held"))
+    assert listener.entered.wait(30)  # the thread holds record -1; the queue is empty
+    for e in events(10):
+        listener.on_record(e)  # returns at once though nothing is handled
+    assert listener.dropped == 7
+    listener.gate.set()
+    listener.stop()
+    kept = [r.t_ns for r in listener.handled]  # type: ignore[attr-defined]
+    assert kept == ([-1, 7, 8, 9] if keep == "newest" else [-1, 0, 1, 2])
+
+
+def test_a_listener_that_does_not_drain_ends_without_handling_the_rest():
+    listener = Gated(5, "newest", drain=False)
+    listener.start()
+    listener.on_record(Event(-1, "info", "held"))
+    assert listener.entered.wait(30)
+    for e in events(3):
+        listener.on_record(e)
+    stopper = threading.Thread(target=listener.stop)
+    stopper.start()
+    listener.gate.set()
+    stopper.join(30)
+    assert [r.t_ns for r in listener.handled] == [-1]  # type: ignore[attr-defined]
+
+
+def test_a_slow_disk_never_blocks_the_notifying_thread_and_its_losses_are_counted():
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(kind: str) -> None:
+        entered.set()
+        release.wait(30)
+
+    sink = MemoryLogSink(before_write=slow)
+    log = LogListener(sink, queue_size=4)
+    other = Recorder()
+    notifier = Notifier([other, log])
+    log.start()
+    notifier.notify(RawFrame(0, b"\x01\x00"))
+    assert entered.wait(30)
+    done = threading.Event()
+
+    def notify_many() -> None:
+        for i in range(1, 101):
+            notifier.notify(RawFrame(i, bytes([i, 0])))
+        done.set()
+
+    threading.Thread(target=notify_many, daemon=True).start()
+    assert done.wait(30), "notify() waited for the disk"
+    assert len(other.seen) == 101  # the other listener got everything meanwhile
+    assert log.dropped == 100 - 4
+    release.set()
+    log.stop()
+    assert [t for _k, t, _v in sink.records] == [0, 1, 2, 3, 4]  # what was queued is written
+    assert sink.closed
+
+
+def test_storage_failure_sets_the_log_state_and_the_sink_brings_it_back():
+    failing = {"on": True}
+
+    def check(kind: str) -> None:
+        if failing["on"]:
+            raise LogStorageError("/logs", OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), "writing to")
+
+    sink = MemoryLogSink(before_write=check)
+    log = LogListener(sink, queue_size=8)
+    log.handle(Event(1, "error", "lost"))
+    assert log.state == "error" and "No space left on device" in log.last_error
+    assert sink.messages_lost == 1
+    failing["on"] = False
+    log.handle(Event(2, "info", "kept"))
+    log.idle()
+    assert log.state == "recording"
+    assert sink.kinds("event") == [("info", "kept")]
+
+
+def test_the_log_listener_takes_only_what_the_log_stores():
+    log = LogListener(NullLogSink(), queue_size=2)
+    assert log.accepts(RawFrame(0, b"\x00"))
+    assert not log.accepts(ScanReceived(None, 0, 0))  # type: ignore[arg-type]
+
+
+def test_memory_and_null_publishers_encode_like_the_zenoh_one_and_refuse_after_close():
+    pub = MemoryPublisher("dev")
+    with pytest.raises((TypeError, ValueError)):
+        pub.publish_status({"device": "dev"})  # incomplete status: refused by the wire check
+    with pytest.raises(TypeError, match="elements payload must be bytes"):
+        pub.publish_elements("not bytes")  # type: ignore[arg-type]
+    pub.publish_contact({"seq": 3, "contacts": []})
+    assert pub.payloads("contact") == [b'{"seq":3,"contacts":[]}']
+    pub.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        pub.publish_strains(b"x")
+    with pytest.raises((TypeError, ValueError)):
+        NullPublisher().set_info({"device": "dev"})  # incomplete info
+
+
+def test_rotation_policy_limits_and_names(tmp_path):
+    policy = RotationPolicy("run", max_bytes=4096, max_seconds=2.0)
+    assert not policy.due(4095, 1_999_999_999)
+    assert policy.due(4096, 0) and policy.due(0, 2_000_000_000)
+    t = 1_700_000_000 * 10**9
+    first = policy.next_path(str(tmp_path), t)
+    assert os.path.basename(first) == "run-20231114T221320Z-0001.mcap.active"
+    open(final_name(policy.next_path(str(tmp_path), t)), "w").close()  # 0002 finished: taken
+    assert policy.next_path(str(tmp_path), t).endswith("-0003.mcap.active")
+    for bad in ({"basename": "a/b"}, {"max_bytes": 100}, {"max_seconds": 0}):
+        with pytest.raises(ValueError):
+            RotationPolicy(**bad)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------
+# A whole gateway into memory
+
+ELEMENT_UV = np.array([[-10.0, 0.0], [0.0, 0.0], [10.0, 5.0]])
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    with pty_emulator(tmp_path / "tty", ScannerSpec(n=4, m=4, scan_rate_hz=40.0, seed=3),
+                      make_shape("cylinder", radius=50.0)) as emu:
+        yield emu
+
+
+def run_in_memory(cfg, **kwargs):
+    gw = Gateway(cfg, **kwargs)
+    runner = threading.Thread(target=gw.run, daemon=True)
+    runner.start()
+    return gw, runner
+
+
+def test_gateway_publishes_and_logs_into_memory(emulator, tmp_path):
+    cfg = gateway_config(tmp_path, free_port(), tmp_path / "tty", "mem", 40, output={"status_rate_hz": 4},
+                         elements=explicit_elements(ELEMENT_UV))
+    publishers, sink = MemoryPublishers(), MemoryLogSink()
+    gw, runner = run_in_memory(cfg, publishers=publishers, log_sink_factory=lambda c: sink)
+    try:
+        wait_for(lambda: publishers.opened and len(publishers.latest.payloads("elements")) >= 10, 60,
+                 "10 elements messages")
+        wait_for(lambda: publishers.latest.payloads("status"), 30, "a status message")
+    finally:
+        gw.stop()
+        runner.join(30)
+    pub = publishers.latest
+    assert pub.device == "mem" and pub.closed
+    assert pub.info is not None and pub.info["elements"]["count"] == len(ELEMENT_UV)
+    published = [messages.decode_elements(p) for p in pub.payloads("elements")]
+    seqs = [m.seq for m in published]
+    assert seqs == sorted(set(seqs)) and all(m.positions.shape == (3, 3) for m in published)
+    status = messages.decode_status(pub.payloads("status")[-1])
+    assert status["device"] == "mem" and status["log_state"] == "recording"
+    # The log holds what was published, strains of every processed scan, raw frames, config.
+    logged = [messages.decode_elements(p).seq for p, _lat in sink.kinds("elements")]
+    assert set(seqs) <= set(logged)
+    assert [messages.decode_strains(p).seq for p in sink.kinds("strains")] == logged
+    raws = sink.kinds("raw")
+    assert raws and all(decode_frame(r[:-1]) is not None for r in raws[:5])
+    text, calibration = sink.kinds("config")[0]
+    assert "[device]" in text and "hello_frame_hex" in calibration
+    assert sink.kinds("status") and sink.closed
+    assert gw.stats.log_dropped == 0 and gw.stats.results >= len(logged)
+
+
+def test_a_stuck_log_sink_stops_neither_publishing_nor_status_and_is_counted(emulator, tmp_path):
+    release = threading.Event()
+    cfg = gateway_config(tmp_path, free_port(), tmp_path / "tty", "stuck", 40, output={"status_rate_hz": 4},
+                         log={"queue_size": 16})
+    publishers = MemoryPublishers()
+    sink = MemoryLogSink(before_write=lambda kind: release.wait(60))
+    gw, runner = run_in_memory(cfg, publishers=publishers, log_sink_factory=lambda c: sink)
+    try:
+        wait_for(lambda: publishers.opened and len(publishers.latest.payloads("elements")) >= 40, 60,
+                 "40 elements while the disk is stuck")
+        wait_for(lambda: gw.status()["log_dropped"] > 0, 30, "log drops counted")
+        st = gw.status()
+        assert st["results"] >= 40 and st["log_dropped"] > 0
+    finally:
+        release.set()
+        gw.stop()
+        runner.join(30)
+    assert not runner.is_alive()
+
+
+def test_publishing_failures_are_counted_and_processing_goes_on(emulator, tmp_path):
+    class Broken(MemoryPublisher):
+        def send(self, kind: str, payload: bytes) -> None:
+            if kind == "elements":
+                raise RuntimeError("injected put failure")
+            super().send(kind, payload)
+
+    opened: list[Broken] = []
+
+    def factory(device: str) -> Broken:
+        opened.append(Broken(device))
+        return opened[-1]
+
+    cfg = gateway_config(tmp_path, free_port(), tmp_path / "tty", "broken", 40, output={"status_rate_hz": 4},
+                         log={"enabled": False})
+    gw, runner = run_in_memory(cfg, publishers=factory)
+    try:
+        wait_for(lambda: gw.stats.publish_errors >= 10, 60, "10 failed puts")
+        wait_for(lambda: opened and opened[-1].payloads("status"), 30, "status still published")
+        st = gw.status()
+        assert st["results"] >= 10 and st["log_state"] == "off" and st["log_file"] == ""
+    finally:
+        gw.stop()
+        runner.join(30)
+    assert not runner.is_alive()
+
+
+def test_the_default_log_sink_follows_the_log_table(tmp_path):
+    from skinmap.daemon.gateway import default_log_sink
+
+    for fsync, policy in ((True, "chunk"), (False, "never")):
+        cfg = gateway_config(tmp_path, free_port(), tmp_path / "tty", "cfg", 40,
+                             log={"fsync": fsync, "basename": "run", "max_file_mb": 1})
+        sink = default_log_sink(cfg)
+        assert sink.fsync_policy == policy  # type: ignore[attr-defined]
+        assert sink.rotation.basename == "run" and sink.rotation.max_bytes == 1024 * 1024  # type: ignore[attr-defined]
+        sink.close()
