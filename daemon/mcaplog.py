@@ -138,6 +138,7 @@ TOPICS: dict[str, TopicSpec] = {
         _foxglove("/tf", "tf"),
         TopicSpec("/contact", "skinmap.Contact", "jsonschema",
                   _json_schema({"title": "skinmap.Contact", "type": "object"}), "json"),
+        TopicSpec("/pose", "skinmap.Pose", "jsonschema", _json_schema(messages.pose_json_schema()), "json"),
         TopicSpec("/status", "skinmap.Status", "jsonschema", _json_schema(fox.status_schema()),
                   "json"),
         _foxglove("/log", "log"),
@@ -492,6 +493,10 @@ class McapLogger:
         if not isinstance(contact, Mapping):
             raise TypeError(f"contact must be a mapping, got {type(contact).__name__}")
         self._log(TOPICS["/contact"], t_ns, _to_json(dict(contact), "contact"))
+
+    def log_pose(self, t_ns: int, pose: Mapping[str, Any]) -> None:
+        """`/pose`: a probe pose as received (skinmap.wire.messages.POSE_FIELDS; docs/tactile.md)."""
+        self._log(TOPICS["/pose"], t_ns, messages.encode_pose(pose))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:

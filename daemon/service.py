@@ -239,6 +239,7 @@ class Gateway:
         self._device = cfg.device.name or ""
         self._tare_mtime: tuple[float | None, float | None] | None = None
         self._contact: Any = None  # the tactile ContactTracker, built with the first pipeline
+        self._pose_input: Any = None  # [tactile]: the probe-pose subscriber (skinmap.daemon.poses)
         self._tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._log_state = "off"
         self._last_log_error = ""
@@ -353,6 +354,12 @@ class Gateway:
             if self._publisher is not None:
                 self._publisher.close()
             self._publisher = SkinmapPublisher(self._session, self.cfg.zenoh.prefix, name)
+            if self.cfg.tactile.enabled:
+                from skinmap.daemon.poses import subscribe_poses
+
+                if self._pose_input is not None:
+                    self._pose_input.undeclare()
+                self._pose_input = subscribe_poses(self._session, self.cfg.zenoh.prefix, name, self._enqueue_log)
         self._device = name
         if self._publisher is not None:
             self._publisher.set_info(self.info())
@@ -539,6 +546,8 @@ class Gateway:
             lg.log_status(item[1], item[2])
         elif kind == "contact":
             lg.log_contact(item[1], item[2])
+        elif kind == "pose":
+            lg.log_pose(item[1], item[2])
         elif kind == "event":
             lg.log_event(item[1], item[2], item[3])
         elif kind == "config":
