@@ -67,9 +67,9 @@ def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
     for m in iter_messages_file_order(os.fspath(path)):
         if m.topic == "/pose":
             try:
-                out.topic.append(TimedPose(int(m.log_time), pose_from_message(messages.decode_pose(m.data))))
+                out.topic.append(TimedPose(int(m.log_time_ns), pose_from_message(messages.decode_pose(m.data))))
             except (messages.MessageError, ValueError, TypeError) as exc:
-                out.refused.append(f"/pose at {m.log_time} ns: {exc}")
+                out.refused.append(f"/pose at {m.log_time_ns} ns: {exc}")
         elif m.topic == "/config" and not config_seen:
             config_seen = True
             try:

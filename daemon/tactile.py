@@ -392,7 +392,8 @@ def _corr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def estimate_pose(relief: ReliefMap, contact: Contact, grid: SampleGrid, *, prior: ProbePose | None = None,
                   max_move_mm: float = 40.0, angle_range_deg: float = 70.0, angle_step_deg: float = 3.0, coarse_mm: float = 2.0, min_overlap: float = 0.3,
-                  max_sd_mm: float = 0.5, max_sd_deg: float = 1.0, min_relief_mm: float = 0.3) -> PoseEstimate:
+                  max_sd_mm: float = 0.5, max_sd_deg: float = 1.0, min_relief_mm: float = 0.3,
+                  max_rms_mm: float = 0.5) -> PoseEstimate:
     """The pose (x, y, angle, depth) that best lays the contact's heights onto the map so far
     (least squares over the overlap, the depth solved in closed form), or a refusal saying why:
     too little overlap, an overlap without relief (heights that vary by less than
@@ -542,6 +543,10 @@ def estimate_pose(relief: ReliefMap, contact: Contact, grid: SampleGrid, *, prio
         return PoseEstimate(None, f"the overlap with the map is {overlap} points "
                                   f"({100 * overlap / len(pts):.0f} % of the contact): the overlap cannot decide",
                             overlap)
+    if math.sqrt(cost) > max_rms_mm:
+        return PoseEstimate(None, f"the best placement's heights differ from the map by {math.sqrt(cost):.2f} mm rms "
+                                  f"(more than {max_rms_mm:g}): the contact matches the map nowhere it may be, "
+                                  "the overlap cannot decide", overlap, math.sqrt(cost))
     if np.ptp(hh) < min_relief_mm:
         return PoseEstimate(None, f"the overlap's heights vary by {np.ptp(hh):.2f} mm only (a flat patch fixes no "
                                   "position): the overlap cannot decide", overlap)
