@@ -26,7 +26,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from skinmap.daemon.tactile import ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact  # noqa: E402
+from skinmap.daemon.tactile import (ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,  # noqa: E402
+                                    stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator.walls import BalloonOnWall, LetterRelief  # noqa: E402
@@ -39,12 +40,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=8)
     ap.add_argument("--pitch", type=float, default=12.0)
-    ap.add_argument("--depth", type=float, default=2.0)
-    ap.add_argument("--spacing", type=float, default=25.0)
+    ap.add_argument("--depth", type=float, default=3.0)
+    ap.add_argument("--spacing", type=float, default=15.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--min-depth", type=float, default=0.5, help="contact: pressed in by more than this, mm")
-    ap.add_argument("--png", help="write both maps (with the truth) to PNG files named after this one "
-                                  "(NAME-scene.png, NAME-reconstructed.png)")
+    ap.add_argument("--membrane", type=float, default=40.0,
+                    help="membrane radius T/p of the bridging scene, mm (half the balloon's radius)")
+    ap.add_argument("--quick", action="store_true", help="given poses only (no registration)")
+    ap.add_argument("--png", help="write the maps (with the truth) to PNG files named after this one")
     args = ap.parse_args()
     n, pitch = args.size, args.pitch
     rng = np.random.default_rng(args.seed)
@@ -52,49 +55,70 @@ def main() -> None:
     grid = SampleGrid.for_array(n, n, pitch, 2.0)
     uv = grid.uv
     centres = np.arange(-60.0 + args.spacing / 2, 60.0, args.spacing)
-    poses = [ProbePose(float(x), float(y), float(rng.uniform(-30, 30)), args.depth) for y in centres for x in centres]
+    # a serpentine sweep: each press a lattice step from the one before (the registration's prior)
+    poses = [ProbePose(float(x), float(y), float(rng.uniform(-30, 30)), args.depth)
+             for k, y in enumerate(centres) for x in (centres if k % 2 == 0 else centres[::-1])]
 
-    def scene(shape: ph.Shape) -> np.ndarray:
-        return shape.position(uv)
+    def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
+        return shape.position(uv), None
 
-    def reconstructed(shape: ph.Shape) -> np.ndarray:
+    def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
         eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
         surf = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), pitch, 0.2, 0.2)
-        return surf.locate(uv)[0]
+        return surf.locate(uv)[0], surf.locate_sigma(uv)
 
     print(f"Tactile mapping: {n}x{n} sheet at {pitch:g} mm on a balloon R 80 mm, {len(poses)} presses {args.depth:g} mm "
-          f"deep, {args.spacing:g} mm apart, turned ±30°; wall 120 x 120 mm, letters DUKE 4 mm high, strokes 15 mm")
-    head = (f"{'surfaces':16s} {'mean err mm':>12s} {'p90 err mm':>11s} {'coverage':>9s} {'area mm2':>9s} "
-            f"{'peak mm':>8s} {'L_r mm':>7s} {'s/press':>8s}")
+          f"deep, {args.spacing:g} mm apart (serpentine), turned ±30°; wall 120 x 120 mm, letters DUKE 4 mm high, "
+          "strokes 15 mm")
+    head = (f"{'scene':9s} {'surfaces':14s} {'poses':9s} {'placed':>7s} {'vs relief':>10s} {'p90':>6s} "
+            f"{'vs sheet':>9s} {'coverage':>9s} {'area mm2':>9s} {'peak mm':>8s} {'L_r mm':>7s} {'s/press':>8s}")
     print(head)
     print("-" * len(head))
     free = ph.SphereCap(80.0)
     with threadpool_limits(1):
-        for name, surface in (("scene surfaces", scene), ("reconstructed", reconstructed)):
-            normals = free.normal(uv)
-            base = capture_baseline([(surface(free), normals) for _ in range(5)])
-            relief = ReliefMap(120.0, 1.0)
-            contacts = []
-            t0 = time.perf_counter()
-            for pose in poses:
-                c = detect_contact(surface(BalloonOnWall(wall, (pose.x_mm, pose.y_mm), pose.angle_deg, pose.depth_mm)),
-                                   base, grid, min_depth_mm=args.min_depth)
-                if c is not None:
-                    relief.add(c, pose, grid)
-                    contacts.append(c)
-            per_press = (time.perf_counter() - t0) / len(poses)
-            h = relief.height()
-            truth = wall.height(relief.centres)
-            touched = np.isfinite(h) & relief.wall_region()
-            err = np.abs(h - truth)[touched]
-            print(f"{name:16s} {err.mean():12.3f} {np.percentile(err, 90):11.3f} {100 * relief.coverage():8.1f}% "
-                  f"{np.mean([c.area_mm2 for c in contacts]):9.0f} {np.mean([c.peak_depth_mm for c in contacts]):8.2f} "
-                  f"{np.mean([c.feature_size_mm for c in contacts]):7.1f} {per_press:8.3f}")
-            if args.png:
-                root, ext = os.path.splitext(args.png)
-                out = f"{root}-{name.split()[0]}{ext or '.png'}"
-                write_png(relief, out, truth=np.where(relief.wall_region(), truth, np.nan))
-                print(f"(map written to {out})")
+        for scene_name, membrane in (("follows", None), (f"bridges{args.membrane:g}", args.membrane)):
+            shapes = [BalloonOnWall(wall, (p.x_mm, p.y_mm), p.angle_deg, p.depth_mm, membrane_radius=membrane)
+                      for p in poses]
+            sheet_map = None  # the sheet's own true surface, stitched with the true poses
+            for name, surface in (("scene surfaces", scene), ("reconstructed", reconstructed)):
+                normals = free.normal(uv)
+                base = capture_baseline([(surface(free)[0], normals) for _ in range(5)])
+                t0 = time.perf_counter()
+                contacts = []
+                for shape in shapes:
+                    pos, sig = surface(shape)
+                    contacts.append(detect_contact(pos, base, grid, min_depth_mm=args.min_depth, sigma=sig))
+                t_detect = (time.perf_counter() - t0) / len(poses)
+                for mode in ("given",) if args.quick else ("given", "estimated"):
+                    relief = ReliefMap(120.0, 1.0)
+                    t0 = time.perf_counter()
+                    kept = [(c, p) for c, p in zip(contacts, poses) if c is not None]
+                    if mode == "given":
+                        for c, p in kept:
+                            relief.add(c, p, grid)
+                        placed = len(kept)
+                    else:
+                        est = stitch_estimated([c for c, _ in kept], grid, relief, first=kept[0][1])
+                        placed = sum(e.pose is not None for e in est)
+                    per_press = t_detect + (time.perf_counter() - t0) / len(poses)
+                    h = relief.height()
+                    truth = wall.height(relief.centres)
+                    touched = np.isfinite(h) & relief.wall_region()
+                    err = np.abs(h - truth)[touched]
+                    if sheet_map is None:
+                        sheet_map = h
+                    both = touched & np.isfinite(sheet_map)
+                    vs_sheet = float(np.mean(np.abs(h - sheet_map)[both]))
+                    cs = [c for c, _ in kept]
+                    print(f"{scene_name:9s} {name:14s} {mode:9s} {placed:3d}/{len(poses):<3d} {err.mean():10.3f} "
+                          f"{np.percentile(err, 90):6.2f} {vs_sheet:9.3f} {100 * relief.coverage():8.1f}% "
+                          f"{np.mean([c.area_mm2 for c in cs]):9.0f} {np.mean([c.peak_depth_mm for c in cs]):8.2f} "
+                          f"{np.mean([c.feature_size_mm for c in cs]):7.1f} {per_press:8.3f}", flush=True)
+                    if args.png:
+                        root, ext = os.path.splitext(args.png)
+                        out = f"{root}-{scene_name}-{name.split()[0]}-{mode}{ext or '.png'}"
+                        write_png(relief, out, truth=np.where(relief.wall_region(), truth, np.nan))
+                        print(f"(map written to {out})")
 
 
 if __name__ == "__main__":

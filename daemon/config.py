@@ -169,6 +169,8 @@ class TactileConfig:
     k: float = 3.0  # contact: pressed in beyond k·σ of the baseline
     min_depth_mm: float = 0.5  # … and beyond this (what a free probe's reconstruction wanders stays below)
     step_mm: float = 2.0  # material sampling of the sheet
+    # known probe poses, one a press in order: (x_mm, y_mm, angle_deg, depth_mm) (docs/tactile.md)
+    poses: tuple[tuple[float, float, float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -369,6 +371,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "k": _number(0.5, 100),
         "min_depth_mm": _number(0, 50),
         "step_mm": _number(0.25, 50),
+        "poses": lambda key, value: _pose_rows(key, value),
     },
 }
 
@@ -382,6 +385,18 @@ _SECTIONS = {
     "state": StateConfig,
     "tactile": TactileConfig,
 }
+
+
+def _pose_rows(key: str, value: Any) -> tuple[tuple[float, float, float, float], ...]:
+    """[tactile] poses: an array of [x_mm, y_mm, angle_deg, depth_mm] arrays of finite numbers."""
+    if not isinstance(value, list):
+        raise _fail(key, value, "must be an array of [x_mm, y_mm, angle_deg, depth_mm] arrays, one a press")
+    rows = []
+    for i, row in enumerate(value):
+        if not isinstance(row, list) or len(row) != 4:
+            raise _fail(f"{key}[{i}]", row, "must be [x_mm, y_mm, angle_deg, depth_mm] (4 numbers)")
+        rows.append(tuple(_number(-1e6, 1e6)(f"{key}[{i}][{j}]", v) for j, v in enumerate(row)))
+    return tuple(rows)
 
 
 def _explicit_elements(value: Any, sheet_hint: str = "elements.explicit") -> tuple[ElementSpec, ...]:

@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from skinmap.daemon.logsink import LogSink
 
 __all__ = ["Record", "LoggedRecord", "RawFrame", "ScanReceived", "Event", "ConfigRecord", "WireRecord",
-           "StatusRecord", "ContactRecord", "Listener", "Notifier", "QueuedListener"]
+           "StatusRecord", "ContactRecord", "PoseRecord", "Listener", "Notifier", "QueuedListener"]
 
 log = logging.getLogger("skinmapd")
 
@@ -120,6 +120,17 @@ class ContactRecord(LoggedRecord):
 
     def write_to(self, sink: LogSink) -> None:
         sink.log_contact(self.t_ns, self.contact)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseRecord(LoggedRecord):
+    """A probe pose taken in from Zenoh ([tactile]; skinmap.daemon.poses)."""
+
+    t_ns: int
+    pose: Mapping[str, Any]
+
+    def write_to(self, sink: LogSink) -> None:
+        sink.log_pose(self.t_ns, self.pose)
 
 
 class Listener(ABC):

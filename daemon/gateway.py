@@ -21,7 +21,7 @@ import skinmap
 from skinmap.daemon.config import DaemonConfig, config_to_toml
 from skinmap.daemon.console import shape_summary
 from skinmap.daemon.device_setup import ScannerState, calibration_doc, device_info, device_name
-from skinmap.daemon.fanout import ConfigRecord, Event, Notifier, RawFrame, ScanReceived, StatusRecord
+from skinmap.daemon.fanout import ConfigRecord, Event, Notifier, RawFrame, Record, ScanReceived, StatusRecord
 from skinmap.daemon.health import DeviceClockCheck, GatewayStats, Health, ScanMonitor
 from skinmap.daemon.link import ScannerLink
 from skinmap.daemon.logsink import LogListener, LogSink, NullLogSink
@@ -39,6 +39,9 @@ log = logging.getLogger("skinmapd")
 
 WATCHDOG_CHECK_S = 0.5  # how often the main loop judges the data path
 ConsoleFn = Callable[[dict[str, Any], dict[str, Any]], None]
+#: Opens the probe-pose input of a device by name, handing records to the given callable;
+#: returns something with ``undeclare()`` ([tactile]; skinmap.daemon.poses).
+PoseInputFactory = Callable[[str, Callable[[Record], None]], Any]
 
 
 class Gateway:
@@ -52,6 +55,7 @@ class Gateway:
         cfg: DaemonConfig,
         *,
         publishers: PublisherFactory | None = None,
+        pose_inputs: PoseInputFactory | None = None,
         port_factory: PortFactory | None = None,
         log_sink_factory: Callable[[DaemonConfig], LogSink] | None = None,
         console: ConsoleFn | None = None,
@@ -68,6 +72,8 @@ class Gateway:
         self.monitor = ScanMonitor(self._on_event)
         self.sink: LogSink = (log_sink_factory or default_log_sink)(cfg) if cfg.log.enabled else NullLogSink()
         self.log: LogListener | None = LogListener(self.sink, cfg.log.queue_size) if cfg.log.enabled else None
+        self._pose_inputs = pose_inputs
+        self._pose_input: Any = None  # [tactile]: the probe-pose subscriber of the current device
         self.output = ResultOutput(cfg, self.records, publishers, logging_on=self.log is not None)
         self.processing = ProcessingListener(cfg.output.rate_hz, self.scanner, self.output, self.records,
                                              on_new_pipeline=self._on_new_pipeline,
@@ -142,6 +148,9 @@ class Gateway:
         hello = self.scanner.hello
         assert hello is not None
         self.output.use_device(device_name(hello, self.cfg), self.info)
+        if self.cfg.tactile.enabled and self._pose_inputs is not None:
+            self._close_pose_input()
+            self._pose_input = self._pose_inputs(self.output.device, self.records.notify)
         self._log_config()
 
     def _on_first_result(self) -> None:
@@ -198,6 +207,14 @@ class Gateway:
         finally:
             self.shutdown()
 
+    def _close_pose_input(self) -> None:
+        if self._pose_input is not None:
+            try:
+                self._pose_input.undeclare()
+            except Exception as exc:  # a closed session: nothing more arrives anyway
+                log.debug("pose subscriber: %s", exc)
+            self._pose_input = None
+
     def stop(self) -> None:
         self._stop.set()
 
@@ -209,6 +226,7 @@ class Gateway:
         self._stop.set()
         self.notifier.stopping()
         self.link.stop()
+        self._close_pose_input()
         self.records.stop(timeout=10.0)  # processing first, then the log writes what is queued
         self.output.close()
         self.notifier.close()

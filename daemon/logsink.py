@@ -68,6 +68,9 @@ class LogSink(ABC):
     def log_contact(self, t_ns: int, contact: Mapping[str, Any]) -> None: ...
 
     @abstractmethod
+    def log_pose(self, t_ns: int, pose: Mapping[str, Any]) -> None: ...
+
+    @abstractmethod
     def log_event(self, t_ns: int, level: int | str, message: str, name: str = "skinmapd") -> None: ...
 
     @abstractmethod
@@ -115,6 +118,9 @@ class NullLogSink(LogSink):
     def log_contact(self, t_ns: int, contact: Mapping[str, Any]) -> None:
         pass
 
+    def log_pose(self, t_ns: int, pose: Mapping[str, Any]) -> None:
+        pass
+
     def log_event(self, t_ns: int, level: int | str, message: str, name: str = "skinmapd") -> None:
         pass
 
@@ -153,7 +159,7 @@ class MemoryLogSink(LogSink):
 
     def kinds(self, kind: str) -> list[Any]:
         """The values logged under `kind` ("raw", "strains", "elements", "surface", "status",
-        "contact", "event", "config"), in order."""
+        "contact", "pose", "event", "config"), in order."""
         return [value for k, _t, value in self.records if k == kind]
 
     def log_raw_frame(self, t_ns: int, data: bytes) -> None:
@@ -173,6 +179,9 @@ class MemoryLogSink(LogSink):
 
     def log_contact(self, t_ns: int, contact: Mapping[str, Any]) -> None:
         self._keep("contact", t_ns, dict(contact))
+
+    def log_pose(self, t_ns: int, pose: Mapping[str, Any]) -> None:
+        self._keep("pose", t_ns, dict(pose))
 
     def log_event(self, t_ns: int, level: int | str, message: str, name: str = "skinmapd") -> None:
         self._keep("event", t_ns, (level, message))

@@ -18,6 +18,7 @@ from typing import Any, BinaryIO, Callable, Mapping
 
 import numpy as np
 
+from skinmap.wire import messages
 from skinmap.daemon.logsink import LogSink, LogStorageError
 from skinmap.daemon.mcapfile import COMPRESSION, McapFile, default_open, fsync_directory
 from skinmap.daemon.mcapschema import TOPICS, TopicSpec, as_payload, check_seq, device_topic, log_message, \
@@ -195,6 +196,10 @@ class McapLogger(LogSink):
         if not isinstance(contact, Mapping):
             raise TypeError(f"contact must be a mapping, got {type(contact).__name__}")
         self._log(TOPICS["/contact"], t_ns, to_json(dict(contact), "contact"))
+
+    def log_pose(self, t_ns: int, pose: Mapping[str, Any]) -> None:
+        """`/pose`: a probe pose as received (skinmap.wire.messages.POSE_FIELDS; docs/tactile.md)."""
+        self._log(TOPICS["/pose"], t_ns, messages.encode_pose(pose))
 
     def log_event(self, t_ns: int, level: int | str, message: str,
                   name: str = "skinmapd") -> None:

@@ -92,6 +92,7 @@ TOPICS: dict[str, TopicSpec] = {
         _foxglove("/tf", "tf"),
         TopicSpec("/contact", "skinmap.Contact", "jsonschema",
                   _json_schema({"title": "skinmap.Contact", "type": "object"}), "json"),
+        TopicSpec("/pose", "skinmap.Pose", "jsonschema", _json_schema(messages.pose_json_schema()), "json"),
         TopicSpec("/status", "skinmap.Status", "jsonschema", _json_schema(fox.status_schema()),
                   "json"),
         _foxglove("/log", "log"),

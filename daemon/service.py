@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Callable, ContextManager
 import skinmap
 from skinmap.daemon.config import ConfigError, DaemonConfig, load_config
 from skinmap.daemon.console import StatusConsole
-from skinmap.daemon.gateway import Gateway, limit_blas_threads
+from skinmap.daemon.gateway import Gateway, PoseInputFactory, limit_blas_threads
 from skinmap.daemon.publisher import PublisherFactory
 
 if TYPE_CHECKING:
@@ -62,6 +62,15 @@ def zenoh_publishers(cfg: DaemonConfig, session: zenoh.Session | None) -> Publis
     return ZenohPublishers(session, cfg.zenoh.prefix)
 
 
+def zenoh_pose_inputs(cfg: DaemonConfig, session: zenoh.Session | None) -> PoseInputFactory | None:
+    """With [tactile] on, the probe-pose input over `session` (skinmap.daemon.poses)."""
+    if session is None or not cfg.tactile.enabled:
+        return None
+    from skinmap.daemon.poses import subscribe_poses
+
+    return lambda device, notify: subscribe_poses(session, cfg.zenoh.prefix, device, notify)
+
+
 def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: threading.Event | None = None) -> int:
     """Run skinmapd until SIGINT/SIGTERM (or `stop_event`); returns an exit code."""
     limit_blas_threads()
@@ -86,7 +95,8 @@ def run_gateway(cfg: DaemonConfig, *, console: bool | None = None, stop_event: t
 def _run_gateway_locked(cfg: DaemonConfig, show: bool, stop_event: threading.Event | None) -> int:
     panel = StatusConsole() if show else None
     with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, publishers=zenoh_publishers(cfg, session), console=panel.update if panel else None)
+        gw = Gateway(cfg, publishers=zenoh_publishers(cfg, session), pose_inputs=zenoh_pose_inputs(cfg, session),
+                     console=panel.update if panel else None)
         unwatch = _watch_signals(gw) if threading.current_thread() is threading.main_thread() else (lambda: None)
         if stop_event is not None:
             def stop_when_set() -> None:

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "capture_baseline",
-           "displacement", "detect_contact", "feature_size", "read_poses_csv"]
+__all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
+           "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
+           "estimate_pose", "anchor_pose", "stitch_estimated"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +143,7 @@ class Contact:
     peak_depth_mm: float
     feature_size_mm: float  # L_r
     positions: np.ndarray  # (K, 3) the frame aligned onto the baseline
+    sigma: np.ndarray | None = None  # (K,) mm, the frame's per-sample position uncertainty, if known
 
     def summary(self) -> dict:
         return {"area_mm2": round(self.area_mm2, 3), "peak_depth_mm": round(self.peak_depth_mm, 4),
@@ -149,15 +151,17 @@ class Contact:
 
 
 def detect_contact(positions: np.ndarray, baseline: Baseline, grid: SampleGrid, k: float = 3.0,
-                   min_depth_mm: float = 0.5) -> Contact | None:
-    """The contact in one frame, or None if nothing is pressed in beyond k·σ."""
+                   min_depth_mm: float = 0.5, sigma: np.ndarray | None = None) -> Contact | None:
+    """The contact in one frame, or None if nothing is pressed in beyond k·σ.  ``sigma`` (K,)
+    mm: the frame's own per-sample uncertainty (e.g. ``Surface.locate_sigma``), kept as the
+    stitching weight."""
     d, moved, contact = displacement(positions, baseline, k, min_depth_mm)
     if not contact.any():
         return None
     depth = np.where(contact, -d, 0.0).reshape(grid.shape)
     mask = contact.reshape(grid.shape)
     return Contact(mask, depth, float(mask.sum() * grid.step ** 2), float(depth.max()),
-                   feature_size(depth, grid.step), moved)
+                   feature_size(depth, grid.step), moved, None if sigma is None else np.asarray(sigma, float))
 
 
 @dataclass(frozen=True)
@@ -201,6 +205,25 @@ def read_poses_csv(text: str) -> list[ProbePose]:
     return poses
 
 
+def contact_points(contact: Contact, grid: SampleGrid, upsample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A contact's surface points in the probe frame (P, 3), densified ×``upsample``
+    bilinearly, and their weights (P,) (1, or 1/σ² normalised to a median of 1 when the
+    contact carries per-sample σ)."""
+    pos = contact.positions.reshape(*grid.shape, 3)
+    mask = contact.mask.astype(float)
+    sig = contact.sigma.reshape(grid.shape) if contact.sigma is not None else None
+    if upsample > 1:
+        pos = np.stack([ndimage.zoom(pos[..., i], upsample, order=1) for i in range(3)], axis=-1)
+        mask = ndimage.zoom(mask, upsample, order=1)
+        if sig is not None:
+            sig = ndimage.zoom(sig, upsample, order=1)
+    keep = mask >= 0.999
+    if sig is None or not keep.any():
+        return pos[keep], np.ones(int(keep.sum()))
+    w = 1.0 / np.maximum(sig[keep], 1e-3) ** 2
+    return pos[keep], w / np.median(w)
+
+
 class ReliefMap:
     """The stitched wall: a grid of ``size`` × ``size`` mm at ``step`` mm centred on the origin."""
 
@@ -210,7 +233,8 @@ class ReliefMap:
         self.half = 0.5 * float(size) + float(margin)
         cells = int(round(2 * self.half / self.step))
         self.shape = (cells, cells)
-        self._n = np.zeros(self.shape)
+        self._n = np.zeros(self.shape)  # samples a cell got
+        self._w = np.zeros(self.shape)  # their summed weight
         self._sum = np.zeros(self.shape)
         self._sum2 = np.zeros(self.shape)
         self.contacts = 0
@@ -226,25 +250,26 @@ class ReliefMap:
         """Add one contact's samples (its aligned surface in the probe frame, densified by
         bilinear interpolation so that every map cell under the contact gets data); returns
         the number of cells touched."""
-        pos = contact.positions.reshape(*grid.shape, 3)
-        mask = contact.mask.astype(float)
-        if upsample > 1:
-            pos = np.stack([ndimage.zoom(pos[..., i], upsample, order=1) for i in range(3)], axis=-1)
-            mask = ndimage.zoom(mask, upsample, order=1)
-        keep = mask >= 0.999
-        pts = pos[keep]
+        pts, weight = contact_points(contact, grid, upsample)
         if not len(pts):
             return 0
         wall_xy = pose.to_wall(pts[:, :2])
         h = -pose.depth_mm - pts[:, 2]
         ij = np.floor((wall_xy + self.half) / self.step).astype(int)
         ok = np.all((ij >= 0) & (ij < self.shape[0]), axis=1)
-        ij, h = ij[ok], h[ok]
+        ij, h, w = ij[ok], h[ok], weight[ok]
         np.add.at(self._n, (ij[:, 1], ij[:, 0]), 1.0)
-        np.add.at(self._sum, (ij[:, 1], ij[:, 0]), h)
-        np.add.at(self._sum2, (ij[:, 1], ij[:, 0]), h * h)
+        np.add.at(self._w, (ij[:, 1], ij[:, 0]), w)
+        np.add.at(self._sum, (ij[:, 1], ij[:, 0]), w * h)
+        np.add.at(self._sum2, (ij[:, 1], ij[:, 0]), w * h * h)
         self.contacts += 1
         return int(len(np.unique(ij, axis=0)))
+
+    def clear(self) -> None:
+        """Forget every contact (the grid stays)."""
+        for a in (self._n, self._w, self._sum, self._sum2):
+            a[:] = 0.0
+        self.contacts = 0
 
     @property
     def count(self) -> np.ndarray:
@@ -253,13 +278,14 @@ class ReliefMap:
     def height(self) -> np.ndarray:
         """(rows, cols) mean wall height, NaN where never touched."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self._n > 0, self._sum / np.maximum(self._n, 1), np.nan)
+            return np.where(self._n > 0, self._sum / np.where(self._w > 0, self._w, 1.0), np.nan)
 
     def scatter(self) -> np.ndarray:
         """(rows, cols) s.d. of the heights the contacts gave a cell (NaN with fewer than two)."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = self._sum / np.maximum(self._n, 1)
-            var = np.maximum(self._sum2 / np.maximum(self._n, 1) - mean ** 2, 0.0) * self._n / np.maximum(self._n - 1, 1)
+            w = np.where(self._w > 0, self._w, 1.0)
+            mean = self._sum / w
+            var = np.maximum(self._sum2 / w - mean ** 2, 0.0) * self._n / np.maximum(self._n - 1, 1)
         return np.where(self._n > 1, np.sqrt(var), np.nan)
 
     def confidence(self, sigma_mm: float = 0.1) -> np.ndarray:
@@ -319,3 +345,280 @@ class ContactTracker:
             self._in_contact = True
         return {**doc, "events": self.events, "state": "contact", **c.summary(),
                 "depth_mm": np.round(c.depth, 4).ravel().tolist()}
+
+
+# ---------------------------------------------------------------------------------------------
+# Poses estimated by registering each contact against the map so far
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A contact's pose found by registration, or why none was (``pose`` None, ``reason``)."""
+
+    pose: ProbePose | None
+    reason: str = ""
+    overlap_cells: int = 0
+    rms_mm: float = math.nan  # height residual over the overlap at the pose
+    sd_xy_mm: float = math.nan  # 1-s.d. of the position along its worst direction (from the fit's conditioning)
+    sd_angle_deg: float = math.nan
+
+
+def anchor_pose(contact: Contact, grid: SampleGrid) -> ProbePose:
+    """The pose that makes a first contact the map's frame: at the origin, unturned, the wall's
+    base plane at the contact's least indented point."""
+    pts, _ = contact_points(contact, grid)
+    return ProbePose(0.0, 0.0, 0.0, float(np.min(-pts[:, 2])))
+
+
+def _bin(xy: np.ndarray, h: np.ndarray, half: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of h per cell of a (2·half/step)² grid centred on the origin, and the mask."""
+    cells = int(round(2 * half / step))
+    ij = np.floor((xy + half) / step).astype(int)
+    ok = np.all((ij >= 0) & (ij < cells), axis=1)
+    n = np.zeros((cells, cells))
+    acc = np.zeros((cells, cells))
+    np.add.at(n, (ij[ok, 1], ij[ok, 0]), 1.0)
+    np.add.at(acc, (ij[ok, 1], ij[ok, 0]), h[ok])
+    m = n > 0
+    return np.where(m, acc / np.maximum(n, 1), 0.0), m
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Full cross-correlation c[t] = Σ_p a[p]·b[p + t] (t over every overlap)."""
+    from scipy.signal import fftconvolve
+
+    return fftconvolve(b, a[::-1, ::-1], mode="full")
+
+
+def estimate_pose(relief: ReliefMap, contact: Contact, grid: SampleGrid, *, prior: ProbePose | None = None,
+                  max_move_mm: float = 40.0, angle_range_deg: float = 70.0, angle_step_deg: float = 3.0, coarse_mm: float = 2.0, min_overlap: float = 0.3,
+                  max_sd_mm: float = 0.5, max_sd_deg: float = 1.0, min_relief_mm: float = 0.3,
+                  max_rms_mm: float = 0.5) -> PoseEstimate:
+    """The pose (x, y, angle, depth) that best lays the contact's heights onto the map so far
+    (least squares over the overlap, the depth solved in closed form), or a refusal saying why:
+    too little overlap, an overlap without relief (heights that vary by less than
+    ``min_relief_mm`` fix no position), an ill-conditioned fit (position s.d. beyond
+    ``max_sd_mm`` or angle s.d. beyond ``max_sd_deg`` along the overlap's weakest direction,
+    e.g. a straight stroke, which fixes nothing along itself), or two distinct poses fitting
+    about equally well.
+
+    Search: with a ``prior`` (e.g. the previous press's pose: the probe is moved a bounded
+    step between presses) every angle within ±``angle_range_deg`` of its angle and every
+    position within ``max_move_mm`` of it, without one every angle and position; angles at
+    ``angle_step_deg``, shifts on a ``coarse_mm`` grid (masked correlations by FFT), then a
+    local refinement on the map's cells."""
+    pts, _ = contact_points(contact, grid)
+    if len(pts) < 20:
+        return PoseEstimate(None, f"a contact of {len(pts)} points is too small to register")
+    hmap = relief.height()
+    have = np.isfinite(hmap)
+    if not have.any():
+        return PoseEstimate(None, "the map is empty: nothing to register against")
+    local_h = -pts[:, 2]  # = H + depth
+    # coarse: the map and the turned contact on a coarse grid
+    f = max(1, int(round(coarse_mm / relief.step)))
+    cs = relief.step * f
+    cells = relief.shape[0] // f
+    hm = np.nan_to_num(hmap[:cells * f, :cells * f]).reshape(cells, f, cells, f)
+    mm = have[:cells * f, :cells * f].reshape(cells, f, cells, f)
+    cnt = mm.sum(axis=(1, 3))
+    mb = cnt > 0.5 * f * f
+    hb = np.where(mb, (hm * mm).sum(axis=(1, 3)) / np.maximum(cnt, 1), 0.0)
+    reach = float(np.max(np.linalg.norm(pts[:, :2], axis=1))) + cs
+    H, H2, Mh = hb * mb, hb * hb * mb, mb.astype(float)
+    n_contact_min = None
+    candidates = []  # (score, angle, x, y, overlap)
+    a0, span = (prior.angle_deg, angle_range_deg) if prior is not None else (0.0, 180.0)
+    for ang in a0 + np.arange(-span, span + 1e-9, angle_step_deg):
+        th = math.radians(ang)
+        c_, s_ = math.cos(th), math.sin(th)
+        xy = np.stack([c_ * pts[:, 0] - s_ * pts[:, 1], s_ * pts[:, 0] + c_ * pts[:, 1]], -1)
+        C, Mc = _bin(xy, local_h, reach, cs)
+        Mcf = Mc.astype(float)
+        nc = float(Mcf.sum())
+        if n_contact_min is None:
+            n_contact_min = min_overlap * nc
+        n = _corr(Mcf, Mh)
+        sc, sc2 = _corr(C * Mcf, Mh), _corr(C * C * Mcf, Mh)
+        sh, sh2 = _corr(Mcf, H), _corr(Mcf, H2)
+        sch = _corr(C * Mcf, H)
+        ok = n >= max(n_contact_min, 10)
+        nn = np.where(ok, n, 1.0)
+        cov = sch / nn - sc * sh / nn ** 2
+        vc = sc2 / nn - (sc / nn) ** 2
+        vh = sh2 / nn - (sh / nn) ** 2
+        good = ok & (vh > (0.25 * min_relief_mm) ** 2) & (vc > (0.25 * min_relief_mm) ** 2)
+        score = np.where(good, cov / np.sqrt(np.maximum(vc * vh, 1e-12)), -np.inf)
+        if prior is not None:
+            ty = -relief.half + (np.arange(score.shape[0]) - (C.shape[0] - 1)) * cs + reach
+            tx = -relief.half + (np.arange(score.shape[1]) - (C.shape[1] - 1)) * cs + reach
+            near = np.hypot(tx[None, :] - prior.x_mm, ty[:, None] - prior.y_mm) <= max_move_mm
+            score = np.where(near, score, -np.inf)
+        # keep the best few peaks of this angle
+        flat = np.argsort(score, axis=None)[-3:]
+        for idx in flat:
+            t = np.unravel_index(int(idx), score.shape)
+            if not np.isfinite(score[t]):
+                continue
+            # full-correlation index → shift of the contact grid's origin on the map grid
+            dy = t[0] - (C.shape[0] - 1)
+            dx = t[1] - (C.shape[1] - 1)
+            x = -relief.half + dx * cs + reach
+            y = -relief.half + dy * cs + reach
+            candidates.append((float(score[t]), float(ang), x, y, int(n[t])))
+    if not candidates:
+        return PoseEstimate(None, f"no placement overlaps the map by {100 * min_overlap:.0f} % of the contact "
+                                  "with relief in it: the overlap cannot decide")
+    candidates.sort(reverse=True)
+
+    centres = relief.centres
+
+    def residual(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        x, y, ang = p
+        pose = ProbePose(float(x), float(y), float(ang), 0.0)
+        wxy = pose.to_wall(pts[:, :2])
+        idx = (wxy + relief.half) / relief.step - 0.5
+        inside = np.all((idx >= 0) & (idx <= relief.shape[0] - 1), axis=1)
+        cover = ndimage.map_coordinates(have.astype(float), [idx[:, 1], idx[:, 0]], order=1, mode="constant")
+        use = inside & (cover > 0.999)
+        hh = ndimage.map_coordinates(np.nan_to_num(hmap), [idx[use, 1], idx[use, 0]], order=1)
+        r = local_h[use] - hh
+        return float(np.mean((r - r.mean()) ** 2)) if use.sum() > 10 else 1e6, use, hh, r
+
+    gy, gx = np.gradient(np.nan_to_num(hmap), relief.step)
+
+    def jacobian(p: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """∂H/∂x, ∂H/∂y, ∂H/∂θ (per radian) at the overlap points, and the depth column."""
+        wxy = ProbePose(float(p[0]), float(p[1]), float(p[2]), 0.0).to_wall(pts[use, :2])
+        idx = (wxy + relief.half) / relief.step - 0.5
+        sx = ndimage.map_coordinates(gx, [idx[:, 1], idx[:, 0]], order=1)
+        sy = ndimage.map_coordinates(gy, [idx[:, 1], idx[:, 0]], order=1)
+        rx, ry = wxy[:, 0] - p[0], wxy[:, 1] - p[1]
+        return np.column_stack([sx, sy, -ry * sx + rx * sy, -np.ones(len(sx))])
+
+    def refine(cand: tuple) -> tuple[np.ndarray, float]:
+        """Gauss–Newton on (x, y, θ, depth) from a coarse candidate (steps bounded to a cell)."""
+        _s, ang, x, y, _n = cand
+        p = np.array([x, y, ang], dtype=float)
+        cost = residual(p)[0]
+        for _ in range(30):
+            cost, use, _hh, r = residual(p)
+            if use.sum() <= 10:
+                break
+            jac = jacobian(p, use)
+            step, *_ = np.linalg.lstsq(jac, r - 0.0, rcond=None)  # r = local_h − H ≈ J·δ + depth
+            dx, dy, dth = step[:3]
+            d = np.array([dx, dy, math.degrees(dth)])
+            scale = min(1.0, cs / max(1e-9, math.hypot(dx, dy)), angle_step_deg / max(1e-9, abs(d[2])))
+            trial = p + scale * d
+            c_trial = residual(trial)[0]
+            if c_trial > cost:
+                trial = p + 0.25 * scale * d
+                c_trial = residual(trial)[0]
+                if c_trial > cost:
+                    break
+            p, converged = trial, math.hypot(*(scale * d[:2])) < 1e-3 and abs(scale * d[2]) < 1e-3
+            cost = c_trial
+            if converged:
+                break
+        return p, float(cost)
+
+    best, best_cost = refine(candidates[0])
+    # a rival: the best candidate that is a different placement (≥ 5 mm or ≥ 10° away)
+    for cand in candidates[1:12]:
+        if math.hypot(cand[2] - best[0], cand[3] - best[1]) >= 5.0 or abs(_wrap(cand[1] - best[2])) >= 10.0:
+            p2, c2 = refine(cand)
+            if math.hypot(p2[0] - best[0], p2[1] - best[1]) < 5.0 and abs(_wrap(p2[2] - best[2])) < 10.0:
+                continue  # converged onto the same placement
+            if c2 < best_cost:
+                best, best_cost, p2, c2 = p2, c2, best, best_cost
+            if c2 < 1.5 * best_cost + 0.0025:
+                return PoseEstimate(None, f"two placements fit about equally (rms {math.sqrt(best_cost):.2f} and "
+                                          f"{math.sqrt(c2):.2f} mm, {math.hypot(p2[0] - best[0], p2[1] - best[1]):.0f} mm "
+                                          "apart): the overlap cannot decide")
+            break
+    cost, use, hh, r = residual(best)
+    overlap = int(use.sum())
+    if overlap < n_contact_min * f * f or overlap < 20:
+        return PoseEstimate(None, f"the overlap with the map is {overlap} points "
+                                  f"({100 * overlap / len(pts):.0f} % of the contact): the overlap cannot decide",
+                            overlap)
+    if math.sqrt(cost) > max_rms_mm:
+        return PoseEstimate(None, f"the best placement's heights differ from the map by {math.sqrt(cost):.2f} mm rms "
+                                  f"(more than {max_rms_mm:g}): the contact matches the map nowhere it may be, "
+                                  "the overlap cannot decide", overlap, math.sqrt(cost))
+    if np.ptp(hh) < min_relief_mm:
+        return PoseEstimate(None, f"the overlap's heights vary by {np.ptp(hh):.2f} mm only (a flat patch fixes no "
+                                  "position): the overlap cannot decide", overlap)
+    # conditioning: the map's slopes at the overlap points → the pose's covariance
+    jac = jacobian(best, use)
+    # the residuals are not white (a contact's rim and the map's binning err over a few mm):
+    # count one independent sample per (3 mm)² of overlap, not one per point
+    sigma = max(math.sqrt(cost), 0.05) * 3.0 / relief.step
+    try:
+        cov = sigma ** 2 * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return PoseEstimate(None, "the overlap's slopes do not fix the pose (singular fit): the overlap cannot decide",
+                            overlap)
+    sd_xy = float(math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+    sd_ang = float(math.degrees(math.sqrt(max(cov[2, 2], 0.0))))
+    depth = float(np.mean(r))  # local_h − H = depth
+    if not (sd_xy <= max_sd_mm and sd_ang <= max_sd_deg):
+        return PoseEstimate(None, f"the fit is ill-conditioned (position s.d. {sd_xy:.2f} mm, angle s.d. {sd_ang:.2f}° "
+                                  "along the overlap's weakest direction): the overlap cannot decide",
+                            overlap, math.sqrt(cost), sd_xy, sd_ang)
+    return PoseEstimate(ProbePose(float(best[0]), float(best[1]), float(_wrap(best[2])), depth), "", overlap,
+                        math.sqrt(cost), sd_xy, sd_ang)
+
+
+def _wrap(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
+def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMap, first: ProbePose | None = None,
+                     sweeps: int = 2, **options: float) -> list[PoseEstimate]:
+    """Stitch contacts whose poses are unknown: the first is placed by ``first`` (default
+    :func:`anchor_pose`: the map is then in the first press's frame), each later one by
+    :func:`estimate_pose` against the map so far; a refused one is tried again once the rest
+    are in, and left out if it is still refused.  Each search starts from the nearest press in
+    the sequence already placed (``max_move_mm`` and ``angle_range_deg`` bound the step).  Returns each contact's estimate (in order)."""
+    if not contacts:
+        return []
+    out: list[PoseEstimate] = [PoseEstimate(None, "not tried")] * len(contacts)
+    anchor = first or anchor_pose(contacts[0], grid)
+    relief.add(contacts[0], anchor, grid)
+    out[0] = PoseEstimate(anchor, "the anchor")
+    pending = list(range(1, len(contacts)))
+    for _ in range(2):
+        later = []
+        for i in pending:
+            # the prior: the nearest press in the sequence already placed (the probe moves a
+            # bounded step between presses)
+            placed = [j for j in range(len(contacts)) if out[j].pose is not None]
+            near = min(placed, key=lambda j: abs(j - i))
+            est = estimate_pose(relief, contacts[i], grid, prior=out[near].pose, **options)
+            out[i] = est
+            if est.pose is None:
+                later.append(i)
+            else:
+                relief.add(contacts[i], est.pose, grid)
+        if len(later) == len(pending):
+            break
+        pending = later
+    # Errors of a chain of registrations add up: each placed contact is registered again,
+    # near where it is, against the map of all the others (``sweeps`` times); the anchor stays.
+    placed = [i for i in range(1, len(contacts)) if out[i].pose is not None]
+    for _ in range(max(0, sweeps)):
+        for i in placed:
+            others = ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size)
+            for j in [0, *placed]:
+                if j != i:
+                    others.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
+            est = estimate_pose(others, contacts[i], grid, **{**options, "prior": out[i].pose, "max_move_mm": 3.0,
+                                                               "angle_range_deg": 3.0})
+            if est.pose is not None:
+                out[i] = est
+    relief.clear()
+    for j in [0, *placed]:
+        relief.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
+    return out

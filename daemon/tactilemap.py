@@ -4,21 +4,26 @@ The log is replayed (its raw frames through the pipeline, with the calibration i
 with); every processed surface is sampled on a material grid; the first ``baseline_frames`` are
 the pre-contact baseline (start recording before the first press); a contact **event** is a run
 of at least two frames in contact (ended by two free ones), represented by its frame of deepest
-indentation; event i is
-placed by probe pose i (a CSV with columns x_mm, y_mm, angle_deg, depth_mm, one row a press, in
-order).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
+indentation; each event
+is placed by its probe pose: from a CSV (columns x_mm, y_mm, angle_deg, depth_mm, one row a
+press, in order), else from the log's ``/pose`` topic (the latest pose received before the event
+began), else from the ``[tactile] poses`` of the config it was recorded with; with
+``estimate=True`` the poses are found by registering each contact against the map so far
+(skinmap.daemon.tactile.stitch_estimated; a known first pose anchors the map, else the first
+press's frame is the map's).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
 its confidence, a PLY point cloud of the touched cells.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (Contact, ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,
-                                    read_poses_csv)
+from skinmap.daemon.tactile import (Contact, PoseEstimate, ProbePose, ReliefMap, SampleGrid, capture_baseline,
+                                    detect_contact, read_poses_csv, stitch_estimated)
 
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 
@@ -30,13 +35,23 @@ class MapReport:
     events: list[Contact] = field(default_factory=list)
     relief: ReliefMap | None = None
     problems: list[str] = field(default_factory=list)
+    pose_source: str = ""
+    estimates: list[PoseEstimate] = field(default_factory=list)
 
     def format(self) -> str:
-        lines = [f"{self.frames} surfaces, baseline of {self.baseline_frames}, {len(self.events)} contact events"]
+        lines = [f"{self.frames} surfaces, baseline of {self.baseline_frames}, {len(self.events)} contact events"
+                 + (f", poses {self.pose_source}" if self.pose_source else "")]
         for i, c in enumerate(self.events):
             s = c.summary()
-            lines.append(f"  contact {i + 1}: area {s['area_mm2']:.0f} mm², peak depth {s['peak_depth_mm']:.2f} mm, "
-                         f"feature size L_r {s['feature_size_mm']:.1f} mm")
+            line = (f"  contact {i + 1}: area {s['area_mm2']:.0f} mm², peak depth {s['peak_depth_mm']:.2f} mm, "
+                    f"feature size L_r {s['feature_size_mm']:.1f} mm")
+            if i < len(self.estimates):
+                e = self.estimates[i]
+                line += (f"; pose x {e.pose.x_mm:.1f} y {e.pose.y_mm:.1f} mm, {e.pose.angle_deg:.1f}°, depth "
+                         f"{e.pose.depth_mm:.2f} mm" + (f" (s.d. {e.sd_xy_mm:.2f} mm, {e.sd_angle_deg:.2f}°)"
+                                                        if math.isfinite(e.sd_xy_mm) else f" ({e.reason})")
+                         if e.pose is not None else f"; not placed: {e.reason}")
+            lines.append(line)
         if self.relief is not None:
             h = self.relief.height()
             lines.append(f"relief map: coverage {100 * self.relief.coverage():.1f} % of the wall, heights "
@@ -46,8 +61,10 @@ class MapReport:
 
 
 def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleGrid, k: float = 3.0,
-                   min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None) -> tuple[list[Contact], int]:
-    """(contact events, the number of baseline frames used) from sampled surfaces (K, 3)."""
+                   min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None,
+                   starts: list[int] | None = None) -> tuple[list[Contact], int]:
+    """(contact events, the number of baseline frames used) from sampled surfaces (K, 3);
+    ``starts``, if given, receives each event's first frame (an index into ``frames``)."""
     if len(frames) <= baseline_frames:
         raise ValueError(f"{len(frames)} surfaces: not more than the {baseline_frames} baseline frames asked for")
     nrm = normals or [np.tile([0.0, 0.0, 1.0], (len(frames[0]), 1))] * len(frames)
@@ -57,36 +74,47 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
     # own TDM instant) neither splits a press nor makes one.
     min_frames = 2
     events: list[Contact] = []
+    first: list[int] = []
     current: Contact | None = None
     run = free = 0
-    for pos in frames[baseline_frames:]:
+    began = 0
+    for i, pos in enumerate(frames[baseline_frames:], start=baseline_frames):
         c = detect_contact(pos, base, grid, k, min_depth_mm)
         if c is None:
             free += 1
             if current is not None and free >= min_frames:
                 if run >= min_frames:
                     events.append(current)
+                    first.append(began)
                 current, run = None, 0
             continue
         free = 0
+        if current is None:
+            began = i
         run += 1
         if current is None or c.peak_depth_mm > current.peak_depth_mm:
             current = c
     if current is not None and run >= min_frames:
         events.append(current)
+        first.append(began)
+    if starts is not None:
+        starts[:] = first
     return events, baseline_frames
 
 
-def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str], *, baseline_frames: int = 10,
-            step_mm: float = 2.0, k: float = 3.0, min_depth_mm: float = 0.5, wall_size_mm: float = 120.0,
-            cell_mm: float = 1.0) -> MapReport:
-    """Replay the log and stitch its contact events with the poses; ValueError names what is
-    wrong (no surfaces, too few baseline frames, event and pose counts that differ)."""
+def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | None = None, *,
+            estimate: bool = False, baseline_frames: int = 10, step_mm: float = 2.0, k: float = 3.0,
+            min_depth_mm: float = 0.5, wall_size_mm: float = 120.0, cell_mm: float = 1.0) -> MapReport:
+    """Replay the log and stitch its contact events with their poses (see the module); ValueError
+    names what is wrong (no surfaces, too few baseline frames, no poses from any source, event
+    and pose counts that differ, an event without a pose on the topic, a malformed pose)."""
+    from skinmap.daemon.poses import assign_poses, poses_in_log
     from skinmap.daemon.replay import replay_log
 
-    poses: list[ProbePose] = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8"))
+    csv_poses = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8")) if poses_csv is not None else None
     frames: list[np.ndarray] = []
     normals: list[np.ndarray] = []
+    times: list[int] = []
     grid_box: list[SampleGrid] = []
 
     def on_result(result) -> None:
@@ -98,17 +126,47 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str], *, b
         pos, nrm = result.surface.locate(grid_box[0].uv)
         frames.append(np.asarray(pos, dtype=float))
         normals.append(np.asarray(nrm, dtype=float))
+        times.append(int(result.host_time_ns))
 
     replay = replay_log(log, on_result=on_result)
     report = MapReport(frames=len(frames), problems=list(getattr(replay, "problems", []))[:5])
     if not frames:
         raise ValueError(f"{log}: no surfaces could be replayed from its raw frames")
     grid = grid_box[0]
-    report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals)
-    if len(report.events) != len(poses):
-        raise ValueError(f"{log}: {len(report.events)} contact events, but {poses_csv} has {len(poses)} poses "
-                         "(one pose a press, in order)")
+    starts: list[int] = []
+    report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals,
+                                                           starts)
+    logged = poses_in_log(log)
+    if logged.refused:
+        raise ValueError(f"{log}: " + "; ".join(logged.refused[:3]))
+    poses: list[ProbePose] | None
+    if csv_poses is not None:
+        poses, report.pose_source = csv_poses, f"from {poses_csv}"
+    elif logged.topic:
+        poses = assign_poses([times[i] for i in starts], logged.topic)
+        report.pose_source = f"from the log's /pose topic ({len(logged.topic)} received)"
+    elif logged.config:
+        poses, report.pose_source = logged.config, "from the log's [tactile] poses"
+    else:
+        poses = None
     relief = ReliefMap(wall_size_mm, cell_mm)
+    if estimate:
+        if not report.events:
+            raise ValueError(f"{log}: no contact events to register")
+        first = poses[0] if poses else None
+        report.estimates = stitch_estimated(report.events, grid, relief, first)
+        placed = sum(e.pose is not None for e in report.estimates)
+        report.pose_source = (f"estimated by registration ({placed} of {len(report.events)} placed; "
+                              + (f"anchored by the first pose {report.pose_source})" if first else
+                                 "the map in the first press's frame)"))
+        report.relief = relief
+        return report
+    if poses is None:
+        raise ValueError(f"{log}: no probe poses: give --poses CSV, or log them on the pose topic or in [tactile] "
+                         "poses, or --estimate them from the overlap between contacts")
+    if len(report.events) != len(poses):
+        raise ValueError(f"{log}: {len(report.events)} contact events, but {len(poses)} poses "
+                         f"{report.pose_source} (one pose a press, in order)")
     for c, pose in zip(report.events, poses):
         relief.add(c, pose, grid)
     report.relief = relief

@@ -103,10 +103,14 @@ class LetterRelief:
 
 class BalloonOnWall(ph.Shape):
     """The sheet on a balloon of radius ``balloon_radius`` pressed ``depth`` mm against the wall
-    (see the module's frames); ``depth`` ≤ 0 leaves the balloon free (the baseline)."""
+    (see the module's frames); ``depth`` ≤ 0 leaves the balloon free (the baseline).  With
+    ``membrane_radius`` (mm; T/p, half the balloon's radius for its own wall tension) the sheet
+    bridges what a pressurised membrane cannot follow (see ``_bridged_wall``); without, it
+    takes the wall's shape exactly (a balloon infinitely soft)."""
 
     def __init__(self, wall: LetterRelief, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
-                 depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3):
+                 depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3,
+                 membrane_radius: float | None = None):
         self.wall = wall
         self.centre = (float(centre[0]), float(centre[1]))
         self.angle_deg = float(angle_deg)
@@ -118,6 +122,48 @@ class BalloonOnWall(ph.Shape):
         if not (self.balloon_radius > 0 and self.smoothing > 0):
             raise ValueError("balloon radius and smoothing must be > 0 mm")
         self._sphere = ph.SphereCap(self.balloon_radius)
+        self.membrane_radius = membrane_radius
+        self._envelope: np.ndarray | None = None
+        if membrane_radius is not None:
+            if not (math.isfinite(membrane_radius) and membrane_radius > 0):
+                raise ValueError(f"membrane radius must be > 0 mm, got {membrane_radius!r}")
+            self._envelope = self._bridged_wall(float(membrane_radius))
+
+    # the envelope's raster (probe frame): covers a sheet of up to 100 mm across
+    _ENV_HALF, _ENV_STEP = 60.0, 1.0
+
+    def _bridged_wall(self, rho: float) -> np.ndarray:
+        """Spline coefficients of the wall as a pressurised membrane meets it: where the wall
+        recedes (between raised strokes) the membrane spans over, curved no tighter than ρ
+        (its tension over its pressure, T/p): the wall opened from the probe's side by a ball
+        of radius ρ (erosion, then dilation, by the ball's cap)."""
+        from scipy import ndimage
+
+        c = -self._ENV_HALF + self._ENV_STEP * np.arange(int(round(2 * self._ENV_HALF / self._ENV_STEP)) + 1)
+        xx, yy = np.meshgrid(c, c)
+        w = self.wall_z(np.stack([xx, yy], -1))
+        r = int(math.ceil(rho / self._ENV_STEP))
+        d = np.arange(-r, r + 1) * self._ENV_STEP
+        dx, dy = np.meshgrid(d, d)
+        q = rho ** 2 - dx ** 2 - dy ** 2
+        foot = q >= 0
+        cap = np.where(foot, np.sqrt(np.maximum(q, 0.0)), 0.0)
+        padded = np.pad(w, r, mode="edge")
+        eroded = ndimage.grey_erosion(padded, footprint=foot, structure=cap, mode="nearest")
+        opened = ndimage.grey_dilation(eroded, footprint=foot, structure=cap, mode="nearest")[r:-r, r:-r]
+        return ndimage.spline_filter(np.minimum(opened, w), order=3)
+
+    def sheet_wall_z(self, xy: np.ndarray) -> np.ndarray:
+        """Where the sheet meets the wall (probe frame): the wall itself, or with a membrane
+        radius the wall as the membrane bridges it."""
+        if self._envelope is None:
+            return self.wall_z(xy)
+        from scipy import ndimage
+
+        xy = np.asarray(xy, dtype=float)
+        idx = ((xy + self._ENV_HALF) / self._ENV_STEP).reshape(-1, 2)
+        z = ndimage.map_coordinates(self._envelope, [idx[:, 1], idx[:, 0]], order=3, prefilter=False, mode="nearest")
+        return z.reshape(xy.shape[:-1])
 
     def to_wall(self, xy: np.ndarray) -> np.ndarray:
         """Probe-frame (x, y) → wall (x_w, y_w)."""
@@ -136,7 +182,7 @@ class BalloonOnWall(ph.Shape):
         if self.depth <= -5.0 * self.smoothing - self.wall.relief:
             return x
         s = self.smoothing
-        w = s * np.logaddexp(0.0, (x[..., 2] - self.wall_z(x[..., :2])) / s)
+        w = s * np.logaddexp(0.0, (x[..., 2] - self.sheet_wall_z(x[..., :2])) / s)
         return np.concatenate([x[..., :2], (x[..., 2] - w)[..., None]], axis=-1)
 
 

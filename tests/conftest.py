@@ -91,10 +91,11 @@ def explicit_elements(uv: Any) -> dict:
 @contextlib.contextmanager
 def running_gateway(cfg: Any, **gateway_kwargs: Any) -> Iterator[Any]:
     """Open the config's Zenoh session, run a Gateway in a thread, stop and join it on exit."""
-    from skinmap.daemon.service import Gateway, open_zenoh, zenoh_publishers
+    from skinmap.daemon.service import Gateway, open_zenoh, zenoh_pose_inputs, zenoh_publishers
 
     with open_zenoh(cfg) as session:
-        gw = Gateway(cfg, publishers=zenoh_publishers(cfg, session), **gateway_kwargs)
+        gw = Gateway(cfg, publishers=zenoh_publishers(cfg, session), pose_inputs=zenoh_pose_inputs(cfg, session),
+                     **gateway_kwargs)
         runner = threading.Thread(target=gw.run, daemon=True, name="test-gateway")
         runner.start()
         try:

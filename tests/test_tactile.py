@@ -109,3 +109,122 @@ def test_baseline_refuses_nothing_and_mismatched_frames():
     a = _surface(ph.SphereCap(80.0))
     with pytest.raises(ValueError, match="differ"):
         capture_baseline([a, (a[0][:5], a[1][:5])])
+
+
+# --- poses: the wire message, the config, the topic's assignment to events ---------------------
+
+
+def test_pose_message_round_trips_and_malformed_ones_are_named():
+    from skinmap.wire import messages as wire
+
+    doc = wire.decode_pose(wire.encode_pose({"x_mm": 1.5, "y_mm": -2, "angle_deg": 30, "depth_mm": 3.0}))
+    assert doc["x_mm"] == 1.5 and doc["schema"] == "skinmap.pose/1"
+    with pytest.raises(wire.MessageError, match="missing field.*depth_mm"):
+        wire.decode_pose(b'{"schema":"skinmap.pose/1","x_mm":1,"y_mm":2,"angle_deg":3}')
+    with pytest.raises(wire.MessageError, match="'y_mm' must be"):
+        wire.decode_pose(b'{"schema":"skinmap.pose/1","x_mm":1,"y_mm":"up","angle_deg":3,"depth_mm":1}')
+    with pytest.raises(wire.MessageError, match="schema"):
+        wire.decode_pose(b'{"schema":"skinmap.status/1","x_mm":1,"y_mm":2,"angle_deg":3,"depth_mm":1}')
+    with pytest.raises(wire.MessageError, match="not valid JSON"):
+        wire.decode_pose(b"x_mm=1")
+    with pytest.raises(ValueError, match="finite"):
+        wire.encode_pose({"x_mm": float("inf"), "y_mm": 0, "angle_deg": 0, "depth_mm": 1})
+
+
+def test_docs_show_the_pose_messages_fields_and_key():
+    import os
+
+    from skinmap.wire import messages as wire
+
+    text = open(os.path.join(os.path.dirname(__file__), "..", "docs", "zenoh.md"), encoding="utf-8").read()
+    assert wire.json_table("pose") in text and "<prefix>-in/<device>/pose" in text
+
+
+def test_pose_key_is_outside_the_space_the_gateway_guards():
+    from skinmap.daemon.config import parse_config
+    from skinmap.wire.keys import pose_key
+
+    cfg = parse_config({"device": {"name": "dev"}, "zenoh": {"prefix": "lab/skinmap"}})
+    key = pose_key("lab/skinmap", "dev")
+    guard = cfg.guarded_key_expr()
+    assert key == "lab/skinmap-in/dev/pose" and not key.startswith(guard[:-2])
+    assert not key.startswith(parse_config({}).guarded_key_expr()[:-2])
+
+
+def test_config_poses_round_trip_and_bad_rows_are_named():
+    import tomllib
+
+    from skinmap.daemon.config import ConfigError, config_to_toml, parse_config
+    from skinmap.daemon.poses import poses_from_config
+
+    cfg = parse_config(tomllib.loads("[tactile]\nposes = [[1, 2, 3, 4], [-5, 6.5, -7, 2]]\n"))
+    assert poses_from_config(cfg.tactile.poses)[1] == ProbePose(-5.0, 6.5, -7.0, 2.0)
+    assert parse_config(tomllib.loads(config_to_toml(cfg))).tactile == cfg.tactile
+    with pytest.raises(ConfigError, match=r"tactile.poses\[1\].*4 numbers"):
+        parse_config(tomllib.loads("[tactile]\nposes = [[1, 2, 3, 4], [1, 2]]\n"))
+    with pytest.raises(ConfigError, match=r"tactile.poses\[0\]\[2\]"):
+        parse_config(tomllib.loads("[tactile]\nposes = [[1, 2, 'a', 4]]\n"))
+
+
+def test_topic_poses_go_to_the_next_event_and_a_missing_or_stray_one_is_named():
+    from skinmap.daemon.poses import TimedPose, assign_poses
+
+    a, b, c = ProbePose(1, 0, 0, 2), ProbePose(2, 0, 0, 2), ProbePose(3, 0, 0, 2)
+    # b replaces a (moved again before pressing); c arrives during event 1, for event 2
+    assert assign_poses([100, 200], [TimedPose(10, a), TimedPose(50, b), TimedPose(150, c)]) == [b, c]
+    with pytest.raises(ValueError, match="event 2 .* no pose received on /pose since event 1"):
+        assign_poses([100, 200], [TimedPose(10, a)])
+    with pytest.raises(ValueError, match="event 1 .* before it"):
+        assign_poses([100], [TimedPose(150, a)])
+    with pytest.raises(ValueError, match="1 pose.* after the last contact event"):
+        assign_poses([100], [TimedPose(10, a), TimedPose(300, b)])
+
+
+# --- poses estimated by registration -----------------------------------------------------------
+
+
+def _press(x, y, angle, depth=3.0):
+    return detect_contact(_surface(BalloonOnWall(WALL, (x, y), angle, depth))[0], _baseline(), GRID)
+
+
+def test_registered_pose_within_0p5mm_and_1deg_of_the_truth_on_an_overlapping_press():
+    from skinmap.daemon.tactile import estimate_pose
+
+    first, second = ProbePose(-35.0, 30.0, 10.0, 3.0), ProbePose(-20.0, 30.0, -15.0, 3.0)
+    relief = ReliefMap()
+    relief.add(_press(first.x_mm, first.y_mm, first.angle_deg), first, GRID)
+    est = estimate_pose(relief, _press(second.x_mm, second.y_mm, second.angle_deg), GRID, prior=first)
+    assert est.pose is not None, est.reason
+    assert math.hypot(est.pose.x_mm - second.x_mm, est.pose.y_mm - second.y_mm) <= 0.5
+    assert abs(est.pose.angle_deg - second.angle_deg) <= 1.0 and abs(est.pose.depth_mm - 3.0) <= 0.1
+
+
+def test_registration_refuses_when_the_overlap_cannot_decide():
+    from skinmap.daemon.tactile import estimate_pose
+
+    first = ProbePose(-35.0, 30.0, 10.0, 3.0)
+    relief = ReliefMap()
+    relief.add(_press(first.x_mm, first.y_mm, first.angle_deg), first, GRID)
+    # a press 70 mm away shares nothing with the map
+    far = estimate_pose(relief, _press(35.0, 30.0, 0.0), GRID, prior=first)
+    assert far.pose is None and "cannot decide" in far.reason
+    # a flat wall: every placement fits, none is fixed
+    flat = LetterRelief(height=1e-6)
+    base = _baseline()
+    flat_map = ReliefMap()
+    c0 = detect_contact(_surface(BalloonOnWall(flat, (0.0, 0.0), 0.0, 3.0))[0], base, GRID)
+    flat_map.add(c0, ProbePose(0.0, 0.0, 0.0, 3.0), GRID)
+    c1 = detect_contact(_surface(BalloonOnWall(flat, (8.0, 0.0), 0.0, 3.0))[0], base, GRID)
+    est = estimate_pose(flat_map, c1, GRID, prior=ProbePose(0.0, 0.0, 0.0, 3.0))
+    assert est.pose is None and "cannot decide" in est.reason
+
+
+def test_bridging_membrane_stays_off_the_wall_between_strokes_and_never_passes_it():
+    uv = GRID.uv
+    follows = BalloonOnWall(WALL, (-30.0, 30.0), 10.0, 2.0)
+    bridges = BalloonOnWall(WALL, (-30.0, 30.0), 10.0, 2.0, membrane_radius=40.0)
+    zf, zb = follows.position(uv)[:, 2], bridges.position(uv)[:, 2]
+    wall_z = follows.wall_z(follows.position(uv)[:, :2])
+    # (the envelope is a cubic spline through a 1 mm raster of the wall: within 0.05 mm of it)
+    assert np.all(zb <= zf + 0.05) and np.all(zb <= wall_z + 0.3)
+    assert (zf - zb).max() > 1.0  # it spans over part of a 4 mm recess

@@ -2,6 +2,7 @@
 gateway, replayed and stitched with the poses from a CSV."""
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -57,9 +58,18 @@ directory = "state"
                 time.sleep(0.05)
             scene = PressSequence(LetterRelief(), PRESSES, rest_s=0.5, hold_s=1.5, gap_s=1.0,
                                   start_s=emu.device.shape_time(time.monotonic()))
-            emu.set_shape(scene)
-            while time.monotonic() < deadline and emu.device.shape_time(time.monotonic()) < scene.duration_s + 0.5:
-                time.sleep(0.1)
+            with _pose_sender(zport) as put_pose:
+                put_pose(b'{"schema":"skinmap.pose/1","x_mm":"left"}')  # refused, with a warning
+                put_pose(PRESSES[0])
+                emu.set_shape(scene)
+                sent = 1
+                while time.monotonic() < deadline and emu.device.shape_time(time.monotonic()) < scene.duration_s + 0.5:
+                    # each later pose in the gap before its press (the probe is moved, then pressed)
+                    if sent < len(PRESSES) and emu.device.shape_time(time.monotonic()) > \
+                            scene.start_s + scene.rest_s + (sent - 1) * 2.5 + 1.5 + 0.5:
+                        put_pose(PRESSES[sent])
+                        sent += 1
+                    time.sleep(0.05)
             assert gw.stats.results > 30
             latest = _latest_contact(zport)
     finally:
@@ -67,6 +77,23 @@ directory = "state"
     poses = tmp / "poses.csv"
     poses.write_text("x_mm,y_mm,angle_deg,depth_mm\n" + "".join(f"{x},{y},{a},{d}\n" for x, y, a, d in PRESSES))
     return tmp, next((tmp / "logs").glob("*.mcap")), poses, latest
+
+
+@contextlib.contextmanager
+def _pose_sender(zport: int):
+    """put(pose tuple or raw bytes) on the gateway's pose key, over loopback Zenoh."""
+    from skinmap.daemon.zenoh_io import make_session_config, open_session
+    from skinmap.wire.keys import pose_key
+    from skinmap.wire.messages import encode_pose
+
+    with open_session(make_session_config([], [f"tcp/127.0.0.1:{zport}"])) as session:
+        time.sleep(0.5)  # the route to the gateway's subscriber
+
+        def put(pose) -> None:
+            payload = pose if isinstance(pose, bytes) else encode_pose(dict(zip(("x_mm", "y_mm", "angle_deg", "depth_mm"), pose)))
+            session.put(pose_key("skinmap", "map"), payload)
+
+        yield put
 
 
 def _write_calibration(state, emu) -> None:
@@ -146,3 +173,37 @@ def test_map_refuses_a_pose_file_that_does_not_match_the_presses(press_log, caps
     short.write_text("x_mm,y_mm,angle_deg,depth_mm\n0,0,0,2\n")
     assert skinmap_main(["map", str(log), "--poses", str(short)]) == 1
     assert "3 contact events, but" in capsys.readouterr().err
+
+
+def test_gateway_logs_the_poses_it_receives_and_refuses_a_malformed_one(press_log):
+    import json
+
+    from skinmap.daemon.mcapread import iter_messages_file_order
+    from skinmap.daemon.poses import poses_in_log
+
+    _tmp, log, _poses, _ = press_log
+    logged = poses_in_log(log)
+    assert [(p.pose.x_mm, p.pose.y_mm, p.pose.angle_deg, p.pose.depth_mm) for p in logged.topic] == PRESSES
+    events = [m for m in iter_messages_file_order(str(log)) if m.topic == "/log"]
+    assert any(b"pose on skinmap-in/map/pose refused" in m.data for m in events)
+    assert json.loads(next(m.data for m in iter_messages_file_order(str(log)) if m.topic == "/pose"))["schema"] == \
+        "skinmap.pose/1"
+
+
+def test_map_takes_the_poses_from_the_logs_topic_as_the_csv_gives_them(press_log, capsys):
+    _tmp, log, poses, _ = press_log
+    assert skinmap_main(["map", str(log), "--poses", str(poses)]) == 0
+    with_csv = capsys.readouterr().out
+    assert skinmap_main(["map", str(log)]) == 0
+    from_topic = capsys.readouterr().out
+    assert "poses from the log's /pose topic (3 received)" in from_topic
+    assert with_csv.splitlines()[-1] == from_topic.splitlines()[-1]  # the same relief summary
+
+
+def test_map_estimates_poses_or_names_the_contacts_it_cannot_place(press_log, capsys):
+    _tmp, log, _poses, _ = press_log
+    assert skinmap_main(["map", str(log), "--estimate"]) == 0
+    out = capsys.readouterr().out
+    assert "estimated by registration" in out and "anchored by the first pose" in out
+    # three presses 60 mm apart hardly overlap: the registration must refuse rather than guess
+    assert out.count("not placed:") >= 1 and "cannot decide" in out

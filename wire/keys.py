@@ -6,6 +6,10 @@ encodings, and how a key is built. Pure; shared by the gateway, the client and t
 - ``contact`` -- JSON, put per processed scan when tactile mapping is on (docs/tactile.md)
 - ``info``   -- JSON, queryable only (never put)
 - ``alive``  -- liveliness token, present while the publisher is declared
+
+One input: ``pose`` (JSON, skinmap.wire.messages.POSE_FIELDS), the probe's pose for the next
+press, put by whatever moves the probe on ``pose_key`` -- ``<prefix>-in/<device>/pose``, outside
+the space ``<prefix>/**`` the gateway keeps other sessions from writing into.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ ENCODINGS = {
     "contact": "application/json;skinmap.contact/1",
     "info": "application/json;" + messages.INFO_SCHEMA,
 }
+POSE_ENCODING = "application/json;" + messages.POSE_SCHEMA
 
 
 _KEY_SEGMENT = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -47,3 +52,8 @@ def key_for(prefix: str, device: str, kind: str) -> str:
     if kind not in ALL_KINDS and kind != "alive":
         raise ValueError(f"unknown key kind {kind!r}; expected one of {ALL_KINDS + ('alive',)}")
     return f"{check_key_segment('prefix', prefix)}/{check_key_segment('device', device)}/{kind}"
+
+
+def pose_key(prefix: str, device: str) -> str:
+    """Key expression the gateway of ``device`` takes probe poses from (docs/tactile.md)."""
+    return f"{check_key_segment('prefix', prefix)}-in/{check_key_segment('device', device)}/pose"

@@ -23,7 +23,8 @@ rendered by ``layout_table`` (a test keeps the two equal).
 
 Status and info are UTF-8 JSON objects; their required fields are the TypedDicts
 ``StatusReport`` and ``DeviceInfo``, from which ``STATUS_FIELDS`` and ``INFO_FIELDS`` (accepted
-JSON types and meaning of each) are derived.
+JSON types and meaning of each) are derived; the probe pose the gateway takes in is
+``POSE_FIELDS`` (``json_table``).
 """
 
 from __future__ import annotations
@@ -590,3 +591,59 @@ def encode_info(info: Mapping[str, Any]) -> bytes:
 
 def decode_info(buf: Any) -> DeviceInfo:
     return cast(DeviceInfo, _decode_json("info", INFO_SCHEMA, buf, INFO_FIELDS))
+
+
+# ---------------------------------------------------------------------------------------
+# JSON probe pose (an input of the gateway: docs/tactile.md)
+
+POSE_SCHEMA = "skinmap.pose/1"
+
+#: Where the probe is for the press that follows: put by whatever moves the probe, before the
+#: press, on ``keys.pose_key``; the gateway logs it as ``/pose`` and ``skinmap map`` gives each
+#: contact event the latest pose logged before it began.
+POSE_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "x_mm": ((int, float), "wall x of the probe frame's origin (the balloon's apex, the sheet's centre), mm"),
+    "y_mm": ((int, float), "wall y of the probe frame's origin, mm"),
+    "angle_deg": ((int, float), "turn of the probe frame about the wall normal, degrees"),
+    "depth_mm": ((int, float), "how far the wall's base plane is pressed in beyond the apex, mm"),
+}
+
+
+def json_table(kind: str) -> str:
+    """The markdown field table of a JSON message (docs/zenoh.md shows it; a test keeps them equal)."""
+    schema, fields = {"pose": (POSE_SCHEMA, POSE_FIELDS)}[kind]
+    lines = ["| field | type | meaning |", "|---|---|---|", f'| `schema` | string | `"{schema}"` |']
+    for name, (types, doc) in fields.items():
+        kind_name = "number" if float in types else "/".join(t.__name__ for t in types)
+        lines.append(f"| `{name}` | {kind_name} | {doc} |")
+    return "\n".join(lines)
+
+
+def pose_json_schema() -> dict[str, Any]:
+    """JSON Schema of the pose message (the MCAP `/pose` channel's schema)."""
+    return {"title": "skinmap.Pose", "type": "object", "required": ["schema", *POSE_FIELDS],
+            "properties": {"schema": {"const": POSE_SCHEMA},
+                           **{name: {"type": "number", "description": doc} for name, (_t, doc) in POSE_FIELDS.items()}}}
+
+
+def encode_pose(pose: Mapping[str, Any]) -> bytes:
+    """Encode a probe pose (fields in POSE_FIELDS, finite numbers) as UTF-8 JSON."""
+    _check_pose_values(pose, ValueError)
+    return _encode_json("pose", POSE_SCHEMA, pose, POSE_FIELDS)
+
+
+def decode_pose(buf: Any) -> dict[str, Any]:
+    """A probe pose; MessageError names what is wrong (not JSON, schema, a missing or
+    non-numeric or non-finite field)."""
+    obj = _decode_json("pose", POSE_SCHEMA, buf, POSE_FIELDS)
+    _check_pose_values(obj, MessageError)
+    return obj
+
+
+def _check_pose_values(pose: Mapping[str, Any], error: type[Exception]) -> None:
+    if not isinstance(pose, Mapping):
+        raise TypeError(f"pose must be a mapping, got {type(pose).__name__}")
+    for name in POSE_FIELDS:
+        value = pose.get(name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and not math.isfinite(value):
+            raise error(f"pose field {name!r} must be finite, got {value!r}")
