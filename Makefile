@@ -21,7 +21,7 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(VENV)/bin/python -m pytest -m slow
 
-# Static checks: mypy on the modules that are clean (.ci/typecheck.py), dead code (vulture).
+# Static checks: mypy on the whole installed package (.ci/typecheck.py), dead code (vulture).
 check: $(STAMP)
 	$(VENV)/bin/python .ci/typecheck.py
 	$(VENV)/bin/vulture --min-confidence 80 skinmap protocol firmware-host reconstruction daemon wire client ports strains elements tests bench

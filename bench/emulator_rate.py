@@ -94,7 +94,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             link = Path(tmp) / "tty"
             proc = subprocess.Popen(
-                [sys.executable, "-m", "skinmap.emulator.cli", "--size", f"{n}x{m}", "--shape", args.shape,
+                [sys.executable, "-m", "skinmap.emulator.command", "--size", f"{n}x{m}", "--shape", args.shape,
                  "--link", str(link), "--max-step-rate", str(STEP_LIMIT), "--status-every", "0",
                  "--mechanics", args.mechanics],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

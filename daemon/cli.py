@@ -64,7 +64,7 @@ def start_emulator(port: int, *, size: str = "5x5", shape: str = "palm", rate: f
     never a fork of one that may hold a Zenoh session).  An elastic scene not yet in the solve
     cache is solved before the port opens (up to minutes for a moving scene), so it is waited
     for longer."""
-    cmd = [sys.executable, "-m", "skinmap.emulator.cli", "--tcp", str(port), "--size", size,
+    cmd = [sys.executable, "-m", "skinmap.emulator.command", "--tcp", str(port), "--size", size,
            "--shape", shape, "--rate", str(rate), "--mechanics", mechanics, *(extra or [])]
     proc: subprocess.Popen[str] | subprocess.Popen[bytes]
     if label_output:

@@ -301,7 +301,7 @@ _DECODERS: dict[str, Any] = {}
 def decode_protobuf(schema_name: str, data: bytes) -> Any:
     """Decode a Foxglove protobuf message this module writes (``foxglove.Log``, …) into a
     protobuf object, with the SDK's own schema (mcap-protobuf-support)."""
-    decoder = _DECODERS.get(schema_name)
+    decoder: Any = _DECODERS.get(schema_name)
     if decoder is None:
         from mcap.records import Schema
         from mcap_protobuf.decoder import DecoderFactory

@@ -96,7 +96,7 @@ _PROBLEMS_KEPT = 1000
 
 def _calibration_from_doc(doc: dict[str, Any]) -> Calibration:
     shape = tuple(doc["shape"])
-    offsets = [None, None]
+    offsets: list[np.ndarray | None] = [None, None]
     if "h_upper_mm" in doc or "h_lower_mm" in doc:
         offsets = [np.asarray(doc[k], dtype=np.float64).reshape(shape[1:]) for k in ("h_upper_mm", "h_lower_mm")]
     return Calibration(np.asarray(doc["gauge_factor"], dtype=np.float64).reshape(shape),
@@ -189,7 +189,7 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
     return elements, config_for_seq, raw
 
 
-def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
+def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
                progress: bool = False, keep_results: bool = False,
                max_record_bytes: int = DEFAULT_MAX_RECORD_BYTES,
                on_result: Any = None, on_publish: Callable[[str], None] | None = None) -> ReplayReport:
@@ -226,7 +226,8 @@ def replay_log(path: str | Path, *, session: Any = None, prefix: str = "skinmap-
                 except ValueError:
                     continue  # named by the first pass
                 if hex_hello:
-                    hello = decode_frame(bytes.fromhex(hex_hello)).msg  # file starts mid-stream
+                    first = decode_frame(bytes.fromhex(hex_hello)).msg  # file starts mid-stream
+                    hello = first if isinstance(first, Hello) else hello
                 continue
             if m.topic != "/raw":
                 continue

@@ -302,7 +302,7 @@ class ReliefMap:
     def coverage(self, region: np.ndarray | None = None) -> float:
         """Share of the cells of ``region`` (default: the wall's own square) that were touched."""
         region = self.wall_region() if region is None else region
-        return float(np.count_nonzero((self._n > 0) & region) / max(1, np.count_nonzero(region)))
+        return float(np.count_nonzero((self._n > 0) & region) / max(1, int(np.count_nonzero(region))))
 
 
 class ContactTracker:
@@ -426,7 +426,7 @@ def estimate_pose(relief: ReliefMap, contact: Contact, grid: SampleGrid, *, prio
     hb = np.where(mb, (hm * mm).sum(axis=(1, 3)) / np.maximum(cnt, 1), 0.0)
     reach = float(np.max(np.linalg.norm(pts[:, :2], axis=1))) + cs
     H, H2, Mh = hb * mb, hb * hb * mb, mb.astype(float)
-    n_contact_min = None
+    n_contact_min: float | None = None
     candidates = []  # (score, angle, x, y, overlap)
     a0, span = (prior.angle_deg, angle_range_deg) if prior is not None else (0.0, 180.0)
     for ang in a0 + np.arange(-span, span + 1e-9, angle_step_deg):
@@ -539,7 +539,7 @@ def estimate_pose(relief: ReliefMap, contact: Contact, grid: SampleGrid, *, prio
             break
     cost, use, hh, r = residual(best)
     overlap = int(use.sum())
-    if overlap < n_contact_min * f * f or overlap < 20:
+    if overlap < (n_contact_min or 0.0) * f * f or overlap < 20:
         return PoseEstimate(None, f"the overlap with the map is {overlap} points "
                                   f"({100 * overlap / len(pts):.0f} % of the contact): the overlap cannot decide",
                             overlap)
@@ -614,8 +614,8 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
             for j in [0, *placed]:
                 if j != i:
                     others.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
-            est = estimate_pose(others, contacts[i], grid, **{**options, "prior": out[i].pose, "max_move_mm": 3.0,
-                                                               "angle_range_deg": 3.0})
+            est = estimate_pose(others, contacts[i], grid, prior=out[i].pose,
+                                **{**options, "max_move_mm": 3.0, "angle_range_deg": 3.0})
             if est.pose is not None:
                 out[i] = est
     relief.clear()

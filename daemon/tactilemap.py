@@ -198,7 +198,7 @@ def write_png(relief: ReliefMap, path: str | os.PathLike[str], truth: np.ndarray
         panels.insert(0, ("true relief (mm)", truth, "viridis"))
     fig = Figure(figsize=(4.2 * len(panels), 4.0), dpi=100)
     FigureCanvasAgg(fig)
-    ext = [-relief.half, relief.half, -relief.half, relief.half]
+    ext = (-relief.half, relief.half, -relief.half, relief.half)
     for i, (title, img, cmap) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
         im = ax.imshow(img, origin="lower", extent=ext, cmap=cmap)

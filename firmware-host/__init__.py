@@ -7,7 +7,7 @@
 - :mod:`~skinmap.emulator.device` — the firmware as a pure state machine (bytes and time in, bytes out)
 - :mod:`~skinmap.emulator.linkfaults` — byte-level link faults
 - :mod:`~skinmap.emulator.transport`, :mod:`~skinmap.emulator.emulator` — pty / TCP edges and the loop
-- :mod:`~skinmap.emulator.cli` — the ``skinmap-emulator`` command
+- :mod:`~skinmap.emulator.command` — the ``skinmap-emulator`` command
 
 See firmware-host/README.md.
 """

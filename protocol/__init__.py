@@ -25,7 +25,7 @@ from .framing import (
     PROTOCOL_MINOR,
     crc32,
 )
-from .messages import (
+from .payloads import (
     COMMANDS,
     MAX_DIM,
     MAX_PING_ECHO,

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from .errors import FieldError, UnknownMessageTypeError
 from .framing import COMPAT_EXTENDED_PAYLOAD, HEADER_SIZE, decode_body, encode_body
-from .messages import MESSAGE_CLASSES, Message, MsgType
+from .payloads import MESSAGE_CLASSES, Message, MsgType
 
 
 @dataclass(eq=False)

@@ -17,7 +17,7 @@ from cobs import cobs
 
 from .codec import encode_frame
 from .framing import HEADER, HEADER_SIZE, MAX_ENCODED_BODY, MAX_PAYLOAD, crc32
-from .messages import (
+from .payloads import (
     LAYOUTS,
     MESSAGE_CLASSES,
     SCHEMA_HASH,

@@ -22,7 +22,7 @@ from .framing import (
     MIN_ENCODED_BODY,
     PROTOCOL_MAJOR,
 )
-from .messages import MsgType
+from .payloads import MsgType
 
 _COUNTER_OF = {
     CobsError: "cobs_errors",

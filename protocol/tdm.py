@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .messages import MAX_DIM, MIN_DIM
+from .payloads import MAX_DIM, MIN_DIM
 from .errors import FieldError
 
 

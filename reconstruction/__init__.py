@@ -15,6 +15,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from typing import cast
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -155,7 +156,7 @@ class Reconstructor:
         self.n, self.m = int(n), int(m)
         self.pitch = _positive("pitch", pitch)
         self.h_upper, self.h_lower = float(h_upper), float(h_lower)
-        decouple(0.0, 0.0, self.h_upper, self.h_lower)  # validates the offsets
+        decouple(np.zeros(1), np.zeros(1), self.h_upper, self.h_lower)  # validates the offsets
         self.gauge_length = _positive("gauge_length", gauge_length)
         sub = default_subdivision(self.n, self.m) if subdivision is None else subdivision
         if isinstance(sub, bool) or int(sub) != sub:
@@ -264,6 +265,11 @@ class Reconstructor:
         surf = self(bent, -bent, strain_sigma=strain_sigma, previous=surf)
         _ = surf.node_sigma, surf.locate_sigma(centre)
 
+    def _graph_fit(self) -> GraphFit:
+        """The graph fit's operators (only called where the graph fit is on)."""
+        assert self._graph is not None
+        return self._graph
+
     def _one_blas_thread(self, fn):
         """``fn`` run with BLAS on one thread."""
         def run():
@@ -310,7 +316,7 @@ class Reconstructor:
                 graph = self._graph.fit_cold(data, general[0], twist_sign, agree)
         left_out = True
         if graph is not None and graph.accepted:
-            pos = _to_sensor_frame(grid, self._graph.fine_positions(graph.coeffs))
+            pos = _to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
             twist_c = graph.twist
             convex_info = {"status": "not needed (graph fit)", "iterations": 0}
             iterations = graph.iterations
@@ -332,6 +338,7 @@ class Reconstructor:
             status = "numerical failure: flat sheet returned"
         # misfit of the fitted fields to the data, as turning angle per gauge (rad)
         if fit is None:
+            assert graph is not None  # the graph answered
             residual = float(graph.turning_rms * self.gauge_length)
         else:
             fit = fit[valid.ravel()] if n_valid < valid.size else fit
@@ -363,11 +370,12 @@ class Reconstructor:
 
         if fit is None:  # the graph's own scatter; a missing unit's region as the general model has it
             def surface_sigma() -> np.ndarray:
+                assert graph is not None
                 known = graph_sigma.get(graph.coeffs.tobytes())  # from the agreement test, at the fit's noise
                 if known is not None:
                     sigma = known * (strain_sigma / fit_sigma)
                 else:
-                    sigma = self._graph.fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
+                    sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
                                                           grid.spacing)
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
         else:
@@ -378,19 +386,19 @@ class Reconstructor:
                 """The graph fitted again with the opposite twist sign, from the general model's
                 answer with that sign (no agreement test: it is only weighed against the data)."""
                 general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
-                fit_m = self._graph.fit_cold(data, general_m[0], sign)
+                fit_m = self._graph_fit().fit_cold(data, general_m[0], sign)
                 if fit_m.accepted:
-                    return _to_sensor_frame(grid, self._graph.fine_positions(fit_m.coeffs))
+                    return _to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs))
                 return general_m[0]
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
-            known = convex_info.get("forward_chi2") if fit is not None else None
-            known = known[1:] if known is not None and known[0] is pos else None
+            chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
+            known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
                                    product_fields, known)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
-        surf.state = FrameState(graph.coeffs, earlier) if fit is None else FrameState()
+        surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
         diag.solve_time = time.perf_counter() - t0
         return surf
 
@@ -529,10 +537,11 @@ class Reconstructor:
         general[3]["forward_chi2"] = (general[0], chi, dof)
         return general
 
-    def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics) -> Surface:
+    def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics | None) -> Surface:
+        # (diag None: a candidate weighed only against the gauges, never returned)
         grid = self.grid
         return Surface(pitch=self.pitch, fine_u=grid.u, fine_v=grid.v, fine_positions=pos,
-                       node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=diag)
+                       node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=cast(Diagnostics, diag))
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None) -> Surface:
@@ -558,7 +567,8 @@ class Reconstructor:
 
         def product_sd(sigma_strain: float) -> float:
             sig_t = math.sqrt(2.0) * sigma_strain / (self.h_upper + self.h_lower)
-            return self._product_stats(*product_fields, sig_t)[1]
+            k_u, k_v, tau0 = product_fields
+            return self._product_stats(k_u, k_v, tau0, sig_t)[1]
 
         chi0, dof = known_chi2 if known_chi2 is not None else misfit(surf, layout, eu, el, sigma_f)[:2]
         # Birge's ratio counts only misfit beyond what the noise alone leaves in the model that
@@ -646,11 +656,11 @@ class Reconstructor:
         graph_sigma: dict = {}
 
         def agree(coeffs: np.ndarray) -> float:
-            surface = self._graph.fine_positions(coeffs)
+            surface = self._graph_fit().fine_positions(coeffs)
             ratio = disagreement(surface, pos, np.sqrt(tol_sq))
             if ratio <= GRAPH_AGREE_SIGMAS:
                 return ratio  # the graph's own scatter could only widen the tolerance
-            sigma = self._graph.fine_height_sigma(coeffs, data, 1.0, grid.centre, grid.spacing)
+            sigma = self._graph_fit().fine_height_sigma(coeffs, data, 1.0, grid.centre, grid.spacing)
             graph_sigma[coeffs.tobytes()] = sigma
             return disagreement(surface, pos, np.sqrt(tol_sq + sigma**2))
 
@@ -673,7 +683,7 @@ class Reconstructor:
             # turning per length = (ε_u − ε_l)/(h_u + h_l); floor for noise-free use
             sig_turn = max(np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower), 1e-6)
             z, convex_info = huber_potential(grid, turning, valid, self.huber_sigmas * sig_turn)
-            convex_info["iterations"] = int(convex_info["iterations"])
+            convex_info["iterations"] = int(cast(int, convex_info["iterations"]))
             k_u, k_v, tau0 = potential_curvatures(grid, z)
             fit = np.concatenate([grid.average[0] @ k_u.ravel(), grid.average[1] @ k_v.ravel()]) - turning.ravel()
         sign, sign_known = 1.0, True
@@ -703,6 +713,7 @@ class Reconstructor:
             # later passes), are taken without it
             product_noise = (product_noise[0] * (present / turning_sigma) ** 2, product_noise[1])
         if product_noise[0] != 0.0:
+            assert self._product_noise is not None  # measured by _product_stats above
             debias = (present * present) * self._product_noise.bias_field * metric_stack[7]
             metric_stack = metric_stack.copy()
             metric_stack[6] -= debias
@@ -765,8 +776,8 @@ class Reconstructor:
             # the prior only chooses among answers the data cannot tell apart
             pos_own = positions_at(-shift0)
             sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
-            chi_new, dof, _ = misfit(self._surface(pos, None, None), self._layout, *strains, sigma_f)
-            chi_own, _, _ = misfit(self._surface(pos_own, None, None), self._layout, *strains, sigma_f)
+            chi_new, dof, _ = misfit(self._surface(pos, None, None), self._layout, strains[0], strains[1], sigma_f)
+            chi_own, _, _ = misfit(self._surface(pos_own, None, None), self._layout, strains[0], strains[1], sigma_f)
             if chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)):
                 shift0, pos = 0.0, pos_own
         if shift0 != 0.0:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from skinmap import protocol as p
-from skinmap.emulator import cli
+from skinmap.emulator import command as cli
 from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
 from skinmap.strains import gauge_strain

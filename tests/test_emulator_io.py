@@ -219,7 +219,7 @@ def test_cli_serves_pty_writes_truth_and_exits_cleanly_on_sigterm(tmp_path):
     link = tmp_path / "ttyCLI"
     truth = tmp_path / "truth.jsonl"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "skinmap.emulator.cli", "--size", "4x5", "--shape", SHAPE,
+        [sys.executable, "-m", "skinmap.emulator.command", "--size", "4x5", "--shape", SHAPE,
          "--rate", "40", "--link", str(link), "--truth-file", str(truth), "--elements", "0,0;3,-2",
          "--dead-gauge", "upper,row,1,2", "--status-every", "0.5", "--seed", "5"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -262,7 +262,7 @@ def test_cli_serves_pty_writes_truth_and_exits_cleanly_on_sigterm(tmp_path):
     ],
 )
 def test_cli_bad_arguments_are_named(args, words):
-    proc = subprocess.run([sys.executable, "-m", "skinmap.emulator.cli", *args, "--duration", "0.1",
+    proc = subprocess.run([sys.executable, "-m", "skinmap.emulator.command", *args, "--duration", "0.1",
                            "--link", "/tmp/skinmap-emulator-test-unused"],
                           capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2

@@ -183,7 +183,7 @@ def test_scan_golden_frame_decodes_the_open_gauge_as_nan() -> None:
 
 
 def test_request_only_commands_share_one_layout() -> None:
-    from skinmap.protocol.messages import LAYOUTS
+    from skinmap.protocol.payloads import LAYOUTS
 
     layouts = {LAYOUTS[t] for t in (p.MsgType.START, p.MsgType.STOP, p.MsgType.QUERY_INFO, p.MsgType.RESET)}
     assert len(layouts) == 1
