@@ -155,16 +155,29 @@ class ScannerState:
         self.pipeline: FramePipeline | None = None
         self.tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self._file_times: FileTimes | None = None
+        self._prepared: tuple[int, Any] | None = None  # (HELLO generation, its prepared reconstructor)
 
     @property
     def hello(self) -> Hello | None:
         return self._hello
 
     def on_hello(self, hello: Hello) -> None:
-        """A handshake (link thread): the next scan processed builds a new pipeline."""
+        """A handshake (link thread, before the scanner is started): the next scan processed
+        builds a new pipeline; a reconstructor for a new geometry is prepared here, so that the
+        first scans are not the slow ones (FramePipeline.prepare)."""
         with self._lock:
             self._hello = hello
             self._gen += 1
+            gen = self._gen
+        try:
+            probe = pipeline_for_hello(hello, self.cfg, Calibration(hello.gauge_factor(), hello.base_resistance_ohm(),
+                                                                    "factory"))
+            probe.continue_from(self.pipeline)
+            if probe.prepare():  # False: the running pipeline's reconstructor carries over
+                self._prepared = (gen, probe.reconstructor)
+        except Exception as exc:  # the first frame does the work instead
+            log.warning("preparing the reconstruction failed (%s: %s); the first frames will be slower",
+                        type(exc).__name__, exc)
 
     def ensure_pipeline(self) -> tuple[FramePipeline | None, bool]:
         """The pipeline for the current HELLO (None before one), and whether it is new."""
@@ -177,6 +190,9 @@ class ScannerState:
         cal, self.tare_problem = load_calibration(hello, self.cfg)
         pipeline = pipeline_for_hello(hello, self.cfg, cal)
         pipeline.continue_from(self.pipeline)  # keep the warm start across a reconnect
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and prepared[0] == gen:
+            pipeline.adopt_reconstructor(prepared[1])
         self.pipeline, self._pipeline_gen = pipeline, gen
         self._file_times = self._calibration_file_times(hello)
         return pipeline, True

@@ -158,6 +158,12 @@ class FramePipeline:
     def reconstructor(self, value: Any) -> None:
         self._reconstructor = value
 
+    def adopt_reconstructor(self, reconstructor: Any) -> None:
+        """Use `reconstructor` (one prepared for this geometry and these options) unless this
+        pipeline already has one (taken over from its predecessor)."""
+        if self._reconstructor is None:
+            self._reconstructor = reconstructor
+
     def prepare(self) -> bool:
         """Build the reconstructor and do its first frame's one-off work now (skinmapd: when the
         HELLO arrives, before the scanner is started), unless it was taken over from the pipeline

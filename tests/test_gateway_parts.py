@@ -286,3 +286,23 @@ def test_the_default_log_sink_follows_the_log_table(tmp_path):
         assert sink.fsync_policy == policy  # type: ignore[attr-defined]
         assert sink.rotation.basename == "run" and sink.rotation.max_bytes == 1024 * 1024  # type: ignore[attr-defined]
         sink.close()
+
+
+def test_the_reconstruction_is_prepared_at_hello_and_the_first_pipeline_adopts_it(tmp_path):
+    """The HELLO (link thread, before START) prepares a reconstructor for the new geometry, so the
+    first scans are not the slow ones; a second HELLO of the same geometry reuses the running one."""
+    from skinmap.daemon.device_setup import ScannerState
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "prep", 20.0)
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    state = ScannerState(cfg)
+    state.on_hello(hello)
+    pipeline, new = state.ensure_pipeline()
+    assert new and pipeline is not None
+    rec = pipeline.reconstructor
+    assert rec._noise_responses and rec._product_noise is not None  # done before any scan
+    state.on_hello(hello)  # a reconnect: same geometry, the running reconstructor carries over
+    again, new = state.ensure_pipeline()
+    assert new and again is not None and again.reconstructor is rec
