@@ -11,6 +11,7 @@ Per-geometry precomputation (operators and their factorisations) lives in a
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -44,6 +45,7 @@ from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
+from .positionfit import PositionFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
@@ -67,6 +69,7 @@ MIRROR_SHARE = 0.5
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # The graph fit needs most units (a graph is judged by all of its gauges' misfit).
 _GRAPH_MIN_UNITS = 0.8
+ELASTIC_PRIOR_MAX_CELLS = 64  # the position fit's dense normal matrix grows as (N·M)²
 # Seeded noisy flat frames that measure the general model's answer to noise (Reconstructor._noise_response).
 RESPONSE_DRAWS, RESPONSE_SEED = 24, 20241201
 
@@ -145,6 +148,7 @@ class Reconstructor:
         graph_fit: bool | None = None,
         least_shear: bool = True,
         defect_steps: int = 2,
+        elastic_prior: PositionFitSettings | None = None,
     ):
         self.least_shear = bool(least_shear)
         if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
@@ -196,6 +200,14 @@ class Reconstructor:
             self._graph = GraphFit(self.n, self.m, self.pitch, self.gauge_length, self.grid.u, self.grid.v,
                                    self.grid.inner, compiled=self._compiled)
         self.graph_fit = bool(graph_fit)
+        if elastic_prior is not None and not isinstance(elastic_prior, PositionFitSettings):
+            raise ValueError(f"elastic_prior must be a PositionFitSettings or None, got {type(elastic_prior).__name__}")
+        if elastic_prior is not None and self.n * self.m > ELASTIC_PRIOR_MAX_CELLS:
+            raise ValueError(f"elastic_prior is for sheets of up to {ELASTIC_PRIOR_MAX_CELLS} cells (its dense "
+                             f"normal matrix grows as (N·M)²), got {self.n}x{self.m}")
+        self.elastic_prior = elastic_prior
+        self._position = (None if elastic_prior is None
+                          else PositionFit(self.n, self.m, self.pitch, self.gauge_length, elastic_prior))
         self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
         # what the turning noise makes of the mean curvature product, measured on first use
@@ -399,6 +411,8 @@ class Reconstructor:
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
+        if self._position is not None and n_valid:
+            surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous)
         diag.solve_time = time.perf_counter() - t0
         return surf
 
@@ -536,6 +550,75 @@ class Reconstructor:
         # the answer's χ² at the posterior check's noise level, read once
         general[3]["forward_chi2"] = (general[0], chi, dof)
         return general
+
+    def _elastic_prior(self, surf: Surface, turning, stretch, valid, strain_sigma: float,
+                       previous: Surface | None) -> Surface:
+        """The full-position fit with the membrane-equilibrium prior (:mod:`.positionfit`), from the
+        previous frame's answer, else from this frame's answer and its mirror image; its answer
+        replaces ``surf`` when the prior holds (its cost within ``max_prior_cost``), else ``surf``
+        stays, saying why."""
+        pf = self._position
+        assert pf is not None and self.elastic_prior is not None
+        settings = self.elastic_prior
+        fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
+        sig_t = math.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
+        sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        warm = previous.state.position if previous is not None else None
+        starts = ([warm] if warm is not None and warm.shape == (3, pf.nb)
+                  else [start_from_surface(pf, s) for s in (surf, surf.mirror) if s is not None])
+        results = [pf.fit(turning, stretch, valid, sig_t, sig_s, c) for c in starts]
+        # the mirror image's fit replaces the answer only when the prior prefers it clearly
+        if len(results) > 1 and results[0].cost > settings.mirror_cost_ratio * results[1].cost + 1e-9:
+            results.reverse()
+        best = results[0]
+        diag = surf.diagnostics
+        diag.extra.update(elastic_prior_cost=round(best.prior_cost, 4), elastic_chi2=round(best.chi2, 4),
+                          elastic_steps=best.steps, elastic_status=best.status)
+        if best.prior_cost > settings.max_prior_cost or best.chi2 > settings.max_chi2:
+            diag.extra["elastic_prior"] = (f"not used: prior cost {best.prior_cost:.3g} (limit {settings.max_prior_cost:g}), "
+                                           f"chi2 {best.chi2:.3g} (limit {settings.max_chi2:g}): the film is not "
+                                           "loaded along its normal alone (friction, a sharp mold) or ν is off")
+            return surf
+        grid = self.grid
+        vv, uu = np.meshgrid(grid.v, grid.u, indexing="ij")
+
+        def fine_positions(coeffs: np.ndarray) -> np.ndarray:
+            pos = pf.evaluate(coeffs, uu.ravel(), vv.ravel())[0].reshape(grid.nf, grid.mf, 3)
+            return _to_sensor_frame(grid, pos)
+
+        pos = fine_positions(best.coeffs)
+        # Poisson's ratio is known to ±poisson_sd: the answers at ν ± sd bound what that costs
+        spread = np.zeros((grid.nf, grid.mf))
+        if settings.poisson_sd > 0:
+            for nu in (settings.poisson - settings.poisson_sd, settings.poisson + settings.poisson_sd):
+                shifted = PositionFit(self.n, self.m, self.pitch, self.gauge_length,
+                                      dataclasses.replace(settings, poisson=min(max(nu, 0.0), 0.499)))
+                moved = shifted.fit(turning, stretch, valid, sig_t, sig_s, best.coeffs, max_steps=settings.sd_steps)
+                spread = np.maximum(spread, np.linalg.norm(fine_positions(moved.coeffs) - pos, axis=-1))
+        base_sigma = surf._fine_sigma_fn
+        misfit = math.sqrt(max(best.chi2, 1.0))
+
+        def sigma() -> np.ndarray:
+            return np.sqrt((misfit * base_sigma()) ** 2 + spread ** 2)
+
+        diag.extra["model"] = "position (equilibrium prior)"
+        diag.extra["elastic_prior"] = "used"
+        answer = self._surface(pos, sigma, diag)
+        answer.state = FrameState(surf.state.graph, surf.state.graph_before, best.coeffs)
+        if surf.mirror is not None and len(results) > 1:
+            # the mirror stays when the prior cannot tell the two either (an isometric cylinder)
+            other = results[1]
+            diag.extra["elastic_mirror_cost"] = round(other.cost, 4)
+            diag.extra["elastic_cost"] = round(best.cost, 4)
+            if other.cost <= settings.mirror_cost_ratio * best.cost + 1e-9:
+                answer.mirror = self._surface(fine_positions(other.coeffs), sigma, diag)
+            else:
+                diag.extra["ambiguous"] = False
+                diag.extra["mirror_resolved_by"] = (f"equilibrium prior: cost {best.cost:.3g} against the mirror "
+                                                    f"image's {other.cost:.3g}")
+        elif surf.mirror is not None:
+            answer.mirror = surf.mirror
+        return answer
 
     def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics | None) -> Surface:
         # (diag None: a candidate weighed only against the gauges, never returned)

@@ -170,6 +170,7 @@ class FrameState:
 
     graph: np.ndarray | None = None
     graph_before: np.ndarray | None = None
+    position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)
 
 
 class Surface:

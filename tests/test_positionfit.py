@@ -1,0 +1,130 @@
+"""The full-position fit with the membrane-equilibrium prior (skinmap.reconstruction.positionfit):
+its derivatives, its settings, and its answers on elastic films solved by the emulator's own
+mechanics (an independent model: finite elements of a film sliding on a mold)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import aligned_error
+
+from skinmap.emulator import physics as ph
+from skinmap.emulator.scenes import parse_scene_spec
+from skinmap.reconstruction import Reconstructor
+from skinmap.reconstruction.engine import unit_data
+from skinmap.reconstruction.positionfit import PositionFit, PositionFitSettings, start_from_surface
+
+PITCH, H, G = 12.0, 0.2, 10.0
+N = M = 5
+NOISE = 0.0057e-2
+SIG_T, SIG_S = np.sqrt(2.0) * NOISE / (2 * H), NOISE * np.sqrt(2 * H * H) / (2 * H)
+
+
+@pytest.mark.parametrize("knots", [1, 2])
+def test_jacobians_of_the_gauges_and_of_the_equilibrium_prior_match_finite_differences_to_1e_5(knots):
+    fit = PositionFit(3, 4, PITCH, G, PositionFitSettings(knots_per_pitch=knots))
+    rng = np.random.default_rng(knots)
+    c = rng.normal(0.0, 0.3, (3, fit.nb))
+    t, s, jt, js = fit.gauge_model(c, jacobian=True)
+    e, je = fit.equilibrium(c, jacobian=True)
+    h = 1e-6
+    for k in rng.choice(3 * fit.nb, 6, replace=False):
+        d = np.zeros(3 * fit.nb)
+        d[k] = h
+        t2, s2 = fit.gauge_model(c + d.reshape(3, -1))
+        e2 = fit.equilibrium(c + d.reshape(3, -1))
+        for numeric, exact in (((t2 - t) / h, jt[..., k]), ((s2 - s) / h, js[..., k]), ((e2 - e) / h, je[:, k])):
+            assert np.abs(numeric - exact).max() <= 1e-5 * max(1.0, np.abs(exact).max())
+
+
+def test_settings_out_of_range_are_refused_by_name():
+    with pytest.raises(ValueError, match="poisson"):
+        PositionFit(5, 5, PITCH, G, PositionFitSettings(poisson=0.5))
+    with pytest.raises(ValueError, match="step_solver"):
+        PositionFit(5, 5, PITCH, G, PositionFitSettings(step_solver="newton"))
+
+
+def test_a_flat_sheet_stays_flat_and_its_coefficients_round_trip_through_positions():
+    fit = PositionFit(N, M, PITCH, G)
+    zero = np.zeros((2, N, M))
+    res = fit.fit(zero, np.ones((2, N, M)), np.ones((2, N, M), bool), SIG_T, SIG_S, np.zeros((3, fit.nb)))
+    assert res.status == "converged"
+    assert np.abs(fit.nodes(res.coeffs) - ph.ground_truth(ph.Flat(), N, M, PITCH).nodes).max() < 1e-9
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("mechanics-cache")
+
+
+def _fit_scene(spec: str, cache, poisson: float, solver: str = "cholesky", max_steps: int = 80):
+    shape = parse_scene_spec(spec, "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    truth = ph.ground_truth(shape, N, M, PITCH).nodes
+    surf = Reconstructor(N, M, PITCH, H, H, G)(eu, el)
+    turning, stretch, valid = unit_data(eu, el, H, H, G)
+    fit = PositionFit(N, M, PITCH, G, PositionFitSettings(poisson=poisson, step_solver=solver, max_steps=max_steps))
+    # from the answer and, when the gauges cannot tell, from its mirror image: the lower objective
+    starts = [surf] if surf.mirror is None else [surf, surf.mirror]
+    res = min((fit.fit(turning, stretch, valid, SIG_T, SIG_S, start_from_surface(fit, s)) for s in starts),
+              key=lambda r: r.cost)
+    return aligned_error(surf.nodes, truth), aligned_error(fit.nodes(res.coeffs), truth), res
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec,poisson", [("saddle:radius=95,axis_angle=120", 0.48),
+                                          ("saddle:radius=105,axis_angle=62,poisson=0.35", 0.35)])
+def test_elastic_saddle_off_the_grid_lines_is_within_0_1mm_with_the_films_poisson_ratio(spec, poisson, cache):
+    default, fitted, res = _fit_scene(spec, cache, poisson)
+    assert res.chi2 < 1.0  # the answer explains the gauges within the noise
+    assert fitted <= 0.1, f"position fit {fitted:.3f} mm (default {default:.3f} mm)"
+
+
+@pytest.mark.slow
+def test_clarabel_huber_steps_give_the_least_squares_answer_when_every_residual_is_within_the_threshold(cache):
+    _, cholesky, res_c = _fit_scene("sphere:radius=85", cache, 0.48, "cholesky", 12)
+    _, clarabel, res_q = _fit_scene("sphere:radius=85", cache, 0.48, "clarabel", 12)
+    assert (res_q.weights == 1.0).all()
+    assert abs(cholesky - clarabel) < 2e-3
+    assert np.abs(res_c.coeffs - res_q.coeffs).max() < 1e-3
+
+
+def test_reconstructor_refuses_an_elastic_prior_that_is_not_settings_or_too_large_a_sheet():
+    with pytest.raises(ValueError, match="elastic_prior must be"):
+        Reconstructor(N, M, elastic_prior=0.48)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="up to 64 cells"):
+        Reconstructor(9, 8, elastic_prior=PositionFitSettings())
+
+
+@pytest.fixture(scope="module")
+def elastic_rec():
+    return Reconstructor(N, M, PITCH, H, H, G, elastic_prior=PositionFitSettings(poisson=0.48, max_steps=80))
+
+
+@pytest.mark.slow
+def test_reconstructor_with_the_elastic_prior_is_within_0_1mm_on_an_unseen_elastic_saddle_with_sigma_covering(
+        elastic_rec, cache):
+    shape = parse_scene_spec("saddle:radius=100,axis_angle=35", "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    truth = ph.ground_truth(shape, N, M, PITCH).nodes
+    default = Reconstructor(N, M, PITCH, H, H, G)(eu, el)
+    surf = elastic_rec(eu, el)
+    assert surf.diagnostics.extra["elastic_prior"] == "used"
+    error = aligned_error(surf.nodes, truth)
+    assert error <= 0.1, f"{error:.3f} mm (default {aligned_error(default.nodes, truth):.3f} mm)"
+    assert error <= 3 * float(surf.node_sigma.mean()) + 0.05
+    assert surf.state.position is not None
+
+
+@pytest.mark.slow
+def test_reconstructor_keeps_an_isometric_cylinders_mirror_and_says_why_when_the_prior_does_not_hold(elastic_rec, cache):
+    # an oblique cylinder bends without stretching: the prior cannot tell it from its mirror image
+    shape = parse_scene_spec("cylinder:radius=70,axis_angle=30", "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    surf = elastic_rec(eu, el)
+    assert surf.mirror is not None and surf.diagnostics.extra["ambiguous"]
+    # a bump whose film is not normally loaded everywhere in the prior's basis: the default stays, said aloud
+    shape = parse_scene_spec("gaussian:height=4,fwhm=18,u0=5,v0=-3", "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    bump = elastic_rec(eu, el)
+    assert bump.diagnostics.extra["elastic_prior"].startswith("not used: prior cost")
+    assert bump.diagnostics.extra["model"] != "position (equilibrium prior)"
