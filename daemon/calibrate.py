@@ -21,7 +21,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from skinmap.strains import gauge_strain
-from skinmap.daemon.moldcal import MoldFit, Pose, check_pose, fit_mold_calibration
+from skinmap.daemon.moldcal import MoldFit, PoissonFit, Pose, check_pose, fit_mold_calibration, fit_poisson_ratio
 
 __all__ = ["CalibrationAborted", "ScanFeed", "LinkFeed", "PromptPlacer", "EmulatedPlacer", "CalibrationRun",
            "take_static", "run_calibration", "tare_problem", "STATIC_TOLERANCE"]
@@ -196,6 +196,7 @@ class CalibrationRun:
     calibration_file: Path | None
     duration_s: float
     poses: list[dict] = field(default_factory=list)
+    poisson: PoissonFit | None = None  # with a dome pose: the film's Poisson ratio
 
 
 def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, *, state_dir: Path | None,
@@ -238,9 +239,24 @@ def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, 
         taken.append({"pose": pose.title, "kind": pose.kind, "radius_mm": pose.radius_mm, "direction": pose.direction,
                       "stretch": pose.stretch, "scans": int(eps.shape[0]), "motion_strain": motion(eps)})
         say(f"  taken ({eps.shape[0]} scans, still within {motion(eps):.1e} strain)")
-    fit = fit_mold_calibration(poses, readings, gf0, h_upper_mm, h_lower_mm, noise_sd=max(float(np.median(noise)), 1e-7))
-    for entry, err in zip(taken, fit.axis_error_deg):
-        entry["axis_error_deg_fitted"] = round(float(err), 3)
+    # the gauges from the flat, stretched and cylinder poses; a dome gives the film's Poisson ratio
+    gauge_idx = [i for i, p in enumerate(poses) if p.kind != "dome"]
+    fit = fit_mold_calibration([poses[i] for i in gauge_idx], [readings[i] for i in gauge_idx], gf0, h_upper_mm,
+                               h_lower_mm, noise_sd=max(float(np.median(noise)), 1e-7))
+    for i, err in zip(gauge_idx, fit.axis_error_deg):
+        taken[i]["axis_error_deg_fitted"] = round(float(err), 3)
+    poisson = None
+    for i, pose in enumerate(poses):
+        if pose.kind != "dome":
+            continue
+        strain = readings[i] * gf0 / fit.gauge_factor  # read again with the fitted gauge factors
+        try:
+            poisson = fit_poisson_ratio(strain[0], strain[1], fit.h_upper_mm, fit.h_lower_mm, hello.pitch_um / 1000.0,
+                                        pose.radius_mm)
+        except ValueError as exc:
+            raise CalibrationAborted(f"pose {i + 1} ({pose.title}): {exc}; nothing written") from None
+        taken[i]["poisson_ratio"] = round(poisson.poisson, 4)
+        say(f"  Poisson's ratio {poisson.poisson:.3f} ± {poisson.sd:.3f} ({poisson.units} units)")
     duration = time.monotonic() - t0
     tare_file = cal_file = None
     if state_dir is not None:
@@ -250,8 +266,9 @@ def run_calibration(feed: ScanFeed, placer: Any, poses: list[Pose], hello: Any, 
             state_dir, serial, gauge_factor=fit.gauge_factor, gauge_factor_sd=fit.gauge_factor_sd,
             h_upper_mm=fit.h_upper_mm, h_upper_sd_mm=fit.h_upper_sd_mm, h_lower_mm=fit.h_lower_mm,
             h_lower_sd_mm=fit.h_lower_sd_mm, residual_rms=fit.residual_rms, method=fit.method,
-            offsets_determined=fit.offsets_determined, poses=taken, duration_s=duration, notes=fit.notes)
-    return CalibrationRun(fit, tare, tare_file, cal_file, duration, taken)
+            offsets_determined=fit.offsets_determined, poses=taken, duration_s=duration, notes=fit.notes,
+            poisson=None if poisson is None else (poisson.poisson, poisson.sd))
+    return CalibrationRun(fit, tare, tare_file, cal_file, duration, taken, poisson)
 
 
 def summarise(fit: MoldFit, factory_gauge_factor: np.ndarray) -> list[str]:

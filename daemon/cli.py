@@ -485,7 +485,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print("skinmap calibrate: give --config (the scanner's port and state directory) or --emulate", file=sys.stderr)
         return 2
     state_dir = Path(args.state_dir) if args.state_dir else (cfg.resolve(cfg.state.directory) if cfg else Path("state"))
-    poses = standard_poses(args.radii, 0.0 if args.no_stretch else args.stretch)
+    if args.dome and args.mechanics == "kinematic" and args.emulate:
+        print("skinmap calibrate: --dome needs --mechanics elastic with --emulate (a kinematic sheet has no "
+              "Poisson ratio)", file=sys.stderr)
+        return 2
+    poses = standard_poses(args.radii, 0.0 if args.no_stretch else args.stretch, args.dome)
     emulator = None
     if args.emulate:
         from skinmap.emulator.device import ScannerSpec as EmulatedDevice
@@ -532,7 +536,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             emulator.stop()
     for line in summarise(run.fit, hello.gauge_factor()):
         print(f"  {line}")
+    if run.poisson is not None:
+        print(f"  film Poisson ratio {run.poisson.poisson:.3f} ± {run.poisson.sd:.3f} (dome, {run.poisson.units} units; "
+              f"residual {run.poisson.residual_rms:.1e} strain)")
     print(f"calibration written to {run.calibration_file}, tare to {run.tare_file} ({run.duration_s:.1f} s)")
+    if emulator is not None and run.poisson is not None:
+        from skinmap.emulator.scenes import ELASTIC_PARAMETERS
+
+        print(f"  against the emulator's film: Poisson ratio {float(ELASTIC_PARAMETERS['poisson'] or 0.0):g}, "
+              f"{run.poisson.poisson - float(ELASTIC_PARAMETERS['poisson'] or 0.0):+.3f} off")
     if emulator is not None:
         truth = emulator.hidden_truth()
         gf_err = run.fit.gauge_factor / truth["gauge_factor"] - 1.0
@@ -663,6 +675,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--state-dir", help="write the tare and calibration here instead of the config's state directory")
     c.add_argument("--radii", type=_radii, default=(40.0, 80.0), help="mold radii, mm (default 40,80)")
     c.add_argument("--stretch", type=float, default=0.05, help="the stretching frame's strain (default 0.05)")
+    c.add_argument("--dome", type=float, default=0.0, metavar="R_MM",
+                   help="end with a lubricated dome of this radius (mm, e.g. 60): measures the film's Poisson ratio")
     c.add_argument("--no-stretch", action="store_true",
                    help="no stretched pose: gauge factors only, the layer offsets kept nominal")
     c.add_argument("--window", type=int, default=30, help="scans per pose, all static (default 30)")

@@ -22,6 +22,19 @@ along or across it the sheet lies, so an off-centre placement changes nothing to
 
 Without a stretched pose a and h are not separable (bending alone gives a·h); the fit then keeps
 the nominal offsets and reports the offsets as not determined.
+
+A dome (a sphere cap of known radius R, the film sliding on it: a lubricated mold) gives the
+film's Poisson ratio ν, which the elastic prior of the reconstruction needs
+(docs/reconstruction.md, "Elastic films").  A film loaded only along its normal has an Airy
+stress function with ∇⁴φ = −E·K, and in plane stress tr ε = (1 − ν)·tr σ/E, so
+
+    ∇²(ε_uu + ε_vv) = −(1 − ν)·K,     K = 1/R²,
+
+whatever the sheet's outline: the trace of the stretch is −(1 − ν) r²/(4R²) plus a harmonic
+function.  :func:`fit_poisson_ratio` fits c + b·r² + the harmonics up to fourth order (square
+symmetry) to the units' stretch (each gauge's mean along its line only adds constants to these
+terms), read with the calibrated gauges, and takes ν = 1 + 4R²b.  It is fitted after the gauges,
+from the dome pose alone, which the gauge fit leaves out.
 """
 from __future__ import annotations
 
@@ -30,7 +43,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Pose", "standard_poses", "MoldFit", "fit_mold_calibration", "pose_curvatures", "check_pose"]
+__all__ = ["Pose", "standard_poses", "MoldFit", "fit_mold_calibration", "pose_curvatures", "check_pose",
+           "PoissonFit", "fit_poisson_ratio"]
 
 #: The largest axis error the fit looks for (degrees); a placement worse than this is refused
 #: by :func:`check_pose` before it gets here.
@@ -39,16 +53,18 @@ MAX_AXIS_ERROR_DEG = 20.0
 
 @dataclass(frozen=True)
 class Pose:
-    """A calibration pose: ``kind`` 'flat', 'stretch' or 'cylinder'."""
+    """A calibration pose: ``kind`` 'flat', 'stretch', 'cylinder' or 'dome' (a sphere cap)."""
 
     kind: str
-    radius_mm: float = 0.0  # cylinders: + convex (upper layer in tension), − concave
+    radius_mm: float = 0.0  # cylinders, domes: + convex (upper layer in tension), − concave
     direction: str = ""  # cylinders: 'rows' (circumference along u) or 'columns' (along v)
     stretch: float = 0.0  # 'stretch': the frame's strain in both directions
 
     def __post_init__(self) -> None:
-        if self.kind not in ("flat", "stretch", "cylinder"):
-            raise ValueError(f"pose kind must be 'flat', 'stretch' or 'cylinder', got {self.kind!r}")
+        if self.kind not in ("flat", "stretch", "cylinder", "dome"):
+            raise ValueError(f"pose kind must be 'flat', 'stretch', 'cylinder' or 'dome', got {self.kind!r}")
+        if self.kind == "dome" and not (math.isfinite(self.radius_mm) and abs(self.radius_mm) >= 20.0):
+            raise ValueError(f"a dome pose needs a radius of at least 20 mm (signed), got {self.radius_mm!r}")
         if self.kind == "cylinder":
             if not (math.isfinite(self.radius_mm) and abs(self.radius_mm) >= 5.0):
                 raise ValueError(f"a cylinder pose needs a radius of at least 5 mm (signed), got {self.radius_mm!r}")
@@ -64,13 +80,17 @@ class Pose:
         if self.kind == "stretch":
             return f"flat sheet stretched {100 * self.stretch:g} % in both directions"
         side = "convex" if self.radius_mm > 0 else "concave"
+        if self.kind == "dome":
+            return f"{side} dome (sphere) of radius {abs(self.radius_mm):g} mm, lubricated, the sheet centred on it"
         across = "u (the rows)" if self.direction == "rows" else "v (the columns)"
         return f"{side} cylinder of radius {abs(self.radius_mm):g} mm, its circumference along {across}"
 
 
-def standard_poses(radii_mm: tuple[float, ...] = (40.0, 80.0), stretch: float = 0.05) -> list[Pose]:
+def standard_poses(radii_mm: tuple[float, ...] = (40.0, 80.0), stretch: float = 0.05,
+                   dome_mm: float = 0.0) -> list[Pose]:
     """Flat, stretched (if ``stretch``), then convex and concave cylinders of every radius along
-    the rows and along the columns."""
+    the rows and along the columns, then a convex dome of radius ``dome_mm`` (if given: the
+    film's Poisson ratio)."""
     poses = [Pose("flat")]
     if stretch:
         poses.append(Pose("stretch", stretch=stretch))
@@ -78,6 +98,8 @@ def standard_poses(radii_mm: tuple[float, ...] = (40.0, 80.0), stretch: float = 
         for r in radii_mm:
             for sign in (1.0, -1.0):
                 poses.append(Pose("cylinder", radius_mm=sign * float(r), direction=direction))
+    if dome_mm:
+        poses.append(Pose("dome", radius_mm=float(dome_mm)))
     return poses
 
 
@@ -261,11 +283,72 @@ def fit_mold_calibration(
     )
 
 
+#: The closed form's own error (small strain, the gauges' averaging along their lines), measured
+#: on the emulator's solved films: 0.001–0.014 for ν 0.3–0.48; added to the fit's s.d.
+POISSON_MODEL_SD = 0.01
+
+
+@dataclass(frozen=True)
+class PoissonFit:
+    """The film's Poisson ratio from a dome pose."""
+
+    poisson: float
+    sd: float            # one s.d.: the fit's residuals and the closed form's own error
+    residual_rms: float  # strain: the stretch trace's misfit to the model
+    units: int
+
+
+def fit_poisson_ratio(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper_mm: np.ndarray | float,
+                      h_lower_mm: np.ndarray | float, pitch_mm: float, radius_mm: float) -> PoissonFit:
+    """ν from calibrated strains (2, N, M) per layer on a dome of radius ``radius_mm`` (see the
+    module's text).  ValueError says what cannot be fitted: too few units, or a ν outside
+    [0, 0.5), which a film that slid on its mold cannot have (one that stuck to it reads high)."""
+    from skinmap.reconstruction.decouple import decouple
+
+    eu, el = np.asarray(eps_upper, float), np.asarray(eps_lower, float)
+    if eu.shape != el.shape or eu.ndim != 3 or eu.shape[0] != 2:
+        raise ValueError(f"strains must be (2, N, M) per layer, got {eu.shape} and {el.shape}")
+    if not (math.isfinite(radius_mm) and abs(radius_mm) >= 20.0):
+        raise ValueError(f"the dome's radius must be at least 20 mm, got {radius_mm!r}")
+    hu, hl = np.broadcast_to(h_upper_mm, eu.shape), np.broadcast_to(h_lower_mm, eu.shape)
+    eps_s = np.full(eu.shape, np.nan)
+    for idx in np.ndindex(eu.shape):  # each unit its own calibrated offsets
+        if np.isfinite(hu[idx]) and np.isfinite(hl[idx]):
+            eps_s[idx] = float(decouple(eu[idx], el[idx], float(hu[idx]), float(hl[idx]))[1])
+    trace = eps_s[0] + eps_s[1]
+    n, m = trace.shape
+    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
+    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
+    vv, uu = np.meshgrid(vc, uc, indexing="ij")
+    columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
+               uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
+    ok = np.isfinite(trace)
+    count = int(ok.sum())
+    if count < len(columns) + 3:
+        raise ValueError(f"{count} units with both gauges: the Poisson ratio needs at least {len(columns) + 3} "
+                         "(a sheet of 3×4 units or more)")
+    a = np.stack([c[ok] for c in columns], axis=1)
+    coef, *_ = np.linalg.lstsq(a, trace[ok], rcond=None)
+    resid = trace[ok] - a @ coef
+    dof = count - len(columns)
+    var = float(resid @ resid) / dof
+    cov = var * np.linalg.inv(a.T @ a)
+    scale = 4.0 * radius_mm ** 2
+    nu = 1.0 + scale * float(coef[1])
+    sd = math.hypot(scale * math.sqrt(max(float(cov[1, 1]), 0.0)), POISSON_MODEL_SD)
+    if not 0.0 <= nu < 0.5:
+        raise ValueError(f"the dome reads a Poisson ratio of {nu:.3f}, outside [0, 0.5): the film did not slide on "
+                         "the mold (lubricate it) or the mold's radius is not the one given")
+    return PoissonFit(nu, sd, math.sqrt(float(resid @ resid) / count), count)
+
+
 def _short(p: Pose) -> str:
     if p.kind == "flat":
         return "flat"
     if p.kind == "stretch":
         return f"stretch {100 * p.stretch:g} %"
+    if p.kind == "dome":
+        return f"dome {p.radius_mm:+g} mm"
     return f"cylinder {p.radius_mm:+g} mm {p.direction}"
 
 
@@ -297,8 +380,19 @@ def check_pose(pose: Pose, strains: np.ndarray, h_upper_mm: float, h_lower_mm: f
         if abs(s_med) > 2e-3:
             return f"the sheet is stretched ({100 * s_med:.2f} %): release it"
         return ""
-    along, across = (k_u, k_v) if pose.direction == "rows" else (k_v, k_u)
     want = 1.0 / pose.radius_mm
+    if pose.kind == "dome":
+        flat_dirs = [name for name, k in (("u (the rows)", k_u), ("v (the columns)", k_v)) if abs(k) < 0.3 * abs(want)]
+        if len(flat_dirs) == 1:
+            return f"the sheet does not bend along {flat_dirs[0]}: that is a cylinder, not the dome"
+        for name, k in (("u (the rows)", k_u), ("v (the columns)", k_v)):
+            if k * want <= 0:
+                return f"the sheet does not bend the dome's way along {name}: is it on the dome, this side up?"
+            if not 0.6 <= k / want <= 1.6:
+                return (f"the sheet bends as a radius of {1.0 / k:.0f} mm along {name}, not {pose.radius_mm:.0f} mm: "
+                        "wrong mold or not lying on it")
+        return ""
+    along, across = (k_u, k_v) if pose.direction == "rows" else (k_v, k_u)
     if abs(along) < 0.3 * abs(want) and abs(across) > 0.5 * abs(want):
         return (f"the sheet bends along the other direction: turn it by 90° so that its {pose.direction} "
                 f"follow the mold's circumference (the axis is off)")

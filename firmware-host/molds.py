@@ -59,7 +59,7 @@ class _Moved(ph.Shape):
 def mold_scene(kind: str, n: int, m: int, pitch: float = 12.0, *, radius: float = 0.0, direction: str = "rows",
                stretch: float = 0.0, axis_error_deg: float = 0.0, offset_mm: float = 0.0,
                mechanics: str = "kinematic") -> ph.Shape:
-    """The scene of one calibration pose ('flat', 'stretch', 'cylinder'); ValueError names a bad
+    """The scene of one calibration pose ('flat', 'stretch', 'cylinder', 'dome'); ValueError names a bad
     parameter."""
     if mechanics not in ("kinematic", "elastic"):
         raise ValueError(f"mechanics must be 'kinematic' or 'elastic', got {mechanics!r}")
@@ -71,8 +71,15 @@ def mold_scene(kind: str, n: int, m: int, pitch: float = 12.0, *, radius: float 
         from skinmap.emulator.scenes import make_scene
 
         return make_scene("flat", n, m, pitch, prestretch=float(stretch))
+    if kind == "dome":
+        # a sphere cap; elastic: the film slides on it frictionless (a lubricated mold)
+        if mechanics == "kinematic":
+            return ph.SphereCap(radius)
+        from skinmap.emulator.scenes import make_scene
+
+        return make_scene("sphere", n, m, pitch, radius=float(radius))
     if kind != "cylinder":
-        raise ValueError(f"mold kind must be 'flat', 'stretch' or 'cylinder', got {kind!r}")
+        raise ValueError(f"mold kind must be 'flat', 'stretch', 'cylinder' or 'dome', got {kind!r}")
     if direction not in ("rows", "columns"):
         raise ValueError(f"a cylinder runs along 'rows' or 'columns', got {direction!r}")
     # axis_angle 0 puts the axis along v: the circumference follows u, the rows

@@ -180,7 +180,8 @@ def _finite_list(a: np.ndarray) -> list:
 def save_calibration(state_dir: Path, serial: str, *, gauge_factor: np.ndarray, gauge_factor_sd: np.ndarray,
                      h_upper_mm: np.ndarray, h_upper_sd_mm: np.ndarray, h_lower_mm: np.ndarray,
                      h_lower_sd_mm: np.ndarray, residual_rms: np.ndarray, method: str,
-                     offsets_determined: bool, poses: list[dict], duration_s: float, notes: list[str]) -> Path:
+                     offsets_determined: bool, poses: list[dict], duration_s: float, notes: list[str],
+                     poisson: tuple[float, float] | None = None) -> Path:
     """Write the calibration file atomically (temp file, fsync, rename)."""
     path = calibration_path(state_dir, serial)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -202,6 +203,8 @@ def save_calibration(state_dir: Path, serial: str, *, gauge_factor: np.ndarray, 
         "poses": poses,
         "notes": list(notes),
     }
+    if poisson is not None:  # measured on a dome (optional in version 1: older files have none)
+        doc["poisson_ratio"], doc["poisson_ratio_sd"] = round(float(poisson[0]), 5), round(float(poisson[1]), 5)
     return _write_atomically(path, doc)
 
 
@@ -232,8 +235,12 @@ def parse_calibration(text: str, shape: tuple[int, ...]) -> tuple[np.ndarray, np
     sd = np.asarray([np.nan if x is None else x for x in doc.get("gauge_factor_sd") or []], dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         rel_sd = sd / gf.ravel() if sd.size == gf.size else np.array([np.nan])
+    poisson = doc.get("poisson_ratio")
+    if poisson is not None and (type(poisson) not in (int, float) or not 0.0 <= poisson < 0.5):
+        raise ValueError(f"'poisson_ratio' must be a number in [0, 0.5), got {_json_kind(poisson)}")
     summary = {
         "created": doc.get("created", "?"), "method": doc.get("method", "?"),
+        "poisson_ratio": poisson, "poisson_ratio_sd": doc.get("poisson_ratio_sd"),
         "offsets_determined": bool(doc.get("offsets_determined", False)),
         "duration_s": doc.get("duration_s"),
         "residual_strain_rms_median": float(np.nanmedian(res)) if res.size and np.isfinite(res).any() else None,

@@ -10,7 +10,7 @@ import pytest
 from skinmap.daemon import cli
 from skinmap.daemon.calibrate import (CalibrationAborted, EmulatedPlacer, LinkFeed, run_calibration, take_static,
                                       tare_problem)
-from skinmap.strains import (Calibration, calibration_path, load_calibration_file, parse_calibration,
+from skinmap.strains import (Calibration, calibration_path, load_calibration_file, parse_calibration, save_calibration,
                                         resistances_to_strains, to_nominal_offsets)
 from skinmap.daemon.config import DeviceConfig as LinkConfig
 from skinmap.daemon.moldcal import Pose, check_pose, fit_mold_calibration, standard_poses
@@ -282,3 +282,70 @@ def test_calibrate_command_against_the_emulator_writes_both_files(tmp_path, monk
     assert len(list((tmp_path / "state").glob("tare-EMU-*.json"))) == 1
     assert cli.main(["calibrate"]) == 2  # neither a config nor --emulate
     assert "give --config" in capsys.readouterr().err
+
+
+# -- the film's Poisson ratio from a dome ---------------------------------------------------------
+
+def _dome_strains(spec: str, cache, n: int = 5):
+    from skinmap.emulator.scenes import parse_scene_spec
+
+    shape = parse_scene_spec(spec, "elastic", n, n, 12.0, cache_dir=cache)
+    return ph.gauge_strains(shape, n, n, 12.0, 0.2, 0.2, 10.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec,radius,nu", [("sphere:radius=65", 65.0, 0.48), ("sphere:radius=-75,poisson=0.3", -75.0, 0.3),
+                                            ("sphere:radius=90,poisson=0.4", 90.0, 0.4)])
+def test_poisson_ratio_from_a_lubricated_dome_is_within_0_02_and_its_sd_covers_the_error(spec, radius, nu, tmp_path):
+    from skinmap.daemon.moldcal import fit_poisson_ratio
+
+    eu, el = _dome_strains(spec, tmp_path)
+    rng = np.random.default_rng(4)
+    eu, el = eu + rng.normal(0, 0.0057e-2 / np.sqrt(30), eu.shape), el + rng.normal(0, 0.0057e-2 / np.sqrt(30), el.shape)
+    fit = fit_poisson_ratio(eu, el, 0.2, 0.2, 12.0, radius)
+    assert abs(fit.poisson - nu) <= 0.02
+    assert abs(fit.poisson - nu) <= 3 * fit.sd
+
+
+@pytest.mark.slow
+def test_poisson_ratio_refuses_a_film_that_stuck_to_the_dome_and_a_sheet_too_small(tmp_path):
+    from skinmap.daemon.moldcal import fit_poisson_ratio
+
+    eu, el = _dome_strains("sphere:radius=80,friction=0.001", tmp_path)
+    with pytest.raises(ValueError, match="did not slide"):
+        fit_poisson_ratio(eu, el, 0.2, 0.2, 12.0, 80.0)
+    small = np.zeros((2, 2, 2))
+    with pytest.raises(ValueError, match="at least 10"):
+        fit_poisson_ratio(small, small, 0.2, 0.2, 12.0, 80.0)
+
+
+def test_dome_pose_is_checked_like_a_mold_and_refused_below_20mm():
+    with pytest.raises(ValueError, match="dome pose needs a radius"):
+        Pose("dome", radius_mm=10.0)
+    dome = Pose("dome", radius_mm=60.0)
+    assert standard_poses((40.0, 80.0), 0.05, 60.0)[-1] == dome
+    h = 0.2
+    on_it = np.stack([np.full((2, 5, 5), h / 60.0), np.full((2, 5, 5), -h / 60.0)])
+    assert check_pose(dome, on_it, h, h) == ""
+    assert "this side up" in check_pose(dome, -on_it, h, h)
+    cylinder_like = on_it.copy()
+    cylinder_like[:, 1] = 0.0
+    assert "a cylinder, not the dome" in check_pose(dome, cylinder_like, h, h)
+    assert "not 60 mm" in check_pose(dome, 2.0 * on_it, h, h)
+
+
+def test_calibration_file_carries_the_poisson_ratio_and_refuses_an_impossible_one(tmp_path):
+    shape = (2, 2, 3, 3)
+    kw = dict(gauge_factor=np.full(shape, 1.24), gauge_factor_sd=np.full(shape, 0.01), h_upper_mm=np.full(shape[1:], 0.2),
+              h_upper_sd_mm=np.full(shape[1:], 0.001), h_lower_mm=np.full(shape[1:], 0.2),
+              h_lower_sd_mm=np.full(shape[1:], 0.001), residual_rms=np.full(shape, 1e-5), method="mold fit",
+              offsets_determined=True, poses=[], duration_s=1.0, notes=[])
+    path = save_calibration(tmp_path, "SN1", **kw, poisson=(0.47, 0.01))
+    *_, summary = parse_calibration(path.read_text(), shape)
+    assert summary["poisson_ratio"] == 0.47 and summary["poisson_ratio_sd"] == 0.01
+    doc = json.loads(path.read_text())
+    doc["poisson_ratio"] = 0.7
+    with pytest.raises(ValueError, match="poisson_ratio"):
+        parse_calibration(json.dumps(doc), shape)
+    *_, summary = parse_calibration(save_calibration(tmp_path, "SN2", **kw).read_text(), shape)
+    assert summary["poisson_ratio"] is None
