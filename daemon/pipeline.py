@@ -64,6 +64,9 @@ class FrameResult:
     solve_time_s: float
     diagnostics: dict[str, Any] = field(default_factory=dict)
     surface: Any = None  # the reconstruction's result object (points(), locate())
+    # seconds per stage: strains, restart (the restart chain's part: handing it this scan, or
+    # waiting for it when taken over), reconstruct, uncertainty (node σ), elements (located, σ)
+    stage_s: dict[str, float] = field(default_factory=dict)
 
 
 #: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
@@ -317,6 +320,7 @@ class FramePipeline:
 
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
+        t_start = time.perf_counter()
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
         cal = self.calibration
         if cal.h_upper_mm is not None and cal.h_lower_mm is not None:  # they come in pairs
@@ -328,14 +332,20 @@ class FramePipeline:
         if self.twist_sign is not None:
             kwargs["twist_sign"] = self.twist_sign
         self._restart_chain(eps_u, eps_l, seq, kwargs)
+        t_chain = time.perf_counter()
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
         surf = self.reconstructor(eps_u, eps_l, **kwargs)
+        t_rec = time.perf_counter()
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
+        t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements)
-        solve_s = time.perf_counter() - t0
+        t_end = time.perf_counter()
+        solve_s = t_end - t0
+        stages = {"strains": t0 - t_start, "restart": t_chain - t0, "reconstruct": t_rec - t_chain,
+                  "uncertainty": t_sigma - t_rec, "elements": t_end - t_sigma}
 
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
@@ -366,6 +376,7 @@ class FramePipeline:
             solve_time_s=solve_s,
             diagnostics=diagnostics,
             surface=surf,
+            stage_s=stages,
         )
         self._last_good = result
         return result
