@@ -6,13 +6,20 @@ subscribes to the element messages over Zenoh, and prints:
 - latency (after a 3 s warm-up) from the host receiving a scan's last byte on the serial port (the element message's
   host time stamp) to this subscriber holding the decoded element coordinates: median, p99;
 - the daemon's CPU use (share of one core) and resident memory, from /proc;
-- MCAP bytes per hour, from the log folder's growth.
+- MCAP bytes per hour, from the log folder's growth;
+- with --stages, where the time goes: the daemon runs with timing hooks (this file's
+  ``--traced-daemon`` mode, the daemon's own code otherwise) and records per published frame
+  the wait from the scan's last byte to the processing thread, the pipeline's stages
+  (FrameResult.stage_s), the output up to the elements put, and garbage collections; the
+  subscriber's receive time is joined by sequence number.  Printed: median, p99 and max per
+  stage, and the stages of the slowest 1 % of frames (end to end).
 
-    .venv/bin/python bench/latency.py [--seconds 20] [--sizes 5x5,16x16]
+    .venv/bin/python bench/latency.py [--seconds 20] [--sizes 5x5,16x16] [--stages]
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import socket
 import subprocess
@@ -79,17 +86,104 @@ directory = "{state}"
 """)
 
 
+STAGES = ("queue", "strains", "restart", "reconstruct", "uncertainty", "elements", "output", "delivery")
+
+
+def traced_daemon(config: str, trace_path: str) -> int:
+    """skinmapd with timing hooks; at exit writes one JSON object per published frame (times in
+    ms): queue (scan's last byte → the processing thread takes it), the pipeline's stage_s,
+    output (pipeline done → elements put), and the garbage collections seen."""
+    import atexit
+    import gc
+
+    from skinmap.daemon import processing, service, zenoh_io
+
+    frames: dict[int, dict] = {}
+    current: dict = {}
+    collections: list[dict] = []
+
+    take = processing.ProcessingListener._process
+    process = processing.FramePipeline.process
+    put = zenoh_io.SkinmapPublisher.publish_elements
+
+    def traced_take(self, record):
+        current.clear()
+        current["picked_ns"] = time.time_ns()
+        return take(self, record)
+
+    def traced_process(self, *args, **kwargs):
+        result = process(self, *args, **kwargs)
+        current["result"] = result
+        current["processed_ns"] = time.time_ns()
+        return result
+
+    def traced_put(self, payload):
+        put(self, payload)
+        r = current.get("result")
+        if r is not None:
+            frames[r.seq & 0xFFFFFFFF] = {
+                "seq": r.seq & 0xFFFFFFFF, "rx_ns": r.host_time_ns, "put_ns": time.time_ns(),
+                "queue": (current["picked_ns"] - r.host_time_ns) / 1e6,
+                **{k: v * 1e3 for k, v in r.stage_s.items()},
+                "output": (time.time_ns() - current["processed_ns"]) / 1e6,
+                "model": str(r.diagnostics.get("status", "")),
+            }
+
+    def on_gc(phase: str, info: dict) -> None:
+        if phase == "start":
+            current["gc_ns"] = time.time_ns()
+        elif "gc_ns" in current:
+            collections.append({"generation": info["generation"], "start_ns": current["gc_ns"],
+                                "ms": (time.time_ns() - current.pop("gc_ns")) / 1e6})
+
+    def write() -> None:
+        Path(trace_path).write_text(json.dumps({"frames": list(frames.values()), "gc": collections}))
+
+    processing.ProcessingListener._process = traced_take  # type: ignore[method-assign]
+    processing.FramePipeline.process = traced_process  # type: ignore[method-assign]
+    zenoh_io.SkinmapPublisher.publish_elements = traced_put  # type: ignore[method-assign]
+    gc.callbacks.append(on_gc)
+    atexit.register(write)
+    return service.main(["--config", config])
+
+
+def stage_table(trace: dict, received_ns: dict[int, int]) -> list[str]:
+    """Lines: per stage median / p99 / max (ms) over the frames the subscriber received after the
+    warm-up, and the mean stages of the slowest 1 % of them."""
+    frames = [dict(f, delivery=(received_ns[f["seq"]] - f["put_ns"]) / 1e6,
+                   total=(received_ns[f["seq"]] - f["rx_ns"]) / 1e6)
+              for f in trace["frames"] if f["seq"] in received_ns]
+    if not frames:
+        return ["  no traced frame was received"]
+    lines = [f"  {'stage':<12} {'median':>8} {'p99':>8} {'max':>8}  ms, {len(frames)} frames"]
+    for name in (*STAGES, "total"):
+        v = np.array([f.get(name, 0.0) for f in frames])
+        lines.append(f"  {name:<12} {np.median(v):8.2f} {np.percentile(v, 99):8.2f} {v.max():8.2f}")
+    worst = sorted(frames, key=lambda f: -f["total"])[:max(1, len(frames) // 100)]
+    lines.append(f"  slowest {len(worst)} (1 %), mean ms: " + ", ".join(
+        f"{name} {np.mean([f.get(name, 0.0) for f in worst]):.2f}" for name in (*STAGES, "total")))
+    t0, t1 = min(f["rx_ns"] for f in frames), max(f["put_ns"] for f in frames)
+    gcs = [c for c in trace["gc"] if t0 <= c["start_ns"] <= t1]
+    for gen in (0, 1, 2):
+        ms = [c["ms"] for c in gcs if c["generation"] == gen]
+        lines.append(f"  gc generation {gen}: {len(ms)} collections" + (f", max {max(ms):.2f} ms" if ms else ""))
+    return lines
+
+
 def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path,
-             shape: str = "palm") -> dict:
+             shape: str = "palm", stages: bool = False) -> dict:
     serial_port, zenoh_port = free_port(), free_port()
     logs = workdir / f"logs-{size}-{output_rate:g}"
     cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
     write_daemon_config(cfg, device="bench", serial_port=serial_port, zenoh_port=zenoh_port, logs=logs,
                         state=workdir / "state", scan_rate=scan_rate, output_rate=output_rate)
     emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate)
-    daemon = subprocess.Popen([sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)],
-                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    trace = workdir / f"trace-{size}-{output_rate:g}.json"
+    command = ([sys.executable, __file__, "--traced-daemon", str(cfg), str(trace)] if stages
+               else [sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)])
+    daemon = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     latencies: list[float] = []
+    received_ns: dict[int, int] = {}
     try:
         with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap", device="bench") as client:
             client.elements(timeout=60.0)  # wait until the daemon streams
@@ -102,7 +196,9 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
             end = t0 + seconds
             while time.monotonic() < end:
                 msg = client.elements(timeout=5.0)
-                latencies.append((time.time_ns() - msg.host_time_ns) / 1e6)
+                now = time.time_ns()
+                latencies.append((now - msg.host_time_ns) / 1e6)
+                received_ns[msg.seq] = now
             elapsed = time.monotonic() - t0
             cpu = (proc_cpu_seconds(daemon.pid) - cpu0) / elapsed
             rss = proc_rss_mb(daemon.pid)
@@ -111,7 +207,8 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
         stop_process(daemon, timeout=15)
         stop_process(emulator)
     lat = np.array(latencies)
-    return {"size": size, "scan_rate": scan_rate, "output": "every scan" if output_rate == 0 else f"{output_rate:g} Hz",
+    stage_lines = stage_table(json.loads(trace.read_text()), received_ns) if stages and trace.exists() else []
+    return {"stages": stage_lines,"size": size, "scan_rate": scan_rate, "output": "every scan" if output_rate == 0 else f"{output_rate:g} Hz",
             "n": lat.size, "rate": lat.size / elapsed, "median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
             "cpu": cpu * 100, "rss": rss, "mcap_gb_h": mcap_rate / 1e9}
 
@@ -123,13 +220,19 @@ def main() -> None:
     ap.add_argument("--scan-rate", type=float, default=50.0, help="emulated scans per second")
     ap.add_argument("--shape", default="palm", help="emulated shape spec (default: the moving palm gesture)")
     ap.add_argument("--outputs", default="10,0", help="output rates to measure, Hz (0 = every scan)")
+    ap.add_argument("--stages", action="store_true", help="time the daemon's stages per frame (see above)")
+    ap.add_argument("--traced-daemon", nargs=2, metavar=("CONFIG", "TRACE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.traced_daemon:
+        sys.exit(traced_daemon(*args.traced_daemon))
+    print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes.split(","):
             for output_rate in (float(x) for x in args.outputs.split(",")):
                 try:
-                    rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp), args.shape))
+                    rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp), args.shape,
+                                         args.stages))
                 except Exception as exc:  # noqa: BLE001 - report the case and go on with the others
                     print(f"{size} output {output_rate:g} Hz: FAILED: {exc}", flush=True)
                     continue
@@ -137,7 +240,9 @@ def main() -> None:
                 print(f"{r['size']:>6} scan {r['scan_rate']:g}/s output {r['output']:>10}: {r['n']} msgs "
                       f"({r['rate']:.1f}/s)  latency median {r['median']:.2f} ms  p99 {r['p99']:.2f} ms  "
                       f"CPU {r['cpu']:.1f} %  RSS {r['rss']:.0f} MB  MCAP {r['mcap_gb_h']:.2f} GB/h", flush=True)
-    print()
+                for line in r["stages"]:
+                    print(line, flush=True)
+    print(f"\nload average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("| array | scans/s | output | messages | latency median ms | latency p99 ms | daemon CPU % | RSS MB | MCAP GB/h |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:

@@ -77,6 +77,16 @@ class ResultOutput:
         elements = messages.encode_elements(
             seq, r.device_time_us, r.host_time_ns,
             r.element_positions_mm / 1000.0, r.element_normals, r.element_sigma_mm / 1000.0, r.element_flags)
+        ok = True
+        pub = self.publisher
+        if pub is not None:
+            # the element coordinates first: what a client waits for leaves before anything else
+            try:
+                pub.publish_elements(elements)
+            except Exception as exc:  # noqa: BLE001 - a failed put must not stop processing
+                self.stats.publish_errors += 1
+                ok = False
+                log.warning("publish failed: %s", exc)
         want_surface = self._surface.due(t_mono)
         want_strains = self._strains.due(t_mono)
         gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
@@ -85,11 +95,8 @@ class ResultOutput:
         strains = messages.encode_strains(
             seq, r.device_time_us, r.host_time_ns, np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower),
             gauge_flags)
-        ok = True
-        pub = self.publisher
-        if pub is not None:
+        if pub is not None and ok:
             try:
-                pub.publish_elements(elements)
                 if want_surface:
                     points = self._points(r, pipeline)
                     pub.publish_surface(messages.encode_surface(

@@ -3,13 +3,18 @@ strains (skinmap.strains) → surface (skinmap.reconstruction) → element coord
 (skinmap.elements).
 
 `FramePipeline.process` is deterministic given the same sequence of scans, which is what lets
-`skinmap replay` reproduce a live run bit for bit from the logged raw frames. It does no I/O.
+`skinmap replay` reproduce a live run bit for bit from the logged raw frames, whether the graph
+fit's restart chains run on a worker (skinmapd) or in line (replay). It does no I/O.
 """
 from __future__ import annotations
 
+import concurrent.futures
+import logging
+import os
+import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -18,7 +23,11 @@ from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, f
 from skinmap.strains import (Calibration, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
                              turning_noise_rad)
 
-__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "OutputDecimator"]
+__all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
+           "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "graph_restart", "graph_adopt"]
+
+log = logging.getLogger("skinmapd")
+
 
 @dataclass(frozen=True)
 class ArrayGeometry:
@@ -55,39 +64,144 @@ class FrameResult:
     solve_time_s: float
     diagnostics: dict[str, Any] = field(default_factory=dict)
     surface: Any = None  # the reconstruction's result object (points(), locate())
+    # seconds per stage: strains, restart (the restart chain's part: handing it this scan, or
+    # waiting for it when taken over), reconstruct, uncertainty (node σ), elements (located, σ)
+    stage_s: dict[str, float] = field(default_factory=dict)
 
 
-class OutputDecimator:
-    """Chooses which scans to process from the DEVICE clock, so the choice replays identically.
-
-    rate_hz = 0 passes every scan.
-    """
-
-    def __init__(self, rate_hz: float) -> None:
-        self.period_us = 0 if rate_hz <= 0 else int(round(1e6 / rate_hz))
-        self._next_due: int | None = None
-
-    def due(self, device_time_us: int) -> bool:
-        if self.period_us == 0:
-            return True
-        if self._next_due is None or device_time_us >= self._next_due + 4 * self.period_us or device_time_us < self._next_due - 4 * self.period_us:
-            # First scan, a long gap or a device clock reset: restart the schedule here.
-            self._next_due = device_time_us
-        if device_time_us >= self._next_due:
-            self._next_due += self.period_us
-            return True
-        return False
-
-
-#: The graph fit's warm start depends on the frames before it, so the pipeline restarts it cold
-#: at the first scan of every block of this many sample indices: a log replays bit for bit from
-#: the first restart in it (``skinmap replay``), at the cost of one cold fit per block.
+#: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
+#: bit, a fresh chain of fits is begun cold at the first processed scan of every block of this
+#: many sample indices (``graph_restart``) and taken over by the published frames at the first
+#: processed scan at least GRAPH_ADOPT_SCANS later (``graph_adopt``): from there on every result
+#: depends only on the scans since the block's start.  The chain runs beside the published
+#: frames (on a worker thread in skinmapd), so no published frame waits for the cold fit; replay
+#: does the same work in line and gets the same bits.
 GRAPH_RESTART_SCANS = 64
+GRAPH_ADOPT_SCANS = 16
+#: At most this many processed scans at the start of a log that begins mid-stream cannot be
+#: compared by replay: those before the first chain begun in the file is taken over.
+GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 
 
 def graph_restart(previous_seq: int | None, seq: int) -> bool:
-    """Whether the scan ``seq`` starts the graph fit cold, given the last processed scan."""
+    """Whether the scan ``seq`` begins a block (a cold restart of the graph fit), given the last
+    processed scan."""
     return previous_seq is None or seq // GRAPH_RESTART_SCANS != previous_seq // GRAPH_RESTART_SCANS
+
+
+def graph_adopt(origin_seq: int, seq: int) -> bool:
+    """Whether the scan ``seq`` takes over the chain begun cold at scan ``origin_seq`` (also when
+    the sample index went back: waiting longer would not help)."""
+    return seq < origin_seq or seq - origin_seq >= GRAPH_ADOPT_SCANS
+
+
+class Pending(Protocol):
+    """A job handed to a `Background`; ``result()`` waits for it and returns its value or raises
+    what it raised."""
+
+    def result(self) -> Any: ...
+
+
+class Background(Protocol):
+    """Where the restart chains run; ``submit(fn)`` runs the jobs in the order given."""
+
+    def submit(self, fn: Callable[[], Any]) -> Pending: ...
+
+
+class _Done:
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._error: Exception | None = None
+        self._value: Any = None
+        try:
+            self._value = fn()
+        except Exception as exc:  # noqa: BLE001 - raised again by result(), as a Future does
+            self._error = exc
+
+    def result(self) -> Any:
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+class InlineBackground:
+    """Runs each job at once on the caller's thread (replay, tests): the results of a worker, in
+    the same order."""
+
+    def submit(self, fn: Callable[[], Any]) -> Pending:
+        return _Done(fn)
+
+
+class WorkerBackground:
+    """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so a
+    job on it leaves the CPU to the published frames.  ``close()`` ends it."""
+
+    NICE = 5
+
+    def __init__(self, name: str = "skinmap-graph-restart") -> None:
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=name,
+                                                           initializer=self._lower_priority)
+
+    @classmethod
+    def _lower_priority(cls) -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), cls.NICE)
+        except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
+            pass
+
+    def submit(self, fn: Callable[[], Any]) -> Pending:
+        return self._pool.submit(fn)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+class _Chain:
+    """Graph fits begun cold at scan ``origin`` and fed the scans the published frames get, on a
+    reconstructor of their own (a Reconstructor fills caches and is not thread-safe).  Its steps
+    run in order on the background; ``last`` is its latest usable surface."""
+
+    def __init__(self, origin: int, reconstructor: Any, element_uv: np.ndarray) -> None:
+        self.origin = origin
+        self.reconstructor = reconstructor
+        self.element_uv = element_uv
+        self.last: Any = None
+        self.last_seq: int | None = None
+        self._pending: Pending | None = None
+
+    def step(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> None:
+        if self.last is not None:
+            kwargs = {**kwargs, "previous": self.last}
+        surf = self.reconstructor(eps_u, eps_l, **kwargs)
+        if _usable(surf, self.element_uv):  # the rule the published frames follow
+            self.last, self.last_seq = surf, seq
+
+    def submit(self, background: Background, fn: Callable[[], None]) -> None:
+        earlier = self._pending
+
+        def run() -> None:
+            if earlier is not None:
+                earlier.result()  # a failed step fails the rest of the chain
+            fn()
+
+        self._pending = background.submit(run)
+
+    def wait(self) -> Any:
+        """The chain's latest usable surface (None if none), once its steps are done; raises
+        what a step raised."""
+        if self._pending is not None:
+            self._pending.result()
+        return self.last
+
+
+def _usable(surf: Any, element_uv: np.ndarray) -> bool:
+    """Whether a surface may be published and start the next frame: finite nodes and normals,
+    and finite positions and normals at the elements."""
+    if not (np.isfinite(surf.nodes).all() and np.isfinite(surf.normals).all()):
+        return False
+    if element_uv.shape[0] == 0:
+        return True
+    pos, nrm = surf.locate(element_uv)[:2]
+    return bool(np.isfinite(pos).all() and np.isfinite(nrm).all())
 
 
 class FramePipeline:
@@ -105,6 +219,7 @@ class FramePipeline:
         convex_solver: str = "factorized",
         graph_fit: bool = True,
         twist_sign: int | None = None,
+        background: Background | None = None,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -124,6 +239,13 @@ class FramePipeline:
         # lets replay reproduce live results bit for bit. Built on first use (it is costly) unless
         # taken over from the pipeline this one replaces.
         self._reconstructor: Any = None
+        # The restart chain (GRAPH_RESTART_SCANS): its own reconstructor, built on the background
+        # at the first restart; the chain under way; where the current warm start's lineage began
+        # cold (a block's first scan; None before the first restart seen).
+        self.background: Background = background if background is not None else InlineBackground()
+        self._chain_reconstructor: Any = None
+        self._chain: _Chain | None = None
+        self.chain_origin: int | None = None
 
     @property
     def element_uv(self) -> np.ndarray:
@@ -143,16 +265,25 @@ class FramePipeline:
         """The reconstruction callable (a `Reconstructor` for this geometry, built on first use;
         replaceable, e.g. by tests)."""
         if self._reconstructor is None:
-            from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
-
-            g = self.geometry
-            # the graph fit is offered for small sheets only; larger ones keep the general model
-            graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
-            self._reconstructor = Reconstructor(
-                g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm, convex_solver=self.convex_solver,
-                graph_fit=graph_fit,
-            )
+            self._reconstructor = self._new_reconstructor()
         return self._reconstructor
+
+    def _new_reconstructor(self) -> Any:
+        from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
+
+        g = self.geometry
+        # the graph fit is offered for small sheets only; larger ones keep the general model
+        graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
+        return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
+                             convex_solver=self.convex_solver, graph_fit=graph_fit)
+
+    def _chain_reconstructor_built(self) -> Any:
+        """The restart chains' reconstructor (on the background: built and prepared there)."""
+        if self._chain_reconstructor is None:
+            rec = self._new_reconstructor()
+            rec.prepare(self.strain_sigma)
+            self._chain_reconstructor = rec
+        return self._chain_reconstructor
 
     @reconstructor.setter
     def reconstructor(self, value: Any) -> None:
@@ -183,9 +314,13 @@ class FramePipeline:
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq
+            self._chain_reconstructor = earlier._chain_reconstructor
+            self._chain = earlier._chain
+            self.chain_origin = earlier.chain_origin
 
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
+        t_start = time.perf_counter()
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
         cal = self.calibration
         if cal.h_upper_mm is not None and cal.h_lower_mm is not None:  # they come in pairs
@@ -196,16 +331,21 @@ class FramePipeline:
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.twist_sign is not None:
             kwargs["twist_sign"] = self.twist_sign
+        self._restart_chain(eps_u, eps_l, seq, kwargs)
+        t_chain = time.perf_counter()
         if self.warm_start and self._previous is not None:
             kwargs["previous"] = self._previous
-            if graph_restart(self._previous_seq, seq) and getattr(self.reconstructor, "graph_fit", False):
-                kwargs["graph_warm"] = False
         surf = self.reconstructor(eps_u, eps_l, **kwargs)
+        t_rec = time.perf_counter()
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
+        t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements)
-        solve_s = time.perf_counter() - t0
+        t_end = time.perf_counter()
+        solve_s = t_end - t0
+        stages = {"strains": t0 - t_start, "restart": t_chain - t0, "reconstruct": t_rec - t_chain,
+                  "uncertainty": t_sigma - t_rec, "elements": t_end - t_sigma}
 
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
@@ -236,9 +376,45 @@ class FramePipeline:
             solve_time_s=solve_s,
             diagnostics=diagnostics,
             surface=surf,
+            stage_s=stages,
         )
         self._last_good = result
         return result
+
+    def _restart_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> None:
+        """The restart chain's part of a frame, before it is reconstructed (GRAPH_RESTART_SCANS):
+        take over a chain that is due, begin one at a block's first scan, or feed it this scan."""
+        if not (self.warm_start and getattr(self.reconstructor, "graph_fit", False)):
+            return
+        chain = self._chain
+        if chain is not None and graph_adopt(chain.origin, seq):
+            self._chain = None
+            try:
+                last = chain.wait()
+            except Exception:  # noqa: BLE001 - a failed chain is dropped; the frames go on warm
+                log.exception("the graph fit's restart chain from scan %s failed", chain.origin)
+                last = None
+            if last is not None:
+                self._previous, self._previous_seq = last, chain.last_seq
+                self.chain_origin = chain.origin
+            chain = None
+        previous = self._previous
+        if self._previous_seq is not None and graph_restart(self._previous_seq, seq):
+            if previous is None or getattr(previous.state, "graph", None) is None:
+                # no graph to warm-start from: this frame starts cold by itself
+                self.chain_origin = seq
+                return
+            chain = self._chain = _Chain(seq, None, self.element_uv)
+            cold = {**kwargs, "previous": previous, "graph_warm": False}
+
+            def begin() -> None:
+                chain.reconstructor = self._chain_reconstructor_built()
+                chain.step(eps_u, eps_l, seq, cold)
+
+            chain.submit(self.background, begin)
+        elif chain is not None:
+            step_kwargs = dict(kwargs)
+            chain.submit(self.background, lambda: chain.step(eps_u, eps_l, seq, step_kwargs))
 
     def _stale(self, seq, device_time_us, host_time_ns, eps_u, eps_l, valid, solve_s) -> FrameResult:
         g = self.geometry

@@ -14,7 +14,7 @@ from skinmap.daemon.device_setup import ScannerState
 from skinmap.daemon.fanout import Event, Notifier, QueuedListener, Record, ScanReceived
 from skinmap.daemon.output import ResultOutput
 from skinmap.daemon.pacing import HostDecimator
-from skinmap.daemon.pipeline import FramePipeline, FrameResult
+from skinmap.daemon.pipeline import FramePipeline, FrameResult, WorkerBackground
 
 __all__ = ["ProcessingListener", "PROCESS_QUEUE_SIZE"]
 
@@ -47,6 +47,8 @@ class ProcessingListener(QueuedListener):
         # Since when a scan has waited with none processed and published (None: nothing waits).
         self.waiting_since: float | None = None
         self.results: list[FrameResult] = []  # the latest few, for tests and the console
+        # the graph fit's restart chains run here, beside the published frames
+        self._background = WorkerBackground()
 
     def accepts(self, record: Record) -> bool:
         if not isinstance(record, ScanReceived) or not self._decimator.due(record.t_mono_ns):
@@ -67,11 +69,15 @@ class ProcessingListener(QueuedListener):
                 self.notifier.notify(Event(time.time_ns(), "error", text))
             self.error = text
 
+    def finish(self) -> None:
+        self._background.close()
+
     def _process(self, record: ScanReceived) -> None:
         pipeline, new = self.scanner.ensure_pipeline()
         if pipeline is None:
             return
         if new:
+            pipeline.background = self._background
             self._on_new_pipeline(pipeline)
         scan = record.scan
         if (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):

@@ -7,7 +7,8 @@ the same decoder and `FramePipeline`, processes exactly the scans the live run p
 the calibration in force at the time, and compares the element messages byte for byte.
 Cut (`.mcap.active`) files are read in file order up to the cut.  The graph fit is warm-started
 from the scans before (pipeline.graph_restart), so in a file that starts mid-stream the scans
-before its first cold restart may differ from the live ones: they are counted as not comparable.
+before the first restart chain begun in it is taken over (at most pipeline.GRAPH_SYNC_SCANS) may
+differ from the live ones: they are counted as not comparable.
 
 A damaged or hostile record (a /config that is not a config object, undecodable /strains or
 /elements, a record over the reader's size limit) is named in the report's `problems`, one line
@@ -31,7 +32,7 @@ from skinmap.wire import messages
 from skinmap.strains import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
 from skinmap.daemon.mcapread import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
-from skinmap.daemon.pipeline import FramePipeline, graph_restart
+from skinmap.daemon.pipeline import FramePipeline
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
 
 __all__ = ["ReplayReport", "replay_log", "resistances_from_log"]
@@ -45,8 +46,8 @@ class ReplayReport:
     processed: int = 0
     compared: int = 0
     identical_count: int = 0
-    # scans that differ before the file's first restart of the graph fit (their live fit was
-    # warm-started from scans before this file): not compared
+    # scans that differ before the file's first restart of the graph fit is taken over (their
+    # live fit was warm-started from scans before this file): not compared
     unsynced: int = 0
     mismatched: list[int] = field(default_factory=list)
     max_position_diff_m: float = 0.0
@@ -71,8 +72,8 @@ class ReplayReport:
             f"replay of {self.path}: {verdict}",
             f"  raw frames {self.raw_frames}, scans {self.scans}, processed {self.processed}, "
             f"compared {self.compared}, identical {self.identical_count}, mismatched {len(self.mismatched)}"
-            + (f", not comparable {self.unsynced} (before the first graph-fit restart; their live fit was "
-               f"warm-started from scans before this file)" if self.unsynced else ""),
+            + (f", not comparable {self.unsynced} (before the first graph-fit restart taken over; their live "
+               f"fit was warm-started from scans before this file)" if self.unsynced else ""),
             f"  max element position difference {self.max_position_diff_m * 1e3:.3g} mm; "
             f"{self.processed / self.seconds if self.seconds > 0 else 0:.1f} scans/s replayed",
         ]
@@ -210,11 +211,11 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
     hello: Hello | None = None
     active_config: tuple[str, dict] | None = None
     publisher = None
-    # The graph fit is warm-started (pipeline.graph_restart): until the first restart in this
-    # file, a scan of a file that starts mid-stream may differ from the live one.
+    # The graph fit is warm-started (pipeline.graph_restart): until the first restart chain
+    # begun in this file is taken over, a scan of a file that starts mid-stream may differ from
+    # the live one.
     synced = False
     scans_seen = False
-    last_seq: int | None = None
     t_start = time.perf_counter()
     first_log_ns: int | None = None
     try:
@@ -260,10 +261,8 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
                         pipeline.continue_from(earlier)  # as the live daemon does after a new HELLO
                     pipeline.set_calibration(_calibration_from_doc(cfg_entry[1]))
                     active_config = cfg_entry
-                if last_seq is not None and graph_restart(last_seq, seq):
-                    synced = True
-                last_seq = seq
                 result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)
+                synced = synced or pipeline.chain_origin is not None
                 report.processed += 1
                 if on_result is not None:
                     on_result(result)

@@ -44,6 +44,7 @@ import scipy.linalg
 from scipy.interpolate import BSpline
 from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
+from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from .linalg import aligned_distances
 
@@ -217,6 +218,12 @@ class GraphFit:
             self.prior_band[d, : nc - d] = np.diagonal(prior, -d)
         off, col = np.nonzero(np.ones((bw + 1, nc), dtype=bool))
         self._band_index = (off[col + off < nc], col[col + off < nc])  # the band's entries, for _dense
+        # the same entries as flat indices into the band and into a dense (nc, nc) Fortran array's
+        # lower triangle: a band factor expands into a dense one in one gather
+        d, j = self._band_index
+        self._band_flat = d * nc + j
+        self._lower_flat = j * nc + (j + d)
+        self._lower_buffer: np.ndarray | None = None
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
@@ -337,6 +344,14 @@ class GraphFit:
         a[j + d, j] = band[d, j]
         a[j, j + d] = band[d, j]
         return a
+
+    def _dense_lower(self, band: np.ndarray) -> np.ndarray:
+        """Lower band storage ``band`` as the lower triangle of a dense Fortran-ordered matrix
+        (one kept buffer: the entries off the band stay zero; valid until the next call)."""
+        if self._lower_buffer is None:
+            self._lower_buffer = np.zeros((self.size, self.size), order="F")
+        self._lower_buffer.reshape(-1, order="F")[self._lower_flat] = band.reshape(-1)[self._band_flat]
+        return self._lower_buffer
 
     @staticmethod
     def _solve(factor, rhs: np.ndarray) -> np.ndarray:
@@ -537,31 +552,48 @@ class GraphFit:
         gauges, beyond the outer ones) the fit follows the prior and the scatter stays small."""
         turning, stretch, w_t, w_s = data[:4]
         g = len(turning)
+        resp = None
         if self._compiled is not None:  # H in band form and J dense from one kernel call
             band = self.prior_band.copy()
             j = np.zeros((2 * g, self.size))
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning, stretch,
                                                   w_t, w_s, band, np.zeros(self.size), True,
                                                   np.asarray(_WARM_CURVATURE, dtype=float), np.empty(2 * g), j)
-            h = self._dense(band)  # dense: its many right-hand sides run as level-3 BLAS, 3x faster
+            # H = L·Lᵀ factorised in band form (cheap), then the many right-hand sides through
+            # the dense triangle as level-3 BLAS (a band solve runs them one at a time, 2x slower)
+            f, info = _pbtrf(band, lower=1)
+            if info == 0:
+                lower = self._dense_lower(f)
+                y, info = _trtrs(lower, j.T, lower=1)  # j.T is Fortran-ordered: no copy
+                if info == 0:
+                    resp, info = _trtrs(lower, y, lower=1, trans=1, overwrite_b=1)
+                resp = resp if info == 0 else None
+            if resp is None:
+                h = self._dense(band)
         else:
             j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
             h = self._numpy_matrix(c, j, res[g:], w_s, _WARM_CURVATURE)
-        try:
-            resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
-                                          check_finite=False)
-        except np.linalg.LinAlgError:
-            resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
+        if resp is None:
+            try:
+                resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
+                                              check_finite=False)
+            except np.linalg.LinAlgError:
+                resp = np.linalg.lstsq(h, j.T, rcond=None)[0]
         nf, mf = len(self._fine_v), len(self._fine_u)
         k = resp.shape[1]
-        # fine heights per datum: Fv · A_k · Fuᵀ, all data at once
-        t = (self._fv[0] @ resp.reshape(self.nbv, self.nbu * k)).reshape(nf, self.nbu, k)
-        w = self._fu[0] @ t  # (nf, mf, k): one product per fine row
+        # fine heights per datum: Fv · A_k · Fuᵀ, all data at once, as (nf, k, mf) from two
+        # products (the data's coefficients A_k are the rows of respᵀ)
+        a_t = np.ascontiguousarray(resp.T).reshape(k * self.nbv, self.nbu)
+        t = (a_t @ self._fu[0].T).reshape(k, self.nbv, mf).transpose(1, 0, 2).reshape(self.nbv, k * mf)
+        w = (self._fv[0] @ t).reshape(nf, k, mf)
         a0, b0 = centre
-        slope_u = (w[a0, b0 + 1] - w[a0, b0 - 1]) / (2.0 * spacing)
-        slope_v = (w[a0 + 1, b0] - w[a0 - 1, b0]) / (2.0 * spacing)
-        w = (w - w[a0, b0] - self._fine_u[None, :, None] * slope_u - self._fine_v[:, None, None] * slope_v)
-        return noise_ratio * np.sqrt((w * w).sum(axis=2))
+        # the sensor frame: height over the tangent plane at the centre node
+        slope_u = (w[a0, :, b0 + 1] - w[a0, :, b0 - 1]) / (2.0 * spacing)
+        slope_v = (w[a0 + 1, :, b0] - w[a0 - 1, :, b0]) / (2.0 * spacing)
+        w -= w[a0, :, b0].copy()[None, :, None]
+        w -= self._fine_u[None, None, :] * slope_u[None, :, None]
+        w -= self._fine_v[:, None, None] * slope_v[None, :, None]
+        return noise_ratio * np.sqrt(np.einsum("ikj,ikj->ij", w, w))
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

@@ -382,33 +382,3 @@ def test_graph_fit_option_reaches_the_reconstructor_and_large_sheets_keep_the_ge
                           np.zeros(len(ELEMENT_UV)))
     assert not large.reconstructor.graph_fit
 
-
-def test_graph_fit_restarts_cold_at_every_block_of_scans():
-    """A warm graph fit depends on the scans before it: the pipeline restarts it cold at the
-    first scan of every block of GRAPH_RESTART_SCANS, so a log replays bit for bit from there."""
-    from skinmap.daemon.pipeline import GRAPH_RESTART_SCANS, graph_restart
-
-    assert graph_restart(None, 5) and graph_restart(63, 64) and graph_restart(60, 130)
-    assert not graph_restart(64, 65) and not graph_restart(64, 127)
-    shape = make_shape("gaussian", height=4.0, fwhm=18.0, u0=6.0, v0=-5.0)
-    good = resistances(*gauge_strains(shape, N, M, pitch=PITCH))
-    calls = []
-    pipe = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
-    rec = pipe.reconstructor
-
-    def spy(eu, el, **kw):
-        calls.append(kw.get("graph_warm", True) and "previous" in kw)
-        return rec(eu, el, **kw)
-
-    spy.graph_fit = rec.graph_fit
-    pipe.reconstructor = spy
-    start = 3 * GRAPH_RESTART_SCANS - 2
-    results = [pipe.process(good, seq, 0, 0) for seq in range(start, start + 4)]
-    assert calls == [False, True, False, True]  # cold first, warm, cold at the block's start, warm
-    for r in results:
-        check_publishable(r)
-    # the restarted scan gives what a fresh pipeline gives for it: a replay from there agrees
-    fresh = FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)))
-    again = [fresh.process(good, seq, 0, 0) for seq in range(start + 2, start + 4)]
-    for a, b in zip(results[2:], again):
-        assert np.array_equal(a.element_positions_mm, b.element_positions_mm)

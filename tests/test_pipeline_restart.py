@@ -1,0 +1,134 @@
+"""The graph fit's periodic cold restart (daemon/pipeline.py): begun beside the published frames
+at a block's first scan, taken over GRAPH_ADOPT_SCANS later, the same bits on a worker thread and
+in line, and a replay from the block's start agreeing from the take-over on."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_RESTART_SCANS, GRAPH_SYNC_SCANS, ArrayGeometry,
+                                     FramePipeline, InlineBackground, WorkerBackground, graph_adopt, graph_restart)
+from skinmap.emulator.physics import gauge_strains, make_shape
+from skinmap.strains import Calibration
+
+N = M = 5
+PITCH = 12.0
+GEOMETRY = ArrayGeometry(N, M, PITCH, 0.2, 0.2)
+ELEMENT_UV = np.array([[u, v] for v in (-12.0, 0.0, 12.0) for u in (-18.0, 0.0, 18.0)])
+GF = 1.24 + 0.19 * np.random.default_rng(3).standard_normal((2, 2, N, M))
+R0 = 6.55 + 0.72 * np.random.default_rng(4).standard_normal((2, 2, N, M))
+START = 3 * GRAPH_RESTART_SCANS - 3  # three scans before a block's start
+COUNT = GRAPH_ADOPT_SCANS + 8
+
+
+def scan(seq: int) -> np.ndarray:
+    """A bump sliding along the rows, one step a scan: the warm start matters."""
+    shape = make_shape("gaussian", height=4.0, fwhm=18.0, u0=-6.0 + 0.25 * (seq - START), v0=-4.0)
+    eps_u, eps_l = gauge_strains(shape, N, M, pitch=PITCH)
+    return R0 * (1.0 + GF * np.stack([eps_u, eps_l]))
+
+
+SCANS = {seq: scan(seq) for seq in range(START, START + COUNT)}
+
+
+def pipeline(**kw) -> FramePipeline:
+    return FramePipeline(GEOMETRY, Calibration(GF, R0), ELEMENT_UV, np.zeros(len(ELEMENT_UV)), **kw)
+
+
+def run(pipe: FramePipeline, seqs) -> dict[int, np.ndarray]:
+    return {seq: pipe.process(SCANS[seq], seq, 0, 0).element_positions_mm for seq in seqs}
+
+
+def test_restart_and_adoption_rules():
+    assert graph_restart(None, 5) and graph_restart(63, 64) and graph_restart(60, 130)
+    assert not graph_restart(64, 65) and not graph_restart(64, 127)
+    assert not graph_adopt(64, 64 + GRAPH_ADOPT_SCANS - 1) and graph_adopt(64, 64 + GRAPH_ADOPT_SCANS)
+    assert graph_adopt(64, 3)  # the sample index went back (a restarted scanner)
+    assert GRAPH_SYNC_SCANS == GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
+
+
+def test_published_frames_never_wait_for_the_cold_restart():
+    pipe = pipeline()
+    rec = pipe.reconstructor
+    calls: list[tuple[int, bool]] = []
+
+    def spy(eu, el, **kw):
+        calls.append(("previous" in kw, kw.get("graph_warm", True)))
+        return rec(eu, el, **kw)
+
+    spy.graph_fit = rec.graph_fit
+    pipe.reconstructor = spy
+    block = START + 3
+    run(pipe, range(START, START + COUNT))
+    # the first scan has nothing to start from; every later published frame is warm
+    assert calls[0] == (False, True) and all(c == (True, True) for c in calls[1:]), calls
+    # the chain began cold at the block's first scan on its own reconstructor, and was taken over
+    assert pipe._chain_reconstructor is not None and pipe._chain_reconstructor is not rec
+    assert pipe.chain_origin == block and pipe._chain is None
+
+
+def test_replay_from_the_block_start_agrees_from_the_take_over_on():
+    live = run(pipeline(), range(START, START + COUNT))
+    block = START + 3
+    replay = run(pipeline(), range(block, START + COUNT))  # a log that starts at the block
+    adopted = block + GRAPH_ADOPT_SCANS
+    for seq in range(adopted, START + COUNT):
+        assert np.array_equal(live[seq], replay[seq]), seq
+    # before the take-over the live frames are warm from the scans before the block (they may
+    # differ in the last bits, but are the same sheet)
+    for seq in range(block, adopted):
+        assert np.allclose(live[seq], replay[seq], atol=0.05), seq
+
+
+def test_worker_thread_gives_the_bits_of_the_inline_run():
+    worker = WorkerBackground()
+    try:
+        threaded = run(pipeline(background=worker), range(START, START + COUNT))
+    finally:
+        worker.close()
+    inline = run(pipeline(background=InlineBackground()), range(START, START + COUNT))
+    for seq in threaded:
+        assert np.array_equal(threaded[seq], inline[seq]), seq
+
+
+def test_worker_runs_the_chain_off_the_calling_thread():
+    worker = WorkerBackground()
+    seen: list[str] = []
+    try:
+        worker.submit(lambda: seen.append(threading.current_thread().name)).result()
+    finally:
+        worker.close()
+    assert seen and seen[0] != threading.current_thread().name
+
+
+def test_a_failing_chain_is_dropped_and_the_frames_go_on(caplog):
+    pipe = pipeline()
+
+    class Broken:
+        graph_fit = True
+
+        def __call__(self, *a, **kw):
+            raise RuntimeError("chain reconstructor broke")
+
+    pipe._chain_reconstructor = Broken()
+    with caplog.at_level("ERROR", logger="skinmapd"):
+        results = [pipe.process(SCANS[seq], seq, 0, 0) for seq in range(START, START + COUNT)]
+    assert all(np.isfinite(r.element_positions_mm).all() for r in results)
+    assert pipe._chain is None and pipe.chain_origin is None  # nothing taken over
+    assert "restart chain" in caplog.text and "chain reconstructor broke" in caplog.text
+
+
+@pytest.mark.parametrize("switch_at", [2, 8])
+def test_a_new_pipeline_continues_the_chain(switch_at):
+    """After a reconnect (same geometry) the new pipeline takes over the chain under way: the
+    results are those of one pipeline throughout."""
+    one = run(pipeline(), range(START, START + COUNT))
+    first = pipeline()
+    out = run(first, range(START, START + switch_at + 3))
+    second = pipeline()
+    second.continue_from(first)
+    out.update(run(second, range(START + switch_at + 3, START + COUNT)))
+    for seq in one:
+        assert np.array_equal(one[seq], out[seq]), seq
