@@ -21,7 +21,8 @@ import skinmap
 from skinmap.daemon.config import DaemonConfig, config_to_toml
 from skinmap.daemon.console import shape_summary
 from skinmap.daemon.device_setup import ScannerState, calibration_doc, device_info, device_name
-from skinmap.daemon.fanout import ConfigRecord, Event, Notifier, RawFrame, Record, ScanReceived, StatusRecord
+from skinmap.daemon.fanout import (ConfigRecord, Event, Notifier, PoseRecord, RawFrame, Record, ScanReceived,
+                                   StatusRecord)
 from skinmap.daemon.health import DeviceClockCheck, GatewayStats, Health, ScanMonitor
 from skinmap.daemon.link import ScannerLink
 from skinmap.daemon.logsink import LogListener, LogSink, NullLogSink
@@ -150,8 +151,15 @@ class Gateway:
         self.output.use_device(device_name(hello, self.cfg), self.info)
         if self.cfg.tactile.enabled and self._pose_inputs is not None:
             self._close_pose_input()
-            self._pose_input = self._pose_inputs(self.output.device, self.records.notify)
+            self._pose_input = self._pose_inputs(self.output.device, self._on_pose_input)
         self._log_config()
+
+    def _on_pose_input(self, record: Record) -> None:
+        """A record from the pose input: a valid pose is also the one contacts beginning from
+        now on carry (ResultOutput.note_pose); everything goes on to the log."""
+        if isinstance(record, PoseRecord):
+            self.output.note_pose(record.pose)
+        self.records.notify(record)
 
     def _on_first_result(self) -> None:
         self.notifier.ready(f"streaming from {self.cfg.device.port}")

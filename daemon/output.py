@@ -8,6 +8,7 @@ import collections
 import logging
 import time
 from dataclasses import dataclass, field
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -56,6 +57,9 @@ class ResultOutput:
         self._strains = HostDecimator(cfg.output.strains_rate_hz)
         self._log_surface = HostDecimator(cfg.log.surface_rate_hz)
         self._contact: ContactTracker | None = None  # rebuilt after every (re)connect
+        # the latest probe pose received ([tactile]); set from the pose input's thread, read here
+        # (a reference swap), kept across reconnects: the probe did not move because the link did
+        self._pose: Mapping[str, float] | None = None
 
     def use_device(self, name: str, info: Callable[[], dict[str, Any]]) -> None:
         """Publish as `name` from now on; `info()` is its description."""
@@ -66,6 +70,10 @@ class ResultOutput:
         self.device = name
         self._contact = None  # a new baseline after every (re)connect
         self.publisher.set_info(info())
+
+    def note_pose(self, pose: Mapping[str, float]) -> None:
+        """A probe pose was received: contacts that begin from now on are placed by it."""
+        self._pose = dict(pose)
 
     def set_info(self, info: dict[str, Any]) -> None:
         if self.publisher is not None:
@@ -136,7 +144,7 @@ class ResultOutput:
         if self._contact is None or self._contact.grid != grid:
             self._contact = ContactTracker(grid, tc.baseline_frames, tc.k, tc.min_depth_mm)
         pos, nrm = r.surface.locate(self._contact.grid.uv)
-        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns), **self._contact.update(pos, nrm)}
+        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns), **self._contact.update(pos, nrm, self._pose)}
         if self.publisher is not None:
             try:
                 self.publisher.publish_contact(doc)

@@ -1,8 +1,9 @@
 """Probe poses for tactile mapping: where they come from and which contact event each belongs to.
 
-Sources, in the order ``skinmap map`` uses them: a CSV (``--poses``), the log's ``/pose`` topic
-(what the gateway received on ``skinmap.wire.keys.pose_key``), the ``[tactile] poses`` list of
-the config the log was recorded with.  Pure functions, except :func:`subscribe_poses` (the
+Sources, in the order ``skinmap map`` uses them: a CSV (``--poses``), the pose the gateway's
+``/contact`` messages carry (the one in force when each contact began), the log's ``/pose``
+topic (what the gateway received on ``skinmap.wire.keys.pose_key``), the ``[tactile] poses``
+list of the config the log was recorded with.  Pure functions, except :func:`subscribe_poses` (the
 gateway's Zenoh edge) and :func:`poses_in_log` (reads an MCAP file).
 
 A pose from the topic belongs to the first contact event that begins after it was received
@@ -25,7 +26,7 @@ from skinmap.wire import messages
 from skinmap.wire.keys import pose_key
 
 __all__ = ["TimedPose", "LoggedPoses", "pose_from_message", "poses_from_config", "poses_in_log", "assign_poses",
-           "subscribe_poses"]
+           "contact_poses", "subscribe_poses"]
 
 log = logging.getLogger("skinmap.tactile")
 
@@ -48,12 +49,14 @@ def poses_from_config(rows: tuple[tuple[float, float, float, float], ...] | list
 
 @dataclass
 class LoggedPoses:
-    """What a log holds about poses: the `/pose` messages (with the ones refused, named) and
-    the `[tactile] poses` of its first config."""
+    """What a log holds about poses: the `/pose` messages (with the ones refused, named), the
+    poses the `/contact` messages carry (each contact frame's time and the pose in force when
+    its contact began) and the `[tactile] poses` of its first config."""
 
     topic: list[TimedPose] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
     config: list[ProbePose] = field(default_factory=list)
+    contact: list[TimedPose] = field(default_factory=list)
 
 
 def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
@@ -71,6 +74,19 @@ def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
                 out.topic.append(TimedPose(int(m.log_time_ns), pose_from_message(messages.decode_pose(m.data))))
             except (messages.MessageError, ValueError, TypeError) as exc:
                 out.refused.append(f"/pose at {m.log_time_ns} ns: {exc}")
+        elif m.topic == "/contact":
+            try:
+                doc = json.loads(m.data)
+            except (ValueError, TypeError) as exc:
+                out.refused.append(f"/contact at {m.log_time_ns} ns: not JSON: {exc}")
+                continue
+            if isinstance(doc, dict) and doc.get("state") == "contact" and "pose" in doc:
+                try:
+                    out.contact.append(TimedPose(int(doc.get("host_time_ns", m.log_time_ns)),
+                                                 pose_from_message(messages.decode_pose(
+                                                     json.dumps({"schema": messages.POSE_SCHEMA, **doc["pose"]})))))
+                except (messages.MessageError, ValueError, TypeError, KeyError) as exc:
+                    out.refused.append(f"/contact at {m.log_time_ns} ns: its pose: {exc}")
         elif m.topic == "/config" and not config_seen:
             config_seen = True
             try:
@@ -99,6 +115,22 @@ def assign_poses(event_starts_ns: list[int], timed: list[TimedPose]) -> list[Pro
         late = sum(p.t_ns > event_starts_ns[-1] for p in timed)
         raise ValueError(f"{late} pose(s) on /pose received after the last contact event began "
                          f"({event_starts_ns[-1]} ns): a press without surfaces in the log, or poses out of order")
+    return out
+
+
+def contact_poses(event_starts_ns: list[int], event_ends_ns: list[int], carried: list[TimedPose]) -> list[ProbePose]:
+    """The pose of each contact event from the gateway's `/contact` messages: the pose carried
+    by the first contact message within the event (from its first frame to its last, host
+    times).  ValueError names the first event no such message covers (the gateway was not
+    told a pose before that press, or its contact was not seen live)."""
+    carried = sorted(carried, key=lambda p: p.t_ns)
+    out: list[ProbePose] = []
+    for i, (t0, t1) in enumerate(zip(event_starts_ns, event_ends_ns)):
+        inside = [p for p in carried if t0 <= p.t_ns <= t1]
+        if not inside:
+            raise ValueError(f"contact event {i + 1} ({t0}…{t1} ns) has no pose on the gateway's /contact messages "
+                             f"({len(carried)} contact message(s) with a pose in the log)")
+        out.append(inside[0].pose)
     return out
 
 

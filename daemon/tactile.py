@@ -27,6 +27,7 @@ Surfaces here are samples on a regular material grid of the sheet (``SampleGrid`
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -309,9 +310,11 @@ class ContactTracker:
     """The gateway's contact state, frame by frame (explicit state, no I/O): the first
     ``baseline_frames`` surfaces become the baseline, every later one is compared with it.
 
-    ``update(positions, normals)`` returns the `contact` message (a JSON-able dict): ``state``
-    'baseline' (still collecting), 'free' or 'contact'; with a contact its area, peak depth,
-    feature size L_r and the depth map on the sample grid (row-major, mm, 0 off contact)."""
+    ``update(positions, normals, pose)`` returns the `contact` message (a JSON-able dict):
+    ``state`` 'baseline' (still collecting), 'free' or 'contact'; with a contact its area, peak
+    depth, feature size L_r, the depth map on the sample grid (row-major, mm, 0 off contact) and,
+    when a probe pose had been received (``pose``: the latest one, fields
+    ``skinmap.wire.messages.POSE_FIELDS``), ``pose``: the one in force when the contact began."""
 
     def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5) -> None:
         if baseline_frames < 1:
@@ -321,12 +324,13 @@ class ContactTracker:
         self.baseline: Baseline | None = None
         self.events = 0
         self._in_contact = False
+        self._event_pose: dict[str, float] | None = None
 
     def reset(self) -> None:
         """Take a new baseline from the next frames (e.g. after the probe was re-inflated)."""
         self._frames, self.baseline, self._in_contact = [], None, False
 
-    def update(self, positions: np.ndarray, normals: np.ndarray) -> dict:
+    def update(self, positions: np.ndarray, normals: np.ndarray, pose: Mapping[str, float] | None = None) -> dict:
         g = self.grid
         doc: dict = {"grid": {"rows": g.shape[0], "cols": g.shape[1], "step_mm": g.step}, "events": self.events}
         if self.baseline is None:
@@ -343,8 +347,13 @@ class ContactTracker:
         if not self._in_contact:
             self.events += 1
             self._in_contact = True
-        return {**doc, "events": self.events, "state": "contact", **c.summary(),
-                "depth_mm": np.round(c.depth, 4).ravel().tolist()}
+            # a pose received during the contact belongs to the next press, not this one
+            self._event_pose = None if pose is None else {k: float(v) for k, v in pose.items()}
+        out = {**doc, "events": self.events, "state": "contact", **c.summary(),
+               "depth_mm": np.round(c.depth, 4).ravel().tolist()}
+        if self._event_pose is not None:
+            out["pose"] = dict(self._event_pose)
+        return out
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,8 +6,9 @@ the pre-contact baseline (start recording before the first press); a contact **e
 of at least two frames in contact (ended by two free ones), represented by its frame of deepest
 indentation; each event
 is placed by its probe pose: from a CSV (columns x_mm, y_mm, angle_deg, depth_mm, one row a
-press, in order), else from the log's ``/pose`` topic (the latest pose received before the event
-began), else from the ``[tactile] poses`` of the config it was recorded with; with
+press, in order), else from the pose the gateway's ``/contact`` messages carry (the one in force
+when the contact began), else from the log's ``/pose`` topic (the latest pose received before
+the event began), else from the ``[tactile] poses`` of the config it was recorded with; with
 ``estimate=True`` the poses are found by registering each contact against the map so far
 (skinmap.daemon.tactile.stitch_estimated; a known first pose anchors the map, else the first
 press's frame is the map's).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
@@ -62,9 +63,10 @@ class MapReport:
 
 def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleGrid, k: float = 3.0,
                    min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None,
-                   starts: list[int] | None = None) -> tuple[list[Contact], int]:
+                   starts: list[int] | None = None, ends: list[int] | None = None) -> tuple[list[Contact], int]:
     """(contact events, the number of baseline frames used) from sampled surfaces (K, 3);
-    ``starts``, if given, receives each event's first frame (an index into ``frames``)."""
+    ``starts`` and ``ends``, if given, receive each event's first and last frame in contact
+    (indices into ``frames``)."""
     if len(frames) <= baseline_frames:
         raise ValueError(f"{len(frames)} surfaces: not more than the {baseline_frames} baseline frames asked for")
     nrm = normals or [np.tile([0.0, 0.0, 1.0], (len(frames[0]), 1))] * len(frames)
@@ -75,9 +77,10 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
     min_frames = 2
     events: list[Contact] = []
     first: list[int] = []
+    last: list[int] = []
     current: Contact | None = None
     run = free = 0
-    began = 0
+    began = latest = 0
     for i, pos in enumerate(frames[baseline_frames:], start=baseline_frames):
         c = detect_contact(pos, base, grid, k, min_depth_mm)
         if c is None:
@@ -86,19 +89,24 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
                 if run >= min_frames:
                     events.append(current)
                     first.append(began)
+                    last.append(latest)
                 current, run = None, 0
             continue
         free = 0
         if current is None:
             began = i
+        latest = i
         run += 1
         if current is None or c.peak_depth_mm > current.peak_depth_mm:
             current = c
     if current is not None and run >= min_frames:
         events.append(current)
         first.append(began)
+        last.append(latest)
     if starts is not None:
         starts[:] = first
+    if ends is not None:
+        ends[:] = last
     return events, baseline_frames
 
 
@@ -108,7 +116,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     """Replay the log and stitch its contact events with their poses (see the module); ValueError
     names what is wrong (no surfaces, too few baseline frames, no poses from any source, event
     and pose counts that differ, an event without a pose on the topic, a malformed pose)."""
-    from skinmap.daemon.poses import assign_poses, poses_in_log
+    from skinmap.daemon.poses import assign_poses, contact_poses, poses_in_log
     from skinmap.daemon.replay import replay_log
 
     csv_poses = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8")) if poses_csv is not None else None
@@ -134,14 +142,18 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         raise ValueError(f"{log}: no surfaces could be replayed from its raw frames")
     grid = grid_box[0]
     starts: list[int] = []
+    ends: list[int] = []
     report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals,
-                                                           starts)
+                                                           starts, ends)
     logged = poses_in_log(log)
     if logged.refused:
         raise ValueError(f"{log}: " + "; ".join(logged.refused[:3]))
     poses: list[ProbePose] | None
     if csv_poses is not None:
         poses, report.pose_source = csv_poses, f"from {poses_csv}"
+    elif logged.contact:
+        poses = contact_poses([times[i] for i in starts], [times[i] for i in ends], logged.contact)
+        report.pose_source = f"from the gateway's /contact messages ({len(logged.contact)} with a pose)"
     elif logged.topic:
         poses = assign_poses([times[i] for i in starts], logged.topic)
         report.pose_source = f"from the log's /pose topic ({len(logged.topic)} received)"

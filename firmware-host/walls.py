@@ -20,12 +20,13 @@ wall's shape over the contact.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from skinmap.emulator import physics as ph
 
-__all__ = ["LetterRelief", "BalloonOnWall", "PressSequence", "LETTER_STROKES"]
+__all__ = ["LetterRelief", "BalloonOnWall", "PressSequence", "LETTER_STROKES", "Membrane", "solve_membrane"]
 
 
 def _arc(cx: float, cy: float, r: float, a0: float, a1: float, pieces: int = 8) -> list[tuple[float, float, float, float]]:
@@ -45,22 +46,25 @@ LETTER_STROKES: dict[str, list[tuple[float, float, float, float]]] = {
 
 class LetterRelief:
     """Raised letters on a wall: strokes ``width`` wide (the smallest feature), ``height`` high,
-    their flanks rising over ``edge`` mm (a smooth step), the letters centred in the quadrants of
-    a ``size`` × ``size`` mm wall centred on the origin."""
+    their flanks rising over ``edge`` mm (a smooth step).  Four letters: each centred in a
+    quadrant of a ``size`` × ``size`` mm wall centred on the origin.  One letter: the letter
+    alone spans the wall (its stroke centre lines scaled to ``size``, the strokes still ``width``
+    wide), as in the paper's cavity, one wall a letter."""
 
     def __init__(self, letters: str = "DUKE", size: float = 120.0, width: float = 15.0, height: float = 4.0,
                  edge: float = 6.0):
-        if len(letters) != 4 or any(c not in LETTER_STROKES for c in letters):
-            raise ValueError(f"four letters out of {''.join(LETTER_STROKES)}, got {letters!r}")
+        if len(letters) not in (1, 4) or any(c not in LETTER_STROKES for c in letters):
+            raise ValueError(f"one letter or four out of {''.join(LETTER_STROKES)}, got {letters!r}")
         for name, v in (("size", size), ("width", width), ("height", height), ("edge", edge)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"relief {name} must be > 0 mm, got {v!r}")
         self.letters, self.size, self.width, self.relief, self.edge = letters, float(size), float(width), float(height), float(edge)
         q = size / 4.0
-        centres = [(-q, q), (q, q), (-q, -q), (q, -q)]
+        centres = [(-q, q), (q, q), (-q, -q), (q, -q)] if len(letters) == 4 else [(0.0, 0.0)]
+        # the letters' box is ±25 mm: a quadrant of 60 mm, or the whole wall for one letter
+        scale = size / (120.0 if len(letters) == 4 else 60.0)
         segs = []
         for c, (cx, cy) in zip(letters, centres):
-            scale = size / 120.0
             segs += [(cx + scale * a, cy + scale * b, cx + scale * c2, cy + scale * d) for a, b, c2, d in LETTER_STROKES[c]]
         self._segs = np.asarray(segs, dtype=float)
         self._raster_step, self._raster_half = 0.5, 0.5 * self.size + 4.0
@@ -101,16 +105,93 @@ class LetterRelief:
         return np.where(inside, h, 0.0)
 
 
+@dataclass(frozen=True)
+class Membrane:
+    """The pressed sheet as a tensioned, bending film on the balloon (docs/tactile.md).
+
+    ``tension`` T (N/mm): the balloon's wall tension (docs/physics.md: 0.15 mm polyurethane at
+    about 2.5 kPa, R 80 mm); the pressure is Laplace's p = 2T/R, so a free span curves no
+    tighter than T/p = R/2.  ``bending`` D (N·mm): the sensor film's (docs/physics.md), which
+    rounds what the wall would bend sharper over the length √(D/T) (0.9 mm).  ``stretch`` E·t
+    (N/mm): the balloon wall's membrane stiffness (polyurethane, E ≈ 20 MPa, t 0.15 mm); a
+    curved wall resists being pushed off its sphere by stretching around it, as a foundation of
+    modulus E·t/R² (the shallow-shell analogy), so a push spreads over √(T·R²/(E·t)) ≈ 15 mm
+    rather than over the whole balloon.  The solve is on a ``step`` mm grid out to ``half`` mm
+    from the apex, where the balloon keeps its sphere."""
+
+    tension: float = 0.1
+    bending: float = 0.083
+    stretch: float = 3.0
+    step: float = 1.0
+    half: float = 50.0
+
+    def __post_init__(self) -> None:
+        for name in ("tension", "bending", "stretch", "step", "half"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"membrane {name} must be > 0, got {v!r}")
+        if self.half < 4 * self.step:
+            raise ValueError(f"membrane half-width {self.half} mm is less than four grid steps of {self.step} mm")
+
+
+def solve_membrane(gap: np.ndarray, load: np.ndarray, step: float, tension: float, bending: float,
+                   foundation: float = 0.0, max_iterations: int = 80) -> tuple[np.ndarray, np.ndarray]:
+    """The deflection w (grid, mm) of a film under tension T and bending stiffness D from a
+    reference shape (its equilibrium but for ``load``, N/mm², towards the wall), kept on the
+    balloon's side by w ≤ ``gap`` (the wall minus the reference, mm), w = 0 on the grid's
+    border: min ∫ T/2·|∇w|² + D/2·(Δw)² + k/2·w² − load·w subject to w ≤ gap (``foundation``
+    k, N/mm³: what holds the film to its reference; small slopes; 5-point
+    Laplacian, primal–dual active set).  Returns (w, the nodes held by the wall).  RuntimeError
+    if the active set does not settle."""
+    from scipy import sparse
+    from scipy.sparse.linalg import splu
+
+    gap = np.asarray(gap, dtype=float)
+    if gap.ndim != 2 or gap.shape[0] != gap.shape[1] or gap.shape[0] < 5 or load.shape != gap.shape:
+        raise ValueError(f"gap and load must be the same square grid of at least 5 nodes, got {gap.shape} and {load.shape}")
+    n = gap.shape[0] - 2
+    e = np.ones(n)
+    lap1 = sparse.diags([-e[:-1], 2.0 * e, -e[:-1]], [-1, 0, 1]) / step ** 2
+    eye = sparse.identity(n)
+    lap = (sparse.kron(eye, lap1) + sparse.kron(lap1, eye)).tocsr()
+    k = (tension * lap + bending * (lap @ lap) + foundation * sparse.identity(n * n)).tocsr()
+    g = gap[1:-1, 1:-1].ravel()
+    f = np.asarray(load, dtype=float)[1:-1, 1:-1].ravel()
+    active = g <= 0.0  # start where the reference passes through the wall
+    c = float(k.diagonal().mean())
+    for _ in range(max_iterations):
+        w = np.where(active, g, 0.0)
+        free = ~active
+        if free.any():
+            kf = k[free]
+            w[free] = splu(kf[:, free].tocsc()).solve(f[free] - kf[:, active] @ g[active])
+        lam = f - k @ w  # the wall's reaction (≥ 0 where it holds the film)
+        lam[free] = 0.0
+        # nodes where the wall neither pushes nor is passed (both within rounding) stay free
+        new = lam + c * (w - g) > 1e-9 * c
+        if np.array_equal(new, active):
+            break
+        active = new
+    else:
+        raise RuntimeError(f"the membrane's contact did not settle in {max_iterations} iterations")
+    out = np.zeros_like(gap)
+    out[1:-1, 1:-1] = w.reshape(n, n)
+    held = np.zeros(gap.shape, dtype=bool)
+    held[1:-1, 1:-1] = active.reshape(n, n)
+    return out, held
+
+
 class BalloonOnWall(ph.Shape):
     """The sheet on a balloon of radius ``balloon_radius`` pressed ``depth`` mm against the wall
     (see the module's frames); ``depth`` ≤ 0 leaves the balloon free (the baseline).  With
     ``membrane_radius`` (mm; T/p, half the balloon's radius for its own wall tension) the sheet
-    bridges what a pressurised membrane cannot follow (see ``_bridged_wall``); without, it
-    takes the wall's shape exactly (a balloon infinitely soft)."""
+    bridges what a pressurised membrane cannot follow (see ``_bridged_wall``); with
+    ``membrane`` (:class:`Membrane`) it is solved as the pressed film (see ``_membrane``);
+    without either, it takes the wall's shape exactly (a balloon infinitely soft)."""
 
     def __init__(self, wall: LetterRelief, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
                  depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3,
-                 membrane_radius: float | None = None):
+                 membrane_radius: float | None = None, membrane: Membrane | None = None):
         self.wall = wall
         self.centre = (float(centre[0]), float(centre[1]))
         self.angle_deg = float(angle_deg)
@@ -128,6 +209,13 @@ class BalloonOnWall(ph.Shape):
             if not (math.isfinite(membrane_radius) and membrane_radius > 0):
                 raise ValueError(f"membrane radius must be > 0 mm, got {membrane_radius!r}")
             self._envelope = self._bridged_wall(float(membrane_radius))
+        if membrane is not None and membrane_radius is not None:
+            raise ValueError("give a membrane radius (the bridging envelope) or a membrane (the solved film), not both")
+        self.membrane = membrane
+        self._deflection: np.ndarray | None = None
+        self.held: np.ndarray | None = None  # the membrane grid's nodes the wall holds
+        if membrane is not None:
+            self._deflection, self.held = self._membrane(membrane)
 
     # the envelope's raster (probe frame): covers a sheet of up to 100 mm across
     _ENV_HALF, _ENV_STEP = 60.0, 1.0
@@ -152,6 +240,55 @@ class BalloonOnWall(ph.Shape):
         eroded = ndimage.grey_erosion(padded, footprint=foot, structure=cap, mode="nearest")
         opened = ndimage.grey_dilation(eroded, footprint=foot, structure=cap, mode="nearest")[r:-r, r:-r]
         return ndimage.spline_filter(np.minimum(opened, w), order=3)
+
+    def _membrane(self, mem: Membrane) -> tuple[np.ndarray, np.ndarray]:
+        """The film's deflection from the free balloon where the wall presses into it.  The free
+        balloon is the film's equilibrium under p = 2T/R (a sphere), so the deflection w from it
+        carries no load of its own: the wall pushes it in (w ≤ wall − sphere), tension, bending
+        and the curved wall's stretch spread the push around the contact, and the balloon is on
+        its sphere at the model's edge ``half`` mm from the apex.  Between raised
+        strokes the film spans back towards the floor curved no tighter than T/p, its bends
+        rounded over √(D/T) (solve_membrane).  Spline coefficients of w on the membrane's grid,
+        and the nodes the wall holds."""
+        from scipy import ndimage
+
+        c = -mem.half + mem.step * np.arange(int(round(2 * mem.half / mem.step)) + 1)
+        xx, yy = np.meshgrid(c, c)
+        zs = self._sphere_z(np.stack([xx, yy], -1))
+        gap = self.wall_z(np.stack([xx, yy], -1)) - zs
+        w, held = solve_membrane(gap, np.zeros_like(gap), mem.step, mem.tension, mem.bending,
+                                 mem.stretch / self.balloon_radius ** 2)
+        return ndimage.spline_filter(w, order=3), held
+
+    def _sphere_z(self, xy: np.ndarray) -> np.ndarray:
+        r = self.balloon_radius
+        return -(r - np.sqrt(np.maximum(r * r - (np.asarray(xy, dtype=float) ** 2).sum(-1), 0.0)))
+
+    def deflection(self, xy: np.ndarray) -> np.ndarray:
+        """The membrane's deflection w (mm, ≤ 0: pushed in) from the reference at probe (x, y)."""
+        if self._deflection is None or self.membrane is None:
+            return np.zeros(np.shape(xy)[:-1])
+        from scipy import ndimage
+
+        m = self.membrane
+        xy = np.asarray(xy, dtype=float)
+        idx = ((xy + m.half) / m.step).reshape(-1, 2)
+        w = ndimage.map_coordinates(self._deflection, [idx[:, 1], idx[:, 0]], order=3, prefilter=False, mode="constant")
+        return w.reshape(xy.shape[:-1])
+
+    def clearance(self, xy: np.ndarray) -> np.ndarray:
+        """How far (mm, along z) the sheet stands off the wall at probe (x, y): 0 where it
+        touches (the ground truth of where the relief itself is felt)."""
+        xy = np.asarray(xy, dtype=float)
+        z = self.position_at_xy(xy, self._sphere_z(xy))
+        return np.maximum(self.wall_z(xy) - z, 0.0)
+
+    def position_at_xy(self, xy: np.ndarray, zs: np.ndarray) -> np.ndarray:
+        """The sheet's height at probe (x, y) where the free balloon's height is ``zs``."""
+        if self.membrane is not None:
+            return np.minimum(zs + self.deflection(xy), self.wall_z(xy))
+        s = self.smoothing
+        return zs - s * np.logaddexp(0.0, (zs - self.sheet_wall_z(xy)) / s)
 
     def sheet_wall_z(self, xy: np.ndarray) -> np.ndarray:
         """Where the sheet meets the wall (probe frame): the wall itself, or with a membrane
@@ -181,9 +318,8 @@ class BalloonOnWall(ph.Shape):
         x = self._sphere.position(ph._as_uv(uv))
         if self.depth <= -5.0 * self.smoothing - self.wall.relief:
             return x
-        s = self.smoothing
-        w = s * np.logaddexp(0.0, (x[..., 2] - self.sheet_wall_z(x[..., :2])) / s)
-        return np.concatenate([x[..., :2], (x[..., 2] - w)[..., None]], axis=-1)
+        z = self.position_at_xy(x[..., :2], x[..., 2])
+        return np.concatenate([x[..., :2], z[..., None]], axis=-1)
 
 
 class PressSequence(ph.Shape):

@@ -180,6 +180,38 @@ def test_topic_poses_go_to_the_next_event_and_a_missing_or_stray_one_is_named():
         assign_poses([100], [TimedPose(10, a), TimedPose(300, b)])
 
 
+def test_a_contact_carries_the_pose_in_force_when_it_began():
+    from skinmap.daemon.tactile import ContactTracker
+
+    free = _surface(ph.SphereCap(80.0))
+    pressed = _surface(BalloonOnWall(WALL, (-30.0, 30.0), 10.0, 2.0))
+    a = {"x_mm": -30.0, "y_mm": 30.0, "angle_deg": 10.0, "depth_mm": 2.0}
+    b = {"x_mm": 30.0, "y_mm": 30.0, "angle_deg": -15.0, "depth_mm": 2.0}
+    tracker = ContactTracker(GRID, baseline_frames=1)
+    assert tracker.update(*free, a)["state"] == "baseline"
+    assert "pose" not in tracker.update(*free, a)  # free: no contact to place
+    first = tracker.update(*pressed, a)
+    assert first["state"] == "contact" and first["pose"] == a
+    # a pose received while pressed is for the next press
+    assert tracker.update(*pressed, b)["pose"] == a
+    assert tracker.update(*free, b)["state"] == "free"
+    assert tracker.update(*pressed, b)["pose"] == b and tracker.events == 2
+    # no pose ever received: the contact says nothing of one
+    bare = ContactTracker(GRID, baseline_frames=1)
+    bare.update(*free)
+    assert bare.update(*pressed)["state"] == "contact" and "pose" not in bare.update(*pressed)
+
+
+def test_contact_poses_take_the_first_pose_within_each_event_and_name_an_event_without():
+    from skinmap.daemon.poses import TimedPose, contact_poses
+
+    a, b = ProbePose(1, 0, 0, 2), ProbePose(2, 0, 0, 2)
+    carried = [TimedPose(105, a), TimedPose(110, a), TimedPose(205, b)]
+    assert contact_poses([100, 200], [150, 250], carried) == [a, b]
+    with pytest.raises(ValueError, match=r"contact event 2 \(300…350 ns\) has no pose on the gateway's /contact"):
+        contact_poses([100, 300], [150, 350], carried)
+
+
 # --- poses estimated by registration -----------------------------------------------------------
 
 
@@ -228,3 +260,53 @@ def test_bridging_membrane_stays_off_the_wall_between_strokes_and_never_passes_i
     # (the envelope is a cubic spline through a 1 mm raster of the wall: within 0.05 mm of it)
     assert np.all(zb <= zf + 0.05) and np.all(zb <= wall_z + 0.3)
     assert (zf - zb).max() > 1.0  # it spans over part of a 4 mm recess
+
+
+def test_one_letter_spans_its_wall_with_strokes_still_15mm_wide():
+    e = LetterRelief("E")
+    assert e.height(np.array([0.0, 0.0])) == pytest.approx(4.0, abs=0.01)  # the middle bar
+    assert e.height(np.array([0.0, 22.0])) == pytest.approx(0.0, abs=0.01)  # between the bars
+    # the bars' centre lines at y = ±44 and 0: a stroke 15 mm wide across its flank's middle
+    profile = e.height(np.stack([np.zeros(241), np.linspace(-60, 60, 241)], -1))
+    assert np.count_nonzero(profile > 2.0) * 0.5 == pytest.approx(3 * 15.0, abs=1.5)
+    assert np.abs(e._segs).max() > 40.0  # scaled to the wall, not to a quadrant
+    with pytest.raises(ValueError, match="one letter or four"):
+        LetterRelief("DU")
+
+
+def test_membrane_solve_keeps_the_film_off_the_wall_and_in_equilibrium_where_free():
+    from skinmap.emulator.walls import solve_membrane
+
+    c = np.arange(-20.0, 20.5, 1.0)
+    xx, yy = np.meshgrid(c, c)
+    gap = np.where((np.abs(xx) <= 4) & (np.abs(yy) <= 4), -1.0, 5.0)  # a square punch 1 mm in
+    w, held = solve_membrane(gap, np.zeros_like(gap), 1.0, 0.1, 0.0)
+    assert np.all(w <= gap + 1e-9) and np.allclose(w[held], gap[held]) and held.any()
+    lap = w[:-2, 1:-1] + w[2:, 1:-1] + w[1:-1, :-2] + w[1:-1, 2:] - 4 * w[1:-1, 1:-1]
+    inner_free, inner_held = ~held[1:-1, 1:-1], held[1:-1, 1:-1]
+    assert np.abs(lap[inner_free]).max() < 1e-9  # a tensioned film with no load: harmonic where free
+    assert lap[inner_held].min() > -1e-9  # the wall only pushes (its reaction T·Δw ≥ 0)
+    assert w[0].max() == 0.0 and -1.0 < w[held.any(axis=1)].min() + 1e-9
+
+
+def test_pressed_membrane_touches_the_strokes_spans_beside_them_and_never_passes_the_wall():
+    from skinmap.emulator.walls import Membrane
+
+    wall = LetterRelief("E")
+    mem = BalloonOnWall(wall, (0.0, 22.0), 0.0, 2.0, membrane=Membrane())
+    follows = BalloonOnWall(wall, (0.0, 22.0), 0.0, 2.0)
+    uv = SampleGrid.for_array(5, 5, 12.0, 1.0).uv
+    x = mem.position(uv)
+    assert np.all(x[:, 2] <= mem.wall_z(x[:, :2]) + 1e-6)
+    gap = mem.clearance(x[:, :2])
+    # the bars (wall y = 0 and 44) 22 mm either side of the apex: held on their tops where the
+    # balloon reaches them (within 20 mm of the apex; farther out its sphere drops below them)
+    on_top = (wall.height(mem.to_wall(x[:, :2])) > 3.99) & (np.hypot(x[:, 0], x[:, 1]) < 20.0)
+    assert on_top.sum() > 20 and gap[on_top].max() < 0.05
+    # follows touches the floor between the bars everywhere; the film stands off it by up to
+    # what a span of radius T/p = 40 mm beside a 4 mm step allows
+    near = np.hypot(x[:, 0], x[:, 1]) < 18.0  # where the balloon meets the base plane
+    assert follows.clearance(follows.position(uv)[near, :2]).max() < 0.31
+    assert 1.0 < gap[near].max() <= 4.0
+    with pytest.raises(ValueError, match="not both"):
+        BalloonOnWall(wall, membrane=Membrane(), membrane_radius=40.0)

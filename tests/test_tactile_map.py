@@ -149,6 +149,9 @@ def test_gateway_publishes_and_logs_contact_events(press_log):
     pressed = [d for d in docs if d["state"] == "contact"]
     assert all(d["area_mm2"] > 0 and d["peak_depth_mm"] > 0.05 and d["feature_size_mm"] > 0 for d in pressed)
     assert len(pressed[0]["depth_mm"]) == pressed[0]["grid"]["rows"] * pressed[0]["grid"]["cols"]
+    # each contact carries the pose in force when it began: the one put before its press
+    carried = {d["events"]: d["pose"] for d in pressed}
+    assert [tuple(carried[e][k] for k in ("x_mm", "y_mm", "angle_deg", "depth_mm")) for e in (1, 2, 3)] == PRESSES
 
 
 def test_map_finds_every_press_and_writes_png_and_ply(press_log, capsys):
@@ -190,14 +193,25 @@ def test_gateway_logs_the_poses_it_receives_and_refuses_a_malformed_one(press_lo
         "skinmap.pose/1"
 
 
-def test_map_takes_the_poses_from_the_logs_topic_as_the_csv_gives_them(press_log, capsys):
+def test_map_takes_the_poses_from_the_contacts_and_the_topic_as_the_csv_gives_them(press_log, capsys):
+    from skinmap.daemon.poses import assign_poses, poses_in_log
+    from skinmap.daemon.tactile import ProbePose
+
     _tmp, log, poses, _ = press_log
     assert skinmap_main(["map", str(log), "--poses", str(poses)]) == 0
     with_csv = capsys.readouterr().out
     assert skinmap_main(["map", str(log)]) == 0
-    from_topic = capsys.readouterr().out
-    assert "poses from the log's /pose topic (3 received)" in from_topic
-    assert with_csv.splitlines()[-1] == from_topic.splitlines()[-1]  # the same relief summary
+    from_contacts = capsys.readouterr().out
+    assert "poses from the gateway's /contact messages" in from_contacts
+    assert with_csv.splitlines()[-1] == from_contacts.splitlines()[-1]  # the same relief summary
+    # the /pose topic, the next source, gives each event the same pose
+    logged = poses_in_log(log)
+    starts, prev = [], None
+    for carried in sorted(logged.contact, key=lambda p: p.t_ns):
+        if carried.pose != prev:
+            starts.append(carried.t_ns)
+            prev = carried.pose
+    assert assign_poses(starts, logged.topic) == [ProbePose(*p) for p in PRESSES]
 
 
 def test_map_estimates_poses_or_names_the_contacts_it_cannot_place(press_log, capsys):
