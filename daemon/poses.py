@@ -84,7 +84,7 @@ def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
                 try:
                     out.contact.append(TimedPose(int(doc.get("host_time_ns", m.log_time_ns)),
                                                  pose_from_message(messages.decode_pose(
-                                                     json.dumps({"schema": messages.POSE_SCHEMA, **doc["pose"]})))))
+                                                     json.dumps({"schema": messages.POSE_SCHEMA, **doc["pose"]}).encode()))))
                 except (messages.MessageError, ValueError, TypeError, KeyError) as exc:
                     out.refused.append(f"/contact at {m.log_time_ns} ns: its pose: {exc}")
         elif m.topic == "/config" and not config_seen:
