@@ -8,9 +8,9 @@ fit's restart chains run on a worker (skinmapd) or in line (replay). It does no 
 """
 from __future__ import annotations
 
-import concurrent.futures
 import logging
 import os
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -131,28 +131,75 @@ class InlineBackground:
         return _Done(fn)
 
 
+class _Job:
+    """A job that runs once, on whichever thread claims it first: the worker, or one that asks for
+    its result before the worker got to it."""
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._fn: Callable[[], Any] | None = fn
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._value: Any = None
+        self._error: BaseException | None = None
+
+    def run_if_unclaimed(self) -> None:
+        with self._lock:
+            fn, self._fn = self._fn, None
+        if fn is None:
+            return
+        try:
+            self._value = fn()
+        except BaseException as exc:  # noqa: BLE001 - raised again by result()
+            self._error = exc
+        finally:
+            self._done.set()
+
+    def result(self) -> Any:
+        self.run_if_unclaimed()  # not started yet: run it here rather than wait for the worker
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 class WorkerBackground:
-    """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so a
-    job on it leaves the CPU to the published frames.  ``close()`` ends it."""
+    """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so
+    its jobs leave the CPU to the published frames.  A job whose result is asked for before the
+    worker started it runs on the asking thread instead, so a starved worker delays nobody by
+    more than the job it is running.  ``close()`` ends the worker (jobs left run when asked for)."""
 
     NICE = 5
 
     def __init__(self, name: str = "skinmap-graph-restart") -> None:
-        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=name,
-                                                           initializer=self._lower_priority)
-
-    @classmethod
-    def _lower_priority(cls) -> None:
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), cls.NICE)
-        except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
-            pass
+        self._name = name
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._closed = False
 
     def submit(self, fn: Callable[[], Any]) -> Pending:
-        return self._pool.submit(fn)
+        job = _Job(fn)
+        with self._lock:
+            if not self._closed:
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
+                    self._thread.start()
+                self._jobs.put(job)
+        return job
+
+    def _run(self) -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.NICE)
+        except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
+            pass
+        while (job := self._jobs.get()) is not None:
+            job.run_if_unclaimed()
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            self._closed = True
+            if self._thread is not None:
+                self._jobs.put(None)
 
 
 class _Chain:
