@@ -315,6 +315,10 @@ class FramePipeline:
             self._reconstructor = self._new_reconstructor()
         return self._reconstructor
 
+    @reconstructor.setter
+    def reconstructor(self, value: Any) -> None:
+        self._reconstructor = value
+
     def _new_reconstructor(self) -> Any:
         from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
 
@@ -331,10 +335,6 @@ class FramePipeline:
             rec.prepare(self.strain_sigma)
             self._chain_reconstructor = rec
         return self._chain_reconstructor
-
-    @reconstructor.setter
-    def reconstructor(self, value: Any) -> None:
-        self._reconstructor = value
 
     def adopt_reconstructor(self, reconstructor: Any) -> None:
         """Use `reconstructor` (one prepared for this geometry and these options) unless this
