@@ -8,13 +8,14 @@ fit's restart chains run on a worker (skinmapd) or in line (replay). It does no 
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 
@@ -164,11 +165,14 @@ class _Job:
 
 class WorkerBackground:
     """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so
-    its jobs leave the CPU to the published frames.  A job whose result is asked for before the
-    worker started it runs on the asking thread instead, so a starved worker delays nobody by
-    more than the job it is running.  ``close()`` ends the worker (jobs left run when asked for)."""
+    its jobs leave the CPU to the published frames; while the frames' thread says it is
+    ``busy()``, the worker starts no job (a job already running goes on).  A job whose result is
+    asked for before the worker started it runs on the asking thread instead, so a starved
+    worker delays nobody by more than the job it is running.  ``close()`` ends the worker (jobs
+    left run when asked for)."""
 
     NICE = 5
+    BUSY_WAIT_S = 0.1  # the longest the worker holds back for a busy frames' thread
 
     def __init__(self, name: str = "skinmap-graph-restart") -> None:
         self._name = name
@@ -176,6 +180,17 @@ class WorkerBackground:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._closed = False
+        self._idle = threading.Event()
+        self._idle.set()
+
+    @contextlib.contextmanager
+    def busy(self) -> Iterator[None]:
+        """Around a frame's work on the frames' thread: no job starts meanwhile."""
+        self._idle.clear()
+        try:
+            yield
+        finally:
+            self._idle.set()
 
     def submit(self, fn: Callable[[], Any]) -> Pending:
         job = _Job(fn)
@@ -193,6 +208,7 @@ class WorkerBackground:
         except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
             pass
         while (job := self._jobs.get()) is not None:
+            self._idle.wait(self.BUSY_WAIT_S)
             job.run_if_unclaimed()
 
     def close(self) -> None:

@@ -146,3 +146,18 @@ def test_a_new_pipeline_continues_the_chain(switch_at):
     out.update(run(second, range(START + switch_at + 3, START + COUNT)))
     for seq in one:
         assert np.array_equal(one[seq], out[seq]), seq
+
+
+def test_worker_starts_no_job_while_the_frames_thread_is_busy():
+    worker = WorkerBackground()
+    worker.BUSY_WAIT_S = 5.0
+    started = threading.Event()
+    try:
+        worker.submit(lambda: None).result()  # the worker is up
+        with worker.busy():
+            job = worker.submit(started.set)
+            assert not started.wait(0.3)  # held back while the frame is under way
+        assert started.wait(5.0)  # and run once it is done
+        job.result()
+    finally:
+        worker.close()
