@@ -8,13 +8,14 @@ fit's restart chains run on a worker (skinmapd) or in line (replay). It does no 
 """
 from __future__ import annotations
 
-import concurrent.futures
+import contextlib
 import logging
 import os
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 
@@ -131,28 +132,90 @@ class InlineBackground:
         return _Done(fn)
 
 
+class _Job:
+    """A job that runs once, on whichever thread claims it first: the worker, or one that asks for
+    its result before the worker got to it."""
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._fn: Callable[[], Any] | None = fn
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._value: Any = None
+        self._error: BaseException | None = None
+
+    def run_if_unclaimed(self) -> None:
+        with self._lock:
+            fn, self._fn = self._fn, None
+        if fn is None:
+            return
+        try:
+            self._value = fn()
+        except BaseException as exc:  # noqa: BLE001 - raised again by result()
+            self._error = exc
+        finally:
+            self._done.set()
+
+    def result(self) -> Any:
+        self.run_if_unclaimed()  # not started yet: run it here rather than wait for the worker
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 class WorkerBackground:
-    """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so a
-    job on it leaves the CPU to the published frames.  ``close()`` ends it."""
+    """One worker thread at a lower scheduling priority (Linux: a thread's own nice value), so
+    its jobs leave the CPU to the published frames; while the frames' thread says it is
+    ``busy()``, the worker starts no job (a job already running goes on).  A job whose result is
+    asked for before the worker started it runs on the asking thread instead, so a starved
+    worker delays nobody by more than the job it is running.  ``close()`` ends the worker (jobs
+    left run when asked for)."""
 
     NICE = 5
+    BUSY_WAIT_S = 0.1  # the longest the worker holds back for a busy frames' thread
 
     def __init__(self, name: str = "skinmap-graph-restart") -> None:
-        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=name,
-                                                           initializer=self._lower_priority)
+        self._name = name
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._closed = False
+        self._idle = threading.Event()
+        self._idle.set()
 
-    @classmethod
-    def _lower_priority(cls) -> None:
+    @contextlib.contextmanager
+    def busy(self) -> Iterator[None]:
+        """Around a frame's work on the frames' thread: no job starts meanwhile."""
+        self._idle.clear()
         try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), cls.NICE)
-        except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
-            pass
+            yield
+        finally:
+            self._idle.set()
 
     def submit(self, fn: Callable[[], Any]) -> Pending:
-        return self._pool.submit(fn)
+        job = _Job(fn)
+        with self._lock:
+            if not self._closed:
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
+                    self._thread.start()
+                self._jobs.put(job)
+        return job
+
+    def _run(self) -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.NICE)
+        except (AttributeError, OSError):  # not Linux, or not allowed: the same thread unniced
+            pass
+        while (job := self._jobs.get()) is not None:
+            self._idle.wait(self.BUSY_WAIT_S)
+            job.run_if_unclaimed()
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            self._closed = True
+            if self._thread is not None:
+                self._jobs.put(None)
 
 
 class _Chain:
@@ -268,6 +331,10 @@ class FramePipeline:
             self._reconstructor = self._new_reconstructor()
         return self._reconstructor
 
+    @reconstructor.setter
+    def reconstructor(self, value: Any) -> None:
+        self._reconstructor = value
+
     def _new_reconstructor(self) -> Any:
         from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
 
@@ -284,10 +351,6 @@ class FramePipeline:
             rec.prepare(self.strain_sigma)
             self._chain_reconstructor = rec
         return self._chain_reconstructor
-
-    @reconstructor.setter
-    def reconstructor(self, value: Any) -> None:
-        self._reconstructor = value
 
     def adopt_reconstructor(self, reconstructor: Any) -> None:
         """Use `reconstructor` (one prepared for this geometry and these options) unless this

@@ -60,7 +60,8 @@ class ProcessingListener(QueuedListener):
     def handle(self, record: Record) -> None:
         assert isinstance(record, ScanReceived)
         try:
-            self._process(record)
+            with self._background.busy():  # the restart chain waits while a frame is under way
+                self._process(record)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
             self.errors += 1
             text = f"processing failed: {type(exc).__name__}: {exc}"

@@ -220,9 +220,9 @@ class GraphFit:
         self._band_index = (off[col + off < nc], col[col + off < nc])  # the band's entries, for _dense
         # the same entries as flat indices into the band and into a dense (nc, nc) Fortran array's
         # lower triangle: a band factor expands into a dense one in one gather
-        d, j = self._band_index
-        self._band_flat = d * nc + j
-        self._lower_flat = j * nc + (j + d)
+        band_d, band_j = self._band_index
+        self._band_flat = band_d * nc + band_j
+        self._lower_flat = band_j * nc + (band_j + band_d)
         self._lower_buffer: np.ndarray | None = None
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)

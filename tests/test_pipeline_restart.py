@@ -93,14 +93,28 @@ def test_worker_thread_gives_the_bits_of_the_inline_run():
         assert np.array_equal(threaded[seq], inline[seq]), seq
 
 
-def test_worker_runs_the_chain_off_the_calling_thread():
+def test_worker_runs_jobs_off_the_calling_thread_unless_asked_first():
     worker = WorkerBackground()
-    seen: list[str] = []
+    here = threading.current_thread().name
     try:
-        worker.submit(lambda: seen.append(threading.current_thread().name)).result()
+        ran = threading.Event()
+        seen: list[str] = []
+        first = worker.submit(lambda: (seen.append(threading.current_thread().name), ran.set()))
+        assert ran.wait(10.0)
+        first.result()
+        assert seen == [worker._name]
+        # a worker held up: a job not yet started runs on the thread that asks for its result
+        release = threading.Event()
+        busy = worker.submit(lambda: release.wait(10.0))
+        queued = worker.submit(lambda: threading.current_thread().name)
+        assert queued.result() == here
+        release.set()
+        assert busy.result() is True
+        failing = worker.submit(lambda: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            failing.result()
     finally:
         worker.close()
-    assert seen and seen[0] != threading.current_thread().name
 
 
 def test_a_failing_chain_is_dropped_and_the_frames_go_on(caplog):
@@ -132,3 +146,18 @@ def test_a_new_pipeline_continues_the_chain(switch_at):
     out.update(run(second, range(START + switch_at + 3, START + COUNT)))
     for seq in one:
         assert np.array_equal(one[seq], out[seq]), seq
+
+
+def test_worker_starts_no_job_while_the_frames_thread_is_busy():
+    worker = WorkerBackground()
+    worker.BUSY_WAIT_S = 5.0
+    started = threading.Event()
+    try:
+        worker.submit(lambda: None).result()  # the worker is up
+        with worker.busy():
+            job = worker.submit(started.set)
+            assert not started.wait(0.3)  # held back while the frame is under way
+        assert started.wait(5.0)  # and run once it is done
+        job.result()
+    finally:
+        worker.close()

@@ -27,7 +27,7 @@ from skinmap.client import SkinmapClient
 from skinmap.daemon.mcapinspect import inspect
 from skinmap.daemon.mcapread import iter_messages_file_order
 from skinmap.daemon.mcaplog import LogStorageError, McapLogger
-from skinmap.daemon.pipeline import GRAPH_RESTART_SCANS
+from skinmap.daemon.pipeline import GRAPH_SYNC_SCANS
 from skinmap.daemon.replay import replay_log
 from skinmap.daemon.gateway import default_log_sink
 from skinmap.daemon.service import Gateway
@@ -357,8 +357,8 @@ def test_rotation_under_load_every_file_standalone_and_no_gap(killed_daemon):
     for path in finished:  # each file replays alone, including those that start mid-stream
         rep = replays[str(path)]
         # A scan whose strains and elements straddle a rotation is compared in neither file; a
-        # file that starts mid-stream compares from the graph fit's first restart in it.
-        assert rep["compared"] > 0 and rep["unsynced"] < GRAPH_RESTART_SCANS, rep
+        # file that starts mid-stream compares from the first graph-fit restart taken over in it.
+        assert rep["compared"] > 0 and rep["unsynced"] < GRAPH_SYNC_SCANS, rep
         assert rep["processed"] - rep["compared"] - rep["unsynced"] <= 1, rep
     worst_m = max(r["max_position_diff_m"] for r in replays.values())
     identical = sum(r["identical"] for r in replays.values())
@@ -406,7 +406,7 @@ def test_sigkill_mid_write_leaves_readable_files_losing_at_most_one_chunk(killed
     again = inspect(recovered)
     assert again.end.complete and again.topics["/raw"].count == report.topics["/raw"].count
     rep = replay_like_the_daemon([recovered])[str(recovered)]
-    # (it starts mid-stream: scans before the graph fit's first restart in it are not comparable)
+    # (it starts mid-stream: scans before the first graph-fit restart taken over in it are not comparable)
     assert rep["compared"] + rep["unsynced"] > 0 and rep["max_position_diff_m"] < 1e-9, rep
     print(f"FIGURE SIGKILL at {KILL_RATE_HZ:g} scans/s, chunk {CHUNK_KB} KiB: cut tail "
           f"{end.file_bytes - end.valid_bytes} bytes, last logged message {lost_s * 1e3:.0f} ms before the kill, "
