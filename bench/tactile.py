@@ -12,16 +12,19 @@ each letter its own run) or all four in its quadrants (``--wall quad``), raised 
 Baseline: 5 noisy frames of the free balloon.
 
 Scenes: *membrane* (the film solved on the pressed balloon: tension 0.1 N/mm, p = 2T/R,
-bending stiffness 0.083 N·mm; walls.Membrane), *follows* (the sheet takes the wall's shape
-exactly), *bridges40* (the wall opened by a 40 mm ball).  Surfaces: "scene" stitches the
-scene's own sheet positions (the mapping alone); "reconstructed" runs the whole chain: gauge
-strains with strain noise s.d. 0.0057 % → reconstruction → mapping.  Poses given or estimated.
+bending stiffness 0.083 N·mm, the balloon wall's stretch E·t 3 N/mm; walls.Membrane),
+*follows* (the sheet takes the wall's shape exactly), *bridges40* (the wall opened by a 40 mm
+ball).  Surfaces: "true frame" stitches the scene's own sheet positions in the probe's true
+frame (what the sheet's surface says of the wall at best); "scene" the same positions through
+the mapping (registered onto the baseline by the rim: the mapping alone); "reconstructed" runs
+the whole chain: gauge strains with strain noise s.d. 0.0057 % → reconstruction → mapping.
+Poses given or estimated.
 
 Per row: "vs relief": mean and 90th percentile |stitched − relief| over the map cells where the
 sheet touched the wall in some press (clearance < 0.05 mm; the relief is only felt there);
-"vs membrane": mean and p90 |stitched − the map stitched from the scene's own sheet surfaces
-with the true poses| over every mapped cell (what the sheet can measure at best); coverage of
-the wall's square; the share of mapped cells the sheet touched; time per press.
+"vs membrane": mean and p90 |stitched − the "true frame" map| over every mapped cell (the
+sheet's own surface: what it can measure at best); coverage of the wall's square; the share
+of mapped cells the sheet touched; time per press.
 """
 from __future__ import annotations
 
@@ -32,11 +35,12 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from skinmap.daemon.tactile import (ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,  # noqa: E402
+from skinmap.daemon.tactile import (Contact, ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,  # noqa: E402
                                     stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
@@ -47,9 +51,10 @@ NOISE = 0.0057e-2
 TOUCH_MM = 0.05  # clearance below which the sheet counts as touching the wall
 
 
-def _scene_shape(name: str, wall: LetterRelief, p: ProbePose) -> BalloonOnWall:
+def _scene_shape(name: str, wall: LetterRelief, p: ProbePose, reach: float) -> BalloonOnWall:
     if name == "membrane":
-        return BalloonOnWall(wall, (p.x_mm, p.y_mm), p.angle_deg, p.depth_mm, membrane=Membrane())
+        # the film solved out to 5 mm beyond the sheet's corners (at least 50 mm)
+        return BalloonOnWall(wall, (p.x_mm, p.y_mm), p.angle_deg, p.depth_mm, membrane=Membrane(half=max(50.0, reach + 5.0)))
     if name == "follows":
         return BalloonOnWall(wall, (p.x_mm, p.y_mm), p.angle_deg, p.depth_mm)
     if name.startswith("bridges"):
@@ -106,7 +111,7 @@ def main() -> None:
                      for k, y in enumerate(centres) for x in (centres if k % 2 == 0 else centres[::-1])]
             for scene_name in args.scenes.split(","):
                 t0 = time.perf_counter()
-                shapes = [_scene_shape(scene_name, wall, p) for p in poses]
+                shapes = [_scene_shape(scene_name, wall, p, 0.5 * n * pitch * 2 ** 0.5) for p in poses]
                 t_scene = (time.perf_counter() - t0) / len(poses)
                 touched = _touched(ReliefMap(120.0, 1.0), shapes, dense_uv)
                 sheet_map = None  # the sheet's own true surface, stitched with the true poses
@@ -114,22 +119,28 @@ def main() -> None:
                 def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
                     return shape.position(uv), None
 
+                def true_frame(contact: Contact | None, shape: ph.Shape) -> Contact | None:
+                    # the contact found as ever, its samples left in the probe's true frame
+                    # (no registration onto the baseline by the rim)
+                    return None if contact is None else replace(contact, positions=shape.position(uv))
+
                 def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
                     eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
                     surf = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape),
                                        pitch, 0.2, 0.2)
                     return surf.locate(uv)[0], surf.locate_sigma(uv)
 
-                for name, surface in (("scene", scene), ("reconstructed", reconstructed)):
+                for name, surface in (("true frame", scene), ("scene", scene), ("reconstructed", reconstructed)):
                     base = capture_baseline([(surface(free)[0], free.normal(uv)) for _ in range(5)])
                     t0 = time.perf_counter()
                     contacts = []
                     for shape in shapes:
                         pos, sig = surface(shape)
-                        contacts.append(detect_contact(pos, base, grid, min_depth_mm=args.min_depth, sigma=sig))
+                        c = detect_contact(pos, base, grid, min_depth_mm=args.min_depth, sigma=sig)
+                        contacts.append(true_frame(c, shape) if name == "true frame" else c)
                     t_detect = (time.perf_counter() - t0) / len(poses)
                     kept = [(c, p) for c, p in zip(contacts, poses) if c is not None]
-                    for mode in ("given",) if args.quick else ("given", "estimated"):
+                    for mode in ("given",) if args.quick or name == "true frame" else ("given", "estimated"):
                         relief = ReliefMap(120.0, 1.0)
                         t0 = time.perf_counter()
                         if mode == "given":
@@ -156,7 +167,7 @@ def main() -> None:
                               f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}", flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)
-                            out = f"{root}-{wall_name}-{scene_name}-{name}-{mode}{ext or '.png'}"
+                            out = f"{root}-{wall_name}-{scene_name}-{name.replace(' ', '')}-{mode}{ext or '.png'}"
                             write_png(relief, out, truth=np.where(relief.wall_region(), truth, np.nan))
                             print(f"(map written to {out})")
 
