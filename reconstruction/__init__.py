@@ -11,7 +11,6 @@ Per-geometry precomputation (operators and their factorisations) lives in a
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import threading
 import time
@@ -45,7 +44,7 @@ from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
-from .positionfit import PositionFit, PositionFitSettings, start_from_surface
+from .positionfit import ElasticFit, PositionFitSettings
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
@@ -207,7 +206,7 @@ class Reconstructor:
                              f"normal matrix grows as (N·M)²), got {self.n}x{self.m}")
         self.elastic_prior = elastic_prior
         self._position = (None if elastic_prior is None
-                          else PositionFit(self.n, self.m, self.pitch, self.gauge_length, elastic_prior))
+                          else ElasticFit(self.n, self.m, self.pitch, self.gauge_length, elastic_prior))
         self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
         # what the turning noise makes of the mean curvature product, measured on first use
@@ -557,16 +556,19 @@ class Reconstructor:
         previous frame's answer, else from this frame's answer and its mirror image; its answer
         replaces ``surf`` when the prior holds (its cost within ``max_prior_cost``), else ``surf``
         stays, saying why."""
-        pf = self._position
-        assert pf is not None and self.elastic_prior is not None
+        elastic = self._position
+        assert elastic is not None and self.elastic_prior is not None
+        pf = elastic.fine
         settings = self.elastic_prior
         fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         sig_t = math.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
         sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        data = (turning, stretch, valid, sig_t, sig_s)
         warm = previous.state.position if previous is not None else None
-        starts = ([warm] if warm is not None and warm.shape == (3, pf.nb)
-                  else [start_from_surface(pf, s) for s in (surf, surf.mirror) if s is not None])
-        results = [pf.fit(turning, stretch, valid, sig_t, sig_s, c) for c in starts]
+        if warm is not None and warm.shape == (3, pf.nb):
+            results = [elastic.warm(warm, *data)]
+        else:
+            results = [elastic.cold(s, *data) for s in (surf, surf.mirror) if s is not None]
         # the mirror image's fit replaces the answer only when the prior prefers it clearly
         if len(results) > 1 and results[0].cost > settings.mirror_cost_ratio * results[1].cost + 1e-9:
             results.reverse()
@@ -587,14 +589,11 @@ class Reconstructor:
             return _to_sensor_frame(grid, pos)
 
         pos = fine_positions(best.coeffs)
-        # Poisson's ratio is known to ±poisson_sd: the answers at ν ± sd bound what that costs
+        # Poisson's ratio is known to ±poisson_sd: the answer's first-order response to it
         spread = np.zeros((grid.nf, grid.mf))
         if settings.poisson_sd > 0:
-            for nu in (settings.poisson - settings.poisson_sd, settings.poisson + settings.poisson_sd):
-                shifted = PositionFit(self.n, self.m, self.pitch, self.gauge_length,
-                                      dataclasses.replace(settings, poisson=min(max(nu, 0.0), 0.499)))
-                moved = shifted.fit(turning, stretch, valid, sig_t, sig_s, best.coeffs, max_steps=settings.sd_steps)
-                spread = np.maximum(spread, np.linalg.norm(fine_positions(moved.coeffs) - pos, axis=-1))
+            moved = best.coeffs + settings.poisson_sd * pf.poisson_response(best, *data)
+            spread = np.linalg.norm(fine_positions(moved) - pos, axis=-1)
         base_sigma = surf._fine_sigma_fn
         misfit = math.sqrt(max(best.chi2, 1.0))
 

@@ -17,11 +17,18 @@ problem of the linearised residuals within a trust region, solved by Clarabel (a
 Huber slacks and the box |δ| ≤ Δ); ``step_solver="cholesky"`` solves the plain least-squares
 step instead (no Huber), for comparison.
 
+Each point touches 16 of the nb tensor B-splines, so the operators are kept sparse (`_PointDesign`):
+the local derivatives come by one batched complex step, the Jacobians are assembled into a fixed
+sparsity pattern, and JᵀJ of the equilibrium rows is a sum of 48×48 blocks.  A cold frame goes
+through `ElasticFit`: half the knots first (a turned saddle converges there in ~20 steps where the
+full basis crawls along the twist valley for 60+), then the full basis.
+
 Pure: `PositionFit` holds the operators of one geometry (built once); `fit` takes the frame's
 data and a start and returns a `PositionResult`.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -36,6 +43,7 @@ _DERIVATIVES = ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 # ∫|∇³f|² = Σ binomial-weighted squares of the third derivatives.
 _SMOOTH = {(3, 0): 1.0, (2, 1): 3.0, (1, 2): 3.0, (0, 3): 1.0}
 _STEP_CS = 1e-30  # complex step: derivatives exact to rounding
+_CLEARLY_LOWER = 1e-3  # a prior cost lower by less than this is rounding, not evidence
 
 
 class PositionResult(NamedTuple):
@@ -55,6 +63,51 @@ def _rows(bu: np.ndarray, bv: np.ndarray) -> np.ndarray:
     return (bv[:, :, None] * bu[:, None, :]).reshape(bu.shape[0], -1)
 
 
+class _PointDesign(NamedTuple):
+    """The basis at a set of points, kept sparse: at each point only the 4×4 tensor B-splines of
+    its knot span are nonzero (16 of nb), so evaluation and Jacobians cost O(16) per point."""
+    idx: np.ndarray   # (P, 16) coefficient index of each nonzero basis function
+    vals: dict        # derivative (du, dv) -> (P, 16) values
+    stack: np.ndarray  # (P, D, 16) the same, derivatives in the order of ``vals``
+
+
+def _span_values(knots: np.ndarray, nb: int, x: np.ndarray, der: int, start: np.ndarray) -> np.ndarray:
+    """(P, 4): the der-th derivative of the 4 cubic B-splines of each point's span."""
+    dense = _design(knots, nb, x, der)
+    cols = start[:, None] + np.arange(4)
+    vals = np.take_along_axis(dense, cols, axis=1)
+    rest = np.abs(dense).sum(axis=1) - np.abs(vals).sum(axis=1)
+    if rest.max(initial=0.0) > 1e-9 * max(1.0, float(np.abs(dense).max(initial=0.0))):
+        raise AssertionError("B-spline support outside the point's knot span")
+    return vals
+
+
+def _span_start(knots: np.ndarray, nb: int, x: np.ndarray) -> np.ndarray:
+    breaks = np.unique(knots)
+    return np.clip(np.searchsorted(breaks, x, side="right") - 1, 0, nb - 4)
+
+
+class _Entries(NamedTuple):
+    rows: np.ndarray
+    cols: np.ndarray
+
+
+class _SparseRows:
+    """A sparse matrix of fixed pattern assembled from per-entry values (duplicates summed): the
+    pattern is sorted once, each step only adds values into their slots."""
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]):
+        key = rows.ravel().astype(np.int64) * shape[1] + cols.ravel()
+        unique, self._slot = np.unique(key, return_inverse=True)
+        self._indices = (unique % shape[1]).astype(np.int32)
+        self._indptr = np.searchsorted(unique // shape[1], np.arange(shape[0] + 1)).astype(np.int32)
+        self.shape = shape
+
+    def matrix(self, values: np.ndarray) -> sp.csr_matrix:
+        data = np.bincount(self._slot, weights=values.ravel(), minlength=self._indices.size)
+        return sp.csr_matrix((data, self._indices, self._indptr), shape=self.shape)
+
+
 def _turning(xu: np.ndarray, xv: np.ndarray, xaa: np.ndarray, xa: np.ndarray) -> np.ndarray:
     """Turning rate −x_aa·n/|x_a| (works on complex input for the complex step)."""
     nrm = np.cross(xu, xv)
@@ -62,7 +115,7 @@ def _turning(xu: np.ndarray, xv: np.ndarray, xaa: np.ndarray, xa: np.ndarray) ->
     return -(xaa * nrm).sum(-1) / np.sqrt((xa * xa).sum(-1))
 
 
-def _tangential_divergence(xu, xv, xuu, xuv, xvv, nu: float, full: bool = False) -> np.ndarray:
+def _tangential_divergence(xu, xv, xuu, xuv, xvv, nu: complex, full: bool = False) -> np.ndarray:
     """(2, P): x_u· and x_v· ∂_a(S^{ab} x_b), St Venant-Kirchhoff plane stress, shear modulus 1."""
     lam = 2.0 * nu / (1.0 - nu)
     e_uu, e_vv, e_uv = 0.5 * ((xu * xu).sum(-1) - 1), 0.5 * ((xv * xv).sum(-1) - 1), 0.5 * (xu * xv).sum(-1)
@@ -78,22 +131,23 @@ def _tangential_divergence(xu, xv, xuu, xuv, xvv, nu: float, full: bool = False)
            + 2 * s_uv[..., None] * xuv + s_vv[..., None] * xvv)
     if full:
         return div
-    return np.stack([(div * xu).sum(-1), (div * xv).sum(-1)])
+    return np.stack([(div * xu).sum(-1), (div * xv).sum(-1)], axis=-2)
 
 
 def _local_jacobian(fun, args: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     """fun(*args) (R, P) and its derivative by each component of each (P, 3) argument:
-    a list over arguments of (R, P, 3), by the complex step (exact, vectorised over points)."""
-    value = np.real(fun(*args))
-    out = []
-    for a in range(len(args)):
-        d = np.empty(value.shape + (3,))
-        for k in range(3):
-            shifted = [x.astype(complex) if i == a else x for i, x in enumerate(args)]
-            shifted[a][..., k] += 1j * _STEP_CS
-            d[..., k] = np.imag(fun(*shifted)) / _STEP_CS
-        out.append(d)
-    return value, out
+    a list over arguments of (R, P, 3), by the complex step (exact to rounding).  All 3·len(args)
+    directions go through ``fun`` at once, stacked on a leading axis (fun broadcasts over it)."""
+    n_dir = 3 * len(args)
+    stacked = []
+    for a, x in enumerate(args):
+        z = np.broadcast_to(x, (n_dir,) + x.shape).astype(complex)
+        z[3 * a + np.arange(3), :, np.arange(3)] += 1j * _STEP_CS
+        stacked.append(z)
+    out = fun(*stacked)  # (n_dir, R..., P)
+    value = np.real(out[0])
+    deriv = np.imag(out) / _STEP_CS
+    return value, [np.moveaxis(deriv[3 * a:3 * a + 3], 0, -1) for a in range(len(args))]
 
 
 @dataclass(frozen=True)
@@ -104,13 +158,15 @@ class PositionFitSettings:
     equilibrium_weight: float = 1e3
     smooth_weight: float = 0.1
     huber: float = 3.0              # noise s.d. where the gauge loss turns linear
-    max_steps: int = 40
+    max_steps: int = 40             # steps of a fit from the previous frame's answer
+    coarse_steps: int = 20          # cold: steps on half the knots first (its valley is far less
+    refine_steps: int = 10          # curved), then on the full basis
+    tolerance_mm: float = 1e-4      # converged when no coefficient (so no position) moves more
     step_solver: str = "cholesky"   # or "clarabel": Huber steps, each a QP
     # when Reconstructor(elastic_prior=...) uses the answer (measured: bench/equilibrium_prior.py)
     max_prior_cost: float = 3.0     # ½ w_eq² ∫|t|² beyond this: the prior does not hold
     max_chi2: float = 4.0           # gauges' χ² per datum beyond this: the answer misfits
     poisson_sd: float = 0.02        # how well ν is known; its effect is added to σ
-    sd_steps: int = 8               # steps of the fits at ν ± poisson_sd (from the answer)
     mirror_cost_ratio: float = 1.5  # the mirror image stays an answer within this ratio of costs
 
 
@@ -153,7 +209,8 @@ class PositionFit:
         # The sensor frame fixes the rigid motion every other term leaves free: the material
         # centre at the origin, its normal +z, the tangent of +u along +x (U = V = w = 0,
         # V_u = w_u = w_v = 0 at (0, 0)), as heavily weighted linear rows.
-        at0 = self._design(np.zeros(1), np.zeros(1), ((0, 0), (1, 0), (0, 1)))
+        at0 = {d: _rows(_design(self.ku, self.nbu, np.zeros(1), d[0]), _design(self.kv, self.nbv, np.zeros(1), d[1]))
+               for d in ((0, 0), (1, 0), (0, 1))}
         zero = np.zeros((1, nb))
         frame = np.vstack([
             np.hstack([at0[(0, 0)], zero, zero]), np.hstack([zero, at0[(0, 0)], zero]),
@@ -161,18 +218,43 @@ class PositionFit:
             np.hstack([zero, zero, at0[(1, 0)]]), np.hstack([zero, zero, at0[(0, 1)]]),
         ])
         self._frame = 1e6 * frame.T @ frame
+        self._prior_matrix = sla.block_diag(self._smooth, self._smooth, self._smooth) + self._frame
         self._centres = _rows(_design(self.ku, self.nbu, np.tile(self.uc, n), 0),
                               _design(self.kv, self.nbv, np.repeat(self.vc, m), 0))
+        # Jacobian patterns: the gauges' rows (turning u, v gauges, then stretch u, v; each the
+        # mean over its q points) and the equilibrium's (component, point).
+        nm, q = n * m, quadrature
+        gauge_of = np.repeat(np.arange(nm), q)[None, :]
+        self._gauge_pattern = [self._pattern(self._gauge[a], gauge_of + (kind * 2 + a) * nm, 4 * nm)
+                               for kind in (0, 1) for a in (0, 1)]
+        self._gauge_rows = _SparseRows(
+            np.concatenate([pt.rows for pt in self._gauge_pattern]),
+            np.concatenate([pt.cols for pt in self._gauge_pattern]), (4 * nm, 3 * nb))
+        p_eq = eu.size
+        self._eq_rows_pattern = self._pattern(self._points, np.arange(2 * p_eq).reshape(2, p_eq), 2 * p_eq)
+        self._eq_rows = _SparseRows(self._eq_rows_pattern.rows, self._eq_rows_pattern.cols, (2 * p_eq, 3 * nb))
+        local_cols = (np.arange(3)[None, :, None] * nb + self._points.idx[:, None, :]).reshape(p_eq, 48)
+        self._eq_pairs = (local_cols[:, :, None] * (3 * nb) + local_cols[:, None, :]).ravel()
 
-    def _design(self, pu: np.ndarray, pv: np.ndarray, ders) -> dict:
-        return {d: _rows(_design(self.ku, self.nbu, pu, d[0]), _design(self.kv, self.nbv, pv, d[1])) for d in ders}
+    def _design(self, pu: np.ndarray, pv: np.ndarray, ders) -> _PointDesign:
+        pu, pv = np.asarray(pu, float), np.asarray(pv, float)
+        su, sv = _span_start(self.ku, self.nbu, pu), _span_start(self.kv, self.nbv, pv)
+        idx = ((sv[:, None] + np.arange(4))[:, :, None] * self.nbu + (su[:, None] + np.arange(4))[:, None, :])
+        vals = {}
+        for d in ders:
+            bu = _span_values(self.ku, self.nbu, pu, d[0], su)
+            bv = _span_values(self.kv, self.nbv, pv, d[1], sv)
+            vals[d] = (bv[:, :, None] * bu[:, None, :]).reshape(pu.size, 16)
+        return _PointDesign(idx.reshape(pu.size, 16), vals, np.stack(list(vals.values()), axis=1))
 
     @staticmethod
-    def _x(c: np.ndarray, mats: dict) -> dict:
-        """Derivatives of the position at the points of ``mats``, (P, 3) each; c is (3, nb)."""
+    def _x(c: np.ndarray, design: _PointDesign) -> dict:
+        """Derivatives of the position at the design's points, (P, 3) each; c is (3, nb)."""
+        local = np.asarray(c).T[design.idx]  # (P, 16, 3)
+        every = np.matmul(design.stack, local)  # (P, D, 3)
         out = {}
-        for d, mat in mats.items():
-            x = mat @ c.T
+        for i, d in enumerate(design.vals):
+            x = every[:, i]
             if d == (1, 0):
                 x[:, 0] += 1.0
             elif d == (0, 1):
@@ -180,13 +262,30 @@ class PositionFit:
             out[d] = x
         return out
 
+    def _pattern(self, design: _PointDesign, rows: np.ndarray, n_rows: int) -> "_Entries":
+        """The Jacobian entries of residual rows ``rows`` (R, P) over the design's points:
+        (R, P, 3 components, 16), column k·nb + idx."""
+        cols = np.arange(3)[None, :, None] * self.nb + design.idx[:, None, :]  # (P, 3, 16)
+        cols = np.broadcast_to(cols[None], rows.shape + (3, 16))
+        return _Entries(np.broadcast_to(rows[:, :, None, None], cols.shape).ravel(), cols.ravel())
+
     def gauge_model(self, c: np.ndarray, jacobian: bool = False):
         """Turning and stretch of every gauge (2, n·m) each; with ``jacobian`` also their
-        derivatives by the coefficients, (2, n·m, 3·nb) each."""
-        turning, stretch, jt, js = [], [], [], []
+        derivatives by the coefficients, (2, n·m, 3·nb) each (dense: for inspection)."""
+        if not jacobian:
+            return self._gauges(c, False)[:2]
+        t, s, jac = self._gauges(c, True)
+        dense = jac.toarray().reshape(2, 2, self.n * self.m, -1)
+        return t, s, dense[0], dense[1]
+
+    def _gauges(self, c: np.ndarray, jacobian: bool):
+        """Turning, stretch (2, n·m) and, with ``jacobian``, their sparse Jacobian (4·n·m, 3·nb):
+        rows turning of the u then v gauges, then stretch of the u then v gauges."""
+        turning, stretch, t_vals, s_vals = [], [], [], []
         nm, q = self.n * self.m, self.q
-        for a, mats in enumerate(self._gauge):
-            x = self._x(c, mats)
+        wq = np.tile(self.wq, nm)[:, None, None]
+        for a, design in enumerate(self._gauge):
+            x = self._x(c, design)
             da = (1, 0) if a == 0 else (0, 1)
             daa = (2, 0) if a == 0 else (0, 2)
             xu, xv, xa, xaa = x[(1, 0)], x[(0, 1)], x[da], x[daa]
@@ -196,38 +295,53 @@ class PositionFit:
                 turning.append(_turning(xu, xv, xaa, xa).reshape(nm, q) @ self.wq)
                 continue
             # turning depends on x_u, x_v, x_aa (x_a is x_u or x_v)
-            args = [xu, xv, xaa]
-            val, (g_u, g_v, g_aa) = _local_jacobian(lambda p, r, t: _turning(p, r, t, p if a == 0 else r), args)
+            val, (g_u, g_v, g_aa) = _local_jacobian(lambda p, r, t: _turning(p, r, t, p if a == 0 else r), [xu, xv, xaa])
             turning.append(val.reshape(nm, q) @ self.wq)
-            rows_t = np.zeros((nm * q, 3 * self.nb))
-            rows_s = np.zeros((nm * q, 3 * self.nb))
-            ds = xa / length[:, None]
-            for k in range(3):
-                cols = slice(k * self.nb, (k + 1) * self.nb)
-                rows_t[:, cols] = (g_u[:, k:k + 1] * mats[(1, 0)] + g_v[:, k:k + 1] * mats[(0, 1)]
-                                   + g_aa[:, k:k + 1] * mats[daa])
-                rows_s[:, cols] = ds[:, k:k + 1] * mats[da]
-            jt.append(np.einsum("gqc,q->gc", rows_t.reshape(nm, q, -1), self.wq))
-            js.append(np.einsum("gqc,q->gc", rows_s.reshape(nm, q, -1), self.wq))
-        if jacobian:
-            return np.array(turning), np.array(stretch), np.array(jt), np.array(js)
-        return np.array(turning), np.array(stretch)
+            vals = design.vals
+            t_vals.append(wq * (g_u[:, :, None] * vals[(1, 0)][:, None, :] + g_v[:, :, None] * vals[(0, 1)][:, None, :]
+                                + g_aa[:, :, None] * vals[daa][:, None, :]))
+            s_vals.append(wq * ((xa / length[:, None])[:, :, None] * vals[da][:, None, :]))
+        if not jacobian:
+            return np.array(turning), np.array(stretch), None
+        jac = self._gauge_rows.matrix(np.concatenate([t_vals[0].ravel(), t_vals[1].ravel(),
+                                                      s_vals[0].ravel(), s_vals[1].ravel()]))
+        return np.array(turning), np.array(stretch), jac
 
     def equilibrium(self, c: np.ndarray, jacobian: bool = False):
-        """Weighted tangential equilibrium residuals (2·P,), and with ``jacobian`` (2·P, 3·nb)."""
+        """Weighted tangential equilibrium residuals (2·P,), and with ``jacobian`` (2·P, 3·nb)
+        (dense: for inspection)."""
+        if not jacobian:
+            return self._equilibrium(c, False)[0]
+        r, lin = self._equilibrium(c, True)
+        return r, lin.matrix.toarray()
+
+    def _equilibrium(self, c: np.ndarray, jacobian: bool, poisson: float | None = None):
         x = self._x(c, self._points)
         args = [x[d] for d in _DERIVATIVES]
-        nu = self.settings.poisson
+        nu = self.settings.poisson if poisson is None else poisson
         if not jacobian:
-            return self._eq_scale * _tangential_divergence(args[0], args[1], args[2], args[3], args[4], nu).ravel()
+            return self._eq_scale * _tangential_divergence(args[0], args[1], args[2], args[3], args[4], nu).ravel(), None
         val, grads = _local_jacobian(lambda xu, xv, xuu, xuv, xvv: _tangential_divergence(xu, xv, xuu, xuv, xvv, nu), args)
-        p = args[0].shape[0]
-        jac = np.zeros((2, p, 3 * self.nb))
-        for d, g in zip(_DERIVATIVES, grads):
-            mat = self._points[d]
-            for k in range(3):
-                jac[:, :, k * self.nb:(k + 1) * self.nb] += g[:, :, k, None] * mat[None]
-        return self._eq_scale * val.ravel(), self._eq_scale * jac.reshape(2 * p, -1)
+        # entries (2, P, 3, 16) = Σ_d ∂r/∂x_d · B_d: one batched product over the derivatives
+        by_der = np.stack(grads, axis=-1)  # (2, P, 3, D)
+        entries = self._eq_scale * np.matmul(by_der, self._points.stack[None])
+        return self._eq_scale * val.ravel(), _Linear(self._eq_rows.matrix(entries), entries)
+
+    def _equilibrium_normal(self, entries: np.ndarray) -> np.ndarray:
+        """J_eᵀJ_e (3·nb)² dense, from the (2, P, 3, 16) entries: each point's rows touch only its
+        48 columns, so the product is a sum of 48×48 blocks scattered into place."""
+        p = entries.shape[1]
+        local = entries.transpose(1, 0, 2, 3).reshape(p, 2, 48)
+        blocks = np.matmul(local.transpose(0, 2, 1), local)
+        size = 3 * self.nb
+        return np.bincount(self._eq_pairs, weights=blocks.ravel(), minlength=size * size).reshape(size, size)
+
+    def poisson_sensitivity(self, c: np.ndarray) -> np.ndarray:
+        """∂(weighted equilibrium residuals)/∂ν at c, (2·P,) (complex step in ν)."""
+        x = self._x(c, self._points)
+        args = [x[d] for d in _DERIVATIVES]
+        nu = complex(self.settings.poisson, _STEP_CS)
+        return self._eq_scale * np.imag(_tangential_divergence(*args, nu)).ravel() / _STEP_CS
 
     def tangential_fraction(self, c: np.ndarray) -> float:
         """How far the answer is from a normally loaded film: ∫|t|² / ∫|∂_a(S^{ab} x_b)|², the share
@@ -257,6 +371,16 @@ class PositionFit:
         x[(0, 0)][:, 1] += v
         return x[(0, 0)], x[(1, 0)], x[(0, 1)]
 
+    def transfer(self, coarser: "PositionFit") -> np.ndarray:
+        """(nb, nb_coarser): the coefficients of ``coarser``'s splines in this basis. Exact when its
+        knots are a subset of these (a fit on half the knots, refined here)."""
+        u = np.linspace(self.ku[0], self.ku[-1], 4 * self.nbu + 1)
+        v = np.linspace(self.kv[0], self.kv[-1], 4 * self.nbv + 1)
+        uu, vv = (a.ravel() for a in np.meshgrid(u, v))
+        mine = _rows(_design(self.ku, self.nbu, uu, 0), _design(self.kv, self.nbv, vv, 0))
+        theirs = _rows(_design(coarser.ku, coarser.nbu, uu, 0), _design(coarser.kv, coarser.nbv, vv, 0))
+        return sla.lstsq(mine, theirs)[0]
+
     def coeffs_from_positions(self, u: np.ndarray, v: np.ndarray, pos: np.ndarray) -> np.ndarray:
         """Least-squares coefficients (3, nb) of positions (P, 3) at material points (P,)."""
         design = _rows(_design(self.ku, self.nbu, u, 0), _design(self.kv, self.nbv, v, 0))
@@ -269,30 +393,26 @@ class PositionFit:
         """Gauss-Newton from ``start`` (3, nb). turning, stretch, valid: (2, n, m) unit data."""
         st = self.settings
         steps_allowed = st.max_steps if max_steps is None else max_steps
-        nb3 = 3 * self.nb
-        valid_rows = np.concatenate([valid.reshape(2, -1).ravel()] * 2)
-        data = np.concatenate([turning.reshape(-1), stretch.reshape(-1)])
-        scale = np.concatenate([np.full(turning.size, sigma_t), np.full(stretch.size, sigma_s)])
-        smooth = sla.block_diag(self._smooth, self._smooth, self._smooth) + self._frame
+        problem = _Problem(np.concatenate([turning.reshape(-1), stretch.reshape(-1)]),
+                           np.concatenate([np.full(turning.size, sigma_t), np.full(stretch.size, sigma_s)]),
+                           np.concatenate([valid.reshape(2, -1).ravel()] * 2))
+        smooth = self._prior_matrix
         c = np.asarray(start, float).reshape(-1).copy()
         damping = 1e-4  # Levenberg-Marquardt: relative to the diagonal; adapted per step
         status = "max_steps"
         steps = 0
         cost = None
         for steps in range(1, steps_allowed + 1):
-            t, s, jt, js = self.gauge_model(c.reshape(3, -1), jacobian=True)
-            r_g = (np.concatenate([t.ravel(), s.ravel()]) - data) / scale
-            j_g = np.concatenate([jt.reshape(-1, nb3), js.reshape(-1, nb3)]) / scale[:, None]
-            r_g, j_g = r_g[valid_rows], j_g[valid_rows]
-            r_e, j_e = self.equilibrium(c.reshape(3, -1), jacobian=True)
+            r_g, j_g, r_e, j_e = self._linearised(c, problem)
             if cost is None:
                 cost = self._cost(r_g, r_e, c, smooth)
             # The Gauss-Newton matrix, formed once per step: gauges inside the Huber threshold
             # weigh fully, those beyond it not at all (the loss's curvature there).
             w_g = (np.abs(r_g) <= st.huber).astype(float) if st.step_solver == "clarabel" else np.ones(r_g.size)
-            prior_h = j_e.T @ j_e + smooth
+            prior_h = self._equilibrium_normal(j_e.entries) + smooth
+            j_e = j_e.matrix
             prior_g = j_e.T @ r_e + smooth @ c
-            normal = prior_h + (j_g * w_g[:, None]).T @ j_g
+            normal = prior_h + (j_g.T @ (j_g if st.step_solver == "cholesky" else sp.diags(w_g) @ j_g)).toarray()
             diag = np.diag(normal).copy()
             gradient = prior_g + j_g.T @ (w_g * r_g)
             if float(np.abs(gradient).max()) <= 1e-9 * max(1.0, cost):
@@ -303,21 +423,23 @@ class PositionFit:
                 if st.step_solver == "cholesky":
                     delta = -sla.cho_solve(factor, prior_g + j_g.T @ r_g)
                 else:
-                    delta = _clarabel_step(prior_h + damping * np.diag(diag), prior_g, r_g, j_g, st.huber, None)
+                    delta = _clarabel_step(prior_h + damping * np.diag(diag), prior_g, r_g, j_g.toarray(), st.huber,
+                                           None)
                 trial = c + delta
                 if self._accelerate:
-                    trial = trial + self._acceleration(c, delta, r_g, j_g, r_e, j_e, w_g, data, scale, valid_rows,
-                                                       factor)
-                new_cost = self._total_cost(trial, data, scale, valid_rows, smooth)
+                    trial = trial + self._acceleration(c, delta, r_g, j_g, r_e, j_e, w_g, problem, factor)
+                new_cost = self._total_cost(trial, problem, smooth)
                 if new_cost <= cost:
                     break
                 damping *= 8.0
             else:
                 status = "stalled"
                 break
+            moved = float(np.abs(trial - c).max())
             c, improvement, cost = trial, cost - new_cost, new_cost
             damping = max(damping / 4.0, 1e-9)
-            if improvement <= 1e-10 * max(cost, 1.0):
+            # positions are convex combinations of the coefficients: none moved more than this
+            if improvement <= 1e-10 * max(cost, 1.0) or moved <= st.tolerance_mm:
                 status = "converged"
                 break
         t, s = self.gauge_model(c.reshape(3, -1))
@@ -330,19 +452,46 @@ class PositionFit:
         return PositionResult(c.reshape(3, -1), chi2, steps, status, 0.5 * float(r_e @ r_e), float(cost or 0.0),
                               weights, rt, rs)
 
+    def poisson_response(self, result: PositionResult, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray,
+                         sigma_t: float, sigma_s: float, damping: float = 1e-8) -> np.ndarray:
+        """dc/dν (3, nb): how the answer moves per unit of Poisson's ratio, by the implicit function
+        theorem at the fit's optimum (one solve with its Gauss-Newton matrix), in place of refits."""
+        problem = _Problem(np.concatenate([turning.reshape(-1), stretch.reshape(-1)]),
+                           np.concatenate([np.full(turning.size, sigma_t), np.full(stretch.size, sigma_s)]),
+                           np.concatenate([valid.reshape(2, -1).ravel()] * 2))
+        c = result.coeffs.reshape(-1)
+        _, j_g, _, j_e = self._linearised(c, problem)
+        normal = self._equilibrium_normal(j_e.entries) + (j_g.T @ j_g).toarray() + self._prior_matrix
+        j_e = j_e.matrix
+        rhs = j_e.T @ self.poisson_sensitivity(c.reshape(3, -1))
+        # damped as the fit's own steps are: along a direction the data and the prior leave
+        # (nearly) free, the linear response is unbounded while the true one is not
+        normal += damping * np.diag(np.diag(normal))
+        return -sla.solve(normal, rhs, assume_a="pos").reshape(3, -1)
+
     _accelerate = True
 
-    def _residuals(self, c, data, scale, valid_rows) -> tuple[np.ndarray, np.ndarray]:
-        t, s = self.gauge_model(c.reshape(3, -1))
-        r_g = ((np.concatenate([t.ravel(), s.ravel()]) - data) / scale)[valid_rows]
-        return r_g, self.equilibrium(c.reshape(3, -1))
+    def _linearised(self, c: np.ndarray, problem: "_Problem"):
+        """Gauge residuals/σ and equilibrium residuals at c, with their sparse Jacobians."""
+        t, s, jt = self._gauges(c.reshape(3, -1), True)
+        keep = problem.valid_rows
+        r_g = ((np.concatenate([t.ravel(), s.ravel()]) - problem.data) / problem.scale)[keep]
+        jt.data /= np.repeat(problem.scale, np.diff(jt.indptr))
+        j_g = jt if keep.all() else jt[keep]
+        r_e, j_e = self._equilibrium(c.reshape(3, -1), True)
+        return r_g, j_g, r_e, j_e
 
-    def _acceleration(self, c, delta, r_g, j_g, r_e, j_e, w_g, data, scale, valid_rows, factor) -> np.ndarray:
+    def _residuals(self, c, problem: "_Problem") -> tuple[np.ndarray, np.ndarray]:
+        t, s, _ = self._gauges(c.reshape(3, -1), False)
+        r_g = ((np.concatenate([t.ravel(), s.ravel()]) - problem.data) / problem.scale)[problem.valid_rows]
+        return r_g, self._equilibrium(c.reshape(3, -1), False)[0]
+
+    def _acceleration(self, c, delta, r_g, j_g, r_e, j_e, w_g, problem: "_Problem", factor) -> np.ndarray:
         """Geodesic acceleration (Transtrum & Sethna): the second-order correction along δ, from one
         more residual evaluation and the step's own factorisation; it lets a step follow a curved
         valley (the twist family)."""
         h = 0.1
-        g2, e2 = self._residuals(c + h * delta, data, scale, valid_rows)
+        g2, e2 = self._residuals(c + h * delta, problem)
         rvv_g = (2.0 / h) * ((g2 - r_g) / h - j_g @ delta)
         rvv_e = (2.0 / h) * ((e2 - r_e) / h - j_e @ delta)
         acc = -sla.cho_solve(factor, j_g.T @ (w_g * rvv_g) + j_e.T @ rvv_e)
@@ -359,11 +508,58 @@ class PositionFit:
         gauge = self._huber(r_g) if self.settings.step_solver == "clarabel" else 0.5 * float(r_g @ r_g)
         return gauge + 0.5 * float(r_e @ r_e) + 0.5 * float(c @ smooth @ c)
 
-    def _total_cost(self, c, data, scale, valid_rows, smooth) -> float:
-        t, s = self.gauge_model(c.reshape(3, -1))
-        r_g = ((np.concatenate([t.ravel(), s.ravel()]) - data) / scale)[valid_rows]
-        r_e = self.equilibrium(c.reshape(3, -1))
+    def _total_cost(self, c, problem: "_Problem", smooth) -> float:
+        r_g, r_e = self._residuals(c, problem)
         return self._cost(r_g, r_e, c, smooth)
+
+
+class _Linear(NamedTuple):
+    matrix: sp.csr_matrix   # the Jacobian
+    entries: np.ndarray     # its per-point entries (2, P, 3, 16), for the normal matrix
+
+
+class _Problem(NamedTuple):
+    data: np.ndarray        # turning then stretch, per gauge (4·n·m,)
+    scale: np.ndarray       # their noise s.d.
+    valid_rows: np.ndarray  # which rows have data
+
+
+class ElasticFit:
+    """The position fit on two levels for one geometry: a cold frame is fitted on half the knots
+    first, then refined on the full basis, and also refined directly from the start it is given;
+    the lower objective wins (the coarse level finds a turned saddle in a few steps where the full
+    basis crawls along its valley; the direct refinement keeps an answer that was right already).
+    A warm frame (the previous answer's coefficients) is refined directly."""
+
+    def __init__(self, n: int, m: int, pitch: float, gauge_length: float,
+                 settings: PositionFitSettings = PositionFitSettings()):
+        self.settings = settings
+        self.fine = PositionFit(n, m, pitch, gauge_length, settings)
+        self.coarse = (None if settings.knots_per_pitch < 2 else
+                       PositionFit(n, m, pitch, gauge_length,
+                                   dataclasses.replace(settings, knots_per_pitch=settings.knots_per_pitch // 2)))
+        self._transfer = None if self.coarse is None else self.fine.transfer(self.coarse)
+
+    def cold(self, surf, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float,
+             sigma_s: float) -> PositionResult:
+        """From a reconstructed surface (the default answer, or its mirror image)."""
+        st = self.settings
+        data = (turning, stretch, valid, sigma_t, sigma_s)
+        direct = self.fine.fit(*data, start_from_surface(self.fine, surf), max_steps=st.refine_steps)
+        if self.coarse is None or self._transfer is None:
+            return direct
+        rough = self.coarse.fit(*data, start_from_surface(self.coarse, surf), max_steps=st.coarse_steps)
+        refined = self.fine.fit(*data, rough.coeffs @ self._transfer.T, max_steps=st.refine_steps)
+        # The start stays unless the other is better overall and clearly better by the prior: where
+        # the film carries no stress (an isometric cylinder) there is no prior, the two differ by
+        # the smoothness term alone, and that is no evidence against the start.
+        clearly = (refined.cost < direct.cost and refined.prior_cost < direct.prior_cost / st.mirror_cost_ratio
+                   and direct.prior_cost - refined.prior_cost > _CLEARLY_LOWER)
+        return refined if clearly else direct
+
+    def warm(self, coeffs: np.ndarray, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray,
+             sigma_t: float, sigma_s: float) -> PositionResult:
+        return self.fine.fit(turning, stretch, valid, sigma_t, sigma_s, coeffs)
 
 
 def start_from_surface(fit: PositionFit, surf) -> np.ndarray:
