@@ -3,7 +3,8 @@
 elastic scenes of bench/elastic_dataset.py (docs/reconstruction.md, "Elastic films").
 
 Run: .venv/bin/python bench/equilibrium_prior.py [--cases saddle:0,poisson_0.3:1] [--nu true,0.4]
-     [--solver cholesky|clarabel] [--max-steps 40] [--bias 0.3] [--reconstructor]
+     [--solver cholesky|clarabel] [--max-steps 40] [--bias 0.3] [--reconstructor [--noise S --draws K]]
+     [--airy]
 
 Each case is ``class:index`` of bench/elastic_dataset.py (5×5 cells, 12 mm pitch, seed 2024),
 noise-free unless ``--noise`` is given.  The fit starts from the default reconstruction's surface.
@@ -43,17 +44,22 @@ DEFAULT_CASES = ",".join(f"{k}:{i}" for k in ("bump", "sphere_convex", "sphere_c
                                               "friction_1e-3") for i in (0, 1))
 
 
-def run_case(key: str, index: int, nu_modes: list[str], solver: str, max_steps: int, bias: float, noise: float) -> None:
+def _scene(key: str, index: int, noise: float, draw: int = 0):
+    """The dataset's case: its plan, gauge strains (with the dataset's noise draw) and true nodes."""
     plan = ed.class_plans(key, 2024, index + 1, 5)[index]
     shape, _, _ = ed.solve_scene(plan)
     eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
     if noise > 0:
-        nu_, nl_ = ed.noise_draw(plan, 0, noise, eu.shape)
+        nu_, nl_ = ed.noise_draw(plan, draw, noise, eu.shape)
         eu, el = eu + nu_, el + nl_
+    return plan, eu, el, ph.ground_truth(shape, 5, 5, PITCH).nodes
+
+
+def run_case(key: str, index: int, nu_modes: list[str], solver: str, max_steps: int, bias: float, noise: float) -> None:
+    plan, eu, el, truth = _scene(key, index, noise)
     if bias:
         eu = eu.copy()
         eu[0, 1, 2] *= 1.0 + bias
-    truth = ph.ground_truth(shape, 5, 5, PITCH).nodes
     kw = {} if plan.twist_sign is None else {"twist_sign": plan.twist_sign}
     surf = reconstruct(eu, el, PITCH, H, H, **kw)
     default_error = node_errors(surf.nodes, truth).mean()
@@ -72,37 +78,53 @@ def run_case(key: str, index: int, nu_modes: list[str], solver: str, max_steps: 
               f"| {res.prior_cost:8.3g} | {res.steps:2d} {res.status:9s} | {1e3 * seconds:6.0f} |", flush=True)
 
 
-def run_reconstructor(key: str, index: int, nu_modes: list[str], max_steps: int, noise: float) -> tuple[int, int]:
-    """One case through Reconstructor(elastic_prior=...); returns (cases, covered)."""
+def run_reconstructor(key: str, index: int, nu_modes: list[str], max_steps: int, noise: float,
+                      draws: int) -> tuple[int, int]:
+    """One case through Reconstructor(elastic_prior=...), per ν and noise draw; returns (runs, covered)."""
     from skinmap.reconstruction import Reconstructor
 
-    plan = ed.class_plans(key, 2024, index + 1, 5)[index]
+    covered = runs = 0
+    for draw in range(draws):
+        plan, eu, el, truth = _scene(key, index, noise, draw)
+        kw = {} if plan.twist_sign is None else {"twist_sign": plan.twist_sign}
+        sigma_kw = {"strain_sigma": noise} if noise > 0 else {}
+        default = reconstruct(eu, el, PITCH, H, H, **kw, **sigma_kw)
+        true_nu = float(plan.elastic.get("poisson", 0.48))
+        for mode in nu_modes:
+            nu = true_nu if mode == "true" else float(mode)
+            rec = Reconstructor(5, 5, PITCH, H, H, GAUGE,
+                                elastic_prior=PositionFitSettings(poisson=nu, max_steps=max_steps))
+            t0 = time.process_time()
+            surf = rec(eu, el, **kw, **sigma_kw)
+            seconds = time.process_time() - t0
+            error = node_errors(surf.nodes, truth).mean()
+            sigma = float(surf.node_sigma.mean())
+            ok = error <= 3 * sigma + 0.05
+            covered, runs = covered + ok, runs + 1
+            used = surf.diagnostics.extra.get("elastic_prior", "")
+            how = "used" if used == "used" else ("declined (Airy)" if "Airy" in used else "declined")
+            print(f"| {plan.spec[:52]:52s} | {draw} | {true_nu:.2f} | {nu:.2f} | {node_errors(default.nodes, truth).mean():7.4f} "
+                  f"| {float(default.node_sigma.mean()):6.3f} | {error:7.4f} | {sigma:6.3f} | {'yes' if ok else 'NO'} "
+                  f"| {how} | {surf.mirror is not None} | {seconds:5.1f} |", flush=True)
+    return runs, covered
+
+
+def run_airy(key: str, index: int, noise: float) -> None:
+    """The stretch pattern's Gaussian curvature against the scene's own (mean over the units' hull)."""
+    from skinmap.reconstruction.airy import airy_gaussian_curvature
+    from skinmap.reconstruction.engine import unit_data as units
+
+    plan, eu, el, _ = _scene(key, index, noise)
     shape, _, _ = ed.solve_scene(plan)
-    eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
-    if noise > 0:
-        nu_, nl_ = ed.noise_draw(plan, 0, noise, eu.shape)
-        eu, el = eu + nu_, el + nl_
-    truth = ph.ground_truth(shape, 5, 5, PITCH).nodes
-    kw = {} if plan.twist_sign is None else {"twist_sign": plan.twist_sign}
-    default = reconstruct(eu, el, PITCH, H, H, **kw)
-    true_nu = float(plan.elastic.get("poisson", 0.48))
-    covered = 0
-    for mode in nu_modes:
-        nu = true_nu if mode == "true" else float(mode)
-        rec = Reconstructor(5, 5, PITCH, H, H, GAUGE,
-                            elastic_prior=PositionFitSettings(poisson=nu, max_steps=max_steps))
-        t0 = time.process_time()
-        surf = rec(eu, el, **kw)
-        seconds = time.process_time() - t0
-        error = node_errors(surf.nodes, truth).mean()
-        sigma = float(surf.node_sigma.mean())
-        ok = error <= 3 * sigma + 0.05
-        covered += ok
-        used = surf.diagnostics.extra.get("elastic_prior", "")
-        print(f"| {plan.spec[:52]:52s} | {true_nu:.2f} | {nu:.2f} | {node_errors(default.nodes, truth).mean():7.4f} "
-              f"| {float(default.node_sigma.mean()):6.3f} | {error:7.4f} | {sigma:6.3f} | {'yes' if ok else 'NO'} "
-              f"| {'used' if used == 'used' else 'not used'} | {surf.mirror is not None} | {seconds:5.1f} |", flush=True)
-    return len(nu_modes), covered
+    nu = float(plan.elastic.get("poisson", 0.48))
+    _, stretch, valid = units(eu, el, H, H, GAUGE)
+    k, sd = airy_gaussian_curvature(stretch, valid, PITCH, nu)
+    # the film's own mean K over the units' hull, from its true surface
+    fit = PositionFit(5, 5, PITCH, GAUGE, PositionFitSettings(poisson=nu))
+    u = np.linspace(-30, 30, 61)
+    uu, vv = (a.ravel() for a in np.meshgrid(u, u))
+    true_k = fit.mean_gaussian_curvature(fit.coeffs_from_positions(uu, vv, shape.position(np.stack([uu, vv], axis=-1))))
+    print(f"| {plan.spec[:52]:52s} | {true_k:10.3e} | {k:10.3e} | {sd:8.1e} | {k / true_k if true_k else float('nan'):6.3f} |")
 
 
 def main() -> None:
@@ -113,16 +135,26 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=60)
     ap.add_argument("--bias", type=float, default=0.0, help="relative gain error of one gauge")
     ap.add_argument("--noise", type=float, default=0.0, help="strain noise s.d. (the dataset's draw 0)")
+    ap.add_argument("--draws", type=int, default=1, help="noise draws per case (with --noise, --reconstructor)")
     ap.add_argument("--reconstructor", action="store_true", help="through Reconstructor(elastic_prior=...)")
+    ap.add_argument("--airy", action="store_true", help="the stretch pattern's Gaussian curvature against the film's")
     args = ap.parse_args()
+    if args.airy:
+        print("| scene | film's mean K 1/mm² | Airy K | s.d. | ratio |")
+        print("|---|---|---|---|---|")
+        for case in args.cases.split(","):
+            key, index = case.split(":")
+            run_airy(key, int(index), args.noise)
+        return
     if args.reconstructor:
-        print("| scene | film ν | prior ν | default mm | default σ | elastic prior mm | σ | ≤ 3σ + 0.05 | prior | mirror kept | CPU s |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        print("| scene | draw | film ν | prior ν | default mm | default σ | elastic prior mm | σ | ≤ 3σ + 0.05 | prior | mirror kept | CPU s |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         total = covered = 0
         with threadpool_limits(1):
             for case in args.cases.split(","):
                 key, index = case.split(":")
-                n_cases, n_ok = run_reconstructor(key, int(index), args.nu.split(","), args.max_steps, args.noise)
+                n_cases, n_ok = run_reconstructor(key, int(index), args.nu.split(","), args.max_steps, args.noise,
+                                                  args.draws if args.noise > 0 else 1)
                 total, covered = total + n_cases, covered + n_ok
         print(f"within 3 sigma + 0.05 mm: {covered} of {total}")
         return

@@ -303,6 +303,7 @@ def fit_poisson_ratio(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper_mm: 
     """ν from calibrated strains (2, N, M) per layer on a dome of radius ``radius_mm`` (see the
     module's text).  ValueError says what cannot be fitted: too few units, or a ν outside
     [0, 0.5), which a film that slid on its mold cannot have (one that stuck to it reads high)."""
+    from skinmap.reconstruction.airy import trace_laplacian
     from skinmap.reconstruction.decouple import decouple
 
     eu, el = np.asarray(eps_upper, float), np.asarray(eps_lower, float)
@@ -315,31 +316,15 @@ def fit_poisson_ratio(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper_mm: 
     for idx in np.ndindex(eu.shape):  # each unit its own calibrated offsets
         if np.isfinite(hu[idx]) and np.isfinite(hl[idx]):
             eps_s[idx] = float(decouple(eu[idx], el[idx], float(hu[idx]), float(hl[idx]))[1])
-    trace = eps_s[0] + eps_s[1]
-    n, m = trace.shape
-    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
-    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
-    vv, uu = np.meshgrid(vc, uc, indexing="ij")
-    columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
-               uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
-    ok = np.isfinite(trace)
-    count = int(ok.sum())
-    if count < len(columns) + 3:
-        raise ValueError(f"{count} units with both gauges: the Poisson ratio needs at least {len(columns) + 3} "
-                         "(a sheet of 3×4 units or more)")
-    a = np.stack([c[ok] for c in columns], axis=1)
-    coef, *_ = np.linalg.lstsq(a, trace[ok], rcond=None)
-    resid = trace[ok] - a @ coef
-    dof = count - len(columns)
-    var = float(resid @ resid) / dof
-    cov = var * np.linalg.inv(a.T @ a)
-    scale = 4.0 * radius_mm ** 2
-    nu = 1.0 + scale * float(coef[1])
-    sd = math.hypot(scale * math.sqrt(max(float(cov[1, 1]), 0.0)), POISSON_MODEL_SD)
+    fit = trace_laplacian(eps_s[0] + eps_s[1], pitch_mm)  # ValueError: too few units
+    # ∇²tr = −(1 − ν)/R²
+    scale = radius_mm ** 2
+    nu = 1.0 + scale * fit.laplacian
+    sd = math.hypot(scale * fit.sd, POISSON_MODEL_SD)
     if not 0.0 <= nu < 0.5:
         raise ValueError(f"the dome reads a Poisson ratio of {nu:.3f}, outside [0, 0.5): the film did not slide on "
                          "the mold (lubricate it) or the mold's radius is not the one given")
-    return PoissonFit(nu, sd, math.sqrt(float(resid @ resid) / count), count)
+    return PoissonFit(nu, sd, fit.residual_rms, fit.units)
 
 
 def _short(p: Pose) -> str:

@@ -44,7 +44,8 @@ from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
-from .positionfit import ElasticFit, PositionFitSettings
+from .airy import airy_gaussian_curvature
+from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import fine_sigma, resolution_sigma
 
@@ -411,7 +412,7 @@ class Reconstructor:
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
         if self._position is not None and n_valid:
-            surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous)
+            surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous, (eu, el), twist_sign)
         diag.solve_time = time.perf_counter() - t0
         return surf
 
@@ -551,7 +552,7 @@ class Reconstructor:
         return general
 
     def _elastic_prior(self, surf: Surface, turning, stretch, valid, strain_sigma: float,
-                       previous: Surface | None) -> Surface:
+                       previous: Surface | None, strains, twist_sign) -> Surface:
         """The full-position fit with the membrane-equilibrium prior (:mod:`.positionfit`), from the
         previous frame's answer, else from this frame's answer and its mirror image; its answer
         replaces ``surf`` when the prior holds (its cost within ``max_prior_cost``), else ``surf``
@@ -564,11 +565,27 @@ class Reconstructor:
         sig_t = math.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
         sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
         data = (turning, stretch, valid, sig_t, sig_s)
+        # the mean Gaussian curvature the stretch pattern implies (Airy): the check of every answer
+        try:
+            k_airy: float | None
+            k_airy, k_sd = airy_gaussian_curvature(stretch, valid, self.pitch, settings.poisson, settings.poisson_sd)
+        except ValueError:  # too few units measured
+            k_airy, k_sd = None, 0.0
+
+        def agrees(coeffs: np.ndarray, sds: float) -> bool:
+            return k_airy is None or abs(pf.mean_gaussian_curvature(coeffs) - k_airy) <= sds * k_sd
+
+        # the default model's answer bends as the stretch pattern says: it stays a rival reading
+        default_agrees = k_airy is not None and agrees(start_from_surface(pf, surf), 3.0)
         warm = previous.state.position if previous is not None else None
         if warm is not None and warm.shape == (3, pf.nb):
             results = [elastic.warm(warm, *data)]
         else:
-            results = [elastic.cold(s, *data) for s in (surf, surf.mirror) if s is not None]
+            starts = [s for s in (surf, surf.mirror) if s is not None]
+            if k_airy is not None and not any(agrees(start_from_surface(pf, s), 3.0) for s in starts):
+                # neither image bends as the stretch pattern says: start where the twist makes it
+                starts = self._airy_starts(turning, stretch, valid, strain_sigma, strains, twist_sign, k_airy) or starts
+            results = [elastic.cold(s, *data) for s in starts]
         # the mirror image's fit replaces the answer only when the prior prefers it clearly
         if len(results) > 1 and results[0].cost > settings.mirror_cost_ratio * results[1].cost + 1e-9:
             results.reverse()
@@ -581,6 +598,15 @@ class Reconstructor:
                                            f"chi2 {best.chi2:.3g} (limit {settings.max_chi2:g}): the film is not "
                                            "loaded along its normal alone (friction, a sharp mold) or ν is off")
             return surf
+        if not agrees(best.coeffs, 3.0):
+            assert k_airy is not None
+            diag.extra["elastic_prior"] = (f"not used: its mean Gaussian curvature {pf.mean_gaussian_curvature(best.coeffs):.3g}/mm² "
+                                           f"disagrees with the stretch pattern's {k_airy:.3g} ± {k_sd:.2g} (Airy): "
+                                           "the fit found another valley (noise) or the film is not loaded along its normal")
+            return surf
+        if k_airy is not None:
+            diag.extra["airy_gaussian_curvature"] = (round(pf.mean_gaussian_curvature(best.coeffs), 9), round(k_airy, 9),
+                                                     round(k_sd, 9))
         grid = self.grid
         vv, uu = np.meshgrid(grid.v, grid.u, indexing="ij")
 
@@ -594,6 +620,12 @@ class Reconstructor:
         if settings.poisson_sd > 0:
             moved = best.coeffs + settings.poisson_sd * pf.poisson_response(best, *data)
             spread = np.linalg.norm(fine_positions(moved) - pos, axis=-1)
+        if default_agrees:
+            # two models, each consistent with the gauges and with the stretch pattern's curvature:
+            # where they part, the data have not decided, and σ says so
+            rival = np.linalg.norm(pos - surf._coeffs[..., 0, :], axis=-1)
+            spread = np.maximum(spread, rival)
+            diag.extra["elastic_rival_mm"] = round(float(rival[grid.inner].mean()), 4)
         base_sigma = surf._fine_sigma_fn
         misfit = math.sqrt(max(best.chi2, 1.0))
 
@@ -618,6 +650,25 @@ class Reconstructor:
         elif surf.mirror is not None:
             answer.mirror = surf.mirror
         return answer
+
+    def _airy_starts(self, turning, stretch, valid, strain_sigma: float, strains, twist_sign,
+                     k_airy: float) -> list[Surface]:
+        """The general model's sheet with its constant twist set so that its mean Gaussian
+        curvature is the stretch pattern's: both signs (mirror images) unless the sign is known;
+        [] when no twist gets there (the curvature product alone is below it)."""
+        n_valid = int(valid.sum())
+        _, twist_c, _, info, _, positions_at = self._general(turning, stretch, valid, n_valid, strain_sigma, None,
+                                                             twist_sign, strains)
+        k_u, k_v, tau0 = (np.asarray(f) for f in info["product_fields"])
+        inner = self.grid.inner
+        kk = float((k_u[inner] * k_v[inner]).mean())
+        tm, t2 = float(tau0[inner].mean()), float((tau0[inner] ** 2).mean())
+        # mean over the units of k_u k_v − (τ₀ + c)² = K
+        disc = tm * tm - t2 + kk - k_airy
+        if disc < 0.0:
+            return []
+        signs = (1.0, -1.0) if twist_sign is None else (float(twist_sign),)
+        return [self._surface(positions_at(-tm + sg * math.sqrt(disc) - twist_c), None, None) for sg in signs]
 
     def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics | None) -> Surface:
         # (diag None: a candidate weighed only against the gauges, never returned)

@@ -219,6 +219,10 @@ class PositionFit:
         ])
         self._frame = 1e6 * frame.T @ frame
         self._prior_matrix = sla.block_diag(self._smooth, self._smooth, self._smooth) + self._frame
+        # the units' hull, where the stretch pattern reads the Gaussian curvature (.airy)
+        hv_, hu_ = np.meshgrid(np.linspace(self.vc[0], self.vc[-1], 9), np.linspace(self.uc[0], self.uc[-1], 9),
+                               indexing="ij")
+        self._hull = self._design(hu_.ravel(), hv_.ravel(), _DERIVATIVES)
         self._centres = _rows(_design(self.ku, self.nbu, np.tile(self.uc, n), 0),
                               _design(self.kv, self.nbv, np.repeat(self.vc, m), 0))
         # Jacobian patterns: the gauges' rows (turning u, v gauges, then stretch u, v; each the
@@ -341,7 +345,8 @@ class PositionFit:
         x = self._x(c, self._points)
         args = [x[d] for d in _DERIVATIVES]
         nu = complex(self.settings.poisson, _STEP_CS)
-        return self._eq_scale * np.imag(_tangential_divergence(*args, nu)).ravel() / _STEP_CS
+        xu, xv, xuu, xuv, xvv = args
+        return self._eq_scale * np.imag(_tangential_divergence(xu, xv, xuu, xuv, xvv, nu)).ravel() / _STEP_CS
 
     def tangential_fraction(self, c: np.ndarray) -> float:
         """How far the answer is from a normally loaded film: ∫|t|² / ∫|∂_a(S^{ab} x_b)|², the share
@@ -354,6 +359,16 @@ class PositionFit:
         div = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson, full=True)
         total = float((div * div).sum())
         return float((t * t).sum()) / total if total > 0 else 0.0
+
+    def mean_gaussian_curvature(self, c: np.ndarray) -> float:
+        """Mean Gaussian curvature (1/mm²) over the units' hull, (LN − M²)/(EG − F²)."""
+        x = self._x(np.asarray(c).reshape(3, -1), self._hull)
+        xu, xv, xuu, xuv, xvv = (x[d] for d in _DERIVATIVES)
+        nrm = np.cross(xu, xv)
+        area2 = (nrm * nrm).sum(-1)
+        nrm = nrm / np.sqrt(area2)[:, None]
+        ell, mm, en = ((xuu * nrm).sum(-1), (xuv * nrm).sum(-1), (xvv * nrm).sum(-1))
+        return float(((ell * en - mm * mm) / area2).mean())
 
     def nodes(self, c: np.ndarray) -> np.ndarray:
         """Cell-centre positions (n, m, 3)."""

@@ -1,0 +1,78 @@
+"""The Gaussian curvature a film's stretch pattern implies (Airy), for a film loaded only along its
+normal (a frictionless mold, pressure): one source for the reconstruction's elastic prior and for
+calibration's Poisson ratio.
+
+In plane stress with no in-plane load the membrane stress has an Airy function φ with
+∇⁴φ = −E·t·K (the compatibility of Föppl-von Kármán), and tr ε = (1 − ν)·∇²φ/(E·t), so
+
+    ∇²(ε_uu + ε_vv) = −(1 − ν)·K
+
+whatever the sheet's outline or its edge loads.  Over the units the trace of the stretch is then
+c + (∇²tr/4)·r² plus a harmonic function, fitted here with the harmonics up to fourth order
+(square symmetry): 7 terms from the units' stretch, each gauge's mean along its line adding only
+constants to them.  The fit reads the mean Laplacian over the sheet, which is insensitive to
+noise (it is the curvature of a fit over the whole sheet, not of neighbouring units).  Against the
+film's own mean K over the units' hull (`bench/equilibrium_prior.py --airy`, films solved by the
+emulator's finite elements): spheres 0.97-0.99, saddles 0.98-1.00, ν = 0.3 0.999; a sphere with
+friction 0.82 and a 5 % pre-stretched one 1.23-1.28 (outside the closed form's assumptions), hence
+the 10 % model s.d.  Where K changes across the sheet (a bump) the mean Laplacian of a 7-term fit
+is no reading of K: the elastic prior's own cost declines those shapes.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "MIN_UNITS"]
+
+_TERMS = 7
+MIN_UNITS = _TERMS + 3  # fewer leave the fit's scatter unknown
+AIRY_MODEL_SD = 0.10     # the closed form's error on elastic molds, relative (module text)
+
+
+class TraceLaplacian(NamedTuple):
+    laplacian: float     # ∇²(ε_uu + ε_vv), 1/mm²
+    sd: float            # its s.d. from the fit's residuals
+    residual_rms: float  # strain: the trace's misfit to the model
+    units: int
+
+
+def trace_laplacian(trace: np.ndarray, pitch_mm: float) -> TraceLaplacian:
+    """The mean Laplacian of the stretch trace ε_uu + ε_vv (N, M) per unit (NaN: missing) on a grid
+    of pitch ``pitch_mm``.  ValueError if fewer than ``MIN_UNITS`` units have both gauges."""
+    trace = np.asarray(trace, float)
+    if trace.ndim != 2:
+        raise ValueError(f"the stretch trace must be (N, M) per unit, got shape {trace.shape}")
+    n, m = trace.shape
+    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
+    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
+    vv, uu = np.meshgrid(vc, uc, indexing="ij")
+    columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
+               uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
+    ok = np.isfinite(trace)
+    count = int(ok.sum())
+    if count < MIN_UNITS:
+        raise ValueError(f"{count} units with both gauges: the stretch pattern's curvature needs at least {MIN_UNITS} "
+                         "(a sheet of 3×4 units or more)")
+    a = np.stack([c[ok] for c in columns], axis=1)
+    coef, *_ = np.linalg.lstsq(a, trace[ok], rcond=None)
+    resid = trace[ok] - a @ coef
+    var = float(resid @ resid) / (count - _TERMS)
+    cov = var * np.linalg.pinv(a.T @ a)
+    return TraceLaplacian(4.0 * float(coef[1]), 4.0 * math.sqrt(max(float(cov[1, 1]), 0.0)),
+                          math.sqrt(float(resid @ resid) / count), count)
+
+
+def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float, poisson: float,
+                            poisson_sd: float = 0.0) -> tuple[float, float]:
+    """Mean Gaussian curvature over the units (1/mm²) and its s.d. (the fit's, ν's and the closed
+    form's own error) from the units' stretch ratios (2, N, M) (``valid``: which are measured)."""
+    stretch = np.asarray(stretch, float)
+    both = np.asarray(valid, bool).all(axis=0)
+    trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
+    fit = trace_laplacian(trace, pitch_mm)
+    k = -fit.laplacian / (1.0 - poisson)
+    sd = math.sqrt((fit.sd / (1.0 - poisson)) ** 2 + (k * poisson_sd / (1.0 - poisson)) ** 2 + (AIRY_MODEL_SD * k) ** 2)
+    return k, sd

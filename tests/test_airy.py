@@ -1,0 +1,77 @@
+"""The Gaussian curvature a film's stretch pattern implies (skinmap.reconstruction.airy): the fit
+against its closed form, its refusals, and on films solved by the emulator's mechanics; and the
+elastic prior's use of it on noisy data (an answer in another valley is declined or its σ says so)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import aligned_error
+
+from skinmap.emulator import physics as ph
+from skinmap.emulator.scenes import parse_scene_spec
+from skinmap.reconstruction import Reconstructor
+from skinmap.reconstruction.airy import MIN_UNITS, airy_gaussian_curvature, trace_laplacian
+from skinmap.reconstruction.engine import unit_data
+from skinmap.reconstruction.positionfit import PositionFitSettings
+
+PITCH, H, G = 12.0, 0.2, 10.0
+N = M = 5
+NOISE = 5.7e-5
+
+
+def test_the_trace_laplacian_is_read_through_any_harmonic_part_and_constant():
+    vc = (np.arange(6) - 2.5) * PITCH
+    uc = (np.arange(7) - 3.0) * PITCH
+    vv, uu = np.meshgrid(vc, uc, indexing="ij")
+    b = -3e-6
+    harmonic = 2e-4 * uu - 1e-4 * vv + 3e-7 * (uu ** 2 - vv ** 2) - 2e-7 * uu * vv + 1e-10 * (uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4)
+    trace = 0.01 + b * (uu ** 2 + vv ** 2) + harmonic
+    fit = trace_laplacian(trace, PITCH)
+    assert abs(fit.laplacian - 4 * b) < 1e-12 and fit.residual_rms < 1e-12
+    noisy = trace + np.random.default_rng(0).normal(0.0, 1e-5, trace.shape)
+    fit = trace_laplacian(noisy, PITCH)
+    assert abs(fit.laplacian - 4 * b) <= 4 * fit.sd and fit.sd > 0
+
+
+def test_too_few_units_or_a_wrong_shape_are_refused_by_name():
+    trace = np.full((3, 3), 0.01)
+    with pytest.raises(ValueError, match=f"at least {MIN_UNITS}"):
+        trace_laplacian(trace, PITCH)
+    with pytest.raises(ValueError, match=r"\(N, M\)"):
+        trace_laplacian(np.zeros(12), PITCH)
+    nan = np.full((2, 4, 4), 1.0)
+    valid = np.ones((2, 4, 4), bool)
+    valid[0, :, :2] = False  # half the units lack a u gauge
+    with pytest.raises(ValueError, match="units with both gauges"):
+        airy_gaussian_curvature(nan, valid, PITCH, 0.48)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("mechanics-cache")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("radius", [75.0, -62.0])
+def test_an_elastic_film_on_a_sphere_reads_its_gaussian_curvature_within_the_stated_error(radius, cache):
+    shape = parse_scene_spec(f"sphere:radius={radius}", "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    _, stretch, valid = unit_data(eu, el, H, H, G)
+    k, sd = airy_gaussian_curvature(stretch, valid, PITCH, 0.48)
+    assert abs(k - 1.0 / radius ** 2) <= 2 * sd
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", ["saddle:radius=100,axis_angle=35", "sphere:radius=72,friction=0.001"])
+def test_the_elastic_prior_on_noisy_data_is_within_3_sigma_plus_0_05mm(spec, cache):
+    shape = parse_scene_spec(spec, "elastic", N, M, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    truth = ph.ground_truth(shape, N, M, PITCH).nodes
+    rec = Reconstructor(N, M, PITCH, H, H, G, elastic_prior=PositionFitSettings(poisson=0.48))
+    for draw in (11, 12):
+        rng = np.random.default_rng(draw)
+        surf = rec(eu + rng.normal(0.0, NOISE, eu.shape), el + rng.normal(0.0, NOISE, el.shape), strain_sigma=NOISE)
+        error = aligned_error(surf.nodes, truth)
+        assert error <= 3 * float(surf.node_sigma.mean()) + 0.05, (spec, draw, error, surf.diagnostics.extra)
+        if spec.startswith("saddle"):
+            assert error <= 0.1, (draw, error)  # the stretch pattern's curvature finds the saddle's valley
