@@ -102,7 +102,7 @@ def run_reconstructor(key: str, index: int, nu_modes: list[str], max_steps: int,
             ok = error <= 3 * sigma + 0.05
             covered, runs = covered + ok, runs + 1
             used = surf.diagnostics.extra.get("elastic_prior", "")
-            how = "used" if used == "used" else ("declined (Airy)" if "Airy" in used else "declined")
+            how = "used" if used == "used" else ("declined (Airy)" if "Airy" in used else ("not decided" if "decided" in used else "declined"))
             print(f"| {plan.spec[:52]:52s} | {draw} | {true_nu:.2f} | {nu:.2f} | {node_errors(default.nodes, truth).mean():7.4f} "
                   f"| {float(default.node_sigma.mean()):6.3f} | {error:7.4f} | {sigma:6.3f} | {'yes' if ok else 'NO'} "
                   f"| {how} | {surf.mirror is not None} | {seconds:5.1f} |", flush=True)

@@ -620,14 +620,26 @@ class Reconstructor:
         if settings.poisson_sd > 0:
             moved = best.coeffs + settings.poisson_sd * pf.poisson_response(best, *data)
             spread = np.linalg.norm(fine_positions(moved) - pos, axis=-1)
-        if default_agrees:
-            # two models, each consistent with the gauges and with the stretch pattern's curvature:
-            # where they part, the data have not decided, and σ says so
-            rival = np.linalg.norm(pos - surf._coeffs[..., 0, :], axis=-1)
-            spread = np.maximum(spread, rival)
-            diag.extra["elastic_rival_mm"] = round(float(rival[grid.inner].mean()), 4)
         base_sigma = surf._fine_sigma_fn
         misfit = math.sqrt(max(best.chi2, 1.0))
+        if default_agrees:
+            # Two models, each consistent with the gauges and with the stretch pattern's curvature:
+            # where they part by more than the elastic answer's own uncertainty the data have not
+            # decided (friction on a mold; a twist too small to change K), so the default answer
+            # stays, its σ covering both readings.
+            rival = np.linalg.norm(pos - surf._coeffs[..., 0, :], axis=-1)
+            own = np.sqrt((misfit * base_sigma()) ** 2 + spread ** 2)
+            parted = float(rival[grid.inner].mean())
+            diag.extra["elastic_rival_mm"] = round(parted, 4)
+            if parted > 3.0 * float(own[grid.inner].mean()):
+                diag.extra["elastic_prior"] = (f"not decided: its answer and the default model's part by {parted:.3f} mm, "
+                                               "both consistent with the gauges and the stretch pattern; the default "
+                                               "is kept with σ covering both")
+                default_sigma = surf._fine_sigma_fn
+                undecided = self._surface(surf._coeffs[..., 0, :], lambda: np.maximum(default_sigma(), rival), diag)
+                undecided.state, undecided.mirror = surf.state, surf.mirror
+                return undecided
+            spread = np.maximum(spread, rival)
 
         def sigma() -> np.ndarray:
             return np.sqrt((misfit * base_sigma()) ** 2 + spread ** 2)

@@ -30,6 +30,7 @@ __all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "MIN_
 _TERMS = 7
 MIN_UNITS = _TERMS + 3  # fewer leave the fit's scatter unknown
 AIRY_MODEL_SD = 0.10     # the closed form's error on elastic molds, relative (module text)
+AIRY_FLOOR = 1e-6        # 1/mm²: a curvature of 1/(1 m)², beneath what a 12 mm grid's twist shows
 
 
 class TraceLaplacian(NamedTuple):
@@ -74,5 +75,6 @@ def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: fl
     trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
     fit = trace_laplacian(trace, pitch_mm)
     k = -fit.laplacian / (1.0 - poisson)
-    sd = math.sqrt((fit.sd / (1.0 - poisson)) ** 2 + (k * poisson_sd / (1.0 - poisson)) ** 2 + (AIRY_MODEL_SD * k) ** 2)
+    sd = math.sqrt((fit.sd / (1.0 - poisson)) ** 2 + (k * poisson_sd / (1.0 - poisson)) ** 2 + (AIRY_MODEL_SD * k) ** 2
+                   + AIRY_FLOOR ** 2)
     return k, sd
