@@ -78,6 +78,12 @@ class ReconstructionConfig:
     # oblique cylinder): "auto" reports both (AMBIGUOUS), "positive"/"negative" fix it for a
     # sheet whose mounting is known (docs/reconstruction.md, "Mirror images")
     twist_sign: TwistSign = "auto"
+    # the full-position fit with the membrane-equilibrium prior after the default answer (sheets
+    # of up to 64 cells, about a second of CPU per cold 5×5 frame: docs/reconstruction.md,
+    # "Elastic films"); it needs the film's Poisson ratio
+    elastic_prior: bool = False
+    poisson_ratio: float = 0.0  # 0 = the calibration file's (`skinmap calibrate --dome R`)
+    poisson_ratio_sd: float = 0.02  # with poisson_ratio set here: how well it is known
 
 
 @dataclass(frozen=True)
@@ -322,6 +328,9 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "convex_solver": _choice(ConvexSolver),
         "graph_fit": _boolean,
         "twist_sign": _choice(TwistSign),
+        "elastic_prior": _boolean,
+        "poisson_ratio": _number(0, 0.499),
+        "poisson_ratio_sd": _number(0, 0.2),
     },
     "output": {
         "rate_hz": _number(0, 2000),

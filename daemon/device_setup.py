@@ -65,11 +65,37 @@ def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
     return load_calibration(hello, cfg)[0]
 
 
+def elastic_prior_for(cfg: DaemonConfig, calibration: Calibration, cells: int) -> tuple[Any, str]:
+    """The elastic prior's settings for this sheet (None when it is off) and what keeps it off
+    although configured ("" if nothing): the Poisson ratio comes from the config, else from
+    the calibration file."""
+    rc = cfg.reconstruction
+    if not rc.elastic_prior:
+        return None, ""
+    from skinmap.reconstruction import ELASTIC_PRIOR_MAX_CELLS
+    from skinmap.reconstruction.positionfit import PositionFitSettings
+
+    if cells > ELASTIC_PRIOR_MAX_CELLS:
+        return None, f"elastic prior off: it is for sheets of up to {ELASTIC_PRIOR_MAX_CELLS} cells, this one has {cells}"
+    summary = calibration.summary or {}
+    if rc.poisson_ratio > 0:
+        nu, sd = rc.poisson_ratio, rc.poisson_ratio_sd
+    elif summary.get("poisson_ratio") is not None:
+        nu = float(summary["poisson_ratio"])
+        sd = float(summary.get("poisson_ratio_sd") or rc.poisson_ratio_sd)
+    else:
+        return None, ("elastic prior off: no Poisson ratio (run `skinmap calibrate --dome R` or set "
+                      "[reconstruction] poisson_ratio)")
+    return PositionFitSettings(poisson=nu, poisson_sd=sd), ""
+
+
 def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration | None = None) -> FramePipeline:
     uv, offsets = cfg.elements.material_coordinates()
+    cal = calibration if calibration is not None else calibration_for_hello(hello, cfg)
+    elastic, _ = elastic_prior_for(cfg, cal, hello.n * hello.m)
     return FramePipeline(
         geometry_for_hello(hello, cfg),
-        calibration if calibration is not None else calibration_for_hello(hello, cfg),
+        cal,
         np.asarray(uv, dtype=np.float64).reshape(-1, 2),
         np.asarray(offsets, dtype=np.float64),
         strain_sigma=cfg.reconstruction.strain_sigma,
@@ -77,6 +103,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
         convex_solver=cfg.reconstruction.convex_solver,
         graph_fit=cfg.reconstruction.graph_fit,
         twist_sign={"positive": 1, "negative": -1}.get(cfg.reconstruction.twist_sign),
+        elastic_prior=elastic,
     )
 
 
@@ -154,6 +181,7 @@ class ScannerState:
         self._pipeline_gen = -1
         self.pipeline: FramePipeline | None = None
         self.tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
+        self.elastic_problem = ""  # why a configured elastic prior is off ("" if nothing)
         self._file_times: FileTimes | None = None
         self._prepared: tuple[int, Any] | None = None  # (HELLO generation, its prepared reconstructor)
 
@@ -189,6 +217,9 @@ class ScannerState:
             return self.pipeline, False
         cal, self.tare_problem = load_calibration(hello, self.cfg)
         pipeline = pipeline_for_hello(hello, self.cfg, cal)
+        self.elastic_problem = elastic_prior_for(self.cfg, cal, hello.n * hello.m)[1]
+        if self.elastic_problem:
+            log.warning("%s", self.elastic_problem)
         pipeline.continue_from(self.pipeline)  # keep the warm start across a reconnect
         prepared, self._prepared = self._prepared, None
         if prepared is not None and prepared[0] == gen:

@@ -198,6 +198,8 @@ class Health:
             warnings.append(f"{self.processing.error} (nothing published for these scans)")
         if self.scanner.tare_problem:
             warnings.append(f"{self.scanner.tare_problem} (factory calibration in use)")
+        if self.scanner.elastic_problem:
+            warnings.append(self.scanner.elastic_problem)
         clock = self.monitor.clock
         if clock.problem and time.monotonic() - clock.problem_mono <= RECENT_WINDOW_S:
             warnings.append(f"{clock.problem} ({clock.faults} clock fault(s) since start; "

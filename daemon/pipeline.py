@@ -283,6 +283,7 @@ class FramePipeline:
         graph_fit: bool = True,
         twist_sign: int | None = None,
         background: Background | None = None,
+        elastic_prior: Any = None,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -294,6 +295,8 @@ class FramePipeline:
         if twist_sign not in (None, 1, -1):
             raise ValueError(f"twist_sign must be None, +1 or -1, got {twist_sign!r}")
         self.twist_sign = twist_sign
+        # PositionFitSettings of the elastic prior (docs/reconstruction.md, "Elastic films"), or None
+        self.elastic_prior = elastic_prior
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -342,7 +345,7 @@ class FramePipeline:
         # the graph fit is offered for small sheets only; larger ones keep the general model
         graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
-                             convex_solver=self.convex_solver, graph_fit=graph_fit)
+                             convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""
@@ -373,7 +376,8 @@ class FramePipeline:
         """Take over the reconstructor and warm start of the pipeline this one replaces (after a
         reconnect or a new HELLO) when the geometry is the same."""
         if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
-                and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign):
+                and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign
+                and earlier.elastic_prior == self.elastic_prior):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq

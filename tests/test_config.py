@@ -54,6 +54,8 @@ def test_defaults_are_loopback():
         ({"log": 5}, "log", "table"),
         ({"reconstruction": {"convex_solver": "cvxpy"}}, "reconstruction.convex_solver", "one of"),
         ({"reconstruction": {"graph_fit": "yes"}}, "reconstruction.graph_fit", "true or false"),
+        ({"reconstruction": {"poisson_ratio": 0.5}}, "reconstruction.poisson_ratio", "≤ 0.499"),
+        ({"reconstruction": {"elastic_prior": 1}}, "reconstruction.elastic_prior", "true or false"),
     ],
 )
 def test_bad_values_name_key_and_rule(doc, key, fragment):

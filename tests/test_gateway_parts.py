@@ -306,3 +306,36 @@ def test_the_reconstruction_is_prepared_at_hello_and_the_first_pipeline_adopts_i
     state.on_hello(hello)  # a reconnect: same geometry, the running reconstructor carries over
     again, new = state.ensure_pipeline()
     assert new and again is not None and again.reconstructor is rec
+
+
+def test_the_elastic_prior_takes_poissons_ratio_from_the_config_else_the_calibration_else_says_why_it_is_off(tmp_path):
+    import dataclasses
+
+    from skinmap.daemon.device_setup import ScannerState, elastic_prior_for
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+    from skinmap.strains import Calibration
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "elastic", 20.0)
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    assert elastic_prior_for(cfg, cal, 25) == (None, "")  # off unless asked for
+    on = dataclasses.replace(cfg, reconstruction=dataclasses.replace(cfg.reconstruction, elastic_prior=True))
+    settings, problem = elastic_prior_for(on, cal, 25)
+    assert settings is None and "calibrate --dome" in problem and "poisson_ratio" in problem
+    measured = dataclasses.replace(cal, summary={"poisson_ratio": 0.47, "poisson_ratio_sd": 0.011})
+    settings, problem = elastic_prior_for(on, measured, 25)
+    assert problem == "" and settings.poisson == 0.47 and settings.poisson_sd == 0.011
+    given = dataclasses.replace(on, reconstruction=dataclasses.replace(on.reconstruction, poisson_ratio=0.4))
+    settings, _ = elastic_prior_for(given, measured, 25)
+    assert settings.poisson == 0.4 and settings.poisson_sd == 0.02  # the config's value wins, with its s.d.
+    settings, problem = elastic_prior_for(given, measured, 81)
+    assert settings is None and "up to 64 cells" in problem
+    state = ScannerState(on)
+    state.on_hello(hello)
+    pipeline, _ = state.ensure_pipeline()
+    assert pipeline is not None and pipeline.elastic_prior is None and "calibrate --dome" in state.elastic_problem
+    state = ScannerState(given)
+    state.on_hello(hello)
+    pipeline, _ = state.ensure_pipeline()
+    assert pipeline is not None and pipeline.reconstructor.elastic_prior.poisson == 0.4 and state.elastic_problem == ""
