@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -208,6 +208,7 @@ class Reconstructor:
         self.elastic_prior = elastic_prior
         self._position = (None if elastic_prior is None
                           else ElasticFit(self.n, self.m, self.pitch, self.gauge_length, elastic_prior))
+        self._position_on_grid: Any = None  # the fit's basis on the fine grid, built at first use
         self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
         # what the turning noise makes of the mean curvature product, measured on first use
@@ -608,11 +609,13 @@ class Reconstructor:
             diag.extra["airy_gaussian_curvature"] = (round(pf.mean_gaussian_curvature(best.coeffs), 9), round(k_airy, 9),
                                                      round(k_sd, 9))
         grid = self.grid
-        vv, uu = np.meshgrid(grid.v, grid.u, indexing="ij")
+        if self._position_on_grid is None:
+            vv, uu = np.meshgrid(grid.v, grid.u, indexing="ij")
+            self._position_on_grid = pf.evaluator(uu.ravel(), vv.ravel())
+        on_grid = self._position_on_grid
 
         def fine_positions(coeffs: np.ndarray) -> np.ndarray:
-            pos = pf.evaluate(coeffs, uu.ravel(), vv.ravel())[0].reshape(grid.nf, grid.mf, 3)
-            return _to_sensor_frame(grid, pos)
+            return _to_sensor_frame(grid, on_grid(coeffs)[0].reshape(grid.nf, grid.mf, 3))
 
         pos = fine_positions(best.coeffs)
         # Poisson's ratio is known to ±poisson_sd: the answer's first-order response to it
