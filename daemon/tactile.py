@@ -239,6 +239,10 @@ class ReliefMap:
         self._sum = np.zeros(self.shape)
         self._sum2 = np.zeros(self.shape)
         self.contacts = 0
+        # every press's samples (flat cell index, height, weight, wall x y): the levelling
+        # solves each press's offset and tilt from its overlap with the others
+        self._presses: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.base_mm = 0.0  # the level subtracted by `level` (the wall's most common height)
 
     @property
     def centres(self) -> np.ndarray:
@@ -263,6 +267,7 @@ class ReliefMap:
         np.add.at(self._w, (ij[:, 1], ij[:, 0]), w)
         np.add.at(self._sum, (ij[:, 1], ij[:, 0]), w * h)
         np.add.at(self._sum2, (ij[:, 1], ij[:, 0]), w * h * h)
+        self._presses.append((ij[:, 1] * self.shape[1] + ij[:, 0], h, w, wall_xy[ok]))
         self.contacts += 1
         return int(len(np.unique(ij, axis=0)))
 
@@ -271,6 +276,72 @@ class ReliefMap:
         for a in (self._n, self._w, self._sum, self._sum2):
             a[:] = 0.0
         self.contacts = 0
+        self._presses = []
+        self.base_mm = 0.0
+
+    def level(self, iterations: int = 40, tilt: bool = True) -> np.ndarray:
+        """Make overlapping presses agree, then refer the map to the wall's most common level.
+
+        A contact is registered onto the baseline by the sheet's free rim, and a press moves the
+        rim too (more over a raised feature than beside it), so each press's heights carry an
+        offset of its own (and a tilt): measured on the pressed-membrane scene, the letters came
+        out 2.2 mm high instead of 4 mm.  Per press, the offset and tilt that best fit it to the
+        other presses where they overlap are solved for (alternating weighted least squares),
+        their mean kept at zero: what the presses share no overlap can tell.  The heights are
+        then given above the map's lowest clear level (the lowest peak of the heights' histogram,
+        0.05 mm bins, of at least a quarter of the highest peak): the wall's base plane wherever
+        the presses touched it.  Call it after the last press is added.  Returns
+        the corrections (presses, 3): offset, tilt along x and y, in mm and mm/mm."""
+        presses = self._presses
+        corr = np.zeros((len(presses), 3))
+        size = self.shape[0] * self.shape[1]
+        if len(presses) >= 2:
+            centres = [xy.mean(axis=0) for _, _, _, xy in presses]
+            for _ in range(max(1, iterations)):
+                total_w, total = np.zeros(size), np.zeros(size)
+                own = []
+                for (cell, h, w, xy), c, k in zip(presses, centres, corr):
+                    hk = h + k[0] + (xy - c) @ k[1:]
+                    ow, os_ = np.bincount(cell, w, size), np.bincount(cell, w * hk, size)
+                    own.append((ow, os_))
+                    total_w += ow
+                    total += os_
+                for i, ((cell, h, w, xy), c) in enumerate(zip(presses, centres)):
+                    ow, os_ = own[i]
+                    others_w = (total_w - ow)[cell]
+                    use = others_w > 1e-12 * max(1.0, float(w.max(initial=0.0)))
+                    if use.sum() < 3:
+                        continue  # no overlap: this press keeps its registration
+                    target = ((total - os_)[cell][use] / others_w[use]) - h[use]
+                    cols = [np.ones(int(use.sum()))] + ([xy[use, 0] - c[0], xy[use, 1] - c[1]] if tilt else [])
+                    a = np.stack(cols, axis=1) * np.sqrt(w[use])[:, None]
+                    sol = np.linalg.lstsq(a, target * np.sqrt(w[use]), rcond=None)[0]
+                    corr[i, :sol.size] = sol
+                corr -= corr.mean(axis=0)
+        for a in (self._n, self._w, self._sum, self._sum2):
+            a[:] = 0.0
+        levelled = []
+        for (cell, h, w, xy), k in zip(presses, corr):
+            hk = h + k[0] + (xy - xy.mean(axis=0)) @ k[1:]
+            levelled.append((cell, hk, w))
+        every = np.concatenate([hk for _, hk, _ in levelled]) if levelled else np.zeros(0)
+        base = 0.0
+        if every.size:
+            bins = np.arange(np.floor(every.min() / 0.05) * 0.05, every.max() + 0.1, 0.05)
+            counts = np.convolve(np.histogram(every, bins)[0], np.ones(5), mode="same").astype(float)
+            # the lowest level the map holds clearly (a peak of at least a quarter of the highest):
+            # a balloon touches the tops of a relief more than its base, so the base need not
+            # be the most common level
+            peak = (counts >= 0.25 * counts.max()) & (counts >= np.roll(counts, 1)) & (counts >= np.roll(counts, -1))
+            base = float(bins[int(np.flatnonzero(peak)[0])] + 0.025)
+        for cell, hk, w in levelled:
+            hb = hk - base
+            self._n.flat[:] += np.bincount(cell, None, size)
+            self._w.flat[:] += np.bincount(cell, w, size)
+            self._sum.flat[:] += np.bincount(cell, w * hb, size)
+            self._sum2.flat[:] += np.bincount(cell, w * hb * hb, size)
+        self.base_mm = base
+        return corr
 
     @property
     def count(self) -> np.ndarray:
