@@ -295,43 +295,59 @@ class ReliefMap:
         presses = self._presses
         corr = np.zeros((len(presses), 3))
         size = self.shape[0] * self.shape[1]
+        centres = [xy.mean(axis=0) for _, _, _, xy in presses]
+
+        def contribution(i: int) -> tuple[np.ndarray, np.ndarray]:
+            cell, h, w, xy = presses[i]
+            hk = h + corr[i, 0] + (xy - centres[i]) @ corr[i, 1:]
+            return np.bincount(cell, w, size), np.bincount(cell, w * hk, size)
+
         if len(presses) >= 2:
-            centres = [xy.mean(axis=0) for _, _, _, xy in presses]
+            own = [contribution(i) for i in range(len(presses))]
+            total_w = np.sum([o[0] for o in own], axis=0)
+            total = np.sum([o[1] for o in own], axis=0)
             for _ in range(max(1, iterations)):
-                total_w, total = np.zeros(size), np.zeros(size)
-                own = []
-                for (cell, h, w, xy), c, k in zip(presses, centres, corr):
-                    hk = h + k[0] + (xy - c) @ k[1:]
-                    ow, os_ = np.bincount(cell, w, size), np.bincount(cell, w * hk, size)
-                    own.append((ow, os_))
-                    total_w += ow
-                    total += os_
-                for i, ((cell, h, w, xy), c) in enumerate(zip(presses, centres)):
-                    ow, os_ = own[i]
-                    others_w = (total_w - ow)[cell]
-                    use = others_w > 1e-12 * max(1.0, float(w.max(initial=0.0)))
-                    if use.sum() < 3:
-                        continue  # no overlap: this press keeps its registration
-                    target = ((total - os_)[cell][use] / others_w[use]) - h[use]
-                    cols = [np.ones(int(use.sum()))] + ([xy[use, 0] - c[0], xy[use, 1] - c[1]] if tilt else [])
+                # Gauss-Seidel: each press against the others as they are now
+                for i, (cell, h, w, xy) in enumerate(presses):
+                    others_w = (total_w - own[i][0])[cell]
+                    use = others_w > 1e-9 * max(1.0, float(w.max(initial=0.0)))
+                    if use.sum() < 8:
+                        continue  # too little overlap: this press keeps its registration
+                    target = ((total - own[i][1])[cell][use] / others_w[use]) - h[use]
+                    d = xy[use] - centres[i]
+                    cols = [np.ones(int(use.sum()))] + ([d[:, 0], d[:, 1]] if tilt else [])
                     a = np.stack(cols, axis=1) * np.sqrt(w[use])[:, None]
-                    sol = np.linalg.lstsq(a, target * np.sqrt(w[use]), rcond=None)[0]
+                    sol, *_ = np.linalg.lstsq(a, target * np.sqrt(w[use]), rcond=1e-6)
+                    corr[i] = 0.0
                     corr[i, :sol.size] = sol
+                    new = contribution(i)
+                    total_w += new[0] - own[i][0]
+                    total += new[1] - own[i][1]
+                    own[i] = new
                 corr -= corr.mean(axis=0)
+                own = [contribution(i) for i in range(len(presses))]
+                total = np.sum([o[1] for o in own], axis=0)
         for a in (self._n, self._w, self._sum, self._sum2):
             a[:] = 0.0
+        # the wall limits the sheet: where a cell was pressed several times, the highest press's
+        # mean there is the wall's height (the others may not have reached it); the base is the
+        # lowest clear level of that envelope
+        envelope = np.full(size, -np.inf)
         levelled = []
-        for (cell, h, w, xy), k in zip(presses, corr):
-            hk = h + k[0] + (xy - xy.mean(axis=0)) @ k[1:]
+        for i, (cell, h, w, xy) in enumerate(presses):
+            hk = h + corr[i, 0] + (xy - centres[i]) @ corr[i, 1:]
             levelled.append((cell, hk, w))
-        every = np.concatenate([hk for _, hk, _ in levelled]) if levelled else np.zeros(0)
+            cw = np.bincount(cell, w, size)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.where(cw > 0, np.bincount(cell, w * hk, size) / np.where(cw > 0, cw, 1.0), -np.inf)
+            envelope = np.maximum(envelope, mean)
+        top = envelope[np.isfinite(envelope)]
         base = 0.0
-        if every.size:
-            bins = np.arange(np.floor(every.min() / 0.05) * 0.05, every.max() + 0.1, 0.05)
-            counts = np.convolve(np.histogram(every, bins)[0], np.ones(5), mode="same").astype(float)
-            # the lowest level the map holds clearly (a peak of at least a quarter of the highest):
-            # a balloon touches the tops of a relief more than its base, so the base need not
-            # be the most common level
+        if top.size:
+            bins = np.arange(np.floor(top.min() / 0.05) * 0.05, top.max() + 0.1, 0.05)
+            counts = np.convolve(np.histogram(top, bins)[0], np.ones(5), mode="same").astype(float)
+            # the lowest level the envelope holds clearly (a peak of at least a quarter of the
+            # highest): a balloon touches the tops of a relief more than its base
             peak = (counts >= 0.25 * counts.max()) & (counts >= np.roll(counts, 1)) & (counts >= np.roll(counts, -1))
             base = float(bins[int(np.flatnonzero(peak)[0])] + 0.025)
         for cell, hk, w in levelled:
