@@ -45,14 +45,14 @@ __all__ = ["huber_fit", "huber_potential", "HuberProblem", "GaugeScreen", "Suspe
 SCREEN_PRIOR = 100.0
 #: A gauge is named when its Huber residual exceeds this many times the frame's scatter (the
 #: larger of the noise and 1.4826 × the median absolute residual of all gauges) ...
-SCREEN_SIGMAS = 8.0
+SCREEN_SIGMAS = 6.0
 #: ... and its partner's residual (the other layer of its unit) is below this share of its own.
-SCREEN_PARTNER = 0.5
+SCREEN_PARTNER = 0.3
 #: Clarabel runs only when some least-squares residual exceeds this many times the scatter
 #: (a gauge's error spreads into its neighbours under least squares, so below the naming level).
-SCREEN_TRIGGER = 5.0
+SCREEN_TRIGGER = 4.0
 #: ... and its partner's least-squares residual is below this share of its own.
-SCREEN_PARTNER_TRIGGER = 0.8
+SCREEN_PARTNER_TRIGGER = 0.6
 #: The Huber threshold of the screen, in units of the frame's scatter.
 SCREEN_HUBER = 3.0
 _LAYERS = ("upper", "lower")
