@@ -38,7 +38,8 @@ import scipy.sparse.linalg as spla
 from .grid import FineGrid
 
 __all__ = ["huber_fit", "huber_potential", "HuberProblem", "GaugeScreen", "Suspect", "gauge_name", "SCREEN_PRIOR", "SCREEN_SIGMAS",
-           "SCREEN_TRIGGER", "SCREEN_PARTNER", "SCREEN_PARTNER_TRIGGER"]
+           "SCREEN_TRIGGER", "SCREEN_PARTNER", "SCREEN_PARTNER_TRIGGER",
+           "SCREEN_GAIN_RANGE"]
 
 #: Weight of the screen's third-difference prior against one gauge's datum (noise units): stiff,
 #: so that one gauge's error cannot be followed, while quadratic fields are free.
@@ -48,11 +49,17 @@ SCREEN_PRIOR = 100.0
 SCREEN_SIGMAS = 6.0
 #: ... and its partner's residual (the other layer of its unit) is below this share of its own.
 SCREEN_PARTNER = 0.3
+#: ... and it reads between these multiples of the strain the fit expects there: a calibration
+#: gone wrong by tens of percent.  Farther off, the misfit is the shape's (measured: a bump
+#: sharper than the cells, moving over a 5×5 sheet, makes one gauge read 3.8-4.5x the fields'
+#: value when their stretch cannot follow it), and a gauge that far off is left to the
+#: plausibility checks of skinmap.strains.
+SCREEN_GAIN_RANGE = (0.5, 2.0)
 #: Clarabel runs only when some least-squares residual exceeds this many times the scatter
 #: (a gauge's error spreads into its neighbours under least squares, so below the naming level).
-SCREEN_TRIGGER = 4.0
+SCREEN_TRIGGER = 5.0
 #: ... and its partner's least-squares residual is below this share of its own.
-SCREEN_PARTNER_TRIGGER = 0.6
+SCREEN_PARTNER_TRIGGER = 0.4
 #: The Huber threshold of the screen, in units of the frame's scatter.
 SCREEN_HUBER = 3.0
 _LAYERS = ("upper", "lower")
@@ -280,21 +287,22 @@ class GaugeScreen:
 
     def _triggered(self, resid: np.ndarray, valid: np.ndarray | None) -> bool:
         """Whether one direction's least-squares residuals call for the robust fit: some gauge
-        above SCREEN_TRIGGER of the scatter while its partner misfits less (SCREEN_PARTNER_TRIGGER
-        of it: least squares spreads part of a gauge's error into its partner)."""
+        above SCREEN_TRIGGER of the scatter while its partner misfits less than
+        SCREEN_PARTNER_TRIGGER of it (least squares spreads part of a gauge's error into its
+        partner and neighbours, so both bounds are looser than the naming's)."""
         a = np.abs(resid)
-        worst = int(np.argmax(a))
-        if not a[worst] > SCREEN_TRIGGER:  # the scatter is at least the noise: nothing stands out
+        if not a.max() > SCREEN_TRIGGER:  # the scatter is at least the noise: nothing stands out
             return False
         scale = _median_scale(a if valid is None else a[valid])
         cells = self.n * self.m
-        partner = worst + cells if worst < cells else worst - cells
-        return bool(a[worst] > SCREEN_TRIGGER * scale and a[partner] < SCREEN_PARTNER_TRIGGER * a[worst])
+        partner = np.concatenate([a[cells:], a[:cells]])
+        return bool(((a > SCREEN_TRIGGER * scale) & (partner < SCREEN_PARTNER_TRIGGER * a)).any())
 
     def _suspect(self, resid: np.ndarray, valid: np.ndarray, data: np.ndarray, d: int) -> Suspect | None:
         """The gauge that stands out of one direction's robust residuals alone, if any: above
         SCREEN_SIGMAS of the frame's scatter, with its partner (the unit's other layer) below
-        SCREEN_PARTNER of it (a feature the fields cannot follow misfits both layers)."""
+        SCREEN_PARTNER of it (a feature the fields cannot follow misfits both layers), reading
+        within SCREEN_GAIN_RANGE of what the fit expects."""
         scale = self._scale(resid, valid)
         r = resid.reshape(2, self.n, self.m)
         layer, i, j = (int(k) for k in np.unravel_index(int(np.argmax(np.abs(resid))), r.shape))
@@ -304,6 +312,8 @@ class GaugeScreen:
         measured = data.reshape(r.shape)[layer, i, j]
         expected = measured - r[layer, i, j]
         gain = measured / expected if expected != 0.0 else math.inf
+        if not SCREEN_GAIN_RANGE[0] <= gain <= SCREEN_GAIN_RANGE[1]:
+            return None
         return Suspect(layer, d, i, j, float(own / scale), float(gain))
 
     @staticmethod
