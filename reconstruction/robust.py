@@ -255,7 +255,7 @@ class GaugeScreen:
         d = np.where(valid, data, 0.0)
         if hat is not None:
             return hat @ d
-        return self.obs @ solve(self.obs.T @ d)  # type: ignore[operator]
+        return self.obs @ solve(self.obs.T @ d)
 
     def screen(self, eps_upper: np.ndarray, eps_lower: np.ndarray, strain_sigma: float) -> tuple[list[Suspect], dict]:
         """The gauges of one frame that its other gauges contradict (at most one per
