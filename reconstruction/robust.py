@@ -40,7 +40,8 @@ from .grid import FineGrid
 
 __all__ = ["huber_fit", "huber_potential", "HuberProblem", "GaugeScreen", "Suspect", "gauge_name", "SCREEN_PRIOR", "SCREEN_SIGMAS",
            "SCREEN_TRIGGER", "SCREEN_PARTNER", "SCREEN_PARTNER_TRIGGER",
-           "SCREEN_GAIN_RANGE", "SCREEN_WINDOW"]
+           "SCREEN_GAIN_RANGE", "SCREEN_WINDOW",
+           "SCREEN_TRIGGER_GAIN"]
 
 #: Weight of the screen's third-difference prior against one gauge's datum (noise units): stiff,
 #: so that one gauge's error cannot be followed, while quadratic fields are free.
@@ -61,6 +62,9 @@ SCREEN_GAIN_RANGE = (0.5, 2.0)
 SCREEN_TRIGGER = 5.0
 #: ... and its partner's least-squares residual is below this share of its own.
 SCREEN_PARTNER_TRIGGER = 0.4
+#: ... and reads within these multiples of the least-squares fit's value there (which has taken
+#: in part of a gauge's error: a 1.3 gain reads 1.15-1.3x it).
+SCREEN_TRIGGER_GAIN = (0.4, 2.5)
 #: The robust fit takes a window of at most this many cells a side around the gauge that
 #: called for it (Clarabel's time grows with the cells; a gauge's error stays local).
 SCREEN_WINDOW = 7
@@ -275,7 +279,8 @@ class GaugeScreen:
         if self._full_hat is not None and np.isfinite(data_all).all():
             # every gauge valid (the usual frame): both directions' fits in one product
             resid_all = (data_all - self._full_hat @ data_all).reshape(2, 2, -1)
-            if all(self._candidate(resid_all[:, d].reshape(-1), None) < 0 for d in (0, 1)):
+            data_dirs = data_all.reshape(2, 2, -1)
+            if all(self._candidate(resid_all[:, d].reshape(-1), data_dirs[:, d].reshape(-1), None) < 0 for d in (0, 1)):
                 return suspects, info
         for d in (0, 1):
             part = strains[:, d].reshape(-1)  # upper cells, then lower cells
@@ -284,7 +289,7 @@ class GaugeScreen:
                 continue
             data = np.where(valid, part, 0.0) / sigma
             resid = np.where(valid, data - self._least_squares(data, valid), 0.0)
-            candidate = self._candidate(resid, valid)
+            candidate = self._candidate(resid, data, valid)
             if candidate < 0:
                 continue
             # the robust problem: the same fit with a Huber loss on every gauge of a window of
@@ -298,7 +303,7 @@ class GaugeScreen:
                 # the candidate must stand out of its window's own scatter too (a feature the
                 # fields cannot follow raises it there, however quiet the rest of the sheet)
                 resid_w = resid.reshape(2, self.n, self.m)[:, i0:i0 + window.n, j0:j0 + window.m].reshape(-1)
-                if window._candidate(resid_w, valid_w) < 0:
+                if window._candidate(resid_w, data_w, valid_w) < 0:
                     continue
             problem = window._cached(window._robust, valid_w.tobytes(),
                                      lambda: HuberProblem(window.prior, window.obs[valid_w]))
@@ -327,19 +332,25 @@ class GaugeScreen:
             sub = self._windows[(wn, wm)] = GaugeScreen(wn, wm, self.h_upper, self.h_lower, self._prior_weight)
         return sub, (i0, j0)
 
-    def _candidate(self, resid: np.ndarray, valid: np.ndarray | None) -> int:
+    def _candidate(self, resid: np.ndarray, data: np.ndarray, valid: np.ndarray | None) -> int:
         """The gauge (flat index into one direction's upper-then-lower data) whose
         least-squares residual calls for the robust fit, or −1: the largest of those above
         SCREEN_TRIGGER of the scatter whose partner misfits less than SCREEN_PARTNER_TRIGGER
-        of them (least squares spreads part of a gauge's error into its partner and
-        neighbours, so both bounds are looser than the naming's)."""
+        of them and whose reading is within SCREEN_TRIGGER_GAIN of the fit's (least squares
+        spreads part of a gauge's error into its partner and neighbours, so these bounds are
+        looser than the naming's)."""
         a = np.abs(resid)
         if not a.max() > SCREEN_TRIGGER:  # the scatter is at least the noise: nothing stands out
             return -1
         scale = _median_scale(a if valid is None else a[valid])
         cells = self.n * self.m
         partner = np.concatenate([a[cells:], a[:cells]])
-        marked = np.where((a > SCREEN_TRIGGER * scale) & (partner < SCREEN_PARTNER_TRIGGER * a), a, -1.0)
+        expected = data - resid
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.where(expected != 0.0, data / expected, np.inf)
+        lo, hi = SCREEN_TRIGGER_GAIN
+        marked = np.where((a > SCREEN_TRIGGER * scale) & (partner < SCREEN_PARTNER_TRIGGER * a) & (gain >= lo)
+                          & (gain <= hi), a, -1.0)
         best = int(np.argmax(marked))
         return best if marked[best] >= 0.0 else -1
 
