@@ -11,7 +11,8 @@ rows and columns (quadratic fields cost nothing: cylinders, spheres, saddles).  
 one gauge then cannot be followed by the fields (it would need a spike in T and in S at one
 cell) and stays in that gauge's residual, while its partner's stays small; a real feature the
 fields cannot follow (a bump sharper than the cells) leaves residuals in both gauges of its
-units.  The fit is a closed-form least-squares solve (a cached factorisation, microseconds);
+units.  The fit is a closed-form least-squares solve (a cached hat matrix or factorisation: tens
+of microseconds on 5×5);
 when some gauge's residual stands out of the frame's own scatter the robust problem is solved,
 the same fit with a Huber loss on every gauge's residual, by Clarabel, whose residuals localise
 the bad gauge (least squares spreads it over its neighbours).  The gauge it names is set
@@ -38,10 +39,9 @@ import scipy.sparse.linalg as spla
 
 from .grid import FineGrid
 
-__all__ = ["huber_fit", "huber_potential", "HuberProblem", "GaugeScreen", "Suspect", "gauge_name", "SCREEN_PRIOR", "SCREEN_SIGMAS",
-           "SCREEN_TRIGGER", "SCREEN_PARTNER", "SCREEN_PARTNER_TRIGGER",
-           "SCREEN_GAIN_RANGE", "SCREEN_WINDOW",
-           "SCREEN_TRIGGER_GAIN"]
+__all__ = ["huber_fit", "huber_potential", "HuberProblem", "GaugeScreen", "Suspect", "gauge_name", "SCREEN_PRIOR",
+           "SCREEN_SIGMAS", "SCREEN_PARTNER", "SCREEN_GAIN_RANGE", "SCREEN_TRIGGER", "SCREEN_PARTNER_TRIGGER",
+           "SCREEN_TRIGGER_GAIN", "SCREEN_WINDOW", "SCREEN_HUBER"]
 
 #: Weight of the screen's third-difference prior against one gauge's datum (noise units): stiff,
 #: so that one gauge's error cannot be followed, while quadratic fields are free.
