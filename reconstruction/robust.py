@@ -83,17 +83,18 @@ def _huber_matrices(prior: sp.spmatrix, obs: sp.spmatrix) -> tuple[sp.csc_matrix
     return sp.triu(p, format="csc"), a
 
 
-def _clarabel_settings():
+def _clarabel_settings(screen: bool = False):
     import clarabel  # imported here: only the robust paths need it
 
     settings = clarabel.DefaultSettings()
     settings.verbose = False
     settings.max_threads = 1  # a small problem on the processing thread (see Reconstructor.__call__)
-    # the residuals are read to a tenth of a noise s.d. (data in noise units): looser than the
-    # defaults (1e-8), and no iterative refinement of the steps, a third less time (7×7 cells:
-    # 2.3 → 1.5 ms; the same gauges named in the bench)
-    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-5
-    settings.iterative_refinement_enable = False
+    if screen:
+        # the screen reads its residuals to a tenth of a noise s.d. (data in noise units): looser
+        # than the defaults (1e-8), and no iterative refinement of the steps, a third less time
+        # (7×7 cells: 2.3 → 1.5 ms; the same gauges named in the bench)
+        settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-5
+        settings.iterative_refinement_enable = False
     return settings
 
 
@@ -120,9 +121,9 @@ def huber_fit(prior: sp.spmatrix, obs: sp.spmatrix, data: np.ndarray, delta: flo
 
 
 class HuberProblem:
-    """One Huber fit's QP kept set up in Clarabel (its matrices fixed), so that a frame only
-    updates the data and the threshold: the setup (matrix assembly, the KKT system's symbolic
-    factorisation) is paid once."""
+    """The gauge screen's Huber fit, its QP kept set up in Clarabel (its matrices fixed), so
+    that a frame only updates the data and the threshold: the setup (matrix assembly, the KKT
+    system's symbolic factorisation) is paid once."""
 
     def __init__(self, prior: sp.spmatrix, obs: sp.spmatrix):
         import clarabel
@@ -132,7 +133,7 @@ class HuberProblem:
         q = np.concatenate([np.zeros(self.n + self.m), np.ones(self.m)])
         self._q = q
         self._solver = clarabel.DefaultSolver(p, q, a, np.zeros(2 * self.m), [clarabel.NonnegativeConeT(2 * self.m)],
-                                              _clarabel_settings())
+                                              _clarabel_settings(screen=True))
 
     def solve(self, data: np.ndarray, delta: float) -> tuple[np.ndarray, dict]:
         if not delta > 0:
