@@ -69,7 +69,9 @@ class ReconstructionConfig:
     h_lower_mm: float = 0.0
     strain_sigma: float = 5.7e-5  # strain-noise s.d. used for uncertainty estimates
     warm_start: bool = True
-    # the field fit's solver: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md)
+    # the general model's field fit: its closed form, or Clarabel with a Huber loss (docs/reconstruction.md,
+    # "Solvers"); either way every frame is first screened for a gauge its neighbours contradict, the
+    # robust fit of that screen solved by Clarabel ("Robust gauge screen")
     convex_solver: ConvexSolver = "factorized"
     # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
     # 64 cells; larger ones keep the general model): sharp bumps, see docs/reconstruction.md

@@ -22,7 +22,7 @@ from skinmap.daemon.output import ResultOutput
 from skinmap.daemon.processing import ProcessingListener
 from skinmap.protocol import FaultFlag
 
-__all__ = ["DeviceClockCheck", "ScanMonitor", "GatewayStats", "Health", "RECENT_WINDOW_S", "DATA_PATH_TIMEOUT_S"]
+__all__ = ["DeviceClockCheck", "ScanMonitor", "GatewayStats", "Health", "suspect_gauges", "RECENT_WINDOW_S", "DATA_PATH_TIMEOUT_S"]
 
 log = logging.getLogger("skinmapd")
 
@@ -115,6 +115,13 @@ def rate(times: collections.deque[float], window_s: float = 2.0) -> float:
         return 0.0
     now = time.monotonic()
     return sum(1 for t in list(times) if now - t <= window_s) / window_s
+
+
+def suspect_gauges(diagnostics: dict[str, Any]) -> list[str]:
+    """The gauges the reconstruction's gauge screen named in a scan's diagnostics (layer,
+    direction, cell and apparent gain each; reconstruction/robust.py), [] if none."""
+    text = diagnostics.get("suspect_gauges", "")
+    return [part for part in text.split("; ") if part] if isinstance(text, str) else []
 
 
 class Health:
@@ -220,7 +227,11 @@ class Health:
                 warnings.append(f"{bad} gauge(s) unusable in the last scan (open, saturated or implausible)")
             if last.diagnostics.get("inconsistent"):
                 warnings.append("strains of the last scan fit no surface well; elements flagged DEGRADED")
-        return {"healthy": not warnings, "warnings": warnings, "device_faults": faults}
+        suspects = suspect_gauges(results[-1].diagnostics) if results else []
+        if suspects:
+            warnings.append("gauge(s) contradicted by the others in the last scan, left out of the shape: "
+                            + "; ".join(suspects) + " (check its calibration: gain off?)")
+        return {"healthy": not warnings, "warnings": warnings, "device_faults": faults, "suspect_gauges": suspects}
 
     def _recent_trouble(self) -> list[str]:
         """Damage and loss in the recent past (counters alone never turn a dashboard red)."""

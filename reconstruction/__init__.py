@@ -42,7 +42,7 @@ from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
-from .robust import huber_potential
+from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
 from .airy import airy_gaussian_curvature
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
@@ -129,6 +129,11 @@ class Reconstructor:
         for the one parameter the gauges leave open (docs/reconstruction.md, "Posterior check").
     defect_steps : passes of defect correction through the gauges' exact forward model on
         general-model answers that misfit (0: none).
+    gauge_screen : screen every frame for a gauge its neighbours contradict (a gain off by tens
+        of percent, still reading) before the fits (:class:`.robust.GaugeScreen`: a closed-form
+        fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it
+        names is left out as missing and reported in ``Surface.diagnostics.suspect_gauges``
+        (docs/reconstruction.md, "Robust gauge screen").  On by default.
     """
 
     def __init__(
@@ -149,6 +154,7 @@ class Reconstructor:
         least_shear: bool = True,
         defect_steps: int = 2,
         elastic_prior: PositionFitSettings | None = None,
+        gauge_screen: bool = True,
     ):
         self.least_shear = bool(least_shear)
         if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
@@ -174,6 +180,10 @@ class Reconstructor:
             raise ValueError(f"convex_solver must be 'factorized' or 'clarabel', got {convex_solver!r}")
         self.convex_solver = convex_solver
         self.huber_sigmas = _positive("huber_sigmas", huber_sigmas)
+        if not isinstance(gauge_screen, (bool, np.bool_)):
+            raise ValueError(f"gauge_screen must be True or False, got {gauge_screen!r}")
+        self._screen = GaugeScreen(self.n, self.m, self.h_upper, self.h_lower) if gauge_screen else None
+        self.gauge_screen = bool(gauge_screen)
         if kernels not in ("compiled", "numpy"):
             raise ValueError(f"kernels must be 'compiled' or 'numpy', got {kernels!r}")
         self._compiled = None
@@ -255,11 +265,39 @@ class Reconstructor:
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
         made a 5×5 frame 5 times slower)."""
         with self._blas.limit(limits=1, user_api="blas"):
+            t0 = time.perf_counter()
+            screened = self._screen_gauges(eps_upper, eps_lower, strain_sigma)
+            if screened is not None and screened[0]:
+                eps_upper, eps_lower = screened[2], screened[3]
+            t_screen = time.perf_counter() - t0
             surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm)
         for answer in (surf, surf.mirror):
             if answer is not None and answer._fine_sigma_fn is not None:
                 answer._fine_sigma_fn = self._one_blas_thread(answer._fine_sigma_fn)
+            if answer is not None and screened is not None:
+                _report_screen(answer.diagnostics, screened[0], screened[1], t_screen)
         return surf
+
+    def _screen_gauges(self, eps_upper, eps_lower, strain_sigma):
+        """The gauge screen's verdict on this frame, (suspects, what it did, the strains with the
+        suspects set missing), or None when it is off or the input is for _reconstruct to refuse."""
+        if self._screen is None:
+            return None
+        eu = self._check_strains("eps_upper", eps_upper)
+        el = self._check_strains("eps_lower", eps_lower)
+        try:
+            sigma = float(strain_sigma)
+        except (TypeError, ValueError):
+            return None
+        if not (math.isfinite(sigma) and sigma >= 0.0):
+            return None
+        # misfits below the sensor's noise mean nothing (as for the fits' own tests)
+        suspects, info = self._screen.screen(eu, el, max(sigma, DEFAULT_STRAIN_SIGMA))
+        if suspects:
+            eu, el = eu.copy(), el.copy()
+            for s in suspects:
+                (eu if s.layer == 0 else el)[s.direction, s.row, s.col] = np.nan
+        return suspects, info, eu, el
 
     def prepare(self, strain_sigma: float = DEFAULT_STRAIN_SIGMA) -> None:
         """Do now the one-off work the first frames would otherwise pay for: numba's kernels (done
@@ -951,6 +989,20 @@ class Reconstructor:
         rot_u, rot_v = rotation_rates(grid, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
         frames = integrate_frames(grid, rot_u, rot_v, self.frame_corrections)
         return integrate_positions(grid, frames, rot_u, rot_v, lam_u, lam_v, sin_gamma)
+
+
+def _report_screen(diag: Diagnostics, suspects: list[Suspect], info: dict, seconds: float) -> None:
+    """The gauge screen's verdict in a surface's diagnostics."""
+    diag.suspect_gauges = "; ".join(s.describe() for s in suspects)
+    diag.extra["gauge_screen"] = info["screen"]
+    if "screen_clarabel" in info:
+        diag.extra["screen_clarabel"] = info["screen_clarabel"]
+    if suspects:
+        diag.extra["suspect_gauges"] = [
+            {"name": s.name, "layer": ("upper", "lower")[s.layer], "direction": ("row", "column")[s.direction],
+             "row": s.row, "col": s.col, "gain": round(s.gain, 3), "sigmas": round(s.residual_sigmas, 1)}
+            for s in suspects]
+    diag.solve_time += seconds
 
 
 def _memo(fn):

@@ -30,6 +30,9 @@ class Diagnostics:
     twist_constant: float = 0.0  # constant twist chosen from the Gauss equation (1/mm)
     valid_units: int = 0
     extra: dict = field(default_factory=dict)
+    # gauges the robust screen found contradicted by the rest of the frame and left out of the
+    # fit, named with their apparent gain ("" if none; reconstruction/robust.py)
+    suspect_gauges: str = ""
 
 
 def slopes(f: np.ndarray, h: float, axis: int) -> np.ndarray:
