@@ -252,10 +252,11 @@ class Reconstructor:
         skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
-        model, its own answer and uncertainty, with ``diagnostics.extra`` ``graph_deferred``
-        True and ``graph_fit`` "deferred: ..." (why); the caller fits that frame cold elsewhere
-        (skinmapd: on its restart worker, then warm-starts from it), so no frame pays for a
-        cold fit.
+        model, with ``diagnostics.extra`` ``graph_deferred`` True and ``graph_fit`` "deferred:
+        ..." (why), its uncertainty widened by its resolution (uncertainty.resolution_sigma: a
+        sheet that may be a graph may have features sharper than the gauges); the caller fits
+        that frame cold elsewhere (skinmapd: on its restart worker, then warm-starts from it),
+        so no frame pays for a cold fit.
 
         BLAS runs on one thread during the call and when the surface's uncertainty is first
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
@@ -427,6 +428,15 @@ class Reconstructor:
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma().reshape(-1)[flat])
 
             surface_sigma = SigmaField(graph_field, None if graph_at is None else graph_nodes)
+        elif deferred:
+            # a frame a graph may fit (the screen passed): the sheet may have structure at the
+            # gauge scale, which the general model cannot resolve, so its resolution is part of
+            # its uncertainty (as in the agreement test a graph must pass)
+            def deferred_sigma() -> np.ndarray:
+                sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
+                return np.sqrt(general_sigma() ** 2 + resolution_sigma(grid, valid, turning, sig_turn) ** 2)
+
+            surface_sigma = SigmaField(deferred_sigma)
         else:
             surface_sigma = SigmaField(general_sigma)
         surf = self._surface(pos, surface_sigma, diag)
