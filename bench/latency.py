@@ -127,6 +127,7 @@ def traced_daemon(config: str, trace_path: str) -> int:
                 **{k: v * 1e3 for k, v in r.stage_s.items()},
                 "output": (time.time_ns() - current["processed_ns"]) / 1e6,
                 "model": str(r.diagnostics.get("status", "")),
+                "graph": str(getattr(getattr(r.surface, "diagnostics", None), "extra", {}).get("graph_fit", "")),
             }
 
     def on_gc(phase: str, info: dict) -> None:
@@ -162,6 +163,16 @@ def stage_table(trace: dict, received_ns: dict[int, int]) -> list[str]:
     worst = sorted(frames, key=lambda f: -f["total"])[:max(1, len(frames) // 100)]
     lines.append(f"  slowest {len(worst)} (1 %), mean ms: " + ", ".join(
         f"{name} {np.mean([f.get(name, 0.0) for f in worst]):.2f}" for name in (*STAGES, "total")))
+    slow = sorted(frames, key=lambda f: -f.get("reconstruct", 0.0))[:max(1, len(frames) // 100)]
+    lines.append(f"  slowest {len(slow)} reconstructions, graph fit: " + "; ".join(
+        f"{f.get('reconstruct', 0.0):.1f} ms {f.get('graph', '')[:60]!r}" for f in slow))
+    kinds: dict[str, int] = {}
+    for f in frames:
+        how = f.get("graph", "")
+        key = ("deferred" if how.startswith("deferred") else how if how in ("warm", "linear", "general") else
+               "not a graph" if how else "-")
+        kinds[key] = kinds.get(key, 0) + 1
+    lines.append("  graph fit per frame: " + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())))
     t0, t1 = min(f["rx_ns"] for f in frames), max(f["put_ns"] for f in frames)
     gcs = [c for c in trace["gc"] if t0 <= c["start_ns"] <= t1]
     for gen in (0, 1, 2):

@@ -252,7 +252,7 @@ class Reconstructor:
         skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
-        model, with ``diagnostics.extra`` ``graph_deferred`` True and ``graph_fit`` "deferred:
+        model (its first answer, no defect correction), with ``diagnostics.extra`` ``graph_deferred`` True and ``graph_fit`` "deferred:
         ..." (why), its uncertainty widened by its resolution (uncertainty.resolution_sigma: a
         sheet that may be a graph may have features sharper than the gauges); the caller fits
         that frame cold elsewhere (skinmapd: on its restart worker, then warm-starts from it),
@@ -359,7 +359,10 @@ class Reconstructor:
         else:
             if general is None:
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
-            if n_valid and self.defect_steps:
+            # (a deferred frame is the general model's first answer: its defect correction costs
+            # as much as the cold fit it stands in for, and the posterior check widens its
+            # uncertainty by the misfit left)
+            if n_valid and self.defect_steps and not deferred:
                 general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign)
             pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
