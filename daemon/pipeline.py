@@ -83,8 +83,8 @@ GRAPH_ADOPT_SCANS = 16
 #: At most this many processed scans at the start of a log that begins mid-stream cannot be
 #: compared by replay: those before the first chain begun in the file is taken over.
 GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
-#: A published frame that would need a cold graph fit (its warm fit failed, or it has no graph to
-#: start from) is answered by the general model (``graph_cold=False``), and the cold fit of that
+#: A published frame that would need a cold graph fit (its warm fit failed, or the frame before
+#: it has no graph to start from; the first frame fits cold itself) is answered by the general model (``graph_cold=False``), and the cold fit of that
 #: scan begins a catch-up chain on the background, fed the following scans as a restart chain is
 #: and taken over at the first processed scan at least this many sample indices later (at 10 Hz
 #: output of 50 scans/s: the next published frame).  The frames in between are the general
@@ -436,7 +436,8 @@ class FramePipeline:
         call = dict(kwargs)
         if previous is not None:
             call["previous"] = previous
-        if chained and self.defer_cold_fits and not self._catch_up_failed:
+        if chained and self.defer_cold_fits and previous is not None and not self._catch_up_failed:
+            # (the first frame, with nothing before it, fits cold itself: a stream's start)
             call["graph_cold"] = False
         self._catch_up_failed = False
         surf = self.reconstructor(eps_u, eps_l, **call)

@@ -191,7 +191,10 @@ def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_fram
         cold_fits: list[int] = []
         fit_cold = graph.fit_cold
         graph.fit_cold = lambda *a, **kw: (cold_fits.append(1), fit_cold(*a, **kw))[1]
-        deferring = run_jump(pipe)
+        deferring = {JUMP_FROM: pipe.process(JUMP_SCANS[JUMP_FROM], JUMP_FROM, 0, 0)}
+        assert cold_fits  # the first frame, with nothing before it, fits cold itself
+        cold_fits.clear()
+        deferring.update({seq: pipe.process(JUMP_SCANS[seq], seq, 0, 0) for seq in JUMP_SCANS if seq > JUMP_FROM})
     finally:
         worker.close()
     undeferred = run_jump(pipeline(defer_cold_fits=False))
@@ -247,8 +250,8 @@ def test_a_failed_catch_up_chain_lets_the_next_frame_fit_cold_itself(caplog):
         results = run_jump(pipe)
     assert "catch-up chain from scan" in caplog.text
     models = {seq: r.surface.diagnostics.extra["model"] for seq, r in results.items()}
-    # the first frame defers; the chain fails at its take-over, where the frame fits cold itself
-    assert results[JUMP_FROM].diagnostics["graph_deferred"]
-    taken = JUMP_FROM + GRAPH_CATCH_UP_SCANS
+    # the jump defers; the chain fails at its take-over, where the frame fits cold itself
+    assert results[JUMP_AT].diagnostics["graph_deferred"]
+    taken = JUMP_AT + GRAPH_CATCH_UP_SCANS
     assert models[taken] == "graph" and results[taken].surface.diagnostics.extra["graph_fit"] in ("linear", "general")
     assert all(np.isfinite(r.element_positions_mm).all() for r in results.values())
