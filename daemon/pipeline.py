@@ -308,6 +308,7 @@ class FramePipeline:
         self.geometry = geometry
         self.calibration = calibration
         self.elements = element_layout(element_uv_mm, element_offset_mm, geometry.cell_uv(), geometry.pitch_mm)
+        self._sigma_uv = np.concatenate([geometry.cell_uv().reshape(-1, 2), self.elements.uv_mm])
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
         self.convex_solver = convex_solver
@@ -448,6 +449,11 @@ class FramePipeline:
         t_caught = time.perf_counter()
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
+        locate_sigma = getattr(surf, "locate_sigma", None)
+        if locate_sigma is not None and self.elements.count:
+            # the cell centres' and the elements' σ in one reading (a surface whose σ is read
+            # node by node then answers node_sigma and the elements from it)
+            locate_sigma(self._sigma_uv)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
         t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements)

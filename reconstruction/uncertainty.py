@@ -35,6 +35,7 @@ class SigmaField:
         self._field = field
         self._at_nodes = at_nodes
         self._whole: np.ndarray | None = None
+        self._known: dict[int, float] = {}  # nodes read so far, each computed once
 
     def __call__(self) -> np.ndarray:
         if self._whole is None:
@@ -42,12 +43,17 @@ class SigmaField:
         return self._whole
 
     def at(self, flat: np.ndarray) -> np.ndarray:
-        """σ (mm) at the fine nodes of flat indices ``flat`` (any shape; repeats cost nothing)."""
+        """σ (mm) at the fine nodes of flat indices ``flat`` (any shape; repeats, and nodes read
+        before, cost nothing)."""
         flat = np.asarray(flat, dtype=np.intp)
         if self._whole is not None or self._at_nodes is None:
             return self().reshape(-1)[flat]
         nodes, back = np.unique(flat.reshape(-1), return_inverse=True)
-        return np.asarray(self._at_nodes(nodes))[back].reshape(flat.shape)
+        known = self._known
+        new = np.array([k for k in nodes.tolist() if k not in known], dtype=np.intp)
+        if new.size:
+            known.update(zip(new.tolist(), np.asarray(self._at_nodes(new), dtype=float).tolist()))
+        return np.array([known[k] for k in nodes.tolist()])[back].reshape(flat.shape)
 
     def wrapped(self, around: Callable[[Callable], Callable]) -> "SigmaField":
         """The same map with both ways of reading it run inside ``around`` (e.g. a thread limit)."""

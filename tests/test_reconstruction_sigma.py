@@ -110,6 +110,8 @@ def test_sigma_field_reads_the_whole_field_once_and_repeats_for_free():
     sf = SigmaField(whole, nodes)
     assert sf.at(np.array([[5, 1], [5, 5]])).tolist() == [[5.0, 1.0], [5.0, 5.0]]
     assert calls == ["nodes [1, 5]"]  # each node once
+    assert sf.at(np.array([5, 6])).tolist() == [5.0, 6.0]
+    assert calls == ["nodes [1, 5]", "nodes [6]"]  # nodes read before are not computed again
     assert sf() is field and sf() is field and calls.count("whole") == 1
     assert sf.at(np.array([3])).tolist() == [3.0] and len(calls) == 2  # from the whole field now
     plain = SigmaField(whole)
