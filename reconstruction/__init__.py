@@ -252,11 +252,11 @@ class Reconstructor:
         skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
-        model (its first answer, no defect correction), with ``diagnostics.extra`` ``graph_deferred`` True and ``graph_fit`` "deferred:
-        ..." (why), its uncertainty widened by its resolution (uncertainty.resolution_sigma: a
-        sheet that may be a graph may have features sharper than the gauges); the caller fits
-        that frame cold elsewhere (skinmapd: on its restart worker, then warm-starts from it),
-        so no frame pays for a cold fit.
+        model (its first answer, no defect correction), with ``diagnostics.extra``
+        ``graph_deferred`` True and ``graph_fit`` "deferred: ..." (why), its uncertainty widened
+        by its resolution (uncertainty.resolution_sigma: a sheet that may be a graph may have
+        features sharper than the gauges); the caller fits that frame cold elsewhere (skinmapd:
+        on its restart worker, then warm-starts from it), so no frame pays for a cold fit.
 
         BLAS runs on one thread during the call and when the surface's uncertainty is first
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
