@@ -84,7 +84,8 @@ GRAPH_ADOPT_SCANS = 16
 #: compared by replay: those before the first chain begun in the file is taken over.
 GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 #: A published frame that would need a cold graph fit (its warm fit failed, or the frame before
-#: it has no graph to start from; the first frame fits cold itself) is answered by the general model (``graph_cold=False``), and the cold fit of that
+#: it has no graph to start from; the first frame, and one after a frame with too few usable
+#: units to try a graph, fit cold themselves) is answered by the general model (``graph_cold=False``), and the cold fit of that
 #: scan begins a catch-up chain on the background, fed the following scans as a restart chain is
 #: and taken over at the first processed scan at least this many sample indices later (at 10 Hz
 #: output of 50 scans/s: the next published frame).  The frames in between are the general
@@ -276,6 +277,11 @@ class _Chain:
         return self.last
 
 
+def _graph_tried(surf: Any) -> bool:
+    """Whether ``surf`` is a frame on which the graph fit was tried (warm, cold or screened)."""
+    return surf is not None and "graph_fit" in getattr(getattr(surf, "diagnostics", None), "extra", {})
+
+
 def _usable(surf: Any, element_uv: np.ndarray) -> bool:
     """Whether a surface may be published and start the next frame: finite nodes and normals,
     and finite positions and normals at the elements."""
@@ -437,8 +443,10 @@ class FramePipeline:
         call = dict(kwargs)
         if previous is not None:
             call["previous"] = previous
-        if chained and self.defer_cold_fits and previous is not None and not self._catch_up_failed:
-            # (the first frame, with nothing before it, fits cold itself: a stream's start)
+        if chained and self.defer_cold_fits and _graph_tried(previous) and not self._catch_up_failed:
+            # (the first frame, with nothing before it, fits cold itself, and so does a frame
+            # after one with too few usable units to try a graph: a stream's start or its
+            # recovery from bad data is answered at once)
             call["graph_cold"] = False
         self._catch_up_failed = False
         surf = self.reconstructor(eps_u, eps_l, **call)

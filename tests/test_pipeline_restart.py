@@ -84,13 +84,23 @@ def test_replay_from_the_block_start_agrees_from_the_take_over_on():
         assert np.allclose(live[seq], replay[seq], atol=0.05), seq
 
 
+def one_blas_thread():
+    """BLAS on one thread for the whole process, as skinmapd and replay set it (gateway.
+    limit_blas_threads): otherwise the reconstructors' own per-call limits on two threads undo
+    each other's (the limit is process-wide), and the last bits depend on the timing."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1)
+
+
 def test_worker_thread_gives_the_bits_of_the_inline_run():
     worker = WorkerBackground()
-    try:
-        threaded = run(pipeline(background=worker), range(START, START + COUNT))
-    finally:
-        worker.close()
-    inline = run(pipeline(background=InlineBackground()), range(START, START + COUNT))
+    with one_blas_thread():
+        try:
+            threaded = run(pipeline(background=worker), range(START, START + COUNT))
+        finally:
+            worker.close()
+        inline = run(pipeline(background=InlineBackground()), range(START, START + COUNT))
     for seq in threaded:
         assert np.array_equal(threaded[seq], inline[seq]), seq
 
@@ -224,11 +234,12 @@ def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_fram
 def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
     """Replay runs the catch-up chains in line: the same elements as the live worker's."""
     worker = WorkerBackground()
-    try:
-        threaded = run_jump(pipeline(background=worker))
-    finally:
-        worker.close()
-    inline = run_jump(pipeline(background=InlineBackground()))
+    with one_blas_thread():
+        try:
+            threaded = run_jump(pipeline(background=worker))
+        finally:
+            worker.close()
+        inline = run_jump(pipeline(background=InlineBackground()))
     assert any(r.diagnostics.get("graph_deferred") for r in inline.values())
     for seq in threaded:
         assert np.array_equal(threaded[seq].element_positions_mm, inline[seq].element_positions_mm), seq
