@@ -435,10 +435,6 @@ class FramePipeline:
         self._restart_chain(eps_u, eps_l, seq, kwargs)
         t_chain = time.perf_counter()
         chained = self._chained()
-        if chained and self._chain_tail is None and self._chain_reconstructor is None:
-            # the chains' reconstructor built ahead of the first chain, on the background (its
-            # jobs run after this one), so that the first catch-up chain does not wait for it
-            self._chain_tail = self.background.submit(self._chain_reconstructor_built)
         previous = self._previous if self.warm_start else None
         call = dict(kwargs)
         if previous is not None:
