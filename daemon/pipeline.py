@@ -277,6 +277,14 @@ class _Chain:
         return self.last
 
 
+def _step(chain: _Chain, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> Callable[[], None]:
+    """The chain's step on this scan, as a job."""
+    def run() -> None:
+        chain.step(eps_u, eps_l, seq, kwargs)
+
+    return run
+
+
 def _graph_tried(surf: Any) -> bool:
     """Whether ``surf`` is a frame on which the graph fit was tried (warm, cold or screened)."""
     return surf is not None and "graph_fit" in getattr(getattr(surf, "diagnostics", None), "extra", {})
@@ -556,9 +564,7 @@ class FramePipeline:
             return
         for chain in (self._chain, self._catch_up):
             if chain is not None:
-                step_kwargs = dict(kwargs)
-                self._submit(chain, lambda chain=chain, step_kwargs=step_kwargs:
-                             chain.step(eps_u, eps_l, seq, step_kwargs))
+                self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
 
     def _catch_up_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                         previous: Any) -> None:
