@@ -12,9 +12,15 @@ subscribes to the element messages over Zenoh, and prints:
   the wait from the scan's last byte to the processing thread, the pipeline's stages
   (FrameResult.stage_s), the output up to the elements put, and garbage collections; the
   subscriber's receive time is joined by sequence number.  Printed: median, p99 and max per
-  stage, and the stages of the slowest 1 % of frames (end to end).
+  stage, and the stages of the slowest 1 % of frames (end to end), the graph fit of the slowest
+  reconstructions, and how many frames were warm, deferred (docs/reconstruction.md) or no graph;
+- with --accuracy, in process and in line (no timing): the same emulated scans through two
+  FramePipelines, one deferring the cold graph fits a frame needs to a catch-up chain (skinmapd's
+  default) and one fitting them in the frame, at each output mode: how many frames deferred,
+  their element σ against the undeferred answer's, and how far their element positions are
+  from the undeferred run's in units of their σ.
 
-    .venv/bin/python bench/latency.py [--seconds 20] [--sizes 5x5,16x16] [--stages]
+    .venv/bin/python bench/latency.py [--seconds 20] [--sizes 5x5,16x16] [--stages] [--accuracy]
 """
 from __future__ import annotations
 
@@ -127,6 +133,7 @@ def traced_daemon(config: str, trace_path: str) -> int:
                 **{k: v * 1e3 for k, v in r.stage_s.items()},
                 "output": (time.time_ns() - current["processed_ns"]) / 1e6,
                 "model": str(r.diagnostics.get("status", "")),
+                "graph": str(getattr(getattr(r.surface, "diagnostics", None), "extra", {}).get("graph_fit", "")),
             }
 
     def on_gc(phase: str, info: dict) -> None:
@@ -162,6 +169,16 @@ def stage_table(trace: dict, received_ns: dict[int, int]) -> list[str]:
     worst = sorted(frames, key=lambda f: -f["total"])[:max(1, len(frames) // 100)]
     lines.append(f"  slowest {len(worst)} (1 %), mean ms: " + ", ".join(
         f"{name} {np.mean([f.get(name, 0.0) for f in worst]):.2f}" for name in (*STAGES, "total")))
+    slow = sorted(frames, key=lambda f: -f.get("reconstruct", 0.0))[:max(1, len(frames) // 100)]
+    lines.append(f"  slowest {len(slow)} reconstructions, graph fit: " + "; ".join(
+        f"{f.get('reconstruct', 0.0):.1f} ms {f.get('graph', '')[:60]!r}" for f in slow))
+    kinds: dict[str, int] = {}
+    for f in frames:
+        how = f.get("graph", "")
+        key = ("deferred" if how.startswith("deferred") else how if how in ("warm", "linear", "general") else
+               "not a graph" if how else "-")
+        kinds[key] = kinds.get(key, 0) + 1
+    lines.append("  graph fit per frame: " + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())))
     t0, t1 = min(f["rx_ns"] for f in frames), max(f["put_ns"] for f in frames)
     gcs = [c for c in trace["gc"] if t0 <= c["start_ns"] <= t1]
     for gen in (0, 1, 2):
@@ -213,6 +230,55 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
             "cpu": cpu * 100, "rss": rss, "mcap_gb_h": mcap_rate / 1e9}
 
 
+def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: float, shape: str) -> list[str]:
+    """Deferred against undeferred cold fits on the same emulated scans (see the docstring)."""
+    from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground
+    from skinmap.emulator.device import Device, ScannerSpec
+    from skinmap.emulator.physics import parse_shape_spec
+    from skinmap.strains import Calibration
+
+    n, m = (int(x) for x in size.split("x"))
+    spec = ScannerSpec(n=n, m=m, scan_rate_hz=scan_rate)
+    device = Device(spec, parse_shape_spec(shape))
+    hello = device.hello()
+    calibration = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    step = 1 if output_rate == 0 else max(1, round(scan_rate / output_rate))
+    scans = []
+    for k in range(0, int(seconds * scan_rate), step):
+        t = k / scan_rate
+        wire = device.readout.read(device.strains(np.full((2, n, m), t)), t)
+        scans.append((k, np.asarray(wire, dtype=float) * 1e-6))
+    geometry = ArrayGeometry(n, m, spec.pitch_mm, spec.h_upper_mm, spec.h_lower_mm, spec.gauge_length_mm)
+    uv = np.stack([(np.arange(64) - 31.5) * 0.6, np.zeros(64)], axis=1)  # the latency runs' element row
+    runs = []
+    for defer in (True, False):
+        pipe = FramePipeline(geometry, calibration, uv, np.zeros(len(uv)), background=InlineBackground(),
+                             defer_cold_fits=defer)
+        runs.append([pipe.process(raw, seq, 0, 0) for seq, raw in scans])
+    ratios, sig_d, sig_u, gaps = [], [], [], []
+    for a, b in zip(*runs):
+        if a.diagnostics.get("graph_deferred"):
+            gap = np.linalg.norm(a.element_positions_mm - b.element_positions_mm, axis=1)
+            ratios.append(gap / a.element_sigma_mm)
+            gaps.append(gap)
+            sig_d.append(a.element_sigma_mm)
+            sig_u.append(b.element_sigma_mm)
+    differ = sum(not np.array_equal(a.element_positions_mm, b.element_positions_mm) for a, b in zip(*runs))
+    mode = "every scan" if output_rate == 0 else f"{output_rate:g} Hz"
+    head = (f"  accuracy {size} {mode}: {len(scans)} frames, {len(ratios)} deferred, {differ} differ from the "
+            f"run that fits cold in the frame")
+    if not ratios:
+        return [head]
+    r, sd, su, g = (np.concatenate(x) for x in (ratios, sig_d, sig_u, gaps))
+    worst = np.array([x.max() for x in ratios])
+    return [head,
+            f"    deferred frames' elements: σ median {np.median(sd) * 1e3:.0f} µm (the cold fit's answer: "
+            f"{np.median(su) * 1e3:.0f} µm), {np.mean(sd > 0.5) * 100:.0f} % above 0.5 mm (DEGRADED)",
+            f"    distance to the cold fit's answer: median {np.median(g) * 1e3:.1f} µm, max {g.max() * 1e3:.1f} µm; "
+            f"in σ: median {np.median(r):.2f}, within 1 σ {np.mean(r <= 1.0) * 100:.1f} % of elements, "
+            f"frames wholly within 1 σ {np.mean(worst <= 1.0) * 100:.0f} %, worst {worst.max():.2f}"]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
@@ -221,10 +287,18 @@ def main() -> None:
     ap.add_argument("--shape", default="palm", help="emulated shape spec (default: the moving palm gesture)")
     ap.add_argument("--outputs", default="10,0", help="output rates to measure, Hz (0 = every scan)")
     ap.add_argument("--stages", action="store_true", help="time the daemon's stages per frame (see above)")
+    ap.add_argument("--accuracy", action="store_true",
+                    help="only compare deferred with in-frame cold graph fits, in process (see above)")
     ap.add_argument("--traced-daemon", nargs=2, metavar=("CONFIG", "TRACE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.traced_daemon:
         sys.exit(traced_daemon(*args.traced_daemon))
+    if args.accuracy:
+        for size in args.sizes.split(","):
+            for output_rate in (float(x) for x in args.outputs.split(",")):
+                print("\n".join(accuracy_lines(size, args.scan_rate, output_rate, max(args.seconds, 32.0), args.shape)),
+                      flush=True)
+        return
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

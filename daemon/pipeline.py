@@ -25,7 +25,8 @@ from skinmap.strains import (Calibration, reject_implausible_units, resistances_
                              turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
-           "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "graph_restart", "graph_adopt"]
+           "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "graph_restart",
+           "graph_adopt"]
 
 log = logging.getLogger("skinmapd")
 
@@ -82,6 +83,16 @@ GRAPH_ADOPT_SCANS = 16
 #: At most this many processed scans at the start of a log that begins mid-stream cannot be
 #: compared by replay: those before the first chain begun in the file is taken over.
 GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
+#: A published frame that would need a cold graph fit (its warm fit failed, or the frame before
+#: it has no graph to start from; the first frame, and one after a frame with too few usable
+#: units to try a graph, fit cold themselves) is answered by the general model (``graph_cold=False``), and the cold fit of that
+#: scan begins a catch-up chain on the background, fed the following scans as a restart chain is
+#: and taken over at the first processed scan at least this many sample indices later (at 10 Hz
+#: output of 50 scans/s: the next published frame).  The frames in between are the general
+#: model's.  Taking it over does not begin a lineage of its own (``chain_origin`` is unchanged):
+#: whether a frame defers depends on the frames before it, so a replay is in step with it only
+#: where it already was.
+GRAPH_CATCH_UP_SCANS = 4
 
 
 def graph_restart(previous_seq: int | None, seq: int) -> bool:
@@ -90,10 +101,10 @@ def graph_restart(previous_seq: int | None, seq: int) -> bool:
     return previous_seq is None or seq // GRAPH_RESTART_SCANS != previous_seq // GRAPH_RESTART_SCANS
 
 
-def graph_adopt(origin_seq: int, seq: int) -> bool:
-    """Whether the scan ``seq`` takes over the chain begun cold at scan ``origin_seq`` (also when
-    the sample index went back: waiting longer would not help)."""
-    return seq < origin_seq or seq - origin_seq >= GRAPH_ADOPT_SCANS
+def graph_adopt(origin_seq: int, seq: int, after: int = GRAPH_ADOPT_SCANS) -> bool:
+    """Whether the scan ``seq`` takes over the chain begun cold at scan ``origin_seq``, ``after``
+    sample indices later (also when the sample index went back: waiting longer would not help)."""
+    return seq < origin_seq or seq - origin_seq >= after
 
 
 class Pending(Protocol):
@@ -220,13 +231,17 @@ class WorkerBackground:
 
 class _Chain:
     """Graph fits begun cold at scan ``origin`` and fed the scans the published frames get, on a
-    reconstructor of their own (a Reconstructor fills caches and is not thread-safe).  Its steps
-    run in order on the background; ``last`` is its latest usable surface."""
+    reconstructor of their own (a Reconstructor fills caches and is not thread-safe), taken over
+    ``adopt_after`` sample indices later.  Its steps run in order on the background, each after
+    every job submitted before it (``after``: of any chain, as they share that reconstructor);
+    ``last`` is its latest usable surface."""
 
-    def __init__(self, origin: int, reconstructor: Any, element_uv: np.ndarray) -> None:
+    def __init__(self, origin: int, reconstructor: Any, element_uv: np.ndarray,
+                 adopt_after: int = GRAPH_ADOPT_SCANS) -> None:
         self.origin = origin
         self.reconstructor = reconstructor
         self.element_uv = element_uv
+        self.adopt_after = adopt_after
         self.last: Any = None
         self.last_seq: int | None = None
         self._pending: Pending | None = None
@@ -238,15 +253,21 @@ class _Chain:
         if _usable(surf, self.element_uv):  # the rule the published frames follow
             self.last, self.last_seq = surf, seq
 
-    def submit(self, background: Background, fn: Callable[[], None]) -> None:
+    def submit(self, background: Background, fn: Callable[[], None], after: Pending | None = None) -> Pending:
         earlier = self._pending
 
         def run() -> None:
+            if after is not None and after is not earlier:
+                try:
+                    after.result()  # another chain's step: never two on the reconstructor at once
+                except Exception:  # noqa: BLE001 - that chain's failure is that chain's
+                    pass
             if earlier is not None:
                 earlier.result()  # a failed step fails the rest of the chain
             fn()
 
         self._pending = background.submit(run)
+        return self._pending
 
     def wait(self) -> Any:
         """The chain's latest usable surface (None if none), once its steps are done; raises
@@ -254,6 +275,19 @@ class _Chain:
         if self._pending is not None:
             self._pending.result()
         return self.last
+
+
+def _step(chain: _Chain, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> Callable[[], None]:
+    """The chain's step on this scan, as a job."""
+    def run() -> None:
+        chain.step(eps_u, eps_l, seq, kwargs)
+
+    return run
+
+
+def _graph_tried(surf: Any) -> bool:
+    """Whether ``surf`` is a frame on which the graph fit was tried (warm, cold or screened)."""
+    return surf is not None and "graph_fit" in getattr(getattr(surf, "diagnostics", None), "extra", {})
 
 
 def _usable(surf: Any, element_uv: np.ndarray) -> bool:
@@ -283,11 +317,13 @@ class FramePipeline:
         graph_fit: bool = True,
         twist_sign: int | None = None,
         background: Background | None = None,
+        defer_cold_fits: bool = True,
         elastic_prior: Any = None,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
         self.elements = element_layout(element_uv_mm, element_offset_mm, geometry.cell_uv(), geometry.pitch_mm)
+        self._sigma_uv = np.concatenate([geometry.cell_uv().reshape(-1, 2), self.elements.uv_mm])
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
         self.convex_solver = convex_solver
@@ -312,6 +348,13 @@ class FramePipeline:
         self._chain_reconstructor: Any = None
         self._chain: _Chain | None = None
         self.chain_origin: int | None = None
+        # Cold fits a published frame needs go to a catch-up chain (GRAPH_CATCH_UP_SCANS) unless
+        # this is False (each such frame then fits cold itself); the chain under way; the last
+        # job handed to the background (the chains' steps run one after another).
+        self.defer_cold_fits = bool(defer_cold_fits)
+        self._catch_up: _Chain | None = None
+        self._chain_tail: Pending | None = None
+        self._catch_up_failed = False  # the next frame then fits cold itself
 
     @property
     def element_uv(self) -> np.ndarray:
@@ -384,6 +427,9 @@ class FramePipeline:
             self._chain_reconstructor = earlier._chain_reconstructor
             self._chain = earlier._chain
             self.chain_origin = earlier.chain_origin
+            self._catch_up = earlier._catch_up
+            self._chain_tail = earlier._chain_tail
+            self._catch_up_failed = earlier._catch_up_failed
 
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
@@ -400,22 +446,42 @@ class FramePipeline:
             kwargs["twist_sign"] = self.twist_sign
         self._restart_chain(eps_u, eps_l, seq, kwargs)
         t_chain = time.perf_counter()
-        if self.warm_start and self._previous is not None:
-            kwargs["previous"] = self._previous
-        surf = self.reconstructor(eps_u, eps_l, **kwargs)
+        chained = self._chained()
+        previous = self._previous if self.warm_start else None
+        call = dict(kwargs)
+        if previous is not None:
+            call["previous"] = previous
+        if chained and self.defer_cold_fits and _graph_tried(previous) and not self._catch_up_failed:
+            # (the first frame, with nothing before it, fits cold itself, and so does a frame
+            # after one with too few usable units to try a graph: a stream's start or its
+            # recovery from bad data is answered at once)
+            call["graph_cold"] = False
+        self._catch_up_failed = False
+        surf = self.reconstructor(eps_u, eps_l, **call)
         t_rec = time.perf_counter()
+        deferred = bool(getattr(getattr(surf, "diagnostics", None), "extra", {}).get("graph_deferred", False))
+        if deferred:
+            self._catch_up_chain(eps_u, eps_l, seq, kwargs, previous)
+        t_caught = time.perf_counter()
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
+        locate_sigma = getattr(surf, "locate_sigma", None)
+        if locate_sigma is not None and self.elements.count:
+            # the cell centres' and the elements' σ in one reading (a surface whose σ is read
+            # node by node then answers node_sigma and the elements from it)
+            locate_sigma(self._sigma_uv)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
         t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements)
         t_end = time.perf_counter()
         solve_s = t_end - t0
-        stages = {"strains": t0 - t_start, "restart": t_chain - t0, "reconstruct": t_rec - t_chain,
-                  "uncertainty": t_sigma - t_rec, "elements": t_end - t_sigma}
+        stages = {"strains": t0 - t_start, "restart": (t_chain - t0) + (t_caught - t_rec), "reconstruct": t_rec - t_chain,
+                  "uncertainty": t_sigma - t_caught, "elements": t_end - t_sigma}
 
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
+        if deferred:
+            diagnostics["graph_deferred"] = True  # answered by the general model; a catch-up chain fits it
         noise = turning_noise_rad(self.strain_sigma, g.gauge_length_mm, g.h_upper_mm, g.h_lower_mm)
         diagnostics["inconsistent"] = fit_inconsistent(diagnostics.get("residual", 0.0), noise)
         flags = element_flags(self.elements, sig, valid, ambiguous=getattr(surf, "mirror", None) is not None,
@@ -448,40 +514,73 @@ class FramePipeline:
         self._last_good = result
         return result
 
+    def _chained(self) -> bool:
+        """Whether this pipeline runs the graph fit's chains (warm starts of a graph fit)."""
+        return self.warm_start and getattr(self.reconstructor, "graph_fit", False)
+
+    def _submit(self, chain: _Chain, fn: Callable[[], None]) -> None:
+        self._chain_tail = chain.submit(self.background, fn, self._chain_tail)
+
+    def _begin(self, chain: _Chain, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, cold: dict[str, Any]) -> None:
+        def begin() -> None:
+            chain.reconstructor = self._chain_reconstructor_built()
+            chain.step(eps_u, eps_l, seq, cold)
+
+        self._submit(chain, begin)
+
     def _restart_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> None:
-        """The restart chain's part of a frame, before it is reconstructed (GRAPH_RESTART_SCANS):
-        take over a chain that is due, begin one at a block's first scan, or feed it this scan."""
-        if not (self.warm_start and getattr(self.reconstructor, "graph_fit", False)):
+        """The chains' part of a frame, before it is reconstructed (GRAPH_RESTART_SCANS,
+        GRAPH_CATCH_UP_SCANS): take over a chain that is due (a restart chain after a catch-up
+        chain due at the same scan: it begins the lineage), begin a restart chain at a block's
+        first scan, or feed the chains under way this scan."""
+        if not self._chained():
             return
-        chain = self._chain
-        if chain is not None and graph_adopt(chain.origin, seq):
-            self._chain = None
+        for restart in (False, True):
+            chain = self._chain if restart else self._catch_up
+            if chain is None or not graph_adopt(chain.origin, seq, chain.adopt_after):
+                continue
+            if restart:
+                self._chain = None
+            else:
+                self._catch_up = None
             try:
                 last = chain.wait()
             except Exception:  # noqa: BLE001 - a failed chain is dropped; the frames go on warm
-                log.exception("the graph fit's restart chain from scan %s failed", chain.origin)
+                log.exception("the graph fit's %s chain from scan %s failed", "restart" if restart else "catch-up",
+                              chain.origin)
                 last = None
+                self._catch_up_failed = not restart
             if last is not None:
                 self._previous, self._previous_seq = last, chain.last_seq
-                self.chain_origin = chain.origin
-            chain = None
+                if restart:
+                    self.chain_origin = chain.origin
         previous = self._previous
         if self._previous_seq is not None and graph_restart(self._previous_seq, seq):
+            # a catch-up chain under way began in the block before: a replay from here could not
+            # repeat it
+            self._catch_up = None
             if previous is None or getattr(previous.state, "graph", None) is None:
                 # no graph to warm-start from: this frame starts cold by itself
                 self.chain_origin = seq
                 return
-            chain = self._chain = _Chain(seq, None, self.element_uv)
-            cold = {**kwargs, "previous": previous, "graph_warm": False}
+            self._chain = _Chain(seq, None, self.element_uv)
+            self._begin(self._chain, eps_u, eps_l, seq, {**kwargs, "previous": previous, "graph_warm": False})
+            return
+        for chain in (self._chain, self._catch_up):
+            if chain is not None:
+                self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
 
-            def begin() -> None:
-                chain.reconstructor = self._chain_reconstructor_built()
-                chain.step(eps_u, eps_l, seq, cold)
-
-            chain.submit(self.background, begin)
-        elif chain is not None:
-            step_kwargs = dict(kwargs)
-            chain.submit(self.background, lambda: chain.step(eps_u, eps_l, seq, step_kwargs))
+    def _catch_up_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
+                        previous: Any) -> None:
+        """A published frame deferred its cold graph fit: begin a catch-up chain with it (unless
+        one is under way: it will take the frames over)."""
+        if self._catch_up is not None:
+            return
+        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS)
+        cold = {**kwargs, "graph_warm": False}
+        if previous is not None:
+            cold["previous"] = previous
+        self._begin(self._catch_up, eps_u, eps_l, seq, cold)
 
     def _stale(self, seq, device_time_us, host_time_ns, eps_u, eps_l, valid, solve_s) -> FrameResult:
         g = self.geometry

@@ -39,7 +39,7 @@ from .grid import FineGrid
 from .linalg import aligned_distances
 from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
-from .graphfit import GraphFit, disagreement
+from .graphfit import GraphFit, GraphResult, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
@@ -47,7 +47,7 @@ from .forward import GaugeLayout, misfit, misfit_and_strains
 from .airy import airy_gaussian_curvature
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import fine_sigma, resolution_sigma
+from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS"]
@@ -250,6 +250,7 @@ class Reconstructor:
         previous: Surface | None = None,
         twist_sign: float | None = None,
         graph_warm: bool = True,
+        graph_cold: bool = True,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
         the smoothness prior; a mask not seen before leaves its units out of the all-valid fits
@@ -260,6 +261,13 @@ class Reconstructor:
         data decide unless ``twist_sign`` is given.  ``graph_warm=False``: the graph fit starts
         cold although ``previous`` holds a graph (a warm fit depends on the frames before it;
         skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
+        ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
+        fit failed) and whose data the fit's screen does not rule out is answered by the general
+        model (its first answer, no defect correction), with ``diagnostics.extra``
+        ``graph_deferred`` True and ``graph_fit`` "deferred: ..." (why), its uncertainty widened
+        by its resolution (uncertainty.resolution_sigma: a sheet that may be a graph may have
+        features sharper than the gauges); the caller fits that frame cold elsewhere (skinmapd:
+        on its restart worker, then warm-starts from it), so no frame pays for a cold fit.
 
         BLAS runs on one thread during the call and when the surface's uncertainty is first
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
@@ -270,10 +278,11 @@ class Reconstructor:
             if screened is not None and screened[0]:
                 eps_upper, eps_lower = screened[2], screened[3]
             t_screen = time.perf_counter() - t0
-            surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm)
+            surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
+                                     graph_cold)
         for answer in (surf, surf.mirror):
             if answer is not None and answer._fine_sigma_fn is not None:
-                answer._fine_sigma_fn = self._one_blas_thread(answer._fine_sigma_fn)
+                answer._fine_sigma_fn = sigma_field(answer._fine_sigma_fn).wrapped(self._one_blas_thread)
             if answer is not None and screened is not None:
                 _report_screen(answer.diagnostics, screened[0], screened[1], t_screen)
         return surf
@@ -323,13 +332,14 @@ class Reconstructor:
 
     def _one_blas_thread(self, fn):
         """``fn`` run with BLAS on one thread."""
-        def run():
+        def run(*args):
             with self._blas.limit(limits=1, user_api="blas"):
-                return fn()
+                return fn(*args)
 
         return run
 
-    def _reconstruct(self, eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm) -> Surface:
+    def _reconstruct(self, eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
+                     graph_cold: bool = True) -> Surface:
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
@@ -349,6 +359,7 @@ class Reconstructor:
         graph = None
         general = None
         warm = None
+        deferred = False
         graph_sigma: dict = {}
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -363,8 +374,17 @@ class Reconstructor:
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
-                agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
-                graph = self._graph.fit_cold(data, general[0], twist_sign, agree)
+                starts = None if graph_cold else self._graph.cold_starts(data, general[0])
+                if starts is not None and not all(starts[1]):
+                    # a cold fit to do, left to the caller: this frame is the general model's
+                    why = "no warm start" if graph is None else graph.how
+                    graph = (graph if graph is not None else
+                             GraphResult(False, np.zeros(0), math.inf, math.inf, 0, 0.0, math.inf, "", math.inf))
+                    graph = graph._replace(how=f"deferred: {why}")
+                    deferred = True
+                else:
+                    agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
+                    graph = self._graph.fit_cold(data, general[0], twist_sign, agree, starts)
         left_out = True
         if graph is not None and graph.accepted:
             pos = _to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
@@ -378,7 +398,10 @@ class Reconstructor:
         else:
             if general is None:
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
-            if n_valid and self.defect_steps:
+            # (a deferred frame is the general model's first answer: its defect correction costs
+            # as much as the cold fit it stands in for, and the posterior check widens its
+            # uncertainty by the misfit left)
+            if n_valid and self.defect_steps and not deferred:
                 general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign)
             pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
@@ -415,22 +438,49 @@ class Reconstructor:
                               graph_chi2=(round(graph.chi2_turning, 4), round(graph.chi2_stretch, 4)))
             if math.isfinite(graph.agreement):
                 diag.extra["graph_agreement"] = round(graph.agreement, 3)
+            if deferred:
+                diag.extra["graph_deferred"] = True
         def general_sigma() -> np.ndarray:
             return self._scaled(fine_sigma(grid, valid, turning, strain_sigma, h_u, h_l, left_out=left_out),
                                 self._noise_response(strain_sigma)[0])
 
+        surface_sigma: SigmaField
         if fit is None:  # the graph's own scatter; a missing unit's region as the general model has it
-            def surface_sigma() -> np.ndarray:
+            assert graph is not None
+            known = graph_sigma.get(graph.coeffs.tobytes())  # from the agreement test, at the fit's noise
+
+            def graph_field() -> np.ndarray:
                 assert graph is not None
-                known = graph_sigma.get(graph.coeffs.tobytes())  # from the agreement test, at the fit's noise
                 if known is not None:
                     sigma = known * (strain_sigma / fit_sigma)
                 else:
                     sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
                                                           grid.spacing)
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
+
+            # skinmapd reads the nodes and its elements' patches only: those alone, unless the
+            # agreement test computed the whole field anyway
+            graph_at = (None if known is not None else
+                        self._graph_fit().height_sigma_at(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
+                                                          grid.spacing))
+
+            def graph_nodes(flat: np.ndarray) -> np.ndarray:
+                assert graph_at is not None
+                sigma = graph_at(flat)
+                return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma().reshape(-1)[flat])
+
+            surface_sigma = SigmaField(graph_field, None if graph_at is None else graph_nodes)
+        elif deferred:
+            # a frame a graph may fit (the screen passed): the sheet may have structure at the
+            # gauge scale, which the general model cannot resolve, so its resolution is part of
+            # its uncertainty (as in the agreement test a graph must pass)
+            def deferred_sigma() -> np.ndarray:
+                sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
+                return np.sqrt(general_sigma() ** 2 + resolution_sigma(grid, valid, turning, sig_turn) ** 2)
+
+            surface_sigma = SigmaField(deferred_sigma)
         else:
-            surface_sigma = general_sigma
+            surface_sigma = SigmaField(general_sigma)
         surf = self._surface(pos, surface_sigma, diag)
         if n_valid:
             def graph_mirror(sign: float) -> np.ndarray:
@@ -770,7 +820,7 @@ class Reconstructor:
         base_shift = 0.0  # where the answer sits on positions_at's family
         info = {"chi2_per_gauge": round(chi0 / max(dof, 1), 3)}
         mirror = None
-        noise_sigma = _memo(surf._fine_sigma_fn)
+        noise_sigma = sigma_field(surf._fine_sigma_fn)
         surf._fine_sigma_fn = noise_sigma
         # a twist c bends the far corners out of the untwisted shape by about c·ρ²/2 (ρ the
         # half-diagonal): below the mirror floor the two images are one answer; and a twist
@@ -815,9 +865,18 @@ class Reconstructor:
             out.flags.writeable = False
             return out
 
-        surf._fine_sigma_fn = sigma
+        def sigma_at(flat: np.ndarray) -> np.ndarray:
+            # the same, node by node (the twist's spread, where there is one, is a whole field)
+            out = noise_sigma.at(flat) * scale
+            spread = twist()
+            if spread is not None:
+                spread = spread.reshape(-1)[flat]
+                out = np.sqrt(out * out + spread * spread)
+            return np.minimum(out, ceiling)
+
+        surf._fine_sigma_fn = SigmaField(sigma, sigma_at)
         if mirror is not None:
-            mirror._fine_sigma_fn = sigma
+            mirror._fine_sigma_fn = surf._fine_sigma_fn
             mirror.diagnostics.extra.update(diag.extra)
             mirror.mirror = None
         return surf
@@ -1021,9 +1080,7 @@ def _differs(a: Surface, b: Surface) -> bool:
     """Two answers that differ by more than their noise anywhere, after the best rigid
     alignment (a rigid motion of the whole sheet is not a different shape)."""
     gap = aligned_distances(a.nodes.reshape(-1, 3), b.nodes.reshape(-1, 3))
-    noise = a._fine_sigma_fn()
-    rows, cols = a._node_index
-    tol = MIRROR_SIGMAS * np.sqrt(2.0) * noise[rows[:, None], cols].ravel() + MIRROR_FLOOR_MM
+    tol = MIRROR_SIGMAS * np.sqrt(2.0) * a.node_sigma.ravel() + MIRROR_FLOOR_MM
     return bool((gap > tol).any())
 
 

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from typing import NamedTuple, cast
+from typing import Callable, NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
@@ -345,13 +345,16 @@ class GraphFit:
         a[j, j + d] = band[d, j]
         return a
 
-    def _dense_lower(self, band: np.ndarray) -> np.ndarray:
+    def _dense_lower(self, band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Lower band storage ``band`` as the lower triangle of a dense Fortran-ordered matrix
-        (one kept buffer: the entries off the band stay zero; valid until the next call)."""
-        if self._lower_buffer is None:
-            self._lower_buffer = np.zeros((self.size, self.size), order="F")
-        self._lower_buffer.reshape(-1, order="F")[self._lower_flat] = band.reshape(-1)[self._band_flat]
-        return self._lower_buffer
+        (one kept buffer: the entries off the band stay zero; valid until the next call), or
+        in ``out`` (zero off the band)."""
+        if out is None:
+            if self._lower_buffer is None:
+                self._lower_buffer = np.zeros((self.size, self.size), order="F")
+            out = self._lower_buffer
+        out.reshape(-1, order="F")[self._lower_flat] = band.reshape(-1)[self._band_flat]
+        return out
 
     @staticmethod
     def _solve(factor, rhs: np.ndarray) -> np.ndarray:
@@ -428,17 +431,11 @@ class GraphFit:
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
 
-    def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None,
-                 agree=None) -> GraphResult:
-        """Fit from the linear fit of the turning data and, given ``general`` (the general
-        model's fine-grid positions (nf, mf, 3), any rigid frame), from that surface as well;
-        the accepted fit with the lower objective wins.  The two starts fail differently: the
-        linear one has no twist (steep twisted quadrics can end in a wrong basin), the general
-        model's smooths sub-gauge features (sharp bumps can end in a wrong basin).  ``agree``
-        (coefficients → the median distance to the general model in combined s.d., see
-        :data:`AGREE_SIGMAS`): an accepted fit must also pass it, in the order of the
-        objective."""
-        turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
+    def cold_starts(self, data: tuple, general: np.ndarray | None = None) -> tuple[list, list[str]]:
+        """The cold fit's starts, [(name, coefficients)], and why each cannot be a graph ('' where
+        it may be; :meth:`_screen`): cheap, so that a caller can tell before paying for the fit
+        whether there is one to do (all reasons given: none)."""
+        turning, stretch, _, _, valid, _, sigma_t, sigma_s = data
         starts = [("linear", self._start(turning, valid, sigma_t))]
         reasons = [self._screen(starts[0][1], stretch, valid, sigma_s)]
         # a gauge that shortens, slopes within the noise or too little stretch for the slopes
@@ -449,6 +446,20 @@ class GraphFit:
             if np.isfinite(c).all():
                 starts.append(("general", c))
                 reasons.append(self._screen(c, stretch, valid, sigma_s))
+        return starts, reasons
+
+    def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None,
+                 agree=None, prepared: tuple[list, list[str]] | None = None) -> GraphResult:
+        """Fit from the linear fit of the turning data and, given ``general`` (the general
+        model's fine-grid positions (nf, mf, 3), any rigid frame), from that surface as well;
+        the accepted fit with the lower objective wins.  The two starts fail differently: the
+        linear one has no twist (steep twisted quadrics can end in a wrong basin), the general
+        model's smooths sub-gauge features (sharp bumps can end in a wrong basin).  ``agree``
+        (coefficients → the median distance to the general model in combined s.d., see
+        :data:`AGREE_SIGMAS`): an accepted fit must also pass it, in the order of the
+        objective.  ``prepared``: :meth:`cold_starts` of these arguments, if already known."""
+        turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
+        starts, reasons = self.cold_starts(data, general) if prepared is None else prepared
         if all(reasons):
             return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[-1], math.inf)
         results = [self._judge(self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
@@ -594,6 +605,83 @@ class GraphFit:
         w -= self._fine_u[None, None, :] * slope_u[None, :, None]
         w -= self._fine_v[:, None, None] * slope_v[None, :, None]
         return noise_ratio * np.sqrt(np.einsum("ikj,ikj->ij", w, w))
+
+    def height_sigma_at(self, c: np.ndarray, data: tuple, noise_ratio: float, centre: tuple[int, int],
+                        spacing: float) -> Callable[[np.ndarray], np.ndarray]:
+        """:meth:`fine_height_sigma` at chosen fine nodes only: a function of flat node indices
+        (into the (nf, mf) grid) giving their s.d. (mm).  The same propagation read the other way
+        round: σ_p = |J H⁻¹ s_p| with s_p the node's height over the centre's tangent plane as a
+        row over the coefficients, so each node costs one band solve instead of every datum's
+        response over the whole grid (5×5: the 25 cell centres and an element row's patches are
+        about 50 of 441 nodes).  The matrix is factorised on the first call and kept."""
+        system: list = []
+
+        def solver() -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+            if system:
+                return system[0]
+            turning, stretch, w_t, w_s = data[:4]
+            g = len(turning)
+            h = None
+            if self._compiled is not None:
+                band = self.prior_band.copy()
+                j = np.zeros((2 * g, self.size))
+                self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
+                                                      stretch, w_t, w_s, band, np.zeros(self.size), True,
+                                                      np.asarray(_WARM_CURVATURE, dtype=float), np.empty(2 * g), j)
+                f, info = _pbtrf(band, lower=1)
+                if info != 0:
+                    h = self._dense(band)
+            else:
+                j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
+                h = self._numpy_matrix(c, j, res[g:], w_s, _WARM_CURVATURE)
+            if h is None:
+                # the factor through the dense triangle (a band solve takes the right-hand
+                # sides one at a time, 2x slower), as fine_height_sigma
+                lower = self._dense_lower(f, np.zeros((self.size, self.size), order="F"))  # kept past other fits
+
+                def solve(rhs: np.ndarray) -> np.ndarray:
+                    y, info = _trtrs(lower, rhs, lower=1)
+                    if info == 0:
+                        y, info = _trtrs(lower, y, lower=1, trans=1, overwrite_b=1)
+                    if info != 0:
+                        raise np.linalg.LinAlgError(f"graph fit's factor is singular (info {info})")
+                    return y
+            else:  # as fine_height_sigma: a dense factorisation, least squares if not definite
+                try:
+                    dense = scipy.linalg.cho_factor(h, lower=True, check_finite=False)
+
+                    def solve(rhs: np.ndarray) -> np.ndarray:
+                        return scipy.linalg.cho_solve(dense, rhs, check_finite=False)
+                except np.linalg.LinAlgError:
+                    def solve(rhs: np.ndarray) -> np.ndarray:
+                        return np.linalg.lstsq(h, rhs, rcond=None)[0]
+            system.append((j, solve))
+            return system[0]
+
+        def at(flat: np.ndarray) -> np.ndarray:
+            j, solve = solver()
+            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre, spacing)
+            r = j @ solve(np.asfortranarray(rows.T))
+            return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
+
+        return at
+
+    def _frame_height_rows(self, flat: np.ndarray, centre: tuple[int, int], spacing: float) -> np.ndarray:
+        """(P, coefficients): the height of fine nodes ``flat`` over the tangent plane at the
+        centre node, as fine_height_sigma builds the sensor frame (central differences of
+        ``spacing``), as linear forms in the coefficients."""
+        fv, fu = self._fv[0], self._fu[0]
+        a, b = np.divmod(flat, len(self._fine_u))
+        a0, b0 = centre
+
+        def height(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+            return (fv[rows][:, :, None] * fu[cols][:, None, :]).reshape(len(rows), self.size)
+
+        ref = height(np.array([a0, a0, a0, a0 + 1, a0 - 1]), np.array([b0, b0 + 1, b0 - 1, b0, b0]))
+        slope_u = (ref[1] - ref[2]) / (2.0 * spacing)
+        slope_v = (ref[3] - ref[4]) / (2.0 * spacing)
+        return (height(a, b) - ref[0] - self._fine_u[b][:, None] * slope_u[None, :]
+                - self._fine_v[a][:, None] * slope_v[None, :])
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

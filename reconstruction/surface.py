@@ -253,7 +253,15 @@ class Surface:
     def node_sigma(self) -> np.ndarray:
         """(N, M) one-s.d. position uncertainty of the nodes (mm)."""
         rows, cols = self._node_index
-        return self.fine_sigma[rows[:, None], cols]  # fancy indexing: a fresh array
+        return np.array(self._sigma_at(rows[:, None] * len(self._u) + cols[None, :]))  # a fresh array
+
+    def _sigma_at(self, flat: np.ndarray) -> np.ndarray:
+        """σ at fine nodes of flat indices ``flat``: from the whole field once it is computed, else
+        from those nodes alone where the uncertainty can (reconstruction.uncertainty.SigmaField)."""
+        at = getattr(self._fine_sigma_fn, "at", None)
+        if self._fine_sigma is None and at is not None:
+            return at(flat)
+        return self.fine_sigma.reshape(-1)[flat]
 
     # ----------------------------------------------------------------------------- queries
     @property
@@ -314,8 +322,7 @@ class Surface:
     def locate_sigma(self, uv) -> np.ndarray:
         """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine grid)."""
         uv = self._check_uv(uv)
-        sig = self.fine_sigma
-        nf, mf = sig.shape
+        nf, mf = len(self._v), len(self._u)
         cell, t = _patch_cells(uv, self._uv_origin(), 1.0 / self._spacing, np.array([mf - 2, nf - 2]))
         lin = np.empty(t.shape + (2,))  # (K, 2 axes, 2 ends): 1 − t, t
         lin[:, :, 1] = t
@@ -323,7 +330,12 @@ class Surface:
         w = (lin[:, 1, :, None] * lin[:, 0, None, :]).reshape(-1, 4)  # corners (da, db) v-major
         p = cell[:, 1] * mf + cell[:, 0]
         corners = p[:, None] + np.array([0, 1, mf, mf + 1])
-        return (w * sig.reshape(-1)[corners]).sum(axis=1)
+        # corners of zero weight (points on a fine-grid line: every element row at v = 0) are
+        # not read, so that a map computed node by node is asked for no more than it must
+        need = w != 0.0
+        sig = np.zeros(w.shape)
+        sig[need] = self._sigma_at(corners[need])
+        return (w * sig).sum(axis=1)
 
     def points(self, per_pitch: int = 20) -> np.ndarray:
         """Dense point cloud over the whole sheet, ``per_pitch`` points per pitch in each

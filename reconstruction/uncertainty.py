@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from typing import cast
+from typing import Callable, cast
 
 import numpy as np
 
@@ -20,7 +20,49 @@ from .grid import FineGrid
 from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
-__all__ = ["height_response", "fine_sigma", "resolution_sigma"]
+__all__ = ["height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field"]
+
+
+class SigmaField:
+    """A fine-node σ map (nf, mf) computed on demand: whole (calling it; computed once and then
+    shared) or at some nodes only (:meth:`at`, flat indices into the (nf, mf) grid).  A consumer
+    that reads a few nodes (skinmapd: the cell centres and the patches its elements sit on, a few
+    dozen of 441 at 5×5) then pays for those alone where ``at_nodes`` is given; without it
+    :meth:`at` reads the whole field."""
+
+    def __init__(self, field: Callable[[], np.ndarray],
+                 at_nodes: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        self._field = field
+        self._at_nodes = at_nodes
+        self._whole: np.ndarray | None = None
+        self._known: dict[int, float] = {}  # nodes read so far, each computed once
+
+    def __call__(self) -> np.ndarray:
+        if self._whole is None:
+            self._whole = self._field()
+        return self._whole
+
+    def at(self, flat: np.ndarray) -> np.ndarray:
+        """σ (mm) at the fine nodes of flat indices ``flat`` (any shape; repeats, and nodes read
+        before, cost nothing)."""
+        flat = np.asarray(flat, dtype=np.intp)
+        if self._whole is not None or self._at_nodes is None:
+            return self().reshape(-1)[flat]
+        nodes, back = np.unique(flat.reshape(-1), return_inverse=True)
+        known = self._known
+        new = np.array([k for k in nodes.tolist() if k not in known], dtype=np.intp)
+        if new.size:
+            known.update(zip(new.tolist(), np.asarray(self._at_nodes(new), dtype=float).tolist()))
+        return np.array([known[k] for k in nodes.tolist()])[back].reshape(flat.shape)
+
+    def wrapped(self, around: Callable[[Callable], Callable]) -> "SigmaField":
+        """The same map with both ways of reading it run inside ``around`` (e.g. a thread limit)."""
+        return SigmaField(around(self.__call__), around(self.at) if self._at_nodes is not None else None)
+
+
+def sigma_field(fn: Callable[[], np.ndarray]) -> SigmaField:
+    """``fn`` (a whole-field σ callable) as a :class:`SigmaField` (itself if it is one)."""
+    return fn if isinstance(fn, SigmaField) else SigmaField(fn)
 
 
 def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:

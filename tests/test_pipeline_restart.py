@@ -1,6 +1,7 @@
 """The graph fit's periodic cold restart (daemon/pipeline.py): begun beside the published frames
 at a block's first scan, taken over GRAPH_ADOPT_SCANS later, the same bits on a worker thread and
-in line, and a replay from the block's start agreeing from the take-over on."""
+in line, and a replay from the block's start agreeing from the take-over on; and the cold fits a
+published frame needs, deferred to a catch-up chain (GRAPH_CATCH_UP_SCANS)."""
 from __future__ import annotations
 
 import threading
@@ -8,8 +9,9 @@ import threading
 import numpy as np
 import pytest
 
-from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_RESTART_SCANS, GRAPH_SYNC_SCANS, ArrayGeometry,
-                                     FramePipeline, InlineBackground, WorkerBackground, graph_adopt, graph_restart)
+from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_CATCH_UP_SCANS, GRAPH_RESTART_SCANS, GRAPH_SYNC_SCANS,
+                                     ArrayGeometry, FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
+                                     graph_restart)
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.strains import Calibration
 
@@ -82,13 +84,23 @@ def test_replay_from_the_block_start_agrees_from_the_take_over_on():
         assert np.allclose(live[seq], replay[seq], atol=0.05), seq
 
 
+def one_blas_thread():
+    """BLAS on one thread for the whole process, as skinmapd and replay set it (gateway.
+    limit_blas_threads): otherwise the reconstructors' own per-call limits on two threads undo
+    each other's (the limit is process-wide), and the last bits depend on the timing."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1)
+
+
 def test_worker_thread_gives_the_bits_of_the_inline_run():
     worker = WorkerBackground()
-    try:
-        threaded = run(pipeline(background=worker), range(START, START + COUNT))
-    finally:
-        worker.close()
-    inline = run(pipeline(background=InlineBackground()), range(START, START + COUNT))
+    with one_blas_thread():
+        try:
+            threaded = run(pipeline(background=worker), range(START, START + COUNT))
+        finally:
+            worker.close()
+        inline = run(pipeline(background=InlineBackground()), range(START, START + COUNT))
     for seq in threaded:
         assert np.array_equal(threaded[seq], inline[seq]), seq
 
@@ -118,7 +130,7 @@ def test_worker_runs_jobs_off_the_calling_thread_unless_asked_first():
 
 
 def test_a_failing_chain_is_dropped_and_the_frames_go_on(caplog):
-    pipe = pipeline()
+    pipe = pipeline(defer_cold_fits=False)  # the published frames fit cold themselves: a restart chain begins
 
     class Broken:
         graph_fit = True
@@ -161,3 +173,96 @@ def test_worker_starts_no_job_while_the_frames_thread_is_busy():
         job.result()
     finally:
         worker.close()
+
+
+# A bump that jumps a pitch and a half between two scans: the warm fit from the scan before fails
+JUMP_FROM, JUMP_AT, JUMP_COUNT = 200, 208, 16  # inside one block (192-255): no restart chain
+
+
+def jump_scan(seq: int) -> np.ndarray:
+    u0 = -6.0 + 0.25 * (seq - JUMP_FROM) if seq < JUMP_AT else 12.0 + 0.25 * (seq - JUMP_AT)
+    shape = make_shape("gaussian", height=4.0, fwhm=18.0, u0=u0, v0=-4.0)
+    eps_u, eps_l = gauge_strains(shape, N, M, pitch=PITCH)
+    return R0 * (1.0 + GF * np.stack([eps_u, eps_l]))
+
+
+JUMP_SCANS = {seq: jump_scan(seq) for seq in range(JUMP_FROM, JUMP_FROM + JUMP_COUNT)}
+
+
+def run_jump(pipe: FramePipeline) -> dict:
+    return {seq: pipe.process(JUMP_SCANS[seq], seq, 0, 0) for seq in JUMP_SCANS}
+
+
+def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_frame():
+    worker = WorkerBackground()
+    try:
+        pipe = pipeline(background=worker)
+        graph = pipe.reconstructor._graph
+        cold_fits: list[int] = []
+        fit_cold = graph.fit_cold
+        graph.fit_cold = lambda *a, **kw: (cold_fits.append(1), fit_cold(*a, **kw))[1]
+        deferring = {JUMP_FROM: pipe.process(JUMP_SCANS[JUMP_FROM], JUMP_FROM, 0, 0)}
+        assert cold_fits  # the first frame, with nothing before it, fits cold itself
+        cold_fits.clear()
+        deferring.update({seq: pipe.process(JUMP_SCANS[seq], seq, 0, 0) for seq in JUMP_SCANS if seq > JUMP_FROM})
+    finally:
+        worker.close()
+    undeferred = run_jump(pipeline(defer_cold_fits=False))
+    extra = {seq: r.surface.diagnostics.extra for seq, r in deferring.items()}
+    # undeferred, the jump is fitted cold in the frame and a graph answers
+    assert undeferred[JUMP_AT].surface.diagnostics.extra["graph_fit"] in ("linear", "general")
+    # deferred: the published frames did no cold fit; the jump and the frames up to the take-over
+    # are the general model's, saying so, and the frame after warm-starts from the chain's fit
+    assert not cold_fits
+    for seq in range(JUMP_AT, JUMP_AT + GRAPH_CATCH_UP_SCANS):
+        assert extra[seq]["model"] == "general" and extra[seq]["graph_deferred"], (seq, extra[seq])
+        assert extra[seq]["graph_fit"].startswith("deferred: "), extra[seq]
+        assert deferring[seq].diagnostics["graph_deferred"] is True
+    assert extra[JUMP_AT]["graph_fit"].startswith("deferred: warm: misfit")
+    adopted = JUMP_AT + GRAPH_CATCH_UP_SCANS
+    assert extra[adopted]["model"] == "graph" and extra[adopted]["graph_fit"] == "warm"
+    # the deferred answers agree with the cold fit's within their own uncertainty
+    for seq in range(JUMP_AT, adopted):
+        gap = np.linalg.norm(deferring[seq].element_positions_mm - undeferred[seq].element_positions_mm, axis=1)
+        assert (gap <= deferring[seq].element_sigma_mm).all(), (seq, gap, deferring[seq].element_sigma_mm)
+    # from the take-over on, the frames are those of the run that fitted cold in the frame
+    for seq in range(adopted, JUMP_FROM + JUMP_COUNT):
+        assert np.allclose(deferring[seq].element_positions_mm, undeferred[seq].element_positions_mm,
+                           atol=1e-6), seq
+
+
+def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
+    """Replay runs the catch-up chains in line: the same elements as the live worker's."""
+    worker = WorkerBackground()
+    with one_blas_thread():
+        try:
+            threaded = run_jump(pipeline(background=worker))
+        finally:
+            worker.close()
+        inline = run_jump(pipeline(background=InlineBackground()))
+    assert any(r.diagnostics.get("graph_deferred") for r in inline.values())
+    for seq in threaded:
+        assert np.array_equal(threaded[seq].element_positions_mm, inline[seq].element_positions_mm), seq
+        assert np.array_equal(threaded[seq].element_sigma_mm, inline[seq].element_sigma_mm), seq
+        assert np.array_equal(threaded[seq].node_sigma_mm, inline[seq].node_sigma_mm), seq
+
+
+def test_a_failed_catch_up_chain_lets_the_next_frame_fit_cold_itself(caplog):
+    pipe = pipeline()
+
+    class Broken:
+        graph_fit = True
+
+        def __call__(self, *a, **kw):
+            raise RuntimeError("chain reconstructor broke")
+
+    pipe._chain_reconstructor = Broken()
+    with caplog.at_level("ERROR", logger="skinmapd"):
+        results = run_jump(pipe)
+    assert "catch-up chain from scan" in caplog.text
+    models = {seq: r.surface.diagnostics.extra["model"] for seq, r in results.items()}
+    # the jump defers; the chain fails at its take-over, where the frame fits cold itself
+    assert results[JUMP_AT].diagnostics["graph_deferred"]
+    taken = JUMP_AT + GRAPH_CATCH_UP_SCANS
+    assert models[taken] == "graph" and results[taken].surface.diagnostics.extra["graph_fit"] in ("linear", "general")
+    assert all(np.isfinite(r.element_positions_mm).all() for r in results.values())

@@ -1,0 +1,118 @@
+"""Uncertainty read node by node (uncertainty.SigmaField): what a consumer reading a few nodes
+gets equals the whole field's values there, without the whole field being computed."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap.emulator.physics import gauge_strains, make_shape
+from skinmap.reconstruction import Reconstructor
+from skinmap.reconstruction.uncertainty import SigmaField
+
+N = M = 5
+ELEMENTS_UV = np.stack([(np.arange(64) - 31.5) * 0.6, np.zeros(64)], axis=1)  # a row on a fine-grid line
+SCATTERED_UV = np.random.default_rng(7).uniform(-29.0, 29.0, (40, 2))
+
+
+@pytest.fixture(scope="module")
+def rec() -> Reconstructor:
+    return Reconstructor(N, M)
+
+
+def strains(kind: str, seed: int, **params) -> tuple[np.ndarray, np.ndarray]:
+    eu, el = gauge_strains(make_shape(kind, **params), N, M, pitch=12.0)
+    rng = np.random.default_rng(seed)
+    return eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape)
+
+
+def bilinear(surf, sigma: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """locate_sigma's interpolation, from a whole field."""
+    u, v = surf._u, surf._v
+    h = u[1] - u[0]
+    x, y = (uv[:, 0] - u[0]) / h, (uv[:, 1] - v[0]) / h
+    b = np.clip(x.astype(int), 0, len(u) - 2)
+    a = np.clip(y.astype(int), 0, len(v) - 2)
+    tx, ty = x - b, y - a
+    return ((1 - ty) * ((1 - tx) * sigma[a, b] + tx * sigma[a, b + 1])
+            + ty * ((1 - tx) * sigma[a + 1, b] + tx * sigma[a + 1, b + 1]))
+
+
+def frames(rec: Reconstructor):
+    """(name, a function giving a fresh surface of the same frame): warm graph frames (σ from the
+    graph fit, node by node), one with a missing unit, a cold graph frame and a general-model one."""
+    e0 = strains("gaussian", 1, height=4.0, fwhm=18.0, u0=-6.0, v0=-4.0)
+    first = rec(*e0)
+    e1 = strains("gaussian", 2, height=4.0, fwhm=18.0, u0=-5.5, v0=-4.0)
+    missing = (e1[0].copy(), e1[1])
+    missing[0][0, 1, 2] = np.nan
+    flat_cyl = strains("cylinder", 3, radius=40.0)
+    return [
+        ("warm graph", lambda: rec(*e1, previous=first)),
+        ("warm graph, a missing unit", lambda: rec(*missing, previous=first)),
+        ("cold graph", lambda: rec(*e0)),
+        ("general model", lambda: rec(*flat_cyl)),
+    ]
+
+
+def test_node_sigma_and_locate_sigma_read_node_by_node_equal_the_whole_field(rec):
+    for name, frame in frames(rec):
+        by_node, whole = frame(), frame()
+        assert by_node.diagnostics.extra["model"] == whole.diagnostics.extra["model"], name
+        node_sigma = by_node.node_sigma
+        on_line = by_node.locate_sigma(ELEMENTS_UV)
+        scattered = by_node.locate_sigma(SCATTERED_UV)
+        if name.startswith("warm graph"):
+            assert by_node.diagnostics.extra["graph_fit"] == "warm", name
+            # read node by node: the whole field was never computed
+            assert by_node._fine_sigma is None, name
+        field = whole.fine_sigma
+        rows, cols = whole._node_index
+        np.testing.assert_allclose(node_sigma, field[rows[:, None], cols], rtol=1e-10, atol=1e-15, err_msg=name)
+        np.testing.assert_allclose(on_line, bilinear(whole, field, ELEMENTS_UV), rtol=1e-10, atol=1e-15, err_msg=name)
+        np.testing.assert_allclose(scattered, bilinear(whole, field, SCATTERED_UV), rtol=1e-10, atol=1e-15,
+                                   err_msg=name)
+        # and once the whole field is there, the same values come from it
+        np.testing.assert_allclose(by_node.node_sigma, by_node.fine_sigma[rows[:, None], cols], rtol=1e-10, err_msg=name)
+        assert (node_sigma > 0).sum() >= node_sigma.size - 1, name  # the centre is the frame's origin
+
+
+def test_graph_sigma_at_chosen_nodes_is_the_whole_propagation_there(rec):
+    eu, el = strains("gaussian", 4, height=3.0, fwhm=20.0, u0=4.0, v0=2.0)
+    surf = rec(eu, el)
+    assert surf.diagnostics.extra["model"] == "graph"
+    from skinmap.reconstruction.engine import unit_data
+
+    graph = rec._graph
+    turning, stretch, valid = unit_data(eu, el, rec.h_upper, rec.h_lower, rec.gauge_length)
+    sig_t = np.sqrt(2.0) * 5.7e-5 / (rec.h_upper + rec.h_lower)
+    sig_s = 5.7e-5 * np.hypot(rec.h_upper, rec.h_lower) / (rec.h_upper + rec.h_lower)
+    data = graph.prepare(turning, stretch, valid, sig_t, sig_s)
+    coeffs = surf.state.graph
+    whole = graph.fine_height_sigma(coeffs, data, 0.7, rec.grid.centre, rec.grid.spacing)
+    at = graph.height_sigma_at(coeffs, data, 0.7, rec.grid.centre, rec.grid.spacing)
+    nodes = np.random.default_rng(5).choice(whole.size, 60, replace=False)
+    np.testing.assert_allclose(at(nodes), whole.reshape(-1)[nodes], rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(at(np.arange(whole.size)), whole.reshape(-1), rtol=1e-10, atol=1e-15)
+
+
+def test_sigma_field_reads_the_whole_field_once_and_repeats_for_free():
+    calls: list[str] = []
+    field = np.arange(12.0).reshape(3, 4)
+
+    def whole() -> np.ndarray:
+        calls.append("whole")
+        return field
+
+    def nodes(flat: np.ndarray) -> np.ndarray:
+        calls.append(f"nodes {flat.tolist()}")
+        return field.reshape(-1)[flat]
+
+    sf = SigmaField(whole, nodes)
+    assert sf.at(np.array([[5, 1], [5, 5]])).tolist() == [[5.0, 1.0], [5.0, 5.0]]
+    assert calls == ["nodes [1, 5]"]  # each node once
+    assert sf.at(np.array([5, 6])).tolist() == [5.0, 6.0]
+    assert calls == ["nodes [1, 5]", "nodes [6]"]  # nodes read before are not computed again
+    assert sf() is field and sf() is field and calls.count("whole") == 1
+    assert sf.at(np.array([3])).tolist() == [3.0] and len(calls) == 3  # from the whole field now
+    plain = SigmaField(whole)
+    assert plain.at(np.array([7])).tolist() == [7.0]
