@@ -333,15 +333,19 @@ class ReliefMap:
         # mean there is the wall's height (the others may not have reached it); the base is the
         # lowest clear level of that envelope
         envelope = np.full(size, -np.inf)
+        pressed = np.zeros(size)
         levelled = []
         for i, (cell, h, w, xy) in enumerate(presses):
+            pressed += np.bincount(cell, None, size) > 0
             hk = h + corr[i, 0] + (xy - centres[i]) @ corr[i, 1:]
             levelled.append((cell, hk, w))
             cw = np.bincount(cell, w, size)
             with np.errstate(invalid="ignore", divide="ignore"):
                 mean = np.where(cw > 0, np.bincount(cell, w * hk, size) / np.where(cw > 0, cw, 1.0), -np.inf)
             envelope = np.maximum(envelope, mean)
-        top = envelope[np.isfinite(envelope)]
+        # cells pressed three times or more: one press's fringe (pushed in, short of the wall) is
+        # another's middle
+        top = envelope[np.isfinite(envelope) & (pressed >= min(3, len(presses)))]
         base = 0.0
         if top.size:
             bins = np.arange(np.floor(top.min() / 0.05) * 0.05, top.max() + 0.1, 0.05)

@@ -129,16 +129,18 @@ def test_worker_runs_jobs_off_the_calling_thread_unless_asked_first():
         worker.close()
 
 
+class _BrokenChain:
+    """A chain reconstructor that fails every job."""
+    graph_fit = True
+
+    def __call__(self, *a, **kw):
+        raise RuntimeError("chain reconstructor broke")
+
+
 def test_a_failing_chain_is_dropped_and_the_frames_go_on(caplog):
     pipe = pipeline(defer_cold_fits=False)  # the published frames fit cold themselves: a restart chain begins
 
-    class Broken:
-        graph_fit = True
-
-        def __call__(self, *a, **kw):
-            raise RuntimeError("chain reconstructor broke")
-
-    pipe._chain_reconstructor = Broken()
+    pipe._chain_reconstructor = _BrokenChain()
     with caplog.at_level("ERROR", logger="skinmapd"):
         results = [pipe.process(SCANS[seq], seq, 0, 0) for seq in range(START, START + COUNT)]
     assert all(np.isfinite(r.element_positions_mm).all() for r in results)
@@ -250,13 +252,7 @@ def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
 def test_a_failed_catch_up_chain_lets_the_next_frame_fit_cold_itself(caplog):
     pipe = pipeline()
 
-    class Broken:
-        graph_fit = True
-
-        def __call__(self, *a, **kw):
-            raise RuntimeError("chain reconstructor broke")
-
-    pipe._chain_reconstructor = Broken()
+    pipe._chain_reconstructor = _BrokenChain()
     with caplog.at_level("ERROR", logger="skinmapd"):
         results = run_jump(pipe)
     assert "catch-up chain from scan" in caplog.text
