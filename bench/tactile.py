@@ -1,7 +1,7 @@
 """Tactile mapping benchmark: a balloon probe pressed over a wall of raised letters, stitched.
 
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
-     [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--no-level] [--png FILE]
+     [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -87,8 +87,6 @@ def main() -> None:
     ap.add_argument("--min-depth", type=float, default=0.5, help="contact: pressed in by more than this, mm")
     ap.add_argument("--scenes", default="membrane", help="comma-separated: membrane, follows, bridges40")
     ap.add_argument("--quick", action="store_true", help="given poses only (no registration)")
-    ap.add_argument("--no-level", action="store_true", help="leave each press as the rim registered it "
-                    "(no per-press offset and tilt from the overlaps, no base level)")
     ap.add_argument("--png", help="write the maps (with the truth) to PNG files named after this one")
     args = ap.parse_args()
     n, pitch = args.size, args.pitch
@@ -152,8 +150,6 @@ def main() -> None:
                         else:
                             est = stitch_estimated([c for c, _ in kept], grid, relief, first=kept[0][1])
                             placed = sum(e.pose is not None for e in est)
-                        if not args.no_level:
-                            relief.level()
                         per_press = t_scene + t_detect + (time.perf_counter() - t0) / len(poses)
                         h = relief.height()
                         truth = wall.height(relief.centres)

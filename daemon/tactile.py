@@ -239,10 +239,6 @@ class ReliefMap:
         self._sum = np.zeros(self.shape)
         self._sum2 = np.zeros(self.shape)
         self.contacts = 0
-        # every press's samples (flat cell index, height, weight, wall x y): the levelling
-        # solves each press's offset and tilt from its overlap with the others
-        self._presses: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self.base_mm = 0.0  # the level subtracted by `level` (the wall's most common height)
 
     @property
     def centres(self) -> np.ndarray:
@@ -267,7 +263,6 @@ class ReliefMap:
         np.add.at(self._w, (ij[:, 1], ij[:, 0]), w)
         np.add.at(self._sum, (ij[:, 1], ij[:, 0]), w * h)
         np.add.at(self._sum2, (ij[:, 1], ij[:, 0]), w * h * h)
-        self._presses.append((ij[:, 1] * self.shape[1] + ij[:, 0], h, w, wall_xy[ok]))
         self.contacts += 1
         return int(len(np.unique(ij, axis=0)))
 
@@ -276,92 +271,6 @@ class ReliefMap:
         for a in (self._n, self._w, self._sum, self._sum2):
             a[:] = 0.0
         self.contacts = 0
-        self._presses = []
-        self.base_mm = 0.0
-
-    def level(self, iterations: int = 40, tilt: bool = True) -> np.ndarray:
-        """Make overlapping presses agree, then refer the map to the wall's most common level.
-
-        A contact is registered onto the baseline by the sheet's free rim, and a press moves the
-        rim too (more over a raised feature than beside it), so each press's heights carry an
-        offset of its own (and a tilt): measured on the pressed-membrane scene, the letters came
-        out 2.2 mm high instead of 4 mm.  Per press, the offset and tilt that best fit it to the
-        other presses where they overlap are solved for (alternating weighted least squares),
-        their mean kept at zero: what the presses share no overlap can tell.  The heights are
-        then given above the map's lowest clear level (the lowest peak of the heights' histogram,
-        0.05 mm bins, of at least a quarter of the highest peak): the wall's base plane wherever
-        the presses touched it.  Call it after the last press is added.  Returns
-        the corrections (presses, 3): offset, tilt along x and y, in mm and mm/mm."""
-        presses = self._presses
-        corr = np.zeros((len(presses), 3))
-        size = self.shape[0] * self.shape[1]
-        centres = [xy.mean(axis=0) for _, _, _, xy in presses]
-
-        def contribution(i: int) -> tuple[np.ndarray, np.ndarray]:
-            cell, h, w, xy = presses[i]
-            hk = h + corr[i, 0] + (xy - centres[i]) @ corr[i, 1:]
-            return np.bincount(cell, w, size), np.bincount(cell, w * hk, size)
-
-        if len(presses) >= 2:
-            own = [contribution(i) for i in range(len(presses))]
-            total_w = np.sum([o[0] for o in own], axis=0)
-            total = np.sum([o[1] for o in own], axis=0)
-            for _ in range(max(1, iterations)):
-                # Gauss-Seidel: each press against the others as they are now
-                for i, (cell, h, w, xy) in enumerate(presses):
-                    others_w = (total_w - own[i][0])[cell]
-                    use = others_w > 1e-9 * max(1.0, float(w.max(initial=0.0)))
-                    if use.sum() < 8:
-                        continue  # too little overlap: this press keeps its registration
-                    target = ((total - own[i][1])[cell][use] / others_w[use]) - h[use]
-                    d = xy[use] - centres[i]
-                    cols = [np.ones(int(use.sum()))] + ([d[:, 0], d[:, 1]] if tilt else [])
-                    a = np.stack(cols, axis=1) * np.sqrt(w[use])[:, None]
-                    sol, *_ = np.linalg.lstsq(a, target * np.sqrt(w[use]), rcond=1e-6)
-                    corr[i] = 0.0
-                    corr[i, :sol.size] = sol
-                    new = contribution(i)
-                    total_w += new[0] - own[i][0]
-                    total += new[1] - own[i][1]
-                    own[i] = new
-                corr -= corr.mean(axis=0)
-                own = [contribution(i) for i in range(len(presses))]
-                total = np.sum([o[1] for o in own], axis=0)
-        for a in (self._n, self._w, self._sum, self._sum2):
-            a[:] = 0.0
-        # the wall limits the sheet: where a cell was pressed several times, the highest press's
-        # mean there is the wall's height (the others may not have reached it); the base is the
-        # lowest clear level of that envelope
-        envelope = np.full(size, -np.inf)
-        pressed = np.zeros(size)
-        levelled = []
-        for i, (cell, h, w, xy) in enumerate(presses):
-            pressed += np.bincount(cell, None, size) > 0
-            hk = h + corr[i, 0] + (xy - centres[i]) @ corr[i, 1:]
-            levelled.append((cell, hk, w))
-            cw = np.bincount(cell, w, size)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = np.where(cw > 0, np.bincount(cell, w * hk, size) / np.where(cw > 0, cw, 1.0), -np.inf)
-            envelope = np.maximum(envelope, mean)
-        # cells pressed three times or more: one press's fringe (pushed in, short of the wall) is
-        # another's middle
-        top = envelope[np.isfinite(envelope) & (pressed >= min(3, len(presses)))]
-        base = 0.0
-        if top.size:
-            bins = np.arange(np.floor(top.min() / 0.05) * 0.05, top.max() + 0.1, 0.05)
-            counts = np.convolve(np.histogram(top, bins)[0], np.ones(5), mode="same").astype(float)
-            # the lowest level the envelope holds clearly (a peak of at least a quarter of the
-            # highest): a balloon touches the tops of a relief more than its base
-            peak = (counts >= 0.25 * counts.max()) & (counts >= np.roll(counts, 1)) & (counts >= np.roll(counts, -1))
-            base = float(bins[int(np.flatnonzero(peak)[0])] + 0.025)
-        for cell, hk, w in levelled:
-            hb = hk - base
-            self._n.flat[:] += np.bincount(cell, None, size)
-            self._w.flat[:] += np.bincount(cell, w, size)
-            self._sum.flat[:] += np.bincount(cell, w * hb, size)
-            self._sum2.flat[:] += np.bincount(cell, w * hb * hb, size)
-        self.base_mm = base
-        return corr
 
     @property
     def count(self) -> np.ndarray:

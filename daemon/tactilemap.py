@@ -167,7 +167,6 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
             raise ValueError(f"{log}: no contact events to register")
         first = poses[0] if poses else None
         report.estimates = stitch_estimated(report.events, grid, relief, first)
-        relief.level()
         placed = sum(e.pose is not None for e in report.estimates)
         report.pose_source = (f"estimated by registration ({placed} of {len(report.events)} placed; "
                               + (f"anchored by the first pose {report.pose_source})" if first else
@@ -182,7 +181,6 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
                          f"{report.pose_source} (one pose a press, in order)")
     for c, pose in zip(report.events, poses):
         relief.add(c, pose, grid)
-    relief.level()
     report.relief = relief
     return report
 

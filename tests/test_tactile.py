@@ -310,34 +310,3 @@ def test_pressed_membrane_touches_the_strokes_spans_beside_them_and_never_passes
     assert 1.0 < gap[near].max() <= 4.0
     with pytest.raises(ValueError, match="not both"):
         BalloonOnWall(wall, membrane=Membrane(), membrane_radius=40.0)
-
-
-def test_levelling_removes_each_presss_own_offset_and_tilt_and_refers_the_map_to_the_walls_base():
-    # each press registered with an error of its own, as a pressed rim gives (offset and tilt)
-    from dataclasses import replace
-
-    base = _baseline()
-    rng = np.random.default_rng(5)
-    plain, levelled = ReliefMap(size=120.0, step=1.0), ReliefMap(size=120.0, step=1.0)
-    for x in np.arange(-45.0, 46.0, 15.0):
-        for y in np.arange(-45.0, 46.0, 15.0):
-            pose = ProbePose(float(x), float(y), float(rng.uniform(-30, 30)), 4.0)
-            c = detect_contact(_surface(BalloonOnWall(WALL, (pose.x_mm, pose.y_mm), pose.angle_deg, pose.depth_mm))[0],
-                               base, GRID)
-            assert c is not None
-            b, ax, ay = rng.normal(0.8, 0.5), rng.normal(0, 0.01), rng.normal(0, 0.01)
-            p = c.positions
-            off = replace(c, positions=p + np.stack([0 * p[:, 0], 0 * p[:, 0], b + ax * p[:, 0] + ay * p[:, 1]], -1))
-            plain.add(off, pose, GRID)
-            levelled.add(off, pose, GRID)
-    truth = WALL.height(plain.centres)
-    corr = levelled.level()
-    assert corr.shape == (49, 3)
-    errors = []
-    for relief in (plain, levelled):
-        h = relief.height()
-        touched = np.isfinite(h) & relief.wall_region()
-        errors.append(float(np.mean(np.abs(h - truth)[touched])))
-    assert errors[0] > 0.5, errors  # the offsets are there to remove
-    assert errors[1] <= 0.15, errors
-    assert abs(levelled.base_mm + 0.8) < 0.5  # the presses' shared offset, which only the base level removes
