@@ -643,9 +643,12 @@ class Reconstructor:
     def _elastic_prior(self, surf: Surface, turning, stretch, valid, strain_sigma: float,
                        previous: Surface | None, strains, twist_sign) -> Surface:
         """The full-position fit with the membrane-equilibrium prior (:mod:`.positionfit`), from the
-        previous frame's answer, else from this frame's answer and its mirror image; its answer
-        replaces ``surf`` when the prior holds (its cost within ``max_prior_cost``), else ``surf``
-        stays, saying why."""
+        previous frame's answer, else from this frame's answer and its mirror image (or, when
+        neither bends as the stretch pattern says, from the twist that does: :mod:`.airy`).  Its
+        answer replaces ``surf`` when the prior holds (cost and χ² within their limits, mean
+        Gaussian curvature within 3 s.d. of the pattern's), unless ``surf`` agrees with the
+        pattern too and the two part by more than the fit's own σ: then ``surf`` stays with σ
+        covering both.  Otherwise ``surf`` stays, saying why (docs/reconstruction.md)."""
         elastic = self._position
         assert elastic is not None and self.elastic_prior is not None
         pf = elastic.fine
