@@ -229,13 +229,13 @@ class PositionFit:
         # mean over its q points) and the equilibrium's (component, point).
         nm, q = n * m, quadrature
         gauge_of = np.repeat(np.arange(nm), q)[None, :]
-        self._gauge_pattern = [self._pattern(self._gauge[a], gauge_of + (kind * 2 + a) * nm, 4 * nm)
+        self._gauge_pattern = [self._pattern(self._gauge[a], gauge_of + (kind * 2 + a) * nm)
                                for kind in (0, 1) for a in (0, 1)]
         self._gauge_rows = _SparseRows(
             np.concatenate([pt.rows for pt in self._gauge_pattern]),
             np.concatenate([pt.cols for pt in self._gauge_pattern]), (4 * nm, 3 * nb))
         p_eq = eu.size
-        self._eq_rows_pattern = self._pattern(self._points, np.arange(2 * p_eq).reshape(2, p_eq), 2 * p_eq)
+        self._eq_rows_pattern = self._pattern(self._points, np.arange(2 * p_eq).reshape(2, p_eq))
         self._eq_rows = _SparseRows(self._eq_rows_pattern.rows, self._eq_rows_pattern.cols, (2 * p_eq, 3 * nb))
         local_cols = (np.arange(3)[None, :, None] * nb + self._points.idx[:, None, :]).reshape(p_eq, 48)
         self._eq_pairs = (local_cols[:, :, None] * (3 * nb) + local_cols[:, None, :]).ravel()
@@ -266,7 +266,7 @@ class PositionFit:
             out[d] = x
         return out
 
-    def _pattern(self, design: _PointDesign, rows: np.ndarray, n_rows: int) -> "_Entries":
+    def _pattern(self, design: _PointDesign, rows: np.ndarray) -> "_Entries":
         """The Jacobian entries of residual rows ``rows`` (R, P) over the design's points:
         (R, P, 3 components, 16), column k·nb + idx."""
         cols = np.arange(3)[None, :, None] * self.nb + design.idx[:, None, :]  # (P, 3, 16)
