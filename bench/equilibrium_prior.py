@@ -45,18 +45,19 @@ DEFAULT_CASES = ",".join(f"{k}:{i}" for k in ("bump", "sphere_convex", "sphere_c
 
 
 def _scene(key: str, index: int, noise: float, draw: int = 0):
-    """The dataset's case: its plan, gauge strains (with the dataset's noise draw) and true nodes."""
+    """The dataset's case: its plan, gauge strains (with the dataset's noise draw), true nodes and
+    the solved film."""
     plan = ed.class_plans(key, 2024, index + 1, 5)[index]
     shape, _, _ = ed.solve_scene(plan)
     eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
     if noise > 0:
         nu_, nl_ = ed.noise_draw(plan, draw, noise, eu.shape)
         eu, el = eu + nu_, el + nl_
-    return plan, eu, el, ph.ground_truth(shape, 5, 5, PITCH).nodes
+    return plan, eu, el, ph.ground_truth(shape, 5, 5, PITCH).nodes, shape
 
 
 def run_case(key: str, index: int, nu_modes: list[str], solver: str, max_steps: int, bias: float, noise: float) -> None:
-    plan, eu, el, truth = _scene(key, index, noise)
+    plan, eu, el, truth, _ = _scene(key, index, noise)
     if bias:
         eu = eu.copy()
         eu[0, 1, 2] *= 1.0 + bias
@@ -85,7 +86,7 @@ def run_reconstructor(key: str, index: int, nu_modes: list[str], max_steps: int,
 
     covered = runs = 0
     for draw in range(draws):
-        plan, eu, el, truth = _scene(key, index, noise, draw)
+        plan, eu, el, truth, _ = _scene(key, index, noise, draw)
         kw = {} if plan.twist_sign is None else {"twist_sign": plan.twist_sign}
         sigma_kw = {"strain_sigma": noise} if noise > 0 else {}
         default = reconstruct(eu, el, PITCH, H, H, **kw, **sigma_kw)
@@ -114,8 +115,7 @@ def run_airy(key: str, index: int, noise: float) -> None:
     from skinmap.reconstruction.airy import airy_gaussian_curvature
     from skinmap.reconstruction.engine import unit_data as units
 
-    plan, eu, el, _ = _scene(key, index, noise)
-    shape, _, _ = ed.solve_scene(plan)
+    plan, eu, el, _, shape = _scene(key, index, noise)
     nu = float(plan.elastic.get("poisson", 0.48))
     _, stretch, valid = units(eu, el, H, H, GAUGE)
     k, sd = airy_gaussian_curvature(stretch, valid, PITCH, nu)

@@ -668,13 +668,14 @@ class Reconstructor:
             return k_airy is None or abs(pf.mean_gaussian_curvature(coeffs) - k_airy) <= sds * k_sd
 
         # the default model's answer bends as the stretch pattern says: it stays a rival reading
-        default_agrees = k_airy is not None and agrees(start_from_surface(pf, surf), 3.0)
+        images = {id(s): start_from_surface(pf, s) for s in (surf, surf.mirror) if s is not None}
+        default_agrees = k_airy is not None and agrees(images[id(surf)], 3.0)
         warm = previous.state.position if previous is not None else None
         if warm is not None and warm.shape == (3, pf.nb):
             results = [elastic.warm(warm, *data)]
         else:
             starts = [s for s in (surf, surf.mirror) if s is not None]
-            if k_airy is not None and not any(agrees(start_from_surface(pf, s), 3.0) for s in starts):
+            if k_airy is not None and not any(agrees(images[id(s)], 3.0) for s in starts):
                 # neither image bends as the stretch pattern says: start where the twist makes it
                 starts = self._airy_starts(turning, stretch, valid, strain_sigma, strains, twist_sign, k_airy) or starts
             results = [elastic.cold(s, *data) for s in starts]

@@ -127,6 +127,20 @@ class CheckedFile:
         self.raw.close()
 
 
+def pipeline_sheet(n: int = 5, m: int = 5, pitch: float = 12.0) -> tuple[Any, Any, Any, Any]:
+    """The sheet the pipeline tests run: its geometry (h 0.2 mm), a 3 × 3 grid of elements, and
+    per-gauge gauge factors and base resistances spread as the paper's channels are
+    (1.24 ± 0.19, 6.55 ± 0.72 Ω; seeded)."""
+    import numpy as np
+
+    from skinmap.daemon.pipeline import ArrayGeometry
+
+    elements = np.array([[u, v] for v in (-12.0, 0.0, 12.0) for u in (-18.0, 0.0, 18.0)])
+    gf = 1.24 + 0.19 * np.random.default_rng(3).standard_normal((2, 2, n, m))
+    r0 = 6.55 + 0.72 * np.random.default_rng(4).standard_normal((2, 2, n, m))
+    return ArrayGeometry(n, m, pitch, 0.2, 0.2), elements, gf, r0
+
+
 def aligned_error(nodes: Any, truth: Any) -> float:
     """Mean node error after the best rigid alignment (Kabsch)."""
     import numpy as np

@@ -8,19 +8,17 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import pipeline_sheet
 
 from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_CATCH_UP_SCANS, GRAPH_RESTART_SCANS, GRAPH_SYNC_SCANS,
-                                     ArrayGeometry, FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
+                                     FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
                                      graph_restart)
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.strains import Calibration
 
 N = M = 5
 PITCH = 12.0
-GEOMETRY = ArrayGeometry(N, M, PITCH, 0.2, 0.2)
-ELEMENT_UV = np.array([[u, v] for v in (-12.0, 0.0, 12.0) for u in (-18.0, 0.0, 18.0)])
-GF = 1.24 + 0.19 * np.random.default_rng(3).standard_normal((2, 2, N, M))
-R0 = 6.55 + 0.72 * np.random.default_rng(4).standard_normal((2, 2, N, M))
+GEOMETRY, ELEMENT_UV, GF, R0 = pipeline_sheet(N, M, PITCH)
 START = 3 * GRAPH_RESTART_SCANS - 3  # three scans before a block's start
 COUNT = GRAPH_ADOPT_SCANS + 8
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from conftest import pipeline_sheet
 from hypothesis.extra import numpy as hnp
 
 from skinmap.strains import Calibration, reject_implausible_units
@@ -25,10 +26,7 @@ VALID, EXTRAPOLATED, DEGRADED, STALE = (int(f) for f in (ElementFlag.VALID, Elem
                                                          ElementFlag.DEGRADED, ElementFlag.STALE))
 N = M = 5
 PITCH = 12.0
-GEOMETRY = ArrayGeometry(N, M, PITCH, 0.2, 0.2)
-ELEMENT_UV = np.array([[u, v] for v in (-12.0, 0.0, 12.0) for u in (-18.0, 0.0, 18.0)])
-GF = 1.24 + 0.19 * np.random.default_rng(3).standard_normal((2, 2, N, M))
-R0 = 6.55 + 0.72 * np.random.default_rng(4).standard_normal((2, 2, N, M))
+GEOMETRY, ELEMENT_UV, GF, R0 = pipeline_sheet(N, M, PITCH)
 SHAPE = make_shape("gaussian", height=3.0, fwhm=24.0, u0=4.0, v0=-3.0)
 EPS_U, EPS_L = gauge_strains(SHAPE, N, M, pitch=PITCH)
 
