@@ -44,7 +44,7 @@ from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, misfit, misfit_and_strains
-from .airy import airy_gaussian_curvature
+from .airy import airy_curvature_range, airy_gaussian_curvature
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
@@ -129,6 +129,13 @@ class Reconstructor:
         for the one parameter the gauges leave open (docs/reconstruction.md, "Posterior check").
     defect_steps : passes of defect correction through the gauges' exact forward model on
         general-model answers that misfit (0: none).
+    poisson_range : the film's Poisson ratio, as an interval (default 0.3-0.5, any elastomer;
+        narrow it with a calibrated value).  Where the general model answers and the stretch
+        pattern reads as one mean Gaussian curvature (Airy), the constant twist must give that
+        curvature for some ratio in the interval; an answer that does not is moved to one that
+        does, the interval's spread is part of ``node_sigma`` and a sign the gauges cannot tell
+        leaves :attr:`Surface.mirror` set (docs/reconstruction.md, "The stretch pattern's
+        twist").  None: off.
     gauge_screen : screen every frame for a gauge its neighbours contradict (a gain off by tens
         of percent, still reading) before the fits (:class:`.robust.GaugeScreen`: a closed-form
         fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it
@@ -155,8 +162,18 @@ class Reconstructor:
         defect_steps: int = 2,
         elastic_prior: PositionFitSettings | None = None,
         gauge_screen: bool = True,
+        poisson_range: tuple[float, float] | None = (0.3, 0.5),
     ):
         self.least_shear = bool(least_shear)
+        if poisson_range is not None:
+            try:
+                lo, hi = (float(x) for x in poisson_range)
+            except (TypeError, ValueError):
+                raise ValueError(f"poisson_range must be (low, high) or None, got {poisson_range!r}") from None
+            if not (0.0 <= lo <= hi < 0.5 + 1e-12):
+                raise ValueError(f"poisson_range must satisfy 0 <= low <= high <= 0.5, got {poisson_range!r}")
+            poisson_range = (lo, hi)
+        self.poisson_range = poisson_range
         if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
             raise ValueError(f"defect_steps must be an integer >= 0, got {defect_steps!r}")
         self.defect_steps = int(defect_steps)
@@ -496,7 +513,7 @@ class Reconstructor:
             chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
-                                   product_fields, known)
+                                   product_fields, known, stretch if convex_info.get("graph_sheet") is None else None)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
@@ -784,7 +801,8 @@ class Reconstructor:
                        node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=cast(Diagnostics, diag))
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
-                   valid, product_fields=None, known_chi2: tuple[float, int] | None = None) -> Surface:
+                   valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
+                   stretch: np.ndarray | None = None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -796,7 +814,9 @@ class Reconstructor:
           cannot see it, and on an oblique cylinder it is most of the scatter);
         - tries the mirror image (the opposite constant twist): when it explains the data as
           well, the answer is ambiguous and :attr:`Surface.mirror` holds the other one; when it
-          explains them clearly better, it becomes the answer.
+          explains them clearly better, it becomes the answer;
+        - with ``stretch`` (the general model answered, not as a graph pushed out of plane),
+          holds the twist to the stretch pattern's Gaussian curvature (:meth:`_stretch_twist`).
         """
         diag = surf.diagnostics
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -846,6 +866,13 @@ class Reconstructor:
                 info["mirror_swapped"] = True
             if chi_m - chi0 < tell and _differs(surf, cand):
                 mirror = cand
+        pattern = None
+        if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
+            pattern = self._stretch_twist(surf, mirror, turning, stretch, valid, product_fields, positions_at, base_shift,
+                                          twist_sign, eu, el, sigma_f, chi0, tell, info)
+        if pattern is not None:
+            surf, mirror, base_shift, chi0 = pattern[0], pattern[1], pattern[2], pattern[4]
+            diag = surf.diagnostics
         diag.extra.update(info)
         diag.extra["ambiguous"] = mirror is not None
         surf.mirror = mirror
@@ -856,6 +883,8 @@ class Reconstructor:
 
         twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
                                   diag.extra.get("undecided_twist", 0.0))
+        if pattern is not None:
+            twist = pattern[3]
 
         def sigma() -> np.ndarray:
             base = noise_sigma()
@@ -884,6 +913,82 @@ class Reconstructor:
             mirror.diagnostics.extra.update(diag.extra)
             mirror.mirror = None
         return surf
+
+    def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
+                       positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict):
+        """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
+        has the mean Gaussian curvature its stretch trace says (:func:`.airy.airy_curvature_range`,
+        over the Poisson interval), and with the measured curvatures k_u, k_v that fixes the
+        square of the mean twist: mean(k_u k_v − τ²) = K.  An answer whose twist lies outside
+        the interval moves to its middle (keeping its sign); the interval's ends are the twist's
+        spread in ``node_sigma``; the opposite sign is the mirror unless the gauges reject it
+        (χ² worse by ``tell`` and by half the answer's own misfit: the forward model is
+        kinematic, the film is not).  Returns None where the pattern says nothing (a bump,
+        friction, no twist allowed), else (answer, mirror or None, its shift on
+        ``positions_at``'s family, the twist's spread function, its χ²)."""
+        assert self.poisson_range is not None
+        bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range)
+        if bounds is None:
+            return None
+        k_u, k_v, tau0 = (np.asarray(f) for f in product_fields)
+        inner = self.grid.inner
+        tm = float(tau0[inner].mean())
+        # mean twist m = tm + c:  mean((τ₀ − tm + m)²) = t2 − tm² + m², so m² = base − K
+        base = tm * tm - float((tau0[inner] ** 2).mean()) + float((k_u[inner] * k_v[inner]).mean())
+        lo, hi = max(base - bounds[1], 0.0), base - bounds[0]
+        if hi <= 0.0:
+            return None  # no twist gets there: the curvature product alone is below the pattern's K
+        c0 = surf.diagnostics.twist_constant
+        m0 = tm + c0
+        m_lo, m_hi = math.sqrt(lo), math.sqrt(hi)
+        # a twist below the mirror floor bends nothing the elements would see
+        if m_hi * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
+            return None
+        info["stretch_twist"] = (round(m0, 7), round(m_lo, 7), round(m_hi, 7))
+        sign = float(twist_sign) if twist_sign is not None else (math.copysign(1.0, m0) if m0 != 0.0 else 1.0)
+        inside = m_lo <= abs(m0) <= m_hi and (twist_sign is None or m0 * sign >= 0.0)
+        if inside and lo <= 0.0:
+            return None  # the pattern allows no twist too (a sphere): it has nothing to add
+        layout = self._layout
+        diag = surf.diagnostics
+        shift, chi = base_shift, chi0
+        if not inside:
+            target = sign * 0.5 * (m_lo + m_hi)
+            diag_t = Diagnostics(**{**diag.__dict__, "extra": dict(diag.extra), "twist_constant": c0 + (target - m0)})
+            cand = self._surface(positions_at(base_shift + target - m0), surf._fine_sigma_fn, diag_t)
+            chi_t, dof, _ = misfit(cand, layout, eu, el, sigma_f)
+            if chi_t > chi0 + max(tell, 0.5 * chi0):
+                # the gauges reject the pattern's twist (the film is not what the closed form
+                # assumes): the answer stays, its σ reaching to the pattern's reading
+                info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
+                gap = np.linalg.norm(cand._coeffs[..., 0, :] - surf._coeffs[..., 0, :], axis=-1)
+                return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0
+            info["stretch_twist_moved"] = round(target - m0, 7)
+            surf, chi, shift, m0 = cand, chi_t, base_shift + target - m0, target
+
+        def spread() -> np.ndarray:
+            # the twists the Poisson interval allows: 3 s.d. reach past the farther end
+            here = positions_at(shift)
+            ends = [positions_at(shift + sign * m - m0) for m in (m_lo, m_hi)]
+            return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in ends], axis=0)
+
+        if twist_sign is None and lo > 0.0:
+            # The pattern needs a twist whose sign it cannot give (its Airy function is even in
+            # the twist); the gauges decide only when the other sign, modelled afresh, misfits
+            # clearly: the shifted family above is biased towards the answer it was solved for.
+            n_valid = int(valid.sum())
+            other = self._general(turning, stretch, valid, n_valid, sigma_f, None, -sign, (eu, el))
+            if self.defect_steps:
+                other = self._defect_correction(other, eu, el, valid, n_valid, sigma_f, None, -sign)
+            diag_m = Diagnostics(**{**surf.diagnostics.__dict__, "extra": dict(surf.diagnostics.extra),
+                                    "twist_constant": other[1]})
+            cand = self._surface(other[0], surf._fine_sigma_fn, diag_m)
+            chi_m, dof, _ = misfit(cand, layout, eu, el, sigma_f)
+            info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+            mirror = None
+            if chi_m <= chi + max(tell, chi) and _differs(surf, cand):
+                mirror = cand
+        return surf, mirror, shift, _memo(spread), chi
 
     def _agreement(self, general, turning, valid, data, fit_sigma):
         """The test an accepted graph must pass on a cold frame (graphfit.AGREE_SIGMAS): its
@@ -978,6 +1083,7 @@ class Reconstructor:
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0))
             if fields is not None:
                 (tau, shear_graph), twist_c = fields, graph.constant
+                convex_info["graph_sheet"] = True
         shift0 = 0.0
         undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
         if shear_graph is None and self.least_shear:

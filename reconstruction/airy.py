@@ -25,12 +25,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "MIN_UNITS"]
+__all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "airy_curvature_range", "MIN_UNITS"]
 
 _TERMS = 7
 MIN_UNITS = _TERMS + 3  # fewer leave the fit's scatter unknown
 AIRY_MODEL_SD = 0.10     # the closed form's error on elastic molds, relative (module text)
 AIRY_FLOOR = 1e-6        # 1/mm²: a curvature of 1/(1 m)², beneath what a 12 mm grid's twist shows
+# The trace is a reading of one mean K only where the 7-term pattern describes it: spheres,
+# saddles and cylinders on molds leave 1-7 % of the trace's spread (18 % pre-stretched on a
+# large sheet); bumps, ridges and a mold with friction 60-100 %.
+AIRY_MAX_RESIDUAL = 0.25
 
 
 class TraceLaplacian(NamedTuple):
@@ -78,3 +82,30 @@ def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: fl
     sd = math.sqrt((fit.sd / (1.0 - poisson)) ** 2 + (k * poisson_sd / (1.0 - poisson)) ** 2 + (AIRY_MODEL_SD * k) ** 2
                    + AIRY_FLOOR ** 2)
     return k, sd
+
+
+def airy_curvature_range(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float, poisson_lo: float,
+                         poisson_hi: float, sds: float = 2.0) -> tuple[float, float] | None:
+    """The interval of mean Gaussian curvature (1/mm²) the units' stretch ratios (2, N, M) allow
+    for a film loaded along its normal whose Poisson ratio lies in [``poisson_lo``,
+    ``poisson_hi``]: the closed form at both ends, widened by ``sds`` s.d. of the fit and of the
+    closed form's own error.  None where the stretch pattern is no reading of one mean K (too few
+    units, or a trace the 7-term pattern leaves more than ``AIRY_MAX_RESIDUAL`` of unexplained:
+    a bump, a ridge, friction)."""
+    if not 0.0 <= poisson_lo <= poisson_hi < 1.0:
+        raise ValueError(f"the Poisson range must satisfy 0 <= lo <= hi < 1, got [{poisson_lo!r}, {poisson_hi!r}]")
+    stretch = np.asarray(stretch, float)
+    both = np.asarray(valid, bool).all(axis=0)
+    trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
+    if int(both.sum()) < MIN_UNITS:
+        return None
+    fit = trace_laplacian(trace, pitch_mm)
+    spread = float(np.nanstd(trace))
+    if not spread > 0.0 or fit.residual_rms > AIRY_MAX_RESIDUAL * spread:
+        return None
+    ends = []
+    for nu in (poisson_lo, poisson_hi):
+        k = -fit.laplacian / (1.0 - nu)
+        sd = math.sqrt((fit.sd / (1.0 - nu)) ** 2 + (AIRY_MODEL_SD * k) ** 2 + AIRY_FLOOR ** 2)
+        ends += [k - sds * sd, k + sds * sd]
+    return min(ends), max(ends)
