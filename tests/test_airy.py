@@ -12,6 +12,7 @@ from skinmap.emulator.scenes import parse_scene_spec
 from skinmap.reconstruction import Reconstructor
 from skinmap.reconstruction.airy import MIN_UNITS, airy_curvature_range, airy_gaussian_curvature, trace_laplacian
 from skinmap.reconstruction.engine import unit_data
+from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.reconstruction.positionfit import PositionFitSettings
 
 PITCH, H, G = 12.0, 0.2, 10.0
@@ -85,8 +86,11 @@ def test_the_curvature_range_spans_the_poisson_interval_and_refuses_what_is_no_r
     stretch = np.stack([1.0 + trace / 2, 1.0 + trace / 2])
     valid = np.ones((2, 6, 6), bool)
     lo, hi = airy_curvature_range(stretch, valid, PITCH, 0.3, 0.5)
-    # K(0.3) = 12e-6/0.7, K(0.5) = 12e-6/0.5, each ± 2 × 10 % (the closed form's own error)
-    assert lo == pytest.approx(12e-6 / 0.7 * 0.8, rel=1e-6) and hi == pytest.approx(12e-6 / 0.5 * 1.2, rel=1e-6)
+    # K(0.3) = 12e-6/0.7, K(0.5) = 12e-6/0.5, each ± 2 s.d.: 10 % (the closed form's own error)
+    # and the floor of 1e-6 /mm² in quadrature (an exact pattern: no fit scatter)
+    k_lo, k_hi = 12e-6 / 0.7, 12e-6 / 0.5
+    assert lo == pytest.approx(k_lo - 2 * np.hypot(0.1 * k_lo, 1e-6), rel=1e-6)
+    assert hi == pytest.approx(k_hi + 2 * np.hypot(0.1 * k_hi, 1e-6), rel=1e-6)
     # a bump's trace is no reading of one mean K
     bump = 2e-3 * np.exp(-((uu - 10.0) ** 2 + vv ** 2) / 200.0)
     assert airy_curvature_range(np.stack([1 + bump / 2, 1 + bump / 2]), valid, PITCH, 0.3, 0.5) is None
@@ -95,9 +99,10 @@ def test_the_curvature_range_spans_the_poisson_interval_and_refuses_what_is_no_r
 
 
 @pytest.mark.slow
-def test_a_prestretched_oblique_cylinder_5x5_is_within_0_1mm_by_the_stretch_patterns_twist(cache):
-    """A film pre-stretched 5 % on an oblique cylinder: the stretch makes the model read a doubly
-    curved sheet (no twist, 0.5-0.75 mm off); the trace says K ≈ 0, which needs the twist back."""
+def test_a_prestretched_oblique_cylinder_5x5_is_within_0_15mm_and_3_sigma_by_the_stretch_patterns_twist(cache):
+    """A film pre-stretched 5 % on an oblique cylinder: the stretch made the model read a doubly
+    curved sheet without twist (this one 1.6 mm off with σ 0.035 mm); the trace says K ≈ 0, which
+    needs the twist back (0.10 mm, every node within 3 node_sigma + 0.05 mm)."""
     shape = parse_scene_spec("cylinder:radius=-70,axis_angle=-38,prestretch=0.05", "elastic", N, M, PITCH,
                              cache_dir=cache)
     eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
@@ -106,8 +111,9 @@ def test_a_prestretched_oblique_cylinder_5x5_is_within_0_1mm_by_the_stretch_patt
     for draw in range(2):
         noise = np.random.default_rng(draw).normal(0.0, NOISE, (2, 2, N, M)) if draw else np.zeros((2, 2, N, M))
         surf = rec(eu + noise[0], el + noise[1], strain_sigma=NOISE, twist_sign=1)
-        assert "stretch_twist" in surf.diagnostics.extra
-        assert aligned_error(surf.nodes, truth) <= 0.1
+        assert "stretch_twist_moved" in surf.diagnostics.extra
+        d = aligned_distances(surf.nodes.reshape(-1, 3), truth.reshape(-1, 3))
+        assert d.mean() <= 0.15 and np.all(d <= 3.0 * surf.node_sigma.reshape(-1) + 0.05)
 
 
 @pytest.mark.slow
@@ -124,7 +130,5 @@ def test_an_elastic_saddle_on_12x12_is_within_3_sigma_plus_0_05mm_or_said_to_be_
     surf = Reconstructor(n, n, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
     bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
     answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
-    from skinmap.reconstruction.linalg import aligned_distances
-
     within = [bool(np.all(aligned_distances(s.nodes.reshape(-1, 3), truth.reshape(-1, 3)) <= bound)) for s in answers]
     assert any(within), (spec, [aligned_error(s.nodes, truth) for s in answers], float(surf.node_sigma.mean()))
