@@ -387,8 +387,13 @@ class FramePipeline:
         g = self.geometry
         # the graph fit is offered for small sheets only; larger ones keep the general model
         graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
+        # the stretch pattern's twist holds for any elastomer (0.3-0.5); a known ratio narrows it
+        prior = self.elastic_prior
+        poisson_range = ((0.3, 0.5) if prior is None else
+                         (max(0.0, prior.poisson - 2.0 * prior.poisson_sd), min(0.5, prior.poisson + 2.0 * prior.poisson_sd)))
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
-                             convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior)
+                             convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=prior,
+                             poisson_range=poisson_range)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""
