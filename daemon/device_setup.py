@@ -65,6 +65,28 @@ def calibration_for_hello(hello: Hello, cfg: DaemonConfig) -> Calibration:
     return load_calibration(hello, cfg)[0]
 
 
+def poisson_for(cfg: DaemonConfig, calibration: Calibration) -> tuple[float, float] | None:
+    """The film's Poisson ratio and its s.d.: from the config, else from the calibration file
+    (`skinmap calibrate --dome R`); None when neither gives it."""
+    rc = cfg.reconstruction
+    summary = calibration.summary or {}
+    if rc.poisson_ratio > 0:
+        return rc.poisson_ratio, rc.poisson_ratio_sd
+    if summary.get("poisson_ratio") is not None:
+        return float(summary["poisson_ratio"]), float(summary.get("poisson_ratio_sd") or rc.poisson_ratio_sd)
+    return None
+
+
+def poisson_range_for(cfg: DaemonConfig, calibration: Calibration) -> tuple[float, float]:
+    """The Poisson interval of the stretch pattern's twist (docs/reconstruction.md): ν ± 2 s.d.
+    where the config or the calibration gives ν, else any elastomer's 0.3-0.5."""
+    known = poisson_for(cfg, calibration)
+    if known is None:
+        return (0.3, 0.5)
+    nu, sd = known
+    return (max(0.0, nu - 2.0 * sd), min(0.5, nu + 2.0 * sd))
+
+
 def elastic_prior_for(cfg: DaemonConfig, calibration: Calibration, cells: int) -> tuple[Any, str]:
     """The elastic prior's settings for this sheet (None when it is off) and what keeps it off
     although configured ("" if nothing): the Poisson ratio comes from the config, else from
@@ -77,16 +99,11 @@ def elastic_prior_for(cfg: DaemonConfig, calibration: Calibration, cells: int) -
 
     if cells > ELASTIC_PRIOR_MAX_CELLS:
         return None, f"elastic prior off: it is for sheets of up to {ELASTIC_PRIOR_MAX_CELLS} cells, this one has {cells}"
-    summary = calibration.summary or {}
-    if rc.poisson_ratio > 0:
-        nu, sd = rc.poisson_ratio, rc.poisson_ratio_sd
-    elif summary.get("poisson_ratio") is not None:
-        nu = float(summary["poisson_ratio"])
-        sd = float(summary.get("poisson_ratio_sd") or rc.poisson_ratio_sd)
-    else:
+    known = poisson_for(cfg, calibration)
+    if known is None:
         return None, ("elastic prior off: no Poisson ratio (run `skinmap calibrate --dome R` or set "
                       "[reconstruction] poisson_ratio)")
-    return PositionFitSettings(poisson=nu, poisson_sd=sd), ""
+    return PositionFitSettings(poisson=known[0], poisson_sd=known[1]), ""
 
 
 def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration | None = None) -> FramePipeline:
@@ -104,6 +121,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
         graph_fit=cfg.reconstruction.graph_fit,
         twist_sign={"positive": 1, "negative": -1}.get(cfg.reconstruction.twist_sign),
         elastic_prior=elastic,
+        poisson_range=poisson_range_for(cfg, cal),
     )
 
 

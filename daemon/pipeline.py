@@ -319,6 +319,7 @@ class FramePipeline:
         background: Background | None = None,
         defer_cold_fits: bool = True,
         elastic_prior: Any = None,
+        poisson_range: tuple[float, float] = (0.3, 0.5),
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -333,6 +334,9 @@ class FramePipeline:
         self.twist_sign = twist_sign
         # PositionFitSettings of the elastic prior (docs/reconstruction.md, "Elastic films"), or None
         self.elastic_prior = elastic_prior
+        # the film's Poisson ratio as an interval, for the stretch pattern's twist (any elastomer
+        # unless the config or the calibration file gives ν)
+        self.poisson_range = poisson_range
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -387,13 +391,9 @@ class FramePipeline:
         g = self.geometry
         # the graph fit is offered for small sheets only; larger ones keep the general model
         graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
-        # the stretch pattern's twist holds for any elastomer (0.3-0.5); a known ratio narrows it
-        prior = self.elastic_prior
-        poisson_range = ((0.3, 0.5) if prior is None else
-                         (max(0.0, prior.poisson - 2.0 * prior.poisson_sd), min(0.5, prior.poisson + 2.0 * prior.poisson_sd)))
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
-                             convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=prior,
-                             poisson_range=poisson_range)
+                             convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
+                             poisson_range=self.poisson_range)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""
@@ -425,7 +425,7 @@ class FramePipeline:
         reconnect or a new HELLO) when the geometry is the same."""
         if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
                 and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign
-                and earlier.elastic_prior == self.elastic_prior):
+                and earlier.elastic_prior == self.elastic_prior and earlier.poisson_range == self.poisson_range):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq

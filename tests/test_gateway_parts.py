@@ -339,3 +339,25 @@ def test_the_elastic_prior_takes_poissons_ratio_from_the_config_else_the_calibra
     state.on_hello(hello)
     pipeline, _ = state.ensure_pipeline()
     assert pipeline is not None and pipeline.reconstructor.elastic_prior.poisson == 0.4 and state.elastic_problem == ""
+
+
+def test_the_stretch_patterns_poisson_interval_is_any_elastomers_unless_the_config_or_calibration_gives_nu(tmp_path):
+    import dataclasses
+
+    from skinmap.daemon.device_setup import ScannerState, poisson_range_for
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+    from skinmap.strains import Calibration
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "elastic", 20.0)
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    cal = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    assert poisson_range_for(cfg, cal) == (0.3, 0.5)
+    measured = dataclasses.replace(cal, summary={"poisson_ratio": 0.47, "poisson_ratio_sd": 0.011})
+    assert poisson_range_for(cfg, measured) == pytest.approx((0.448, 0.492))  # the prior need not be on
+    given = dataclasses.replace(cfg, reconstruction=dataclasses.replace(cfg.reconstruction, poisson_ratio=0.49))
+    assert poisson_range_for(given, measured) == pytest.approx((0.45, 0.5))  # the config's, capped at 0.5
+    state = ScannerState(given)
+    state.on_hello(hello)
+    pipeline, _ = state.ensure_pipeline()
+    assert pipeline is not None and pipeline.reconstructor.poisson_range == pytest.approx((0.45, 0.5))
