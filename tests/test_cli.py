@@ -175,8 +175,10 @@ def test_replay_publish_announces_where_answers_info_and_echo_shows_no_false_lat
     log = next((tmp / "logs").glob("*.mcap"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rc: list[int] = []
+    # at a quarter of the recorded speed the replay still publishes while echo's own session
+    # starts, also on a loaded machine (at full speed a short log could end before it)
     replay = threading.Thread(target=lambda: rc.append(skinmap_main(
-        ["replay", str(log), "--publish", "--listen", endpoint, "--speed", "1", "--quiet"])))
+        ["replay", str(log), "--publish", "--listen", endpoint, "--speed", "0.25", "--quiet"])))
     replay.start()
     try:
         with SkinmapClient([endpoint], prefix="skinmap-replay", device="cli") as client:
@@ -192,7 +194,7 @@ def test_replay_publish_announces_where_answers_info_and_echo_shows_no_false_lat
         assert skinmap_main(["echo", "--connect", endpoint, "--prefix", "skinmap-replay",
                              "--device", "cli", "--duration", "1.0"]) == 0
     finally:
-        replay.join(timeout=60)
+        replay.join(timeout=180)
     captured = capsys.readouterr()
     assert f"publishing on {endpoint} under 'skinmap-replay/cli'" in captured.err
     assert "latency is shown only for live data" in captured.err
