@@ -489,7 +489,16 @@ class FramePipeline:
             diagnostics["graph_deferred"] = True  # answered by the general model; a catch-up chain fits it
         noise = turning_noise_rad(self.strain_sigma, g.gauge_length_mm, g.h_upper_mm, g.h_lower_mm)
         diagnostics["inconsistent"] = fit_inconsistent(diagnostics.get("residual", 0.0), noise)
-        flags = element_flags(self.elements, sig, valid, ambiguous=getattr(surf, "mirror", None) is not None,
+        # a gauge the reconstruction's screen named and left out counts as unusable here too:
+        # the elements near it rest on its neighbours alone
+        usable = valid
+        suspects = getattr(getattr(surf, "diagnostics", None), "extra", {}).get("suspect_gauges", ())
+        if suspects:
+            usable = valid.copy()
+            for gauge in suspects:
+                usable[("upper", "lower").index(gauge["layer"]), ("row", "column").index(gauge["direction"]),
+                       gauge["row"], gauge["col"]] = False
+        flags = element_flags(self.elements, sig, usable, ambiguous=getattr(surf, "mirror", None) is not None,
                               inconsistent=diagnostics["inconsistent"])
         finite = np.isfinite(nodes).all() and np.isfinite(normals).all() and np.isfinite(pos).all() and np.isfinite(nrm).all()
         if not finite:

@@ -190,15 +190,24 @@ def test_skinmapd_status_names_a_gauge_whose_calibrated_gain_is_off():
     assert suspect_gauges(good.process(resistance, 1, 0, 0).diagnostics) == []
 
 
-def test_the_screens_answer_does_not_depend_on_the_frames_before_it():
-    """Replay starts from a fresh process: Clarabel's problem, kept set up across frames, must
-    give the same bits whatever it solved before."""
-    eu, el = _strains(UNSEEN["sphere cap R 75"])
-    frame = _biased(eu, el, (1, 0, 3, 4), 1.3)
-    fresh = Reconstructor(N, N)(*frame, strain_sigma=SIGMA)
-    used = Reconstructor(N, N)
-    for g in GAUGES[:3]:
-        used(*_biased(eu, el, g, 0.7), strain_sigma=SIGMA)
-    again = used(*frame, strain_sigma=SIGMA)
-    assert again.diagnostics.suspect_gauges == fresh.diagnostics.suspect_gauges != ""
-    np.testing.assert_array_equal(again.nodes, fresh.nodes)
+def test_an_element_beside_a_named_gauge_is_flagged_degraded_though_its_sigma_is_small():
+    """The screen leaves a biased gauge out: the element at its cell rests on the neighbours
+    alone, and skinmapd says so (DEGRADED), which its σ alone would not (below the 0.5 mm
+    threshold there); with the true gains nothing is named and the element is not flagged."""
+    from skinmap.elements import DEGRADED_SIGMA_MM
+    from skinmap.wire.messages import ElementFlag
+
+    eu, el = _strains(UNSEEN["twisted quadric"])
+    gf = np.full((2, 2, N, N), 1.24)
+    r0 = np.full((2, 2, N, N), 6.5)
+    resistance = r0 * (1.0 + gf * np.stack([eu, el]))
+    told = gf.copy()
+    told[1, 1, 1, 3] /= 1.3  # lower column-direction gauge of cell (1, 3)
+    geometry = ArrayGeometry(N, N, PITCH, H, H)
+    element = geometry.cell_uv()[1, 3][None, :]
+    results = {name: FramePipeline(geometry, Calibration(cal, r0), element, np.zeros(1)).process(resistance, 1, 0, 0)
+               for name, cal in (("told", told), ("true", gf))}
+    assert suspect_gauges(results["told"].diagnostics) and not suspect_gauges(results["true"].diagnostics)
+    assert results["told"].element_sigma_mm[0] < DEGRADED_SIGMA_MM
+    assert results["told"].element_flags[0] & ElementFlag.DEGRADED
+    assert not results["true"].element_flags[0] & ElementFlag.DEGRADED
