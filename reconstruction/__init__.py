@@ -935,7 +935,9 @@ class Reconstructor:
         friction, no twist allowed), else (answer, mirror or None, its shift on
         ``positions_at``'s family, the twist's spread function, its χ²)."""
         assert self.poisson_range is not None
-        bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range)
+        # the noise of one unit's trace: two stretch readings, each σ·√(h_u² + h_l²)/(h_u + h_l)
+        trace_sd = math.sqrt(2.0) * sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range, noise_sd=trace_sd)
         if bounds is None:
             return None
         k_u, k_v, tau0 = (np.asarray(f) for f in product_fields)

@@ -62,11 +62,15 @@ def trace_laplacian(trace: np.ndarray, pitch_mm: float) -> TraceLaplacian:
         raise ValueError(f"{count} units with both gauges: the stretch pattern's curvature needs at least {MIN_UNITS} "
                          "(a sheet of 3×4 units or more)")
     a = np.stack([c[ok] for c in columns], axis=1)
-    coef, *_ = np.linalg.lstsq(a, trace[ok], rcond=None)
+    # normal equations of the column-scaled design (7×7: a frame's worth of work, not lstsq's)
+    norms = np.sqrt((a * a).sum(axis=0))
+    norms[norms == 0.0] = 1.0
+    scaled = a / norms
+    inverse = np.linalg.pinv(scaled.T @ scaled)
+    coef = (inverse @ (scaled.T @ trace[ok])) / norms
     resid = trace[ok] - a @ coef
     var = float(resid @ resid) / (count - _TERMS)
-    cov = var * np.linalg.pinv(a.T @ a)
-    return TraceLaplacian(4.0 * float(coef[1]), 4.0 * math.sqrt(max(float(cov[1, 1]), 0.0)),
+    return TraceLaplacian(4.0 * float(coef[1]), 4.0 * math.sqrt(max(var * float(inverse[1, 1]), 0.0)) / norms[1],
                           math.sqrt(float(resid @ resid) / count), count)
 
 
@@ -85,13 +89,14 @@ def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: fl
 
 
 def airy_curvature_range(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float, poisson_lo: float,
-                         poisson_hi: float, sds: float = 2.0) -> tuple[float, float] | None:
+                         poisson_hi: float, sds: float = 2.0, noise_sd: float = 0.0) -> tuple[float, float] | None:
     """The interval of mean Gaussian curvature (1/mm²) the units' stretch ratios (2, N, M) allow
     for a film loaded along its normal whose Poisson ratio lies in [``poisson_lo``,
     ``poisson_hi``]: the closed form at both ends, widened by ``sds`` s.d. of the fit and of the
     closed form's own error.  None where the stretch pattern is no reading of one mean K (too few
     units, or a trace the 7-term pattern leaves more than ``AIRY_MAX_RESIDUAL`` of unexplained:
-    a bump, a ridge, friction)."""
+    a bump, a ridge, friction; or a trace whose spread is within 3 ``noise_sd``, the s.d. of one
+    unit's trace from noise alone: no pattern to read)."""
     if not 0.0 <= poisson_lo <= poisson_hi < 1.0:
         raise ValueError(f"the Poisson range must satisfy 0 <= lo <= hi < 1, got [{poisson_lo!r}, {poisson_hi!r}]")
     stretch = np.asarray(stretch, float)
@@ -99,8 +104,10 @@ def airy_curvature_range(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float
     trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
     if int(both.sum()) < MIN_UNITS:
         return None
-    fit = trace_laplacian(trace, pitch_mm)
     spread = float(np.nanstd(trace))
+    if not spread > 3.0 * noise_sd:
+        return None
+    fit = trace_laplacian(trace, pitch_mm)
     if not spread > 0.0 or fit.residual_rms > AIRY_MAX_RESIDUAL * spread:
         return None
     ends = []
