@@ -43,7 +43,7 @@ from .graphfit import GraphFit, GraphResult, disagreement
 from .graphsheet import free_part, graph_sheet_fields
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
-from .forward import GaugeLayout, misfit, misfit_and_strains
+from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_curvature_range, airy_gaussian_curvature
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
@@ -236,7 +236,8 @@ class Reconstructor:
         self._position = (None if elastic_prior is None
                           else ElasticFit(self.n, self.m, self.pitch, self.gauge_length, elastic_prior))
         self._position_on_grid: Any = None  # the fit's basis on the fine grid, built at first use
-        self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower)
+        self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower,
+                                         compiled=self._compiled)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
@@ -563,7 +564,7 @@ class Reconstructor:
             turning, stretch, valid = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
             pos = self._general(turning, stretch, valid, valid.size, key, None, None)[0]
             nodes.append(pos[rows[:, None], cols])
-            chi, dof, _ = misfit(self._surface(pos, None, None), self._layout, eu, el, sigma_f)
+            chi, dof, _ = misfit(self._candidate(pos), self._layout, eu, el, sigma_f)
             chi2.append(chi / max(dof, 1))
         nodes_a = np.array(nodes)
         spread2 = ((nodes_a - nodes_a.mean(axis=0)) ** 2).sum(axis=3).mean(axis=0)
@@ -630,7 +631,7 @@ class Reconstructor:
         and none once the answer fits within the noise.  The constant twist keeps its sign."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
-        chi, dof, fu, fl = misfit_and_strains(self._surface(general[0], None, None), layout, eu, el, sigma_f)
+        chi, dof, fu, fl = misfit_and_strains(self._candidate(general[0]), layout, eu, el, sigma_f)
         du, dl = eu, el
         sign = twist_sign
         if sign is None and general[1] != 0.0:
@@ -644,7 +645,7 @@ class Reconstructor:
             turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
                                             self.gauge_length)
             trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el))
-            chi_t, _, fu_t, fl_t = misfit_and_strains(self._surface(trial[0], None, None), layout, eu, el, sigma_f)
+            chi_t, _, fu_t, fl_t = misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f)
             # a pass must gain clearly (1 %): a decision at the rounding level would make the
             # answer depend on how the arithmetic was ordered (replay needs the same bytes)
             if not (chi_t < DEFECT_GAIN * chi) or not np.isfinite(trial[0]).all():
@@ -798,7 +799,16 @@ class Reconstructor:
         # (diag None: a candidate weighed only against the gauges, never returned)
         grid = self.grid
         return Surface(pitch=self.pitch, fine_u=grid.u, fine_v=grid.v, fine_positions=pos,
-                       node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=cast(Diagnostics, diag))
+                       node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=cast(Diagnostics, diag),
+                       compiled=self._compiled)
+
+    def _candidate(self, pos: np.ndarray) -> Surface | Patches:
+        """Fine positions as the forward model reads them, for a candidate that is only weighed
+        against the gauges: its patch data alone with the compiled kernels (a tenth of a
+        :class:`Surface`'s cost, the same numbers), else a Surface."""
+        if self._compiled is not None:
+            return Patches(pos, self.grid.u, self.grid.v, self._compiled)
+        return self._surface(pos, None, None)
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
@@ -1141,8 +1151,8 @@ class Reconstructor:
             # the prior only chooses among answers the data cannot tell apart
             pos_own = positions_at(-shift0)
             sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
-            chi_new, dof, _ = misfit(self._surface(pos, None, None), self._layout, strains[0], strains[1], sigma_f)
-            chi_own, _, _ = misfit(self._surface(pos_own, None, None), self._layout, strains[0], strains[1], sigma_f)
+            chi_new, dof, _ = misfit(self._candidate(pos), self._layout, strains[0], strains[1], sigma_f)
+            chi_own, _, _ = misfit(self._candidate(pos_own), self._layout, strains[0], strains[1], sigma_f)
             if chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)):
                 shift0, pos = 0.0, pos_own
         if shift0 != 0.0:

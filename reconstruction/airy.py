@@ -21,6 +21,7 @@ is no reading of K: the elastic prior's own cost declines those shapes.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -51,27 +52,38 @@ def trace_laplacian(trace: np.ndarray, pitch_mm: float) -> TraceLaplacian:
     if trace.ndim != 2:
         raise ValueError(f"the stretch trace must be (N, M) per unit, got shape {trace.shape}")
     n, m = trace.shape
-    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
-    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
-    vv, uu = np.meshgrid(vc, uc, indexing="ij")
-    columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
-               uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
     ok = np.isfinite(trace)
     count = int(ok.sum())
     if count < MIN_UNITS:
         raise ValueError(f"{count} units with both gauges: the stretch pattern's curvature needs at least {MIN_UNITS} "
                          "(a sheet of 3×4 units or more)")
-    a = np.stack([c[ok] for c in columns], axis=1)
-    # normal equations of the column-scaled design (7×7: a frame's worth of work, not lstsq's)
-    norms = np.sqrt((a * a).sum(axis=0))
-    norms[norms == 0.0] = 1.0
-    scaled = a / norms
-    inverse = np.linalg.pinv(scaled.T @ scaled)
-    coef = (inverse @ (scaled.T @ trace[ok])) / norms
-    resid = trace[ok] - a @ coef
+    a, solve, cov11 = _design(n, m, float(pitch_mm), ok.tobytes())
+    y = trace[ok]
+    coef = solve @ y
+    resid = y - a @ coef
     var = float(resid @ resid) / (count - _TERMS)
-    return TraceLaplacian(4.0 * float(coef[1]), 4.0 * math.sqrt(max(var * float(inverse[1, 1]), 0.0)) / norms[1],
+    return TraceLaplacian(4.0 * float(coef[1]), 4.0 * math.sqrt(max(var * cov11, 0.0)),
                           math.sqrt(float(resid @ resid) / count), count)
+
+
+@lru_cache(maxsize=16)
+def _design(n: int, m: int, pitch_mm: float, mask: bytes) -> tuple[np.ndarray, np.ndarray, float]:
+    """The 7-term fit for the units of ``mask`` (the (N, M) bool array's bytes) on a grid of pitch
+    ``pitch_mm``: its design matrix (units, 7), the least-squares solution operator (7, units)
+    (the minimum-norm solution of numpy's lstsq, column by column) and the (1, 1) entry of
+    pinv(AᵀA), the coefficient's variance per unit residual variance.  Cached: the mask changes
+    rarely, the data every frame."""
+    ok = np.frombuffer(mask, dtype=bool).reshape(n, m)
+    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
+    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
+    vv, uu = np.meshgrid(vc, uc, indexing="ij")
+    columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
+               uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
+    a = np.stack([c[ok] for c in columns], axis=1)
+    solve = np.linalg.lstsq(a, np.eye(a.shape[0]), rcond=None)[0]
+    for x in (a, solve):
+        x.flags.writeable = False
+    return a, solve, float(np.linalg.pinv(a.T @ a)[1, 1])
 
 
 def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float, poisson: float,

@@ -10,12 +10,13 @@ stretch, no small slopes, no circular arcs), so a misfit here is a misfit of the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from .surface import hermite_weights
 
-__all__ = ["GaugeLayout", "surface_strains", "misfit", "misfit_and_strains"]
+__all__ = ["GaugeLayout", "Patches", "surface_strains", "misfit", "misfit_and_strains"]
 
 # Chords per gauge of the coarse polyline; the fine one has twice as many and Richardson's rule
 # removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).  The coarse polyline's
@@ -38,9 +39,13 @@ class GaugeLayout:
     # the Hermite weights of those points per fine grid (nf, mf, origin, spacing), built on first
     # use: fixed points cost one sparse product per frame
     _weights: dict = field(default_factory=dict, compare=False, repr=False)
+    # the compiled kernels (reconstruction.kernels) when the reconstruction uses them: the whole
+    # forward model is then one compiled call on the patches' data (the same numbers)
+    compiled: Any = field(default=None, compare=False, repr=False)
 
     @classmethod
-    def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float) -> "GaugeLayout":
+    def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float,
+              compiled: Any = None) -> "GaugeLayout":
         u_c = (np.arange(m) - (m - 1) / 2.0) * pitch
         v_c = (np.arange(n) - (n - 1) / 2.0) * pitch
         t = np.linspace(-0.5, 0.5, 2 * _SEGMENTS + 1) * gauge_length
@@ -48,12 +53,52 @@ class GaugeLayout:
         along_u = np.stack([uu + tt, vv], axis=-1)
         along_v = np.stack([uu, vv + tt], axis=-1)
         uv = np.stack([along_u, along_v]).reshape(-1, 2)
-        return cls(n, m, float(gauge_length), float(h_upper), float(h_lower), uv)
+        return cls(n, m, float(gauge_length), float(h_upper), float(h_lower), uv, compiled=compiled)
+
+    def dense_weights(self, nf: int, mf: int, origin: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+        """The Hermite weights of the sample points as the compiled forward model takes them:
+        (each point's patch corner as a flat node index, (points, 3, 16) weights), cached."""
+        key = ("dense", nf, mf, float(origin[0]), float(origin[1]), spacing)
+        hit = self._weights.get(key)
+        if hit is None:
+            rows = hermite_weights(nf, mf, origin, spacing, self.uv)
+            cols = rows[0].indices.reshape(-1, 16)
+            weights = np.ascontiguousarray(np.stack([w.data.reshape(-1, 16) for w in rows], axis=1))
+            hit = self._weights[key] = ((cols[:, 0] // 4).astype(np.intp), weights)
+        return hit
+
+
+class Patches:
+    """A candidate surface's bicubic patch data alone (what the forward model reads), from fine
+    positions (nf, mf, 3) by the compiled kernels: the numbers :class:`~.surface.Surface` would
+    hold, without building one for a candidate that is only weighed against the gauges."""
+
+    def __init__(self, positions: np.ndarray, fine_u: np.ndarray, fine_v: np.ndarray, compiled: Any):
+        self._spacing = float(fine_u[1] - fine_u[0])
+        pos_t = np.ascontiguousarray(np.asarray(positions, dtype=float).transpose(2, 0, 1))
+        nf, mf = pos_t.shape[1:]
+        self._coeffs = np.empty((nf, mf, 4, 3))
+        slopes = np.empty((2, 3, nf, mf))
+        compiled.hermite_coefficients(pos_t, self._spacing, self._coeffs, slopes[0], slopes[1])
+        self._origin = np.array([fine_u[0], fine_v[0]])
+
+    def _uv_origin(self) -> np.ndarray:
+        return self._origin
 
 
 def surface_strains(surface, layout: GaugeLayout) -> tuple[np.ndarray, np.ndarray]:
     """Upper- and lower-layer strains (2, N, M) each that the gauges would read on ``surface``
     (anything with ``locate(uv) → (positions, normals)``)."""
+    coeffs = getattr(surface, "_coeffs", None)
+    if layout.compiled is not None and coeffs is not None:
+        nf, mf = coeffs.shape[:2]
+        base, weights = layout.dense_weights(nf, mf, surface._uv_origin(), surface._spacing)
+        shape = (2, layout.n, layout.m)
+        fu, fl = np.empty(shape), np.empty(shape)
+        layout.compiled.gauge_strains(coeffs.reshape(nf * mf, 4, 3), base, mf, weights, 2 * _SEGMENTS + 1,
+                                      layout.h_upper, layout.h_lower, layout.gauge_length, fu.reshape(-1),
+                                      fl.reshape(-1))
+        return fu, fl
     pos, nrm = _locate(surface, layout)
     per = pos.shape[0] // (2 * layout.n * layout.m)
     pos = pos.reshape(2, layout.n, layout.m, per, 3)

@@ -50,6 +50,23 @@ def _second_differences(nf: int, mf: int) -> sp.csr_matrix:
     return sp.vstack(blocks).tocsr()
 
 
+def _banded_cheaper(p_solver: FixedSolver, s_solvers: list[FixedSolver], fields: int, data: int) -> bool:
+    """Whether a frame's fields cost fewer operations through the fits' banded factors (a solve
+    reads its band twice) than through the dense data → field maps (``fields`` curvature
+    rows and the stretch rows, each over ``data`` turning or half as many stretch data, and
+    the data × data misfit map).  The dense products read every entry of matrices of tens of
+    megabytes (16×16: 20 MB) from memory; the bands are a few hundred kB.  The two give the
+    same fields to rounding (about 1e-11 of their size)."""
+    banded = 0
+    for solver in [p_solver, *s_solvers]:
+        band = solver.band
+        if band is None:  # a small system kept as its dense pseudo-inverse
+            return False
+        banded += 2 * band.size
+    dense = fields * data + (fields // 3) * data + data * data
+    return banded < dense
+
+
 @dataclass
 class FineGrid:
     """Fine material grid with ``sub`` intervals per pitch, covering the sheet to half a pitch
@@ -252,8 +269,9 @@ class FineGrid:
 
     @property
     def dense_maps(self) -> bool:
-        """Small grids keep dense data → field maps (one product per frame); large ones solve
-        through the sparse factorisations."""
+        """Small grids keep dense data → field maps (the uncertainty and leaving units out read
+        them; a frame takes one product per field block where that costs less than the banded
+        solves, :func:`_banded_cheaper`); large ones solve through the sparse factorisations."""
         return self.nf * self.mf * 4 * self.n * self.m <= 4_000_000
 
     def field_maps(self, valid: np.ndarray):
@@ -342,7 +360,7 @@ class FineGrid:
 
             # one dense product per block (the maps are dense; stacking them block-diagonally
             # would multiply zeros)
-            def fn(turning, stretch):
+            def dense_fn(turning, stretch):
                 d = turning.ravel()
                 k = curv @ d
                 lam_u = stretch_maps[0] @ (stretch[0].ravel() - 1.0)
@@ -351,18 +369,20 @@ class FineGrid:
                 lam_v += 1.0
                 return (*k.reshape(3, *shape), lam_u.reshape(shape), lam_v.reshape(shape), misfit @ d)
 
-        else:
-            if keep:
-                self._leave_outs = {"potential": LeaveOut(solver=p_solver, obs=self.potential_observation())}
-                for d in (0, 1):
-                    self._leave_outs[("stretch", d)] = LeaveOut(solver=s_solvers[d][0], obs=self.average[d])
+            if not _banded_cheaper(p_solver, [sol for sol, _ in s_solvers], curv_ops.shape[0], 2 * n_units):
+                return dense_fn
+        elif keep:
+            self._leave_outs = {"potential": LeaveOut(solver=p_solver, obs=self.potential_observation())}
+            for d in (0, 1):
+                self._leave_outs[("stretch", d)] = LeaveOut(solver=s_solvers[d][0], obs=self.average[d])
 
-            def fn(turning, stretch):
-                d = turning.ravel()
-                k = curv_ops @ p_solver.solve(obs_t_w @ d)
-                lam = [1.0 + sol.solve(at_w @ (stretch[i].ravel() - 1.0)) for i, (sol, at_w) in enumerate(s_solvers)]
-                fit = average @ k[: 2 * n_fine] - d
-                return (*k.reshape(3, *shape), *(x.reshape(shape) for x in lam), fit)
+        # through the factorisations (large grids; and where the bands cost less than the dense maps)
+        def fn(turning, stretch):
+            d = turning.ravel()
+            k = curv_ops @ p_solver.solve(obs_t_w @ d)
+            lam = [1.0 + sol.solve(at_w @ (stretch[i].ravel() - 1.0)) for i, (sol, at_w) in enumerate(s_solvers)]
+            fit = average @ k[: 2 * n_fine] - d
+            return (*k.reshape(3, *shape), *(x.reshape(shape) for x in lam), fit)
 
         return fn
 

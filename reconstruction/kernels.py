@@ -34,7 +34,7 @@ except ImportError:  # the numpy reference still works without it
 
 __all__ = [
     "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
-    "graph_residuals", "graph_normal_equations",
+    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "gauge_strains",
 ]
 
 AVAILABLE = numba is not None
@@ -575,6 +575,149 @@ def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corr
     return _sensor_frame(pos, nf, mf, a0, b0)
 
 
+# ------------------------------------------------------------------- patches, forward model
+@_helper
+def _slopes_line(g, n, inv, out):
+    """surface.slopes along one line of ``n`` values (fourth-order differences, one-sided
+    fourth-order stencils at the ends), in its order of operations, times ``inv`` = 1/(12h)."""
+    for i in range(2, n - 2):
+        out[i] = ((g[i - 2] - g[i + 2]) + 8.0 * (g[i + 1] - g[i - 1])) * inv
+    out[0] = ((((-25.0 * g[0] + 48.0 * g[1]) - 36.0 * g[2]) + 16.0 * g[3]) - 3.0 * g[4]) * inv
+    out[1] = ((((-3.0 * g[0] - 10.0 * g[1]) + 18.0 * g[2]) - 6.0 * g[3]) + g[4]) * inv
+    out[n - 1] = ((((25.0 * g[n - 1] - 48.0 * g[n - 2]) + 36.0 * g[n - 3]) - 16.0 * g[n - 4]) + 3.0 * g[n - 5]) * inv
+    out[n - 2] = ((((3.0 * g[n - 1] + 10.0 * g[n - 2]) - 18.0 * g[n - 3]) + 6.0 * g[n - 4]) - g[n - 5]) * inv
+
+
+@_compiled
+def hermite_coefficients(pos, h, coeffs, d_u, d_v):
+    """The bicubic Hermite data of :class:`~.surface.Surface` from fine positions ``pos``
+    (3, nf, mf): ``coeffs`` (nf, mf, 4, 3) = value, h·∂u, h·∂v, h²·∂uv per node and the
+    unscaled slopes ``d_u``, ``d_v`` (3, nf, mf), as surface.slopes computes them."""
+    nf, mf = pos.shape[1], pos.shape[2]
+    inv = 1.0 / (12.0 * h)
+    hh = h * h
+    line_u = np.empty(mf)
+    line_v = np.empty(nf)
+    col = np.empty(nf)
+    duv = np.empty(nf)
+    for c in range(3):
+        for a in range(nf):
+            _slopes_line(pos[c, a], mf, inv, line_u)
+            for b in range(mf):
+                d_u[c, a, b] = line_u[b]
+        for b in range(mf):
+            for a in range(nf):
+                col[a] = pos[c, a, b]
+            _slopes_line(col, nf, inv, line_v)
+            for a in range(nf):
+                d_v[c, a, b] = line_v[a]
+                col[a] = d_u[c, a, b]
+            _slopes_line(col, nf, inv, duv)
+            for a in range(nf):
+                coeffs[a, b, 0, c] = pos[c, a, b]
+                coeffs[a, b, 1, c] = d_u[c, a, b] * h
+                coeffs[a, b, 2, c] = line_v[a] * h
+                coeffs[a, b, 3, c] = duv[a] * hh
+
+
+@_helper
+def _sum_like_numpy(a):
+    """Sum of a short contiguous row in numpy's order (its pairwise summation: eight partial
+    sums from 8 terms on, combined pairwise, then the rest one by one)."""
+    n = a.shape[0]
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
+
+
+@_compiled
+def gauge_strains(coeffs, base, mf, weights, per, h_upper, h_lower, gauge_length, out_u, out_l):
+    """forward.surface_strains on the bicubic patches ``coeffs`` (nf·mf, 4, 3): every gauge's
+    ``per`` sample points (``base``: the flat index of each point's patch corner, ``weights``
+    (points, 3, 16): position, ∂u, ∂v of the 16 corner data), their unit normals, both layer
+    polylines and Richardson's length, written into ``out_u``, ``out_l`` (gauges,)."""
+    gauges = out_u.shape[0]
+    pts = np.empty((per, 3))
+    nrm = np.empty((per, 3))
+    val = np.empty(3)
+    offset = np.array([0, 1, mf, mf + 1])
+    fine = np.empty(per - 1)
+    for g in range(gauges):
+        for s in range(per):
+            k = g * per + s
+            du0 = du1 = du2 = dv0 = dv1 = dv2 = 0.0
+            p0 = p1 = p2 = 0.0
+            for r in range(3):
+                val[0] = val[1] = val[2] = 0.0
+                for c in range(4):
+                    node = base[k] + offset[c]
+                    for q in range(4):
+                        w = weights[k, r, 4 * c + q]
+                        if w == 0.0:  # (most: a gauge runs along a fine-grid line) adds nothing
+                            continue
+                        val[0] += w * coeffs[node, q, 0]
+                        val[1] += w * coeffs[node, q, 1]
+                        val[2] += w * coeffs[node, q, 2]
+                if r == 0:
+                    p0, p1, p2 = val[0], val[1], val[2]
+                elif r == 1:
+                    du0, du1, du2 = val[0], val[1], val[2]
+                else:
+                    dv0, dv1, dv2 = val[0], val[1], val[2]
+            n0 = du1 * dv2 - du2 * dv1
+            n1 = du2 * dv0 - du0 * dv2
+            n2 = du0 * dv1 - du1 * dv0
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            pts[s, 0], pts[s, 1], pts[s, 2] = p0, p1, p2
+            nrm[s, 0], nrm[s, 1], nrm[s, 2] = n0 / norm, n1 / norm, n2 / norm
+        for layer in range(2):
+            hl = h_upper if layer == 0 else -h_lower
+            coarse = 0.0
+            e0 = e1 = e2 = 0.0
+            x0 = pts[0, 0] + hl * nrm[0, 0]
+            x1 = pts[0, 1] + hl * nrm[0, 1]
+            x2 = pts[0, 2] + hl * nrm[0, 2]
+            for s in range(per - 1):
+                y0 = pts[s + 1, 0] + hl * nrm[s + 1, 0]
+                y1 = pts[s + 1, 1] + hl * nrm[s + 1, 1]
+                y2 = pts[s + 1, 2] + hl * nrm[s + 1, 2]
+                d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+                fine[s] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if s % 2 == 0:
+                    e0, e1, e2 = d0, d1, d2
+                else:
+                    e0, e1, e2 = e0 + d0, e1 + d1, e2 + d2
+                    coarse += math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                x0, x1, x2 = y0, y1, y2
+            total = _sum_like_numpy(fine)
+            length = (4.0 * total - coarse) / 3.0
+            if layer == 0:
+                out_u[g] = length / gauge_length - 1.0
+            else:
+                out_l[g] = length / gauge_length - 1.0
+
+
+
+
 # ------------------------------------------------------------------------ geometry, warm-up
 def as_field(x: np.ndarray) -> np.ndarray:
     """``x`` as the kernels take it: float64, C-contiguous, writeable (another layout would be
@@ -745,6 +888,13 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     )
     if not np.isfinite(pos).all():
         raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")
+    # the patches and the gauges' forward model, on that sheet (one gauge of three points)
+    coeffs = np.empty((nf, mf, 4, 3))
+    slopes = np.empty((2, 3, nf, mf))
+    hermite_coefficients(np.ascontiguousarray(pos), float(h), coeffs, slopes[0], slopes[1])
+    strain = np.empty(1)
+    gauge_strains(coeffs.reshape(nf * mf, 4, 3), np.zeros(3, dtype=np.intp), mf, np.zeros((3, 3, 16)), 3, 0.2, 0.2,
+                  1.0, strain, strain)
     # the graph fit's kernels, on one gauge touching four coefficients
     idx = np.zeros((1, 4), dtype=np.int64)
     pts = np.zeros((1, 2, 4))

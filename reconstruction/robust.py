@@ -214,6 +214,7 @@ class GaugeScreen:
         self._fits: OrderedDict[bytes, tuple[np.ndarray | None, object]] = OrderedDict()
         self._robust: OrderedDict[bytes, HuberProblem] = OrderedDict()
         self._full_hat: np.ndarray | None = None
+        self._obs_t: sp.csr_matrix | None = None
         self._prior_weight = float(prior)
         self._windows: dict[tuple[int, int], GaugeScreen] = {}
         # Clarabel's all-valid problem set up now, not in the first frame that needs it
@@ -260,7 +261,9 @@ class GaugeScreen:
         d = np.where(valid, data, 0.0)
         if hat is not None:
             return hat @ d
-        return self.obs @ solve(self.obs.T @ d)
+        if self._obs_t is None:  # (the same products as obs.T, without its conversion every frame)
+            self._obs_t = self.obs.T.tocsr()
+        return self.obs @ solve(self._obs_t @ d)
 
     def screen(self, eps_upper: np.ndarray, eps_lower: np.ndarray, strain_sigma: float) -> tuple[list[Suspect], dict]:
         """The gauges of one frame that its other gauges contradict (at most one per

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -208,6 +208,7 @@ class Surface:
         node_index: tuple[np.ndarray, np.ndarray],
         fine_sigma: Callable[[], np.ndarray],
         diagnostics: Diagnostics,
+        compiled: Any = None,
     ):
         self.pitch = float(pitch)
         self._u, self._v = fine_u, fine_v
@@ -216,15 +217,19 @@ class Surface:
         # components first ((3, nf, mf), free when the positions come from the engine): every
         # difference below is then one operation on contiguous rows
         pos_t = np.ascontiguousarray(np.asarray(fine_positions, dtype=float).transpose(2, 0, 1))
-        d_u = slopes(pos_t, h, -1)
-        d_v = slopes(pos_t, h, -2)
         nf, mf = pos_t.shape[1:]
         self._coeffs = np.empty((nf, mf, 4, 3))
-        coeffs = self._coeffs.transpose(2, 3, 0, 1)  # (4, 3, nf, mf) view: written in place
-        coeffs[0] = pos_t
-        np.multiply(d_u, h, out=coeffs[1])
-        np.multiply(d_v, h, out=coeffs[2])
-        np.multiply(slopes(d_u, h, -2), h * h, out=coeffs[3])
+        if compiled is not None:  # reconstruction.kernels: the same numbers in one compiled call
+            d_u, d_v = np.empty((3, nf, mf)), np.empty((3, nf, mf))
+            compiled.hermite_coefficients(pos_t, h, self._coeffs, d_u, d_v)
+        else:
+            d_u = slopes(pos_t, h, -1)
+            d_v = slopes(pos_t, h, -2)
+            coeffs = self._coeffs.transpose(2, 3, 0, 1)  # (4, 3, nf, mf) view: written in place
+            coeffs[0] = pos_t
+            np.multiply(d_u, h, out=coeffs[1])
+            np.multiply(d_v, h, out=coeffs[2])
+            np.multiply(slopes(d_u, h, -2), h * h, out=coeffs[3])
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
         at_nodes = (slice(None), rows[:, None], cols[None, :])

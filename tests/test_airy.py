@@ -34,6 +34,25 @@ def test_the_trace_laplacian_is_read_through_any_harmonic_part_and_constant():
     assert abs(fit.laplacian - 4 * b) <= 4 * fit.sd and fit.sd > 0
 
 
+def test_the_fit_cached_per_mask_equals_a_fresh_least_squares_fit():
+    """The 7-term fit's operator is kept per validity mask; each mask's fit is numpy's lstsq."""
+    rng = np.random.default_rng(3)
+    for n, m, holes in ((5, 5, 0), (5, 5, 2), (12, 12, 3), (6, 7, 1), (5, 5, 2)):
+        trace = rng.normal(0.0, 1e-3, (n, m))
+        trace.ravel()[rng.choice(n * m, holes, replace=False)] = np.nan
+        fit = trace_laplacian(trace, PITCH)
+        ok = np.isfinite(trace)
+        vv, uu = np.meshgrid((np.arange(n) - (n - 1) / 2.0) * PITCH, (np.arange(m) - (m - 1) / 2.0) * PITCH, indexing="ij")
+        cols = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv, uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]
+        a = np.stack([c[ok] for c in cols], axis=1)
+        coef = np.linalg.lstsq(a, trace[ok], rcond=None)[0]
+        resid = trace[ok] - a @ coef
+        sd = 4.0 * np.sqrt(float(resid @ resid) / (ok.sum() - 7) * np.linalg.pinv(a.T @ a)[1, 1])
+        assert np.isclose(fit.laplacian, 4.0 * coef[1], rtol=1e-9, atol=0.0)
+        assert np.isclose(fit.sd, sd, rtol=1e-9, atol=0.0)
+        assert np.isclose(fit.residual_rms, np.sqrt(float(resid @ resid) / ok.sum()), rtol=1e-9, atol=0.0)
+
+
 def test_too_few_units_or_a_wrong_shape_are_refused_by_name():
     trace = np.full((3, 3), 0.01)
     with pytest.raises(ValueError, match=f"at least {MIN_UNITS}"):

@@ -16,7 +16,9 @@ from conftest import python_for_other_users
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor, kernels
 from skinmap.reconstruction.engine import metric_terms, unit_data
+from skinmap.reconstruction.forward import GaugeLayout, Patches, surface_strains
 from skinmap.reconstruction.grid import FineGrid
+from skinmap.reconstruction.surface import Surface
 
 PITCH, H, G = 12.0, 0.2, 10.0
 NOISE = 0.0057e-2
@@ -106,6 +108,42 @@ def test_band_solve_matches_lapack():
     x = rhs.copy()
     kernels._band_solve(band, x)
     assert np.allclose(x.T, grid.laplacian.solve(np.ascontiguousarray(rhs.T)), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("n, m", [(5, 5), (4, 7), (16, 16)])
+def test_compiled_forward_model_equals_the_numpy_one_bit_for_bit(n, m):
+    """The posterior check and the defect correction decide on these χ²: the compiled forward
+    model (patch data and gauge strains) must read the same bytes as the numpy one."""
+    rec = Reconstructor(n, n if n == m else m, PITCH, H, H, G)
+    plain = GaugeLayout.build(rec.n, rec.m, PITCH, G, H, H)
+    for eu, el in _frames(rec.n, rec.m, 4, seed=11):
+        surf = rec(eu, el)
+        pos = np.array(surf._coeffs[..., 0, :])
+        reference = Surface(pitch=PITCH, fine_u=rec.grid.u, fine_v=rec.grid.v, fine_positions=pos,
+                            node_index=(rec.grid.node_rows, rec.grid.node_cols), fine_sigma=None,  # type: ignore[arg-type]
+                            diagnostics=None)  # type: ignore[arg-type]
+        patches = Patches(pos, rec.grid.u, rec.grid.v, kernels)
+        assert np.array_equal(patches._coeffs, reference._coeffs)
+        assert np.array_equal(rec._surface(pos, None, None)._coeffs, reference._coeffs)
+        for mine, theirs in zip(surface_strains(patches, rec._layout), surface_strains(reference, plain)):
+            assert np.array_equal(mine, theirs)
+
+
+def test_banded_field_maps_equal_the_dense_ones_to_rounding():
+    """16×16 takes its fields through the banded factors (cheaper there than the dense maps):
+    the same fields as the dense maps it keeps for the uncertainty, to rounding."""
+    grid = FineGrid(16, 16, PITCH, G, sub=2)
+    valid = np.ones((2, 16, 16), dtype=bool)
+    fields = grid.field_maps(valid)
+    assert grid.dense_maps and fields.__name__ == "fn"  # the banded closure, not dense_fn
+    rng = np.random.default_rng(4)
+    turning, stretch = rng.normal(0.0, 1e-3, (2, 16, 16)), 1.0 + rng.normal(0.0, 1e-3, (2, 16, 16))
+    curv, stretch_maps, misfit = grid._dense["curv"], grid._dense["stretch"], grid._dense["misfit"]
+    dense = (*(curv @ turning.ravel()).reshape(3, grid.nf, grid.mf),
+             *(1.0 + (stretch_maps[d] @ (stretch[d].ravel() - 1.0)).reshape(grid.nf, grid.mf) for d in (0, 1)),
+             misfit @ turning.ravel())
+    for mine, theirs in zip(fields(turning, stretch), dense):
+        assert np.abs(mine - theirs).max() <= 1e-9 * max(np.abs(theirs).max(), 1e-12)
 
 
 def test_layouts_other_than_the_compiled_one_are_converted():
