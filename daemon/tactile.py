@@ -23,6 +23,9 @@ Surfaces here are samples on a regular material grid of the sheet (``SampleGrid`
   frame, and the press depth: the wall's base plane at z = −depth in the probe frame) each
   contact sample gives the wall height H = −depth − z at its wall point; the map keeps per cell
   the mean, the count and the scatter, hence coverage and a per-cell confidence.
+- **Floor** (:func:`level_on_floor`): with a given pose, a contact registered by its rim is
+  moved so that its lowest samples lie on the wall's base plane, where the data allows that the
+  press touched it (a press pushes the rim in too; the base plane does not move with it).
 """
 from __future__ import annotations
 
