@@ -277,7 +277,7 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
     area = float(on.sum() * cell)
     if area < min_area_mm2:
         return FloorLevel(contact, 0.0, area, f"its lowest samples cover {area:.0f} mm² (less than {min_area_mm2:.0f}): "
-                                              "no floor patch the gauges resolve; registered by its rim")
+                                              "too few for a floor patch; registered by its rim")
     if level > 0.0:
         return FloorLevel(contact, 0.0, area, f"its lowest samples stand {level:.2f} mm off the floor plane: it touched "
                                               "only the relief (on the floor the rim would have been pulled out, and a "
