@@ -2,6 +2,7 @@
 
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
+     [--weights none|sigma] [--reference floor|rim]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -16,8 +17,14 @@ bending stiffness 0.083 N·mm, the balloon wall's stretch E·t 3 N/mm; walls.Mem
 *follows* (the sheet takes the wall's shape exactly), *bridges40* (the wall opened by a 40 mm
 ball).  Surfaces: "true frame" stitches the scene's own sheet positions in the probe's true
 frame (what the sheet's surface says of the wall at best); "scene" the same positions through
-the mapping (registered onto the baseline by the rim: the mapping alone); "reconstructed" runs
-the whole chain: gauge strains with strain noise s.d. 0.0057 % → reconstruction → mapping.
+the mapping (registered onto the baseline by the rim, then, given poses, levelled on the wall's
+base plane where the press touched it, tactile.level_on_floor; ``--reference rim``: the rim
+alone): the mapping alone); "reconstructed" runs
+the whole chain: gauge strains with strain noise s.d. 0.0057 % → reconstruction → mapping,
+stitched unweighted as ``skinmap map`` does (``--weights sigma``: each sample weighted by 1/σ² of
+the reconstruction); "rec true fit" the same reconstructed contacts, each placed by its best
+rigid fit to the sheet's true surface instead of by its rim (a perfect reference for the
+probe's frame: what the reconstruction's own shape allows at best, given poses only).
 Poses given or estimated.
 
 Per row: "vs relief": mean and 90th percentile |stitched − relief| over the map cells where the
@@ -41,7 +48,7 @@ import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.daemon.tactile import (Contact, ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,  # noqa: E402
-                                    stitch_estimated)
+                                    level_on_floor, stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator.walls import BalloonOnWall, LetterRelief, Membrane  # noqa: E402
@@ -74,6 +81,20 @@ def _touched(relief: ReliefMap, shapes: list[BalloonOnWall], uv: np.ndarray) -> 
     return out
 
 
+def _floor_samples(shape: BalloonOnWall, uv: np.ndarray) -> int:
+    """How many of the sheet's samples touch the wall's base plane (off the relief) in a press."""
+    xy = shape.position(uv)[:, :2]
+    return int(np.count_nonzero((shape.clearance(xy) < TOUCH_MM) & (shape.wall.height(shape.to_wall(xy)) < 0.01)))
+
+
+def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """p moved by the rigid motion that best maps it onto q (Kabsch, every sample)."""
+    pc, qc = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - pc).T @ (q - qc))
+    rot = (u * np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])) @ vt
+    return (p - pc) @ rot + qc
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--letters", default="DUKE", help="the letters to map (one wall each with --wall letter)")
@@ -88,6 +109,12 @@ def main() -> None:
     ap.add_argument("--scenes", default="membrane", help="comma-separated: membrane, follows, bridges40")
     ap.add_argument("--quick", action="store_true", help="given poses only (no registration)")
     ap.add_argument("--png", help="write the maps (with the truth) to PNG files named after this one")
+    ap.add_argument("--reference", choices=("floor", "rim"), default="floor",
+                    help="given poses: each contact levelled on the wall's base plane where it touched it, as skinmap "
+                         "map does (floor), or left registered by its rim (rim)")
+    ap.add_argument("--weights", choices=("none", "sigma"), default="none",
+                    help="stitch the reconstructed contacts unweighted, as skinmap map does (none), or weighted by "
+                         "1/sigma^2 of the reconstruction (sigma)")
     args = ap.parse_args()
     n, pitch = args.size, args.pitch
     grid = SampleGrid.for_array(n, n, pitch, 2.0)
@@ -114,6 +141,9 @@ def main() -> None:
                 shapes = [_scene_shape(scene_name, wall, p, 0.5 * n * pitch * 2 ** 0.5) for p in poses]
                 t_scene = (time.perf_counter() - t0) / len(poses)
                 touched = _touched(ReliefMap(120.0, 1.0), shapes, dense_uv)
+                floor = [_floor_samples(shape, uv) for shape in shapes]
+                print(f"({wall_name}, {scene_name}: {sum(f > 0 for f in floor)} of {len(shapes)} presses touch the wall's "
+                      f"base plane, {sum(f >= 30 for f in floor)} with at least 30 of the sheet's {len(uv)} samples)")
                 sheet_map = None  # the sheet's own true surface, stitched with the true poses
 
                 def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
@@ -130,21 +160,37 @@ def main() -> None:
                                        pitch, 0.2, 0.2)
                     return surf.locate(uv)[0], surf.locate_sigma(uv)
 
-                for name, surface in (("true frame", scene), ("scene", scene), ("reconstructed", reconstructed)):
-                    base = capture_baseline([(surface(free)[0], free.normal(uv)) for _ in range(5)])
+                rec_contacts: list[Contact | None] = []
+                for name, surface in (("true frame", scene), ("scene", scene), ("reconstructed", reconstructed),
+                                      ("rec true fit", reconstructed)):
                     t0 = time.perf_counter()
-                    contacts = []
-                    for shape in shapes:
-                        pos, sig = surface(shape)
-                        c = detect_contact(pos, base, grid, min_depth_mm=args.min_depth, sigma=sig)
-                        contacts.append(true_frame(c, shape) if name == "true frame" else c)
+                    if name == "rec true fit":
+                        # the reconstructed contacts again, each placed by its best rigid fit to the
+                        # sheet's true surface (every sample): a perfect reference for the probe's
+                        # frame, what the reconstruction's own shape allows at best
+                        contacts = [None if c is None else replace(c, positions=_fitted(c.positions, shape.position(uv)))
+                                    for c, shape in zip(rec_contacts, shapes)]
+                    else:
+                        base = capture_baseline([(surface(free)[0], free.normal(uv)) for _ in range(5)])
+                        contacts = []
+                        for shape in shapes:
+                            pos, sig = surface(shape)
+                            c = detect_contact(pos, base, grid, min_depth_mm=args.min_depth,
+                                               sigma=sig if args.weights == "sigma" else None)
+                            contacts.append(true_frame(c, shape) if name == "true frame" else c)
+                        if name == "reconstructed":
+                            rec_contacts = contacts
                     t_detect = (time.perf_counter() - t0) / len(poses)
                     kept = [(c, p) for c, p in zip(contacts, poses) if c is not None]
-                    for mode in ("given",) if args.quick or name == "true frame" else ("given", "estimated"):
+                    for mode in ("given",) if args.quick or name in ("true frame", "rec true fit") else ("given", "estimated"):
                         relief = ReliefMap(120.0, 1.0)
                         t0 = time.perf_counter()
+                        levelled = 0
                         if mode == "given":
                             for c, p in kept:
+                                if args.reference == "floor" and name in ("scene", "reconstructed"):
+                                    lv = level_on_floor(c, p, grid)
+                                    c, levelled = lv.contact, levelled + (not lv.reason)
                                 relief.add(c, p, grid)
                             placed = len(kept)
                         else:
@@ -164,7 +210,8 @@ def main() -> None:
                               f"{err.mean():9.3f} {np.percentile(err, 90):5.2f} {vs_sheet.mean():11.3f} "
                               f"{np.percentile(vs_sheet, 90):5.2f} {100 * relief.coverage():7.1f}% "
                               f"{100 * on.sum() / max(1, mapped.sum()):6.1f}% "
-                              f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}", flush=True)
+                              f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}"
+                              + (f"  ({levelled} levelled on the floor)" if levelled else ""), flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)
                             out = f"{root}-{wall_name}-{scene_name}-{name.replace(' ', '')}-{mode}{ext or '.png'}"

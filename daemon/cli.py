@@ -564,7 +564,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     from skinmap.daemon.tactilemap import map_log, write_ply, write_png
 
     report = map_log(args.log, args.poses, estimate=args.estimate, baseline_frames=args.baseline_frames,
-                     step_mm=args.step, k=args.k, min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell)
+                     step_mm=args.step, k=args.k, min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell,
+                     floor=not args.rim)
     print(report.format())
     if (args.png or args.ply) and report.relief is None:
         print("skinmap map: the log holds no relief to write", file=sys.stderr)
@@ -698,6 +699,9 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--estimate", action="store_true",
                     help="estimate the poses by registering each contact against the map so far (a known first "
                          "pose anchors the map; contacts whose overlap cannot decide are left out and named)")
+    mp.add_argument("--rim", action="store_true",
+                    help="given poses: keep each contact registered by its rim (default: levelled on the wall's base "
+                         "plane where the press touched it)")
     mp.add_argument("--baseline-frames", type=int, default=10, help="surfaces before the first press (default 10)")
     mp.add_argument("--k", type=float, default=3.0, help="contact: pressed in by more than k·σ of the baseline")
     mp.add_argument("--min-depth", type=float, default=0.5, help="contact: and by more than this, mm")

@@ -23,19 +23,22 @@ Surfaces here are samples on a regular material grid of the sheet (``SampleGrid`
   frame, and the press depth: the wall's base plane at z = −depth in the probe frame) each
   contact sample gives the wall height H = −depth − z at its wall point; the map keeps per cell
   the mean, the count and the scatter, hence coverage and a per-cell confidence.
+- **Floor** (:func:`level_on_floor`): with a given pose, a contact registered by its rim is
+  moved so that its lowest samples lie on the wall's base plane, where the data allows that the
+  press touched it (a press pushes the rim in too; the base plane does not move with it).
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
 
 __all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
-           "estimate_pose", "anchor_pose", "stitch_estimated"]
+           "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor"]
 
 
 @dataclass(frozen=True)
@@ -223,6 +226,65 @@ def contact_points(contact: Contact, grid: SampleGrid, upsample: int = 2) -> tup
         return pos[keep], np.ones(int(keep.sum()))
     w = 1.0 / np.maximum(sig[keep], 1e-3) ** 2
     return pos[keep], w / np.median(w)
+
+
+@dataclass(frozen=True)
+class FloorLevel:
+    """A contact levelled on the wall's base plane by :func:`level_on_floor`, or why not."""
+
+    contact: Contact  # moved onto the floor plane, or as given (then ``reason`` says why)
+    offset_mm: float  # how far it was moved away from the wall (0 when not levelled)
+    floor_area_mm2: float  # the area of its samples found on the floor plane
+    reason: str = ""  # why it stays registered by its rim ("" when levelled)
+
+
+def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quantile: float = 0.05,
+                   band_mm: float = 0.3, min_area_mm2: float = 40.0) -> FloorLevel:
+    """Move a contact registered by its rim (:func:`displacement`) along z so that its lowest
+    contact samples lie on the wall's base plane, z = −depth in the probe frame.
+
+    Why: a press pushes the whole sheet in, its rim too, so a contact registered by its rim sits
+    nearer the wall than it is, by how far the rim was pushed.  The wall's base plane is a
+    reference that does not move with the press: the relief rises from it (H ≥ 0), so no part of
+    the sheet lies beyond it, and the samples that touch the floor lie on it.  Their heights
+    H = −depth − z are the lowest of the contact: the level of its lowest ``quantile``, then the
+    median of the samples within ``band_mm`` of that level.
+
+    It is used only when the data allows that the press touched the floor: the move must be away
+    from the wall, since the rim is only ever pushed in (a press whose lowest samples stand above
+    the floor plane touched only the relief, and placing them on the floor would pull the rim
+    out), and those samples must cover ``min_area_mm2`` (a few stray samples are no patch).
+    Otherwise the contact is returned as given, with the reason.
+    Only the offset is fixed: the tilt of a small floor patch is not (the rim's tilt stays)."""
+    if not (0.0 < quantile <= 0.5):
+        raise ValueError(f"quantile must be in (0, 0.5], got {quantile!r}")
+    if not (math.isfinite(band_mm) and band_mm > 0):
+        raise ValueError(f"band_mm must be > 0, got {band_mm!r}")
+    if not (math.isfinite(min_area_mm2) and min_area_mm2 >= 0):
+        raise ValueError(f"min_area_mm2 must be >= 0, got {min_area_mm2!r}")
+    if not math.isfinite(pose.depth_mm):
+        raise ValueError(f"the pose's depth must be finite, got {pose.depth_mm!r}")
+    mask = np.asarray(contact.mask, bool).ravel()
+    if mask.size != len(contact.positions):
+        raise ValueError(f"a contact mask of {mask.size} samples for {len(contact.positions)} positions")
+    cell = grid.step ** 2
+    if not mask.any():
+        return FloorLevel(contact, 0.0, 0.0, "no samples in contact")
+    h = -pose.depth_mm - contact.positions[mask, 2]
+    low = float(np.quantile(h, quantile))
+    on = np.abs(h - low) <= band_mm
+    level = float(np.median(h[on]))
+    area = float(on.sum() * cell)
+    if area < min_area_mm2:
+        return FloorLevel(contact, 0.0, area, f"its lowest samples cover {area:.0f} mm² (less than {min_area_mm2:.0f}): "
+                                              "too few for a floor patch; registered by its rim")
+    if level > 0.0:
+        return FloorLevel(contact, 0.0, area, f"its lowest samples stand {level:.2f} mm off the floor plane: it touched "
+                                              "only the relief (on the floor the rim would have been pulled out, and a "
+                                              "press only pushes it in); registered by its rim")
+    moved = contact.positions.copy()
+    moved[:, 2] += level
+    return FloorLevel(replace(contact, positions=moved), -level, area)
 
 
 class ReliefMap:

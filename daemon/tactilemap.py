@@ -11,7 +11,9 @@ when the contact began), else from the log's ``/pose`` topic (the latest pose re
 the event began), else from the ``[tactile] poses`` of the config it was recorded with; with
 ``estimate=True`` the poses are found by registering each contact against the map so far
 (skinmap.daemon.tactile.stitch_estimated; a known first pose anchors the map, else the first
-press's frame is the map's).  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
+press's frame is the map's).  With given poses each contact, registered by its rim, is levelled
+on the wall's base plane where the press touched it (skinmap.daemon.tactile.level_on_floor;
+``floor=False``: the rim alone); the summary says which.  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
 its confidence, a PLY point cloud of the touched cells.
 """
 from __future__ import annotations
@@ -23,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (Contact, PoseEstimate, ProbePose, ReliefMap, SampleGrid, capture_baseline,
-                                    detect_contact, read_poses_csv, stitch_estimated)
+from skinmap.daemon.tactile import (Contact, FloorLevel, PoseEstimate, ProbePose, ReliefMap, SampleGrid,
+                                    capture_baseline, detect_contact, level_on_floor, read_poses_csv, stitch_estimated)
 
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 
@@ -38,6 +40,7 @@ class MapReport:
     problems: list[str] = field(default_factory=list)
     pose_source: str = ""
     estimates: list[PoseEstimate] = field(default_factory=list)
+    levels: list[FloorLevel] = field(default_factory=list)
 
     def format(self) -> str:
         lines = [f"{self.frames} surfaces, baseline of {self.baseline_frames}, {len(self.events)} contact events"
@@ -52,6 +55,10 @@ class MapReport:
                          f"{e.pose.depth_mm:.2f} mm" + (f" (s.d. {e.sd_xy_mm:.2f} mm, {e.sd_angle_deg:.2f}°)"
                                                         if math.isfinite(e.sd_xy_mm) else f" ({e.reason})")
                          if e.pose is not None else f"; not placed: {e.reason}")
+            if i < len(self.levels):
+                lv = self.levels[i]
+                line += (f"; levelled on the floor (moved {lv.offset_mm:.2f} mm off the wall, floor "
+                         f"{lv.floor_area_mm2:.0f} mm²)" if not lv.reason else f"; {lv.reason}")
             lines.append(line)
         if self.relief is not None:
             h = self.relief.height()
@@ -112,7 +119,8 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
 
 def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | None = None, *,
             estimate: bool = False, baseline_frames: int = 10, step_mm: float = 2.0, k: float = 3.0,
-            min_depth_mm: float = 0.5, wall_size_mm: float = 120.0, cell_mm: float = 1.0) -> MapReport:
+            min_depth_mm: float = 0.5, wall_size_mm: float = 120.0, cell_mm: float = 1.0,
+            floor: bool = True) -> MapReport:
     """Replay the log and stitch its contact events with their poses (see the module); ValueError
     names what is wrong (no surfaces, too few baseline frames, no poses from any source, event
     and pose counts that differ, an event without a pose on the topic, a malformed pose)."""
@@ -180,6 +188,9 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         raise ValueError(f"{log}: {len(report.events)} contact events, but {len(poses)} poses "
                          f"{report.pose_source} (one pose a press, in order)")
     for c, pose in zip(report.events, poses):
+        if floor:
+            report.levels.append(level_on_floor(c, pose, grid))
+            c = report.levels[-1].contact
         relief.add(c, pose, grid)
     report.relief = relief
     return report

@@ -310,3 +310,55 @@ def test_pressed_membrane_touches_the_strokes_spans_beside_them_and_never_passes
     assert 1.0 < gap[near].max() <= 4.0
     with pytest.raises(ValueError, match="not both"):
         BalloonOnWall(wall, membrane=Membrane(), membrane_radius=40.0)
+
+
+def _pressed_membrane(centre: tuple[float, float]):
+    """A 5 x 5 sheet at 12 mm pressed 2 mm on the E wall (the solved film), its true surface
+    and its contact registered by the rim."""
+    from skinmap.emulator.walls import Membrane
+
+    grid = SampleGrid.for_array(5, 5, 12.0, 2.0)
+    free = ph.SphereCap(80.0)
+    base = capture_baseline([(free.position(grid.uv), free.normal(grid.uv))])
+    shape = BalloonOnWall(LetterRelief("E"), centre, 10.0, 2.0, membrane=Membrane())
+    truth = shape.position(grid.uv)
+    contact = detect_contact(truth, base, grid)
+    assert contact is not None
+    touch = contact.mask.ravel() & (shape.clearance(truth[:, :2]) < 0.05)
+    return grid, shape, truth, contact, touch
+
+
+def test_a_press_on_the_floor_is_levelled_to_within_0p25mm_of_its_true_place_from_more_than_0p5mm():
+    from skinmap.daemon.tactile import level_on_floor
+
+    grid, shape, truth, contact, touch = _pressed_membrane((45.0, 11.0))  # beside the E, on the floor
+    pose = ProbePose(45.0, 11.0, 10.0, 2.0)
+    by_rim = np.abs(contact.positions[touch, 2] - truth[touch, 2]).mean()
+    lv = level_on_floor(contact, pose, grid)
+    assert lv.reason == "" and lv.offset_mm > 0.3  # moved away from the wall: the rim was pushed in
+    levelled = np.abs(lv.contact.positions[touch, 2] - truth[touch, 2]).mean()
+    assert by_rim > 0.5 and levelled < 0.25
+
+
+def test_a_press_that_touches_only_the_relief_stays_on_its_rim_and_says_why():
+    from skinmap.daemon.tactile import level_on_floor
+
+    grid, shape, truth, contact, touch = _pressed_membrane((0.0, 0.0))  # on the E's middle bar
+    xy = truth[:, :2]
+    assert not np.any((shape.clearance(xy) < 0.05) & (shape.wall.height(shape.to_wall(xy)) < 0.01))
+    lv = level_on_floor(contact, ProbePose(0.0, 0.0, 10.0, 2.0), grid)
+    assert "touched only the relief" in lv.reason and lv.offset_mm == 0.0
+    assert np.array_equal(lv.contact.positions, contact.positions)
+
+
+def test_floor_levelling_names_a_bad_parameter():
+    from skinmap.daemon.tactile import level_on_floor
+
+    c = detect_contact(_surface(BalloonOnWall(WALL, (-30.0, 30.0), 0.0, 3.0))[0], _baseline(), GRID)
+    assert c is not None
+    for kw, name in (({"quantile": 0.0}, "quantile"), ({"band_mm": -1.0}, "band_mm"),
+                     ({"min_area_mm2": math.nan}, "min_area_mm2")):
+        with pytest.raises(ValueError, match=name):
+            level_on_floor(c, ProbePose(-30.0, 30.0, 0.0, 3.0), GRID, **kw)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="depth"):
+        level_on_floor(c, ProbePose(-30.0, 30.0, 0.0, math.inf), GRID)
