@@ -784,12 +784,8 @@ class Reconstructor:
         n_valid = int(valid.sum())
         _, twist_c, _, info, _, positions_at = self._general(turning, stretch, valid, n_valid, strain_sigma, None,
                                                              twist_sign, strains)
-        k_u, k_v, tau0 = (np.asarray(f) for f in info["product_fields"])
-        inner = self.grid.inner
-        kk = float((k_u[inner] * k_v[inner]).mean())
-        tm, t2 = float(tau0[inner].mean()), float((tau0[inner] ** 2).mean())
-        # mean over the units of k_u k_v − (τ₀ + c)² = K
-        disc = tm * tm - t2 + kk - k_airy
+        tm, base = _mean_twist_terms(info["product_fields"], self.grid.inner)
+        disc = base - k_airy
         if disc < 0.0:
             return []
         signs = (1.0, -1.0) if twist_sign is None else (float(twist_sign),)
@@ -865,7 +861,7 @@ class Reconstructor:
                 pos_m = positions_at(-2.0 * c0)
             else:  # a graph answered: its mirror is the graph refitted with the opposite sign
                 pos_m = graph_mirror(-math.copysign(1.0, c0))
-            diag_m = Diagnostics(**{**diag.__dict__, "extra": dict(diag.extra), "twist_constant": -c0})
+            diag_m = _with_twist(diag, -c0)
             cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m)
             chi_m, _, _ = misfit(cand, layout, eu, el, sigma_f)
             info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
@@ -950,11 +946,7 @@ class Reconstructor:
         bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range, noise_sd=trace_sd)
         if bounds is None:
             return None
-        k_u, k_v, tau0 = (np.asarray(f) for f in product_fields)
-        inner = self.grid.inner
-        tm = float(tau0[inner].mean())
-        # mean twist m = tm + c:  mean((τ₀ − tm + m)²) = t2 − tm² + m², so m² = base − K
-        base = tm * tm - float((tau0[inner] ** 2).mean()) + float((k_u[inner] * k_v[inner]).mean())
+        tm, base = _mean_twist_terms(product_fields, self.grid.inner)
         lo, hi = max(base - bounds[1], 0.0), base - bounds[0]
         if hi <= 0.0:
             return None  # no twist gets there: the curvature product alone is below the pattern's K
@@ -974,7 +966,7 @@ class Reconstructor:
         shift, chi = base_shift, chi0
         if not inside:
             target = sign * 0.5 * (m_lo + m_hi)
-            diag_t = Diagnostics(**{**diag.__dict__, "extra": dict(diag.extra), "twist_constant": c0 + (target - m0)})
+            diag_t = _with_twist(diag, c0 + (target - m0))
             cand = self._surface(positions_at(base_shift + target - m0), surf._fine_sigma_fn, diag_t)
             chi_t, dof, _ = misfit(cand, layout, eu, el, sigma_f)
             if chi_t > chi0 + max(tell, 0.5 * chi0):
@@ -1000,8 +992,7 @@ class Reconstructor:
             other = self._general(turning, stretch, valid, n_valid, sigma_f, None, -sign, (eu, el))
             if self.defect_steps:
                 other = self._defect_correction(other, eu, el, valid, n_valid, sigma_f, None, -sign)
-            diag_m = Diagnostics(**{**surf.diagnostics.__dict__, "extra": dict(surf.diagnostics.extra),
-                                    "twist_constant": other[1]})
+            diag_m = _with_twist(surf.diagnostics, other[1])
             cand = self._surface(other[0], surf._fine_sigma_fn, diag_m)
             chi_m, dof, _ = misfit(cand, layout, eu, el, sigma_f)
             info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
@@ -1192,6 +1183,20 @@ def _report_screen(diag: Diagnostics, suspects: list[Suspect], info: dict, secon
              "row": s.row, "col": s.col, "gain": round(s.gain, 3), "sigmas": round(s.residual_sigmas, 1)}
             for s in suspects]
     diag.solve_time += seconds
+
+
+def _mean_twist_terms(product_fields, inner) -> tuple[float, float]:
+    """(tm, base) over the cells' region for the fields (k_u, k_v, τ₀): the mean twist is
+    m = tm + c for a constant c, and Gauss's equation mean(k_u k_v − (τ₀ + c)²) = K gives
+    m² = base − K (mean((τ₀ − tm + m)²) = mean(τ₀²) − tm² + m²)."""
+    k_u, k_v, tau0 = (np.asarray(f) for f in product_fields)
+    tm = float(tau0[inner].mean())
+    return tm, tm * tm - float((tau0[inner] ** 2).mean()) + float((k_u[inner] * k_v[inner]).mean())
+
+
+def _with_twist(diag: Diagnostics, twist_constant: float) -> Diagnostics:
+    """A copy of ``diag`` (its own ``extra``) for a candidate with another constant twist."""
+    return Diagnostics(**{**diag.__dict__, "extra": dict(diag.extra), "twist_constant": twist_constant})
 
 
 def _memo(fn):
