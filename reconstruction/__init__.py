@@ -45,6 +45,7 @@ from .productnoise import ProductNoise, measure_product_noise, turning_noise_est
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_curvature_range, airy_gaussian_curvature
+from .membrane import TwistReading, gaussian_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
@@ -67,6 +68,12 @@ MIRROR_SHARE = 0.5
 # Two mirror images are reported only where they differ by more than this many combined noise
 # s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
+# Where the stretch pattern needs a twist, an answer whose mean twist is off the pattern's
+# estimate by more than this share of it is modelled afresh at the estimate.
+MOVE_SHARE = 0.02
+# The sign of a twist the stretch pattern needs: the surface of one sign must explain the pattern
+# (through its own Gaussian curvature) with at most this share of the other's misfit.
+MEMBRANE_SIGN_RATIO = 2.0
 # The graph fit needs most units (a graph is judged by all of its gauges' misfit).
 _GRAPH_MIN_UNITS = 0.8
 ELASTIC_PRIOR_MAX_CELLS = 64  # the position fit's dense normal matrix grows as (N·M)²
@@ -174,6 +181,7 @@ class Reconstructor:
                 raise ValueError(f"poisson_range must satisfy 0 <= low <= high <= 0.5, got {poisson_range!r}")
             poisson_range = (lo, hi)
         self.poisson_range = poisson_range
+        self._membrane: Any = None  # the film's stretch per Gaussian curvature, built at first use
         if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
             raise ValueError(f"defect_steps must be an integer >= 0, got {defect_steps!r}")
         self.defect_steps = int(defect_steps)
@@ -511,10 +519,13 @@ class Reconstructor:
                 return general_m[0]
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
+            twist_mean = cast("float | None", convex_info.get("twist_mean")) if fit is not None else None
+            measured_fields = convex_info.get("measured_fields", product_fields) if fit is not None else None
             chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
-                                   product_fields, known, stretch if convex_info.get("graph_sheet") is None else None)
+                                   product_fields, known, stretch if convex_info.get("graph_sheet") is None else None,
+                                   twist_mean, measured_fields)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
@@ -620,7 +631,8 @@ class Reconstructor:
 
         return _memo(spread)
 
-    def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign):
+    def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
+                           twist_mean: float | None = None, measured_fields=None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -644,14 +656,18 @@ class Reconstructor:
             # (np.maximum keeps a missing gauge's NaN)
             turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
                                             self.gauge_length)
-            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el))
+            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
             chi_t, _, fu_t, fl_t = misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f)
             # a pass must gain clearly (1 %): a decision at the rounding level would make the
             # answer depend on how the arithmetic was ordered (replay needs the same bytes)
             if not (chi_t < DEFECT_GAIN * chi) or not np.isfinite(trial[0]).all():
                 break
             # the fields' misfit stays that of the measured data (the consistency check's input)
-            general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1}, trial[4], trial[5])
+            # (the stretch pattern is read with the measured data's fields: the corrected ones
+            # carry the answer's own twist back into them)
+            measured = general[3].get("measured_fields", general[3].get("product_fields"))
+            general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1, "measured_fields": measured},
+                       trial[4], trial[5])
             chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
         # the answer's χ² at the posterior check's noise level, read once
@@ -808,7 +824,8 @@ class Reconstructor:
 
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
-                   stretch: np.ndarray | None = None) -> Surface:
+                   stretch: np.ndarray | None = None, twist_mean: float | None = None,
+                   measured_fields=None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -883,7 +900,8 @@ class Reconstructor:
         pattern = None
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
             pattern = self._stretch_twist(surf, mirror, turning, stretch, valid, product_fields, positions_at, base_shift,
-                                          twist_sign, eu, el, sigma_f, chi0, tell, info)
+                                          twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean,
+                                          measured_fields if measured_fields is not None else product_fields)
         if pattern is not None:
             surf, mirror, base_shift, chi0 = pattern[0], pattern[1], pattern[2], pattern[4]
             diag = surf.diagnostics
@@ -928,77 +946,195 @@ class Reconstructor:
             mirror.mirror = None
         return surf
 
-    def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
-                       positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict):
-        """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
-        has the mean Gaussian curvature its stretch trace says (:func:`.airy.airy_curvature_range`,
-        over the Poisson interval), and with the measured curvatures k_u, k_v that fixes the
-        square of the mean twist: mean(k_u k_v − τ²) = K.  An answer whose twist lies outside
-        the interval moves to its middle (keeping its sign); the interval's ends are the twist's
-        spread in ``node_sigma``; the opposite sign is the mirror unless the gauges reject it
-        (χ² worse by ``tell`` and by half the answer's own misfit: the forward model is
-        kinematic, the film is not).  Returns None where the pattern says nothing (a bump,
-        friction, no twist allowed), else (answer, mirror or None, its shift on
-        ``positions_at``'s family, the twist's spread function, its χ²)."""
+    def _twist_reading(self, stretch, valid, product_fields, sigma_f: float) -> TwistReading | None:
+        """What the stretch pattern says of the mean twist's magnitude (docs/reconstruction.md):
+        the free-edge membrane's reading (:func:`.membrane.read_twist`: the twist and ν together)
+        where it explains the pattern, else the trace's (:func:`.airy.airy_curvature_range`: any
+        outline and edge load, ν anywhere in the Poisson interval; its middle is the estimate).
+        None where neither says anything."""
         assert self.poisson_range is not None
-        # the noise of one unit's trace: two stretch readings, each σ·√(h_u² + h_l²)/(h_u + h_l)
-        trace_sd = math.sqrt(2.0) * sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
-        bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range, noise_sd=trace_sd)
+        # the noise of one unit's stretch reading: σ·√(h_u² + h_l²)/(h_u + h_l)
+        stretch_sd = sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        k_u, k_v, tau0 = product_fields
+        if self._membrane is None:
+            self._membrane = membrane_maps(self.grid)
+        reading = read_twist(self._membrane, stretch, valid, k_u, k_v, tau0, self.grid.inner, self.poisson_range,
+                             stretch_sd)
+        if reading is not None:
+            return reading
+        bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range,
+                                      noise_sd=math.sqrt(2.0) * stretch_sd)  # a trace: two readings
         if bounds is None:
             return None
-        tm, base = _mean_twist_terms(product_fields, self.grid.inner)
+        _, base = _mean_twist_terms(product_fields, self.grid.inner)
         lo, hi = max(base - bounds[1], 0.0), base - bounds[0]
         if hi <= 0.0:
             return None  # no twist gets there: the curvature product alone is below the pattern's K
-        c0 = surf.diagnostics.twist_constant
-        m0 = tm + c0
         m_lo, m_hi = math.sqrt(lo), math.sqrt(hi)
+        return TwistReading(0.5 * (m_lo + m_hi), m_lo, m_hi, math.nan, math.nan, "trace")
+
+    def _refine_twist(self, at_magnitude, reading: TwistReading, stretch, valid) -> float:
+        """The mean twist's magnitude that best explains the stretch pattern through the
+        surfaces' own Gaussian curvature (:func:`.membrane.stretch_misfit`): ``at_magnitude``
+        (magnitude → fine positions, a twist family) at 0, ½, 1 and 1½ times the reading's
+        square, a quadratic in the square through their misfits (K is linear in it), its minimum
+        held within [0, 2] times the reading's square."""
+        assert self.poisson_range is not None
+        t_read = reading.twist ** 2
+        squares = np.array([0.0, 0.5, 1.0, 1.5])
+        rss = []
+        for t in squares:
+            k_field = gaussian_curvature(at_magnitude(math.sqrt(t * t_read)), self.grid.spacing)
+            rss.append(stretch_misfit(self._membrane, k_field, stretch, valid, self.poisson_range)[0])
+        a2, a1, _ = np.polyfit(squares, np.array(rss), 2)
+        if a2 > 0.0 and math.isfinite(a2):
+            best = min(max(-a1 / (2.0 * a2), 0.0), 2.0)
+        else:
+            best = float(squares[int(np.argmin(rss))])
+        return math.sqrt(best * t_read)
+
+    def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
+                       positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict,
+                       twist_mean: float | None = None, measured_fields=None):
+        """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
+        has the Gaussian curvature its stretch pattern says, and with the measured curvatures
+        k_u, k_v that fixes the square of the mean twist: mean(k_u k_v − τ²) = K
+        (:meth:`_twist_reading`: the free-edge membrane's reading, else the trace's interval).
+        Where the interval allows no twist and the answer has none, nothing changes (the
+        least-shear prior decides).  Else the membrane's reading is refined on the answer's own
+        family with each member's exact Gaussian curvature (:meth:`_refine_twist`); an answer
+        outside the interval is modelled afresh at its estimate (both signs where the pattern
+        cannot tell the sign: the lower χ² answers, the other is the mirror unless the gauges
+        reject it, χ² worse by ``tell`` and by the answer's own misfit: the forward model is
+        kinematic, the film is not); the interval's ends are the twist's spread in
+        ``node_sigma``.  ``twist_mean``: the answer's mean twist over the cells (at zero shift
+        of ``positions_at``); ``measured_fields``: the fields of the measured data (the reading's
+        input).  Returns None where the pattern says nothing, else (answer, mirror or None, its
+        shift on its family, the twist's spread function, its χ²)."""
+        reading = self._twist_reading(stretch, valid, product_fields if measured_fields is None else measured_fields,
+                                      sigma_f)
+        if reading is None:
+            return None
+        c0 = surf.diagnostics.twist_constant
+        if twist_mean is None:
+            twist_mean = float(np.asarray(product_fields[2])[self.grid.inner].mean()) + c0 - base_shift
+        m0 = twist_mean + base_shift  # the answer's (a swapped mirror sits at base_shift on the family)
+        m_lo, m_hi, magnitude = reading.low, reading.high, reading.twist
         # a twist below the mirror floor bends nothing the elements would see
         if m_hi * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
             return None
         info["stretch_twist"] = (round(m0, 7), round(m_lo, 7), round(m_hi, 7))
-        sign = float(twist_sign) if twist_sign is not None else (math.copysign(1.0, m0) if m0 != 0.0 else 1.0)
-        inside = m_lo <= abs(m0) <= m_hi and (twist_sign is None or m0 * sign >= 0.0)
-        if inside and lo <= 0.0:
+        info["stretch_reading"] = (reading.source, round(reading.poisson, 3), round(reading.residual, 3))
+        if twist_sign is not None:
+            sign = float(twist_sign)
+        else:
+            sign = math.copysign(1.0, m0) if m0 != 0.0 else 1.0
+        sign_open = twist_sign is None
+
+        def within(low: float, high: float) -> bool:
+            return low <= abs(m0) <= high and (sign_open or m0 * sign >= 0.0)
+
+        if within(m_lo, m_hi) and m_lo <= 0.0:
             return None  # the pattern allows no twist too (a sphere): it has nothing to add
+        if reading.source == "membrane":
+            # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
+            # (the metric, the slopes): the twist's square is read again on the answer's family
+            # with each member's exact Gaussian curvature, the reading's width kept about it.
+            magnitude = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
+            half = 0.5 * (reading.high ** 2 - reading.low ** 2)
+            m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+            info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
+            # (refined to where zero twist is allowed too, the answer stays, but the data have
+            # not decided: the twists up to the interval's top join its σ below)
         layout = self._layout
-        diag = surf.diagnostics
+        membrane = reading.source == "membrane"
+
+        def stretch_rss(positions: np.ndarray) -> float:
+            """The stretch pattern's misfit through this surface's own Gaussian curvature."""
+            assert self.poisson_range is not None
+            k_field = gaussian_curvature(positions, self.grid.spacing)
+            return stretch_misfit(self._membrane, k_field, stretch, valid, self.poisson_range)[0]
+
         shift, chi = base_shift, chi0
-        if not inside:
-            target = sign * 0.5 * (m_lo + m_hi)
-            diag_t = _with_twist(diag, c0 + (target - m0))
-            cand = self._surface(positions_at(base_shift + target - m0), surf._fine_sigma_fn, diag_t)
-            chi_t, dof, _ = misfit(cand, layout, eu, el, sigma_f)
+        other: tuple[Surface, float] | None = None  # the other sign's candidate and its χ²
+        told = False  # the stretch pattern tells the sign (membrane: twice the misfit)
+        # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
+        # off its estimate by more than 2 % moves to it (within the interval too; the trace's
+        # interval has no estimate, only ends)
+        off = membrane and m_lo > 0.0 and abs(abs(m0) - magnitude) > MOVE_SHARE * magnitude
+        signs = (sign, -sign) if sign_open else (sign,)
+        if membrane and sign_open and m_lo > 0.0 and not off and within(m_lo, m_hi):
+            # The answer's twist is the pattern's; its sign is the model's, read from a graph's
+            # kinematic stretch, which a sliding film does not follow.  Each sign's surface, with
+            # its own curvature, says which explains the stretch (the kinematic forward model
+            # leaned to the wrong sign on every turned elastic saddle measured).
+            here, flipped = stretch_rss(positions_at(shift)), stretch_rss(positions_at(shift - 2.0 * m0))
+            info["stretch_sign_rss"] = (float(f"{here:.4g}"), float(f"{flipped:.4g}"))
+            if flipped * MEMBRANE_SIGN_RATIO <= here:
+                off, signs = True, (-sign,)  # the other sign, modelled afresh
+            elif here * MEMBRANE_SIGN_RATIO <= flipped:
+                told = True
+        if off or not within(m_lo, m_hi):
+            # modelled afresh at the reading's twist (the family above keeps the fields the defect
+            # correction fitted to the old twist), with the sign it prefers, else both signs
+            cands = []
+            n_valid = int(valid.sum())
+            for sg in signs:
+                fresh = self._general(turning, stretch, valid, n_valid, sigma_f, None, sg, (eu, el), sg * magnitude)
+                if self.defect_steps:
+                    fresh = self._defect_correction(fresh, eu, el, valid, n_valid, sigma_f, None, sg, sg * magnitude)
+                cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
+                score = stretch_rss(fresh[0]) if membrane else 0.0
+                cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score))
+            if len(cands) > 1:
+                if membrane:
+                    # the sign whose surface explains the stretch pattern (see above)
+                    info["stretch_sign_rss"] = (float(f"{cands[0][4]:.4g}"), float(f"{cands[1][4]:.4g}"))
+                    if cands[1][4] < cands[0][4]:
+                        cands.reverse()
+                    told = cands[0][4] * MEMBRANE_SIGN_RATIO <= cands[1][4]
+                elif cands[1][0] < cands[0][0] - (0.0 if abs(m0) <= 0.5 * m_lo else tell):
+                    # the trace: the answer's own sign stands where it has a twist of the
+                    # interval's order unless the other reads the gauges clearly better
+                    cands.reverse()
+            chi_t, sg, cand, family, _ = cands[0]
+            dof = misfit(cand, layout, eu, el, sigma_f)[1]
             if chi_t > chi0 + max(tell, 0.5 * chi0):
-                # the gauges reject the pattern's twist (the film is not what the closed form
-                # assumes): the answer stays, its σ reaching to the pattern's reading
+                # the gauges reject the pattern's twist (the film is not what the model of the
+                # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
                 gap = np.linalg.norm(cand._coeffs[..., 0, :] - surf._coeffs[..., 0, :], axis=-1)
                 return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0
-            info["stretch_twist_moved"] = round(target - m0, 7)
-            surf, chi, shift, m0 = cand, chi_t, base_shift + target - m0, target
+            info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
+            if len(cands) > 1:
+                other = (cands[1][2], cands[1][0])
+            sign = sg
+            surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
+            positions_at = family
 
         def spread() -> np.ndarray:
-            # the twists the Poisson interval allows: 3 s.d. reach past the farther end
+            # the twists the reading allows: 3 s.d. reach past the farther end
             here = positions_at(shift)
             ends = [positions_at(shift + sign * m - m0) for m in (m_lo, m_hi)]
             return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in ends], axis=0)
 
-        if twist_sign is None and lo > 0.0:
-            # The pattern needs a twist whose sign it cannot give (its Airy function is even in
-            # the twist); the gauges decide only when the other sign, modelled afresh, misfits
-            # clearly: the shifted family above is biased towards the answer it was solved for.
-            n_valid = int(valid.sum())
-            other = self._general(turning, stretch, valid, n_valid, sigma_f, None, -sign, (eu, el))
-            if self.defect_steps:
-                other = self._defect_correction(other, eu, el, valid, n_valid, sigma_f, None, -sign)
-            diag_m = _with_twist(surf.diagnostics, other[1])
-            cand = self._surface(other[0], surf._fine_sigma_fn, diag_m)
-            chi_m, dof, _ = misfit(cand, layout, eu, el, sigma_f)
-            info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+        if sign_open and m_lo > 0.0:
+            # The pattern needs a twist: its sign is told by the membrane's misfit (twice) or by
+            # nothing (the trace is even in the twist); then the gauges decide only when the other
+            # sign misfits them clearly.
             mirror = None
-            if chi_m <= chi + max(tell, chi) and _differs(surf, cand):
-                mirror = cand
+            if not told:
+                if other is None:
+                    target = -sign * abs(m0)
+                    cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
+                                         _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
+                    chi_m = misfit(cand, layout, eu, el, sigma_f)[0]
+                else:
+                    cand, chi_m = other
+                dof = misfit(cand, layout, eu, el, sigma_f)[1]
+                info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+                if chi_m <= chi + max(tell, chi) and _differs(surf, cand):
+                    mirror = cand
         return surf, mirror, shift, _memo(spread), chi
 
     def _agreement(self, general, turning, valid, data, fit_sigma):
@@ -1031,8 +1167,11 @@ class Reconstructor:
 
         return agree, graph_sigma
 
-    def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, strains=None):
-        """Steps 1-5 of the model (any sheet): fields, twist, shear, frames, positions."""
+    def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, strains=None,
+                 twist_mean: float | None = None):
+        """Steps 1-5 of the model (any sheet): fields, twist, shear, frames, positions.
+        ``twist_mean``: the mean twist over the cells (1/mm) given, not chosen (the stretch
+        pattern's reading, :meth:`_stretch_twist`)."""
         grid = self.grid
         left_out = True
         if n_valid:
@@ -1097,7 +1236,9 @@ class Reconstructor:
                 convex_info["graph_sheet"] = True
         shift0 = 0.0
         undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
-        if shear_graph is None and self.least_shear:
+        if twist_mean is not None:
+            shift0 = twist_mean - float(tau[grid.inner].mean())
+        elif shear_graph is None and self.least_shear:
             # the prior for the twist the gauges leave open: the least-shear sheet among those
             # the data allow, when it needs clearly less shear than the model's own pick
             tau_mean = float(tau.sum()) / tau.size
@@ -1138,7 +1279,7 @@ class Reconstructor:
             return _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
 
         pos = positions_at(0.0)
-        if shift0 != 0.0 and strains is not None:
+        if shift0 != 0.0 and strains is not None and twist_mean is None:
             # the prior only chooses among answers the data cannot tell apart
             pos_own = positions_at(-shift0)
             sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
@@ -1146,6 +1287,9 @@ class Reconstructor:
             chi_own, _, _ = misfit(self._candidate(pos_own), self._layout, strains[0], strains[1], sigma_f)
             if chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)):
                 shift0, pos = 0.0, pos_own
+        # the answer's mean twist over the cells (the twist field is not τ₀ plus the constant
+        # alone where the graph test or the metric scaling shaped it)
+        convex_info["twist_mean"] = float(tau[grid.inner].mean()) + shift0
         if shift0 != 0.0:
             twist_c = twist_c + shift0
             convex_info["least_shear_shift"] = shift0
