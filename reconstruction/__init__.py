@@ -45,7 +45,7 @@ from .productnoise import ProductNoise, measure_product_noise, turning_noise_est
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_curvature_range, airy_gaussian_curvature
-from .membrane import TwistReading, gaussian_curvature, membrane_maps, read_twist, stretch_misfit
+from .membrane import TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
@@ -69,11 +69,13 @@ MIRROR_SHARE = 0.5
 # s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # Where the stretch pattern needs a twist, an answer whose mean twist is off the pattern's
-# estimate by more than this share of it is modelled afresh at the estimate.
-MOVE_SHARE = 0.02
-# The sign of a twist the stretch pattern needs: the surface of one sign must explain the pattern
-# (through its own Gaussian curvature) with at most this share of the other's misfit.
-MEMBRANE_SIGN_RATIO = 2.0
+# estimate by more than this share of it is modelled afresh at the estimate (the refined
+# estimate scatters by 2-3 % from frame to frame with the sensor's noise).
+MOVE_SHARE = 0.05
+# The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
+# to the other where that surface explains the pattern (through its own Gaussian curvature) with
+# at most this share of the answer's misfit.
+MEMBRANE_SIGN_RATIO = 0.5
 # The graph fit needs most units (a graph is judged by all of its gauges' misfit).
 _GRAPH_MIN_UNITS = 0.8
 ELASTIC_PRIOR_MAX_CELLS = 64  # the position fit's dense normal matrix grows as (N·M)²
@@ -339,7 +341,7 @@ class Reconstructor:
         at construction), then the caches that a first frame read at this noise level fills, namely
         the all-valid fits, the noise's own curvature product and the general model's measured
         answer to noise (:meth:`_noise_response`, tens of milliseconds at 5×5, about a second at
-        32×32), and the uncertainty maps.  A flat frame is reconstructed and its uncertainty read
+        32×32), the uncertainty maps and the membrane's stretch maps (:mod:`.membrane`).  A flat frame is reconstructed and its uncertainty read
         here; skinmapd calls this when a scanner's HELLO gives the geometry, so that its first
         published frames are not the slow ones."""
         flat = np.zeros((2, self.n, self.m))
@@ -350,6 +352,10 @@ class Reconstructor:
         bent = np.full((2, self.n, self.m), 1e-3)
         surf = self(bent, -bent, strain_sigma=strain_sigma, previous=surf)
         _ = surf.node_sigma, surf.locate_sigma(centre)
+        # the membrane's stretch maps (0.1 s at 5×5, up to a second on large sheets), which the
+        # first elastic frame would otherwise build
+        if self.poisson_range is not None and self._membrane is None:
+            self._membrane = membrane_maps(self.grid)
 
     def _graph_fit(self) -> GraphFit:
         """The graph fit's operators (only called where the graph fit is on)."""
@@ -386,6 +392,7 @@ class Reconstructor:
         general = None
         warm = None
         deferred = False
+        carried, reading = self._carried_twist(previous, twist_sign, turning, stretch, valid, strain_sigma)
         graph_sigma: dict = {}
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -399,7 +406,8 @@ class Reconstructor:
             if graph is None or not graph.accepted:
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
-                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
+                                        carried)
                 starts = None if graph_cold else self._graph.cold_starts(data, general[0])
                 if starts is not None and not all(starts[1]):
                     # a cold fit to do, left to the caller: this frame is the general model's
@@ -423,12 +431,14 @@ class Reconstructor:
                 left_out = getattr(grid.field_maps(valid), "left_out", True)
         else:
             if general is None:
-                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el))
+                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
+                                        carried)
             # (a deferred frame is the general model's first answer: its defect correction costs
             # as much as the cold fit it stands in for, and the posterior check widens its
             # uncertainty by the misfit left)
             if n_valid and self.defect_steps and not deferred:
-                general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign)
+                general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign,
+                                                  carried)
             pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
@@ -525,7 +535,7 @@ class Reconstructor:
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
                                    product_fields, known, stretch if convex_info.get("graph_sheet") is None else None,
-                                   twist_mean, measured_fields)
+                                   twist_mean, measured_fields, reading)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
@@ -632,7 +642,7 @@ class Reconstructor:
         return _memo(spread)
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
-                           twist_mean: float | None = None, measured_fields=None):
+                           twist_mean: float | None = None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -825,7 +835,7 @@ class Reconstructor:
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
                    stretch: np.ndarray | None = None, twist_mean: float | None = None,
-                   measured_fields=None) -> Surface:
+                   measured_fields=None, reading: TwistReading | None = None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -901,7 +911,7 @@ class Reconstructor:
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
             pattern = self._stretch_twist(surf, mirror, turning, stretch, valid, product_fields, positions_at, base_shift,
                                           twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean,
-                                          measured_fields if measured_fields is not None else product_fields)
+                                          measured_fields if measured_fields is not None else product_fields, reading)
         if pattern is not None:
             surf, mirror, base_shift, chi0 = pattern[0], pattern[1], pattern[2], pattern[4]
             diag = surf.diagnostics
@@ -973,6 +983,27 @@ class Reconstructor:
         m_lo, m_hi = math.sqrt(lo), math.sqrt(hi)
         return TwistReading(0.5 * (m_lo + m_hi), m_lo, m_hi, math.nan, math.nan, "trace")
 
+    def _carried_twist(self, previous: Surface | None, twist_sign, turning, stretch, valid,
+                       strain_sigma: float) -> tuple[float | None, TwistReading | None]:
+        """The mean twist (signed, 1/mm) the stretch pattern gave the frame before, where
+        ``twist_sign`` does not contradict its sign and this frame's stretch still needs a twist
+        (the membrane's reading of this frame excludes zero and holds the last estimate, within
+        a quarter): this frame's general model starts there, so a shape that holds still is not
+        modelled afresh every frame.  None otherwise (a sphere after a saddle goes back to the
+        least-shear prior).  Also returns the reading, which the posterior check then takes as
+        its own (the same data, the same fields)."""
+        if previous is None or self.poisson_range is None or not valid.any():
+            return None, None
+        estimate = previous.diagnostics.extra.get("stretch_estimate")
+        if estimate is None or (twist_sign is not None and float(estimate[0]) != float(twist_sign)):
+            return None, None
+        fields = self.grid.field_maps(valid)(turning, stretch)[:3]
+        reading = self._twist_reading(stretch, valid, fields, max(strain_sigma, DEFAULT_STRAIN_SIGMA))
+        if (reading is None or reading.source != "membrane" or reading.low <= 0.0
+                or not 0.75 * reading.low <= estimate[1] <= 1.25 * reading.high):
+            return None, reading
+        return float(estimate[0]) * float(estimate[1]), reading
+
     def _refine_twist(self, at_magnitude, reading: TwistReading, stretch, valid) -> float:
         """The mean twist's magnitude that best explains the stretch pattern through the
         surfaces' own Gaussian curvature (:func:`.membrane.stretch_misfit`): ``at_magnitude``
@@ -984,8 +1015,8 @@ class Reconstructor:
         squares = np.array([0.0, 0.5, 1.0, 1.5])
         rss = []
         for t in squares:
-            k_field = gaussian_curvature(at_magnitude(math.sqrt(t * t_read)), self.grid.spacing)
-            rss.append(stretch_misfit(self._membrane, k_field, stretch, valid, self.poisson_range)[0])
+            k_basis = basis_curvature(self._membrane, at_magnitude(math.sqrt(t * t_read)), self.grid.spacing)
+            rss.append(stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0])
         a2, a1, _ = np.polyfit(squares, np.array(rss), 2)
         if a2 > 0.0 and math.isfinite(a2):
             best = min(max(-a1 / (2.0 * a2), 0.0), 2.0)
@@ -995,7 +1026,7 @@ class Reconstructor:
 
     def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
                        positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict,
-                       twist_mean: float | None = None, measured_fields=None):
+                       twist_mean: float | None = None, measured_fields=None, reading: TwistReading | None = None):
         """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
         has the Gaussian curvature its stretch pattern says, and with the measured curvatures
         k_u, k_v that fixes the square of the mean twist: mean(k_u k_v − τ²) = K
@@ -1003,16 +1034,19 @@ class Reconstructor:
         Where the interval allows no twist and the answer has none, nothing changes (the
         least-shear prior decides).  Else the membrane's reading is refined on the answer's own
         family with each member's exact Gaussian curvature (:meth:`_refine_twist`); an answer
-        outside the interval is modelled afresh at its estimate (both signs where the pattern
-        cannot tell the sign: the lower χ² answers, the other is the mirror unless the gauges
-        reject it, χ² worse by ``tell`` and by the answer's own misfit: the forward model is
-        kinematic, the film is not); the interval's ends are the twist's spread in
+        off the estimate is modelled afresh there.  The sign is not read from the stretch: of the
+        two signs the one whose surface explains the stretch pattern better is the answer (by
+        twice the misfit, for an answer that had a sign of its own), the other the mirror unless
+        the gauges reject it (χ² worse by ``tell`` and by the answer's own misfit: the forward
+        model is kinematic, the film is not); the interval's ends are the twist's spread in
         ``node_sigma``.  ``twist_mean``: the answer's mean twist over the cells (at zero shift
         of ``positions_at``); ``measured_fields``: the fields of the measured data (the reading's
-        input).  Returns None where the pattern says nothing, else (answer, mirror or None, its
-        shift on its family, the twist's spread function, its χ²)."""
-        reading = self._twist_reading(stretch, valid, product_fields if measured_fields is None else measured_fields,
-                                      sigma_f)
+        input); ``reading``: the reading, where it was taken already.  Returns None where the
+        pattern says nothing, else (answer, mirror or None, its shift on its family, the twist's
+        spread function, its χ²)."""
+        if reading is None:
+            reading = self._twist_reading(stretch, valid, product_fields if measured_fields is None else measured_fields,
+                                          sigma_f)
         if reading is None:
             return None
         c0 = surf.diagnostics.twist_constant
@@ -1025,10 +1059,7 @@ class Reconstructor:
             return None
         info["stretch_twist"] = (round(m0, 7), round(m_lo, 7), round(m_hi, 7))
         info["stretch_reading"] = (reading.source, round(reading.poisson, 3), round(reading.residual, 3))
-        if twist_sign is not None:
-            sign = float(twist_sign)
-        else:
-            sign = math.copysign(1.0, m0) if m0 != 0.0 else 1.0
+        sign = float(twist_sign) if twist_sign is not None else (math.copysign(1.0, m0) if m0 != 0.0 else 1.0)
         sign_open = twist_sign is None
 
         def within(low: float, high: float) -> bool:
@@ -1036,47 +1067,43 @@ class Reconstructor:
 
         if within(m_lo, m_hi) and m_lo <= 0.0:
             return None  # the pattern allows no twist too (a sphere): it has nothing to add
-        if reading.source == "membrane":
+        membrane = reading.source == "membrane"
+        if membrane:
             # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
             # (the metric, the slopes): the twist's square is read again on the answer's family
             # with each member's exact Gaussian curvature, the reading's width kept about it.
+            # (Refined to where zero twist is allowed too, the answer stays, but the data have not
+            # decided: the twists up to the interval's top join its σ below.)
             magnitude = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
             half = 0.5 * (reading.high ** 2 - reading.low ** 2)
             m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
             info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
-            # (refined to where zero twist is allowed too, the answer stays, but the data have
-            # not decided: the twists up to the interval's top join its σ below)
         layout = self._layout
-        membrane = reading.source == "membrane"
 
         def stretch_rss(positions: np.ndarray) -> float:
             """The stretch pattern's misfit through this surface's own Gaussian curvature."""
             assert self.poisson_range is not None
-            k_field = gaussian_curvature(positions, self.grid.spacing)
-            return stretch_misfit(self._membrane, k_field, stretch, valid, self.poisson_range)[0]
+            k_basis = basis_curvature(self._membrane, positions, self.grid.spacing)
+            return stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
 
         shift, chi = base_shift, chi0
         other: tuple[Surface, float] | None = None  # the other sign's candidate and its χ²
-        told = False  # the stretch pattern tells the sign (membrane: twice the misfit)
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
-        # off its estimate by more than 2 % moves to it (within the interval too; the trace's
-        # interval has no estimate, only ends)
+        # off its estimate by more than MOVE_SHARE moves to it (within the interval too; the
+        # trace's interval has no estimate, only ends)
         off = membrane and m_lo > 0.0 and abs(abs(m0) - magnitude) > MOVE_SHARE * magnitude
         signs = (sign, -sign) if sign_open else (sign,)
         if membrane and sign_open and m_lo > 0.0 and not off and within(m_lo, m_hi):
-            # The answer's twist is the pattern's; its sign is the model's, read from a graph's
-            # kinematic stretch, which a sliding film does not follow.  Each sign's surface, with
-            # its own curvature, says which explains the stretch (the kinematic forward model
-            # leaned to the wrong sign on every turned elastic saddle measured).
+            # The answer's twist is the pattern's; its sign is the model's.  Its mirror image on
+            # its family is tried against the stretch pattern as well: a mirror that explains the
+            # stretch with half the answer's misfit is modelled afresh as the answer.
             here, flipped = stretch_rss(positions_at(shift)), stretch_rss(positions_at(shift - 2.0 * m0))
             info["stretch_sign_rss"] = (float(f"{here:.4g}"), float(f"{flipped:.4g}"))
-            if flipped * MEMBRANE_SIGN_RATIO <= here:
-                off, signs = True, (-sign,)  # the other sign, modelled afresh
-            elif here * MEMBRANE_SIGN_RATIO <= flipped:
-                told = True
+            if flipped <= MEMBRANE_SIGN_RATIO * here:
+                off, signs = True, (-sign,)
         if off or not within(m_lo, m_hi):
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
-            # correction fitted to the old twist), with the sign it prefers, else both signs
+            # correction fitted to the old twist), both signs where none is given
             cands = []
             n_valid = int(valid.sum())
             for sg in signs:
@@ -1088,11 +1115,11 @@ class Reconstructor:
                 cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score))
             if len(cands) > 1:
                 if membrane:
-                    # the sign whose surface explains the stretch pattern (see above)
+                    # the sign whose surface explains the stretch pattern better (it was the right
+                    # one in 10 of 11 turned elastic saddles measured, the kinematic χ² in none)
                     info["stretch_sign_rss"] = (float(f"{cands[0][4]:.4g}"), float(f"{cands[1][4]:.4g}"))
                     if cands[1][4] < cands[0][4]:
                         cands.reverse()
-                    told = cands[0][4] * MEMBRANE_SIGN_RATIO <= cands[1][4]
                 elif cands[1][0] < cands[0][0] - (0.0 if abs(m0) <= 0.5 * m_lo else tell):
                     # the trace: the answer's own sign stands where it has a twist of the
                     # interval's order unless the other reads the gauges clearly better
@@ -1111,6 +1138,9 @@ class Reconstructor:
             sign = sg
             surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
             positions_at = family
+        if membrane and m_lo > 0.0:
+            # where the next frame's general model starts (:meth:`_carried_twist`)
+            info["stretch_estimate"] = (sign, round(abs(m0), 7))
 
         def spread() -> np.ndarray:
             # the twists the reading allows: 3 s.d. reach past the farther end
@@ -1119,22 +1149,21 @@ class Reconstructor:
             return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in ends], axis=0)
 
         if sign_open and m_lo > 0.0:
-            # The pattern needs a twist: its sign is told by the membrane's misfit (twice) or by
-            # nothing (the trace is even in the twist); then the gauges decide only when the other
-            # sign misfits them clearly.
+            # The pattern needs a twist whose sign nothing tells (the stretch of a saddle is even
+            # in its turn; which sign's surface fits it better was wrong once in 11): the other
+            # sign is the mirror unless the gauges reject it.
             mirror = None
-            if not told:
-                if other is None:
-                    target = -sign * abs(m0)
-                    cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
-                                         _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
-                    chi_m = misfit(cand, layout, eu, el, sigma_f)[0]
-                else:
-                    cand, chi_m = other
-                dof = misfit(cand, layout, eu, el, sigma_f)[1]
-                info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
-                if chi_m <= chi + max(tell, chi) and _differs(surf, cand):
-                    mirror = cand
+            if other is None:
+                target = -sign * abs(m0)
+                cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
+                                     _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
+                chi_m = misfit(cand, layout, eu, el, sigma_f)[0]
+            else:
+                cand, chi_m = other
+            dof = misfit(cand, layout, eu, el, sigma_f)[1]
+            info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+            if chi_m <= chi + max(tell, chi) and _differs(surf, cand):
+                mirror = cand
         return surf, mirror, shift, _memo(spread), chi
 
     def _agreement(self, general, turning, valid, data, fit_sigma):

@@ -43,7 +43,8 @@ import scipy.sparse.linalg as spl
 
 from .grid import FineGrid
 
-__all__ = ["MembraneMaps", "TwistReading", "membrane_maps", "read_twist", "FILM_MARGIN_PITCH", "MAX_RESIDUAL"]
+__all__ = ["MembraneMaps", "TwistReading", "membrane_maps", "read_twist", "basis_curvature", "stretch_misfit",
+           "FILM_MARGIN_PITCH", "MAX_RESIDUAL"]
 
 #: The film beyond the outer cells' edges, in pitches (the emulator's layout: half a pitch).
 FILM_MARGIN_PITCH = 0.5
@@ -69,13 +70,18 @@ _BASIS_STEPS = ((64, 0.5), (256, 1.0))
 
 class MembraneMaps(NamedTuple):
     """Linear maps from the Gaussian curvature at the basis nodes to every unit's stretch:
-    ``a`` (ν-free part) and ``b`` (the part times ν), both (2·N·M, basis nodes); ``rows`` and
-    ``cols``: the fine-grid indices of the basis nodes (a sub-grid of the fine grid)."""
+    ``a`` (ν-free part) and ``b`` (the part times ν), both (2·N·M, basis nodes), and the two
+    stacked (``ab``, one product a frame); ``rows`` and ``cols``: the fine-grid indices of the
+    basis nodes (a sub-grid of the fine grid), ``flat`` the same as flat fine-node indices, and
+    ``cells`` which basis nodes lie in the cells' region."""
 
     a: np.ndarray
     b: np.ndarray
     rows: np.ndarray
     cols: np.ndarray
+    ab: np.ndarray
+    flat: np.ndarray
+    cells: np.ndarray
 
 
 class TwistReading(NamedTuple):
@@ -196,9 +202,14 @@ def membrane_maps(grid: FineGrid, margin: float | None = None) -> MembraneMaps:
     avg_u, avg_v = (mean @ sample_u).tocsr(), (mean @ sample_v).tocsr()
     a = np.vstack([avg_u @ phi_vv, avg_v @ phi_uu])      # u gauges read φ_vv, v gauges φ_uu
     b = -np.vstack([avg_u @ phi_uu, avg_v @ phi_vv])     # minus ν times the other
-    for x in (a, b):
+    ab = np.vstack([a, b])
+    flat = (rows[:, None] * grid.mf + cols[None, :]).ravel()
+    inner = grid.inner
+    cells = (((rows >= inner[0].start) & (rows < inner[0].stop))[:, None]
+             & ((cols >= inner[1].start) & (cols < inner[1].stop))[None, :]).ravel()
+    for x in (a, b, ab, flat, cells):
         x.flags.writeable = False
-    return MembraneMaps(a, b, rows, cols)
+    return MembraneMaps(a, b, rows, cols, ab, flat, cells)
 
 
 def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: np.ndarray, k_v: np.ndarray,
@@ -232,31 +243,28 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     if not spread > 3.0 * noise_sd:
         return None
     t = np.asarray(tau, dtype=float)
-    tv = t - float(t[inner].mean())
-    sub = np.ix_(maps.rows, maps.cols)
-    k0 = (np.asarray(k_u, dtype=float) * np.asarray(k_v, dtype=float) - tv * tv)[sub].ravel()
-    fields = np.stack([k0, -2.0 * tv[sub].ravel(), -np.ones(k0.size)], axis=1)
+    tv = np.take(t, maps.flat) - float(t[inner].mean())
+    k0 = np.take(np.asarray(k_u, dtype=float), maps.flat) * np.take(np.asarray(k_v, dtype=float), maps.flat) - tv * tv
+    fields = np.stack([k0, -2.0 * tv, -np.ones(k0.size)], axis=1)
     # the stretch is y ≈ q(ν) + m p1(ν) + m² p2(ν), every vector linear in ν: the quartic's
     # coefficients come from the Gram matrix of [y, A·fields, B·fields]
-    v = centred(np.concatenate([y[:, None], maps.a @ fields, maps.b @ fields], axis=1))
-    gram = v.T @ v
+    units = maps.a.shape[0]
+    predicted = maps.ab @ fields
+    v = centred(np.concatenate([y[:, None], predicted[:units], predicted[units:]], axis=1))
+    forms = _FORMS @ (v.T @ v) @ _FORMS.T  # the six vectors' inner products
     lo, hi = poisson_range
     nus = np.linspace(lo, hi, _NU_STEPS) if hi > lo else np.array([lo])
 
-    def dot(u: tuple, w: tuple) -> np.ndarray:  # (u0 + ν u1)·(w0 + ν w1) over the ν tried
-        u0, u1, w0, w1 = (np.asarray(x, dtype=float) for x in (*u, *w))
-        return u0 @ gram @ w0 + nus * (u0 @ gram @ w1 + u1 @ gram @ w0) + nus * nus * (u1 @ gram @ w1)
+    def dot(i: int, j: int) -> np.ndarray:  # (u0 + ν u1)·(w0 + ν w1) over the ν tried
+        return forms[2 * i, 2 * j] + nus * (forms[2 * i, 2 * j + 1] + forms[2 * i + 1, 2 * j]) \
+            + nus * nus * forms[2 * i + 1, 2 * j + 1]
 
-    e = np.eye(7)
-    q = (e[0] - e[1], -e[4])   # y − A K₀ − ν B K₀
-    p1 = (e[2], e[5])          # (A + ν B)(−2 τ₀)
-    p2 = (e[3], e[6])          # (A + ν B)(−1)
-    # RSS(m) = |q − m p1 − m² p2|², a quartic in m for each ν
-    c0 = dot(q, q)
-    c1 = -2.0 * dot(q, p1)
-    c2 = dot(p1, p1) - 2.0 * dot(q, p2)
-    c3 = 2.0 * dot(p1, p2)
-    c4 = dot(p2, p2)
+    # RSS(m) = |q − m p1 − m² p2|², a quartic in m for each ν (q, p1, p2: _FORMS' pairs 0, 1, 2)
+    c0 = dot(0, 0)
+    c1 = -2.0 * dot(0, 1)
+    c2 = dot(1, 1) - 2.0 * dot(0, 2)
+    c3 = 2.0 * dot(1, 2)
+    c4 = dot(2, 2)
     # the twists to try: up to twice what would explain the whole K field by twist alone
     scale = math.sqrt(float(np.abs(k0).mean()) + 1e-30)
     ms = np.linspace(-4.0 * scale, 4.0 * scale, 2 * _M_STEPS + 1)
@@ -283,15 +291,19 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     # ρ (at least MODEL_SD), so the twist's square, read as the difference k_u k_v − τ² − K, may be
     # off by 2ρ times the Gaussian curvature's rms over the cells (a sphere's m² reads 1-2 % of
     # its K, not 0; an aligned saddle's 2 %).
-    cells = np.zeros((len(maps.rows), len(maps.cols)), dtype=bool)
-    rin = (maps.rows >= inner[0].start) & (maps.rows < inner[0].stop)
-    cin = (maps.cols >= inner[1].start) & (maps.cols < inner[1].stop)
-    cells[np.ix_(rin, cin)] = True
-    k_fit = (fields @ np.array([1.0, m, m * m])).reshape(cells.shape)[cells]
+    k_fit = (fields @ np.array([1.0, m, m * m]))[maps.cells]
     model = 2.0 * max(residual, MODEL_SD) * math.sqrt(float(k_fit @ k_fit) / k_fit.size)
     low = min(low, math.sqrt(max(m * m - model, 0.0)))
     high = max(high, math.sqrt(m * m + model))
     return TwistReading(abs(m), min(low, abs(m)), max(high, abs(m)), float(nus[best_nu]), residual)
+
+
+# The quartic's vectors as combinations of [y, A K₀, A(−2τ₀), A(−1), B K₀, B(−2τ₀), B(−1)], each
+# a pair (its ν-free part, its part times ν): q = y − (A + νB)K₀, p1 = (A + νB)(−2τ₀),
+# p2 = (A + νB)(−1).
+_FORMS = np.array([[1, -1, 0, 0, 0, 0, 0], [0, 0, 0, 0, -1, 0, 0],
+                   [0, 0, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 0],
+                   [0, 0, 0, 1, 0, 0, 0], [0, 0, 0, 0, 0, 0, 1]], dtype=float)
 
 
 def _polish(m: float, c: tuple) -> tuple[float, float]:
@@ -306,27 +318,33 @@ def _polish(m: float, c: tuple) -> tuple[float, float]:
     return m, (((c4 * m + c3) * m + c2) * m + c1) * m + c0
 
 
-def gaussian_curvature(positions: np.ndarray, spacing: float) -> np.ndarray:
-    """The Gaussian curvature (nf, mf) of a surface given by its positions (nf, mf, 3) on a
-    regular material grid of ``spacing`` mm: (LN − M²)/(EG − F²) by central differences
-    (one-sided at the edges)."""
+def basis_curvature(maps: MembraneMaps, positions: np.ndarray, spacing: float) -> np.ndarray:
+    """The Gaussian curvature (LN − M²)/(EG − F²) of a surface given by its positions (nf, mf, 3)
+    on the fine grid of ``spacing`` mm, at the maps' basis nodes (central differences there; a
+    node on the grid's outer edge, beyond every gauge, takes its inner neighbour's)."""
     x = np.asarray(positions, dtype=float)
-    xu = np.gradient(x, spacing, axis=1)
-    xv = np.gradient(x, spacing, axis=0)
+    nf, mf = x.shape[0], x.shape[1]
+    i = np.clip(maps.rows, 1, nf - 2)[:, None]
+    j = np.clip(maps.cols, 1, mf - 2)[None, :]
+    c = x[i, j]
+    xu = (x[i, j + 1] - x[i, j - 1]) / (2.0 * spacing)
+    xv = (x[i + 1, j] - x[i - 1, j]) / (2.0 * spacing)
+    xuu = (x[i, j + 1] - 2.0 * c + x[i, j - 1]) / (spacing * spacing)
+    xvv = (x[i + 1, j] - 2.0 * c + x[i - 1, j]) / (spacing * spacing)
+    xuv = (x[i + 1, j + 1] - x[i + 1, j - 1] - x[i - 1, j + 1] + x[i - 1, j - 1]) / (4.0 * spacing * spacing)
     normal = np.cross(xu, xv)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    l_ = (np.gradient(xu, spacing, axis=1) * normal).sum(axis=-1)
-    m_ = (np.gradient(xu, spacing, axis=0) * normal).sum(axis=-1)
-    n_ = (np.gradient(xv, spacing, axis=0) * normal).sum(axis=-1)
+    l_, m_, n_ = ((d * normal).sum(axis=-1) for d in (xuu, xuv, xvv))
     e, f, g = (xu * xu).sum(axis=-1), (xu * xv).sum(axis=-1), (xv * xv).sum(axis=-1)
-    return (l_ * n_ - m_ * m_) / (e * g - f * f)
+    return ((l_ * n_ - m_ * m_) / (e * g - f * f)).ravel()
 
 
-def stretch_misfit(maps: MembraneMaps, k_field: np.ndarray, stretch: np.ndarray, valid: np.ndarray,
+def stretch_misfit(maps: MembraneMaps, k_basis: np.ndarray, stretch: np.ndarray, valid: np.ndarray,
                    poisson_range: tuple[float, float]) -> tuple[float, float]:
-    """How well a surface's own Gaussian curvature field ``k_field`` (nf, mf) explains the units'
-    stretch ratios (2, N, M): the residual sum of squares of s = e_dir + (A + νB)K over the
-    measured units, and the ν in ``poisson_range`` that gives it (least squares, clipped)."""
+    """How well a surface's own Gaussian curvature at the basis nodes (:func:`basis_curvature`)
+    explains the units' stretch ratios (2, N, M): the residual sum of squares of
+    s = e_dir + (A + νB)K over the measured units, and the ν in ``poisson_range`` that gives it
+    (least squares, clipped)."""
     ok = np.asarray(valid, dtype=bool).reshape(-1)
     half = ok.size // 2
     d = np.zeros((ok.size, 2))
@@ -334,8 +352,10 @@ def stretch_misfit(maps: MembraneMaps, k_field: np.ndarray, stretch: np.ndarray,
     d[half:, 1] = 1.0
     d = d[ok]
     counts = np.maximum(d.sum(axis=0), 1.0)
-    k = np.asarray(k_field, dtype=float)[np.ix_(maps.rows, maps.cols)].ravel()
-    v = np.stack([np.asarray(stretch, dtype=float).reshape(-1) - 1.0, maps.a @ k, maps.b @ k], axis=1)[ok]
+    k = np.asarray(k_basis, dtype=float)
+    predicted = maps.ab @ k
+    units = maps.a.shape[0]
+    v = np.stack([np.asarray(stretch, dtype=float).reshape(-1) - 1.0, predicted[:units], predicted[units:]], axis=1)[ok]
     v = v - d @ ((d.T @ v) / counts[:, None])
     target, along = v[:, 0] - v[:, 1], v[:, 2]
     nu = float(target @ along) / max(float(along @ along), 1e-300)
