@@ -120,3 +120,19 @@ def test_an_elastic_saddle_turned_near_the_grid_lines_5x5_is_within_0_1mm_and_3_
         errors = [aligned_distances(s.nodes.reshape(-1, 3), truth) for s in answers]
         assert any(np.all(e <= bound) for e in errors), (spec, draw, [e.max() for e in errors], bound.min())
         assert min(e.mean() for e in errors) <= 0.1, (spec, draw, [e.mean() for e in errors])
+
+
+@pytest.mark.slow
+def test_a_saddle_whose_wrong_sign_fits_the_stretch_better_is_said_to_be_ambiguous_with_the_mirror_within_0_1mm(cache):
+    """R 95 mm at 120°: the surface of the wrong sign explains the stretch pattern five times
+    better than the right one, so the stretch does not tell the sign: the answer says so
+    (Surface.mirror), and the other image is within 0.1 mm and within 3 node_sigma + 0.05 mm."""
+    n = 5
+    shape = parse_scene_spec("saddle:radius=95,axis_angle=120", "elastic", n, n, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, G)
+    truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
+    surf = Reconstructor(n, n, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
+    assert surf.mirror is not None and surf.diagnostics.extra["ambiguous"]
+    errors = [aligned_distances(s.nodes.reshape(-1, 3), truth) for s in (surf, surf.mirror)]
+    best = min(errors, key=lambda e: e.mean())
+    assert best.mean() <= 0.1 and np.all(best <= 3.0 * surf.node_sigma.reshape(-1) + 0.05)
