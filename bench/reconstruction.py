@@ -56,6 +56,7 @@ from scipy import ndimage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.emulator import physics as ph  # noqa: E402
+from skinmap.emulator import scenes  # noqa: E402
 from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, reconstruct  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -486,7 +487,36 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernel
     for n, (base, cost, cost_many) in unseen.items():
         print(f"{n:>3d}x{n:<3d} {1e3 * base:10.2f} {1e3 * cost:8.2f} {cost / base:6.2f} "
               f"{1e3 * cost_many:10.2f} {cost_many / base:6.2f}")
+    elastic_timing(frames_for[min(frames_for)], seed, kernels)
     print(f"(load average during the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
+
+
+#: Elastic films held still, whose frames the general model answers (a film slides: no graph).
+ELASTIC_TIMING_SPECS = ("saddle:radius=90,axis_angle=75", "sphere:radius=70", "gaussian:height=3,fwhm=18,u0=4,v0=-3")
+
+
+def elastic_timing(count: int, seed: int, kernels: str = "compiled") -> None:
+    """CPU per warm frame on films laminated on molds (5×5, noisy frames of one still scene):
+    the general model with the stretch pattern's twist (the membrane's reading, its refinement,
+    the mirror), which the moving bump above never reaches."""
+    rng = np.random.default_rng(seed)
+    rec = Reconstructor(5, 5, PITCH, H, H, GAUGE, kernels=kernels)
+    rec.prepare()
+    print("\nElastic films held still, 5x5 (reconstruct, warm, noisy; the general model: a film slides, no graph)")
+    print(f"{'scene':42s} {'cpu median ms':>14s} {'cpu p90 ms':>11s}  twist")
+    for spec in ELASTIC_TIMING_SPECS:
+        shape = scenes.parse_scene_spec(spec, "elastic", 5, 5, PITCH)
+        eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
+        prev, cpu = None, []
+        for _ in range(max(count // 4, 12)):
+            du, dl = rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)
+            c0 = time.thread_time()
+            prev = rec(eu + du, el + dl, previous=prev)
+            prev.nodes, prev.normals
+            cpu.append(time.thread_time() - c0)
+        cpu_arr = np.array(cpu[2:])
+        how = prev.diagnostics.extra.get("stretch_reading", ("none",))[0]
+        print(f"{spec:42s} {1e3 * np.median(cpu_arr):14.2f} {1e3 * np.percentile(cpu_arr, 90):11.2f}  {how}")
 
 
 def main() -> None:
