@@ -203,6 +203,7 @@ def membrane_maps(grid: FineGrid, margin: float | None = None) -> MembraneMaps:
     a = np.vstack([avg_u @ phi_vv, avg_v @ phi_uu])      # u gauges read φ_vv, v gauges φ_uu
     b = -np.vstack([avg_u @ phi_uu, avg_v @ phi_vv])     # minus ν times the other
     ab = np.vstack([a, b])
+    a, b = ab[: a.shape[0]], ab[a.shape[0]:]  # views: the maps are held once
     flat = (rows[:, None] * grid.mf + cols[None, :]).ravel()
     inner = grid.inner
     cells = (((rows >= inner[0].start) & (rows < inner[0].stop))[:, None]
