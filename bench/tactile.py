@@ -42,6 +42,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import time  # noqa: E402
+from collections import Counter  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -185,7 +186,7 @@ def main() -> None:
                     for mode in ("given",) if args.quick or name in ("true frame", "rec true fit") else ("given", "estimated"):
                         relief = ReliefMap(120.0, 1.0)
                         t0 = time.perf_counter()
-                        levelled = 0
+                        levelled, refused = 0, ""
                         if mode == "given":
                             for c, p in kept:
                                 if args.reference == "floor" and name in ("scene", "reconstructed"):
@@ -196,6 +197,9 @@ def main() -> None:
                         else:
                             est = stitch_estimated([c for c, _ in kept], grid, relief, first=kept[0][1])
                             placed = sum(e.pose is not None for e in est)
+                            # each refusal by its kind (its figures, in parentheses, left out)
+                            refusals = Counter(e.reason.split("(")[0].strip() for e in est if e.pose is None)
+                            refused = "; ".join(f"{k} x{v}" for k, v in refusals.most_common()) or "none"
                         per_press = t_scene + t_detect + (time.perf_counter() - t0) / len(poses)
                         h = relief.height()
                         truth = wall.height(relief.centres)
@@ -211,7 +215,8 @@ def main() -> None:
                               f"{np.percentile(vs_sheet, 90):5.2f} {100 * relief.coverage():7.1f}% "
                               f"{100 * on.sum() / max(1, mapped.sum()):6.1f}% "
                               f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}"
-                              + (f"  ({levelled} levelled on the floor)" if levelled else ""), flush=True)
+                              + (f"  ({levelled} levelled on the floor)" if levelled else "")
+                              + (f"  (refused: {refused})" if refused else ""), flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)
                             out = f"{root}-{wall_name}-{scene_name}-{name.replace(' ', '')}-{mode}{ext or '.png'}"
