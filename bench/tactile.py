@@ -41,6 +41,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -197,8 +198,9 @@ def main() -> None:
                         else:
                             est = stitch_estimated([c for c, _ in kept], grid, relief, first=kept[0][1])
                             placed = sum(e.pose is not None for e in est)
-                            # each refusal by its kind (its figures, in parentheses, left out)
-                            refusals = Counter(e.reason.split("(")[0].strip() for e in est if e.pose is None)
+                            # each refusal by its kind (its figures left out)
+                            refusals = Counter(re.sub(r"\d+(\.\d+)?", "#", e.reason.split("(")[0]).strip()
+                                               for e in est if e.pose is None)
                             refused = "; ".join(f"{k} x{v}" for k, v in refusals.most_common()) or "none"
                         per_press = t_scene + t_detect + (time.perf_counter() - t0) / len(poses)
                         h = relief.height()
