@@ -45,7 +45,7 @@ from .productnoise import ProductNoise, measure_product_noise, turning_noise_est
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_curvature_range, airy_gaussian_curvature
-from .membrane import TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
+from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
@@ -183,7 +183,8 @@ class Reconstructor:
                 raise ValueError(f"poisson_range must satisfy 0 <= low <= high <= 0.5, got {poisson_range!r}")
             poisson_range = (lo, hi)
         self.poisson_range = poisson_range
-        self._membrane: Any = None  # the film's stretch per Gaussian curvature, built at first use
+        # the film's stretch per Gaussian curvature (:mod:`.membrane`), built at first use
+        self._membrane: MembraneMaps | None = None
         if isinstance(defect_steps, bool) or int(defect_steps) != defect_steps or defect_steps < 0:
             raise ValueError(f"defect_steps must be an integer >= 0, got {defect_steps!r}")
         self.defect_steps = int(defect_steps)
@@ -341,8 +342,8 @@ class Reconstructor:
         at construction), then the caches that a first frame read at this noise level fills, namely
         the all-valid fits, the noise's own curvature product and the general model's measured
         answer to noise (:meth:`_noise_response`, tens of milliseconds at 5×5, about a second at
-        32×32), the uncertainty maps and the membrane's stretch maps (:mod:`.membrane`).  A flat frame is reconstructed and its uncertainty read
-        here; skinmapd calls this when a scanner's HELLO gives the geometry, so that its first
+        32×32), the uncertainty maps and the membrane's stretch maps (:mod:`.membrane`).  A flat
+        frame is reconstructed and its uncertainty read here; skinmapd calls this when a scanner's HELLO gives the geometry, so that its first
         published frames are not the slow ones."""
         flat = np.zeros((2, self.n, self.m))
         surf = self(flat, flat, strain_sigma=strain_sigma)
@@ -352,7 +353,7 @@ class Reconstructor:
         bent = np.full((2, self.n, self.m), 1e-3)
         surf = self(bent, -bent, strain_sigma=strain_sigma, previous=surf)
         _ = surf.node_sigma, surf.locate_sigma(centre)
-        # the membrane's stretch maps (0.1 s at 5×5, up to a second on large sheets), which the
+        # the membrane's stretch maps (0.15 s at 5×5, under a second on large sheets), which the
         # first elastic frame would otherwise build
         if self.poisson_range is not None and self._membrane is None:
             self._membrane = membrane_maps(self.grid)
@@ -910,8 +911,8 @@ class Reconstructor:
         pattern = None
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
             pattern = self._stretch_twist(surf, mirror, turning, stretch, valid, product_fields, positions_at, base_shift,
-                                          twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean,
-                                          measured_fields if measured_fields is not None else product_fields, reading)
+                                          twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean, measured_fields,
+                                          reading)
         if pattern is not None:
             surf, mirror, base_shift, chi0 = pattern[0], pattern[1], pattern[2], pattern[4]
             diag = surf.diagnostics
@@ -1004,19 +1005,22 @@ class Reconstructor:
             return None, reading
         return float(estimate[0]) * float(estimate[1]), reading
 
+    def _stretch_rss(self, positions: np.ndarray, stretch, valid) -> float:
+        """The stretch pattern's misfit through a surface's own Gaussian curvature (fine-grid
+        positions), :func:`.membrane.stretch_misfit` at the best ν of the Poisson interval."""
+        assert self.poisson_range is not None and self._membrane is not None
+        k_basis = basis_curvature(self._membrane, positions, self.grid.spacing)
+        return stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
+
     def _refine_twist(self, at_magnitude, reading: TwistReading, stretch, valid) -> float:
         """The mean twist's magnitude that best explains the stretch pattern through the
         surfaces' own Gaussian curvature (:func:`.membrane.stretch_misfit`): ``at_magnitude``
         (magnitude → fine positions, a twist family) at 0, ½, 1 and 1½ times the reading's
         square, a quadratic in the square through their misfits (K is linear in it), its minimum
         held within [0, 2] times the reading's square."""
-        assert self.poisson_range is not None
         t_read = reading.twist ** 2
         squares = np.array([0.0, 0.5, 1.0, 1.5])
-        rss = []
-        for t in squares:
-            k_basis = basis_curvature(self._membrane, at_magnitude(math.sqrt(t * t_read)), self.grid.spacing)
-            rss.append(stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0])
+        rss = [self._stretch_rss(at_magnitude(math.sqrt(t * t_read)), stretch, valid) for t in squares]
         a2, a1, _ = np.polyfit(squares, np.array(rss), 2)
         if a2 > 0.0 and math.isfinite(a2):
             best = min(max(-a1 / (2.0 * a2), 0.0), 2.0)
@@ -1079,13 +1083,6 @@ class Reconstructor:
             m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
             info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
         layout = self._layout
-
-        def stretch_rss(positions: np.ndarray) -> float:
-            """The stretch pattern's misfit through this surface's own Gaussian curvature."""
-            assert self.poisson_range is not None
-            k_basis = basis_curvature(self._membrane, positions, self.grid.spacing)
-            return stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
-
         shift, chi = base_shift, chi0
         other: tuple[Surface, float] | None = None  # the other sign's candidate and its χ²
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
@@ -1097,7 +1094,8 @@ class Reconstructor:
             # The answer's twist is the pattern's; its sign is the model's.  Its mirror image on
             # its family is tried against the stretch pattern as well: a mirror that explains the
             # stretch with half the answer's misfit is modelled afresh as the answer.
-            here, flipped = stretch_rss(positions_at(shift)), stretch_rss(positions_at(shift - 2.0 * m0))
+            here = self._stretch_rss(positions_at(shift), stretch, valid)
+            flipped = self._stretch_rss(positions_at(shift - 2.0 * m0), stretch, valid)
             info["stretch_sign_rss"] = (float(f"{here:.4g}"), float(f"{flipped:.4g}"))
             if flipped <= MEMBRANE_SIGN_RATIO * here:
                 off, signs = True, (-sign,)
@@ -1111,7 +1109,7 @@ class Reconstructor:
                 if self.defect_steps:
                     fresh = self._defect_correction(fresh, eu, el, valid, n_valid, sigma_f, None, sg, sg * magnitude)
                 cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
-                score = stretch_rss(fresh[0]) if membrane else 0.0
+                score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
                 cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score))
             if len(cands) > 1:
                 if membrane:
