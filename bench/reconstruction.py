@@ -8,7 +8,9 @@ gauges; strains from the physics forward model (skinmap.emulator.physics) for sh
 random parameters (on sheets larger than 5×5 the radii and bump positions grow with the sheet,
 bump heights and widths stay); node error after the best rigid alignment, noise-free and with
 strain noise s.d. 0.0057 % on every gauge (every reconstruction is told that s.d., as skinmapd
-tells it the sensor's); the mean node_sigma and the count of overconfident noisy
+tells it the sensor's); the Cramér–Rao figure CR (`noise_floor`: the mean node error the noise
+alone forces on the model linearised about its noise-free answer, beside which the noisy error
+is read); the mean node_sigma and the count of overconfident noisy
 reconstructions (some node's error above 3 node_sigma + 0.05 mm); for bumps
 also the feature-size fidelity L_r/L_g (diameter of the largest circle inside the −6 dB contour
 around the peak, reconstructed over true).
@@ -21,8 +23,8 @@ seed they are the first scenes of each class that elastic_dataset.py writes) sol
 films on their molds (skinmap.emulator.scenes; each solve is kept in the solver's disk cache,
 $SKINMAP_CACHE_DIR or ~/.cache/skinmap/mechanics: a 5×5 scene takes about 1 s to solve, a 16×16
 one 5-20 s).  Per class: mean and largest node error after the best rigid alignment, noise-free
-and noisy (the same noise draws as the dataset's, draw 0 being its noisy copy), the mean
-node_sigma, and "over": how many reconstructions (noise-free and noisy) are overconfident, some
+and noisy (the same noise draws as the dataset's, draw 0 being its noisy copy), the Cramér–Rao
+figure CR of the elastic form (as above, from 12 draws, the first the noisy frames'), the mean node_sigma, and "over": how many reconstructions (noise-free and noisy) are overconfident, some
 node's error exceeding 3 node_sigma + 0.05 mm with the surface's own node_sigma (a sensor-frame
 s.d., zero at the centre node of an odd-sized sheet, while the errors are after alignment: the
 0.05 mm floor covers that); then the same for the same shapes in kinematic form (the
@@ -36,7 +38,8 @@ one core (BLAS threads limited to 1 with threadpoolctl, as in the daemon); CPU t
 frame's own thread; `Surface.points(per_pitch=20)`; the optional Clarabel field fit for
 comparison; and the frame with node_sigma and locate_sigma (the daemon's full frame), all units
 valid and when every frame brings a validity mask not seen before (3 dead units, and 10 % of
-the units).
+the units); a cold one-shot 5×5 `reconstruct()` (no previous frame, a new random bump each
+frame); elastic films held still.
 """
 
 from __future__ import annotations
@@ -80,6 +83,35 @@ def node_errors(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
     r, pc, qc = kabsch(p, q)
     return np.linalg.norm((p - pc) @ r.T + qc - q, axis=1)
+
+
+#: The step of the central difference that reads the answer's linear response to the noise, as
+#: a share of one noise draw: small enough that no decision of the model changes (0.001 to 0.1
+#: gave the same figure to four digits on the elastic classes), large enough for the model's
+#: own convergence tolerances to vanish in it.
+RESPONSE_STEP = 1e-2
+#: Noise draws per Cramér–Rao figure (its own sampling error is about 1/√(2·draws) of it: 4 draws
+#: read a 5×5 sphere's 0.0119 mm as 0.0093).
+FLOOR_DRAWS = 12
+
+
+def noise_floor(eu: np.ndarray, el: np.ndarray, draws: list[tuple[np.ndarray, np.ndarray]], **kw) -> float:
+    """The Cramér–Rao figure of the model at these data: the mean node error (after the best
+    rigid alignment) that the noise alone causes in the model linearised about its noise-free
+    answer, averaged over ``draws`` (noise draws of the benchmark's s.d.).  Each is the central
+    difference (x(y + tε) − x(y − tε))/2t of the answer x along the draw ε; for a model that is
+    linear in the data near its answer, with Gaussian noise, the spread of these responses is the
+    Cramér–Rao bound of that model's estimate, the least scatter the noise forces on it.  A noisy
+    error above √(clean² + CR²) is the model's nonlinearity (a decision the noise flips), not the
+    noise's due.  ``kw``: what ``reconstruct`` is told, as for the noisy frames."""
+    t = RESPONSE_STEP
+    errs = []
+    for du, dl in draws:
+        plus = reconstruct(eu + t * du, el + t * dl, PITCH, H, H, strain_sigma=NOISE, **kw).nodes
+        minus = reconstruct(eu - t * du, el - t * dl, PITCH, H, H, strain_sigma=NOISE, **kw).nodes
+        base = 0.5 * (plus + minus)
+        errs.append(node_errors(base + (plus - minus) / (2.0 * t), base).mean())
+    return float(np.mean(errs))
 
 
 def feature_size(height: np.ndarray, peak: tuple[int, int], step: float) -> float:
@@ -184,6 +216,7 @@ def shape_classes(rng: np.random.Generator, k: int, scale: float = 1.0) -> dict[
 
 def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None, n: int = 5) -> None:
     rng = np.random.default_rng(seed)
+    floor_rng = np.random.default_rng(seed + 1)  # the Cramér–Rao draws, apart: the noisy frames keep theirs
     m = n
     scale = (n - 1) / 4.0  # radii and positions for this sheet's extent (the 5x5 classes as given)
     centres = ph.cell_centres(n, m, PITCH)
@@ -193,13 +226,13 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
           f"strain, told so, {noisy_draws} draws each; radii and bump positions x{scale:g} of the 5x5 classes, "
           f"bump sizes as given)")
     head = (f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} "
-            f"{'sigma':>6s} {'over':>5s} {'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
+            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
     print(head)
     print("-" * len(head))
     for name, shapes in shape_classes(rng, k, scale).items():
         clean_mean, clean_max, noisy_mean, noisy_max, fid, graphs = [], [], [], [], [], []
         ambiguous, either = [], []  # flagged ambiguous; of those, the answer or its mirror right (0.05 mm)
-        sigmas, over = [], []
+        sigmas, over, floor = [], [], []
         for shape, kw in shapes:
             eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
             truth = shape.position(centres)
@@ -209,9 +242,11 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
             _ambiguity(surf, e, truth, ambiguous, either)
             clean_mean.append(e.mean())
             clean_max.append(e.max())
-            for _ in range(noisy_draws):
-                noisy = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, H, H,
-                                    graph_fit=graph_fit, **kw)
+            draws = [(rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)) for _ in range(noisy_draws)]
+            floor.append(noise_floor(eu, el, [(floor_rng.normal(0, NOISE, eu.shape), floor_rng.normal(0, NOISE, el.shape))
+                                              for _ in range(FLOOR_DRAWS)], graph_fit=graph_fit, **kw))
+            for du, dl in draws:
+                noisy = reconstruct(eu + du, el + dl, PITCH, H, H, graph_fit=graph_fit, **kw)
                 e = node_errors(noisy.nodes, truth)
                 graphs.append(noisy.diagnostics.extra["model"] == "graph")
                 _ambiguity(noisy, e, truth, ambiguous, either)
@@ -223,10 +258,12 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
                 fid.append(bump_fidelity(shape, surf, n, m))
         f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
         print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
-              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {np.mean(sigmas):6.3f} "
+              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {np.mean(floor):6.4f} {np.mean(sigmas):6.3f} "
               f"{sum(over):>2d}/{len(over):<2d} {f:>16s} {100 * np.mean(graphs):5.0f}% "
               f"{sum(ambiguous):>2d}/{len(ambiguous):<2d} {sum(either):>3d}/{sum(ambiguous):<3d}")
-    print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; sigma: mean "
+    print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; CR: the "
+          "Cramér–Rao figure, the mean node error the noise alone forces on the model linearised about its noise-free "
+          "answer (noise_floor), mean over shapes: the noisy error should not exceed about √(clean² + CR²); sigma: mean "
           "node_sigma of the noisy reconstructions; over: noisy reconstructions with some node error > 3 node_sigma + "
           "0.05 mm (for one flagged ambiguous: in both its answers); "
           "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
@@ -282,7 +319,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"h = {H:g} mm, {GAUGE:g} mm gauges ({k} random scenes per class, seed {seed}; noisy: s.d. "
           f"{100 * NOISE:.4f} % strain, {noisy_draws} draws each, the same draws on both forms)")
     head = (f"{'elastic scene class':46s} {'clean mean':>10s} {'clean max':>9s} {'noisy mean':>10s} {'noisy max':>9s} "
-            f"{'sigma':>6s} {'over':>5s} {'amb':>3s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} {'kamb':>4s} | {'graph':>5s}")
+            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'amb':>3s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} {'kamb':>4s} | {'graph':>5s}")
     print(head)
     print("-" * len(head))
     solved, cached = [], []
@@ -302,7 +339,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
             noise = [ed.noise_draw(plan, d, NOISE, forms[0][0].shape) for d in range(noisy_draws)]
             cases.append((plan, forms, noise))
         for name, default_sign in rows:
-            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "sig", "over", "amb", "kc", "kn", "kover", "kamb", "graph")}
+            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "cr", "sig", "over", "amb", "kc", "kn", "kover", "kamb", "graph")}
             for plan, forms, noise in cases:
                 kw = {} if default_sign or plan.twist_sign is None else {"twist_sign": plan.twist_sign}
                 for f, (eu, el, truth) in enumerate(forms):
@@ -313,6 +350,8 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                     if f == 0:
                         stats["cm"].append(e.mean())
                         stats["cx"].append(e.max())
+                        floor_draws = [ed.noise_draw(plan, d, NOISE, eu.shape) for d in range(FLOOR_DRAWS)]
+                        stats["cr"].append(noise_floor(eu, el, floor_draws, graph_fit=graph_fit, **kw))
                         stats["graph"].append(surf.diagnostics.extra["model"] == "graph")
                     else:
                         stats["kc"].append(e.mean())
@@ -332,11 +371,14 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
             kover = f"{sum(stats['kover'])}/{len(stats['kover'])}"
             amb, kamb = f"{sum(stats['amb'])}", f"{sum(stats['kamb'])}"
             print(f"{name:46s} {np.mean(stats['cm']):10.4f} {np.max(stats['cx']):9.4f} {np.mean(stats['nm']):10.4f} "
-                  f"{np.max(stats['nx']):9.4f} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
+                  f"{np.max(stats['nx']):9.4f} {np.mean(stats['cr']):6.4f} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
                   f"{np.mean(stats['kn']):9.4f} {kover:>8s} {kamb:>4s} | {100 * np.mean(stats['graph']):4.0f}%")
     scale = f"x{n / 5:g} on this sheet" if n > 5 else "as given"
     print(f"(mm; mean = mean over scenes of the mean node error after the best rigid alignment, max = largest "
           f"node error of any scene; clean reconstructions are told strain_sigma={CLEAN_SIGMA:g}, noisy ones the noise's s.d.; "
+          f"CR: the Cramér–Rao figure, the mean node error the noise alone forces on the model linearised about its "
+          f"noise-free answer (noise_floor, {FLOOR_DRAWS} draws, the first the noisy frames'), mean over scenes: the noisy error should not exceed about "
+          f"√(clean² + CR²); "
           f"sigma: mean node_sigma of the noisy reconstructions; over: noisy reconstructions "
           f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "
@@ -487,8 +529,33 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernel
     for n, (base, cost, cost_many) in unseen.items():
         print(f"{n:>3d}x{n:<3d} {1e3 * base:10.2f} {1e3 * cost:8.2f} {cost / base:6.2f} "
               f"{1e3 * cost_many:10.2f} {cost_many / base:6.2f}")
+    cold_timing(max(frames_for[min(frames_for)] // 2, 20), seed, kernels)
     elastic_timing(frames_for[min(frames_for)], seed, kernels)
     print(f"(load average during the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
+
+
+def cold_timing(count: int, seed: int, kernels: str = "compiled") -> None:
+    """CPU per cold one-shot 5×5 frame, as the module's ``reconstruct()`` runs it (the geometry's
+    Reconstructor kept by the process, no previous frame): a different random noisy bump every
+    frame, its nodes and normals."""
+    rng = np.random.default_rng(seed)
+    rec = Reconstructor(5, 5, PITCH, H, H, GAUGE, kernels=kernels)  # what reconstruct() keeps per geometry
+    rec.prepare()
+    cpu, models = [], []
+    for _ in range(count):
+        shape = ph.GaussianBumps(height=rng.uniform(-4.0, 4.0), fwhm=rng.uniform(16.0, 25.0),
+                                 centre=tuple(rng.uniform(-20.0, 20.0, 2)))
+        eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
+        eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+        c0 = time.thread_time()
+        surf = rec(eu, el)  # as reconstruct(eu, el, ...): no previous frame
+        surf.nodes, surf.normals
+        cpu.append(time.thread_time() - c0)
+        models.append(surf.diagnostics.extra["model"])
+    arr = np.array(cpu)
+    print(f"\nCold one-shot reconstruct(), 5x5, {count} random noisy bumps (no previous frame): cpu median "
+          f"{1e3 * np.median(arr):.2f} ms, p90 {1e3 * np.percentile(arr, 90):.2f} ms "
+          f"(answered by the graph fit: {models.count('graph')} of {count})")
 
 
 #: Elastic films held still, whose frames the general model answers (a film slides: no graph).
