@@ -327,17 +327,22 @@ def basis_curvature(maps: MembraneMaps, positions: np.ndarray, spacing: float) -
     nf, mf = x.shape[0], x.shape[1]
     i = np.clip(maps.rows, 1, nf - 2)[:, None]
     j = np.clip(maps.cols, 1, mf - 2)[None, :]
-    c = x[i, j]
-    xu = (x[i, j + 1] - x[i, j - 1]) / (2.0 * spacing)
-    xv = (x[i + 1, j] - x[i - 1, j]) / (2.0 * spacing)
-    xuu = (x[i, j + 1] - 2.0 * c + x[i, j - 1]) / (spacing * spacing)
-    xvv = (x[i + 1, j] - 2.0 * c + x[i - 1, j]) / (spacing * spacing)
-    xuv = (x[i + 1, j + 1] - x[i + 1, j - 1] - x[i - 1, j + 1] + x[i - 1, j - 1]) / (4.0 * spacing * spacing)
-    normal = np.cross(xu, xv)
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    l_, m_, n_ = ((d * normal).sum(axis=-1) for d in (xuu, xuv, xvv))
-    e, f, g = (xu * xu).sum(axis=-1), (xu * xv).sum(axis=-1), (xv * xv).sum(axis=-1)
-    return ((l_ * n_ - m_ * m_) / (e * g - f * f)).ravel()
+    centre = (i * mf + j).ravel()
+    # the nine stencil points in one gather, components first: a frame evaluates this for
+    # several candidate surfaces, and on a few hundred nodes numpy's per-call cost dominates
+    offsets = np.array([0, 1, -1, mf, -mf, mf + 1, mf - 1, -mf + 1, -mf - 1])
+    p = x.reshape(-1, 3).T[:, offsets[:, None] + centre[None, :]]  # (3, 9, nodes)
+    h2 = spacing * spacing
+    xu = (p[:, 1] - p[:, 2]) / (2.0 * spacing)
+    xv = (p[:, 3] - p[:, 4]) / (2.0 * spacing)
+    xuu = (p[:, 1] - 2.0 * p[:, 0] + p[:, 2]) / h2
+    xvv = (p[:, 3] - 2.0 * p[:, 0] + p[:, 4]) / h2
+    xuv = (p[:, 5] - p[:, 7] - p[:, 6] + p[:, 8]) / (4.0 * h2)
+    normal = np.stack([xu[1] * xv[2] - xu[2] * xv[1], xu[2] * xv[0] - xu[0] * xv[2], xu[0] * xv[1] - xu[1] * xv[0]])
+    normal /= np.sqrt((normal * normal).sum(axis=0))
+    l_, m_, n_ = ((d * normal).sum(axis=0) for d in (xuu, xuv, xvv))
+    e, f, g = (xu * xu).sum(axis=0), (xu * xv).sum(axis=0), (xv * xv).sum(axis=0)
+    return (l_ * n_ - m_ * m_) / (e * g - f * f)
 
 
 def stretch_misfit(maps: MembraneMaps, k_basis: np.ndarray, stretch: np.ndarray, valid: np.ndarray,
