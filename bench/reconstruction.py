@@ -50,6 +50,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # one core, as in the gateway
 
 import argparse  # noqa: E402
+import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -103,15 +104,30 @@ def noise_floor(eu: np.ndarray, el: np.ndarray, draws: list[tuple[np.ndarray, np
     linear in the data near its answer, with Gaussian noise, the spread of these responses is the
     Cramér–Rao bound of that model's estimate, the least scatter the noise forces on it.  A noisy
     error above √(clean² + CR²) is the model's nonlinearity (a decision the noise flips), not the
-    noise's due.  ``kw``: what ``reconstruct`` is told, as for the noisy frames."""
-    t = RESPONSE_STEP
-    errs = []
-    for du, dl in draws:
+    noise's due.  ``kw``: what ``reconstruct`` is told, as for the noisy frames.  NaN where the
+    answer has no linear response there (the first draw's, read again at a quarter of the step,
+    differs by more than 5 %: a decision of the model flips within the step)."""
+
+    def response(du: np.ndarray, dl: np.ndarray, t: float) -> float:
         plus = reconstruct(eu + t * du, el + t * dl, PITCH, H, H, strain_sigma=NOISE, **kw).nodes
         minus = reconstruct(eu - t * du, el - t * dl, PITCH, H, H, strain_sigma=NOISE, **kw).nodes
         base = 0.5 * (plus + minus)
-        errs.append(node_errors(base + (plus - minus) / (2.0 * t), base).mean())
+        return float(node_errors(base + (plus - minus) / (2.0 * t), base).mean())
+
+    errs = [response(du, dl, RESPONSE_STEP) for du, dl in draws]
+    check = response(*draws[0], 0.25 * RESPONSE_STEP)
+    if not abs(check - errs[0]) <= 0.05 * errs[0]:
+        return math.nan
     return float(np.mean(errs))
+
+
+def floor_text(values: list[float]) -> str:
+    """A column of Cramér–Rao figures: their mean over the scenes that have one, marked with
+    '+' where some scene has none (no linear response), 'n/l' where none has."""
+    arr = np.array(values, dtype=float)
+    if not np.isfinite(arr).any():
+        return "n/l"
+    return f"{np.nanmean(arr):.4f}" + ("+" if not np.isfinite(arr).all() else "")
 
 
 def feature_size(height: np.ndarray, peak: tuple[int, int], step: float) -> float:
@@ -258,12 +274,13 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
                 fid.append(bump_fidelity(shape, surf, n, m))
         f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
         print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
-              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {np.mean(floor):6.4f} {np.mean(sigmas):6.3f} "
+              f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {floor_text(floor):>6s} {np.mean(sigmas):6.3f} "
               f"{sum(over):>2d}/{len(over):<2d} {f:>16s} {100 * np.mean(graphs):5.0f}% "
               f"{sum(ambiguous):>2d}/{len(ambiguous):<2d} {sum(either):>3d}/{sum(ambiguous):<3d}")
     print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; CR: the "
           "Cramér–Rao figure, the mean node error the noise alone forces on the model linearised about its noise-free "
-          "answer (noise_floor), mean over shapes: the noisy error should not exceed about √(clean² + CR²); sigma: mean "
+          "answer (noise_floor), mean over shapes: the noisy error should not exceed about √(clean² + CR²), '+': some "
+          "shape has no linear response, 'n/l': none has; sigma: mean "
           "node_sigma of the noisy reconstructions; over: noisy reconstructions with some node error > 3 node_sigma + "
           "0.05 mm (for one flagged ambiguous: in both its answers); "
           "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
@@ -371,14 +388,14 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
             kover = f"{sum(stats['kover'])}/{len(stats['kover'])}"
             amb, kamb = f"{sum(stats['amb'])}", f"{sum(stats['kamb'])}"
             print(f"{name:46s} {np.mean(stats['cm']):10.4f} {np.max(stats['cx']):9.4f} {np.mean(stats['nm']):10.4f} "
-                  f"{np.max(stats['nx']):9.4f} {np.mean(stats['cr']):6.4f} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
+                  f"{np.max(stats['nx']):9.4f} {floor_text(stats['cr']):>6s} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
                   f"{np.mean(stats['kn']):9.4f} {kover:>8s} {kamb:>4s} | {100 * np.mean(stats['graph']):4.0f}%")
     scale = f"x{n / 5:g} on this sheet" if n > 5 else "as given"
     print(f"(mm; mean = mean over scenes of the mean node error after the best rigid alignment, max = largest "
           f"node error of any scene; clean reconstructions are told strain_sigma={CLEAN_SIGMA:g}, noisy ones the noise's s.d.; "
           f"CR: the Cramér–Rao figure, the mean node error the noise alone forces on the model linearised about its "
           f"noise-free answer (noise_floor, {FLOOR_DRAWS} draws, the first the noisy frames'), mean over scenes: the noisy error should not exceed about "
-          f"√(clean² + CR²); "
+          f"√(clean² + CR²); '+': some scene has no linear response (a decision flips within the step), 'n/l': none has; "
           f"sigma: mean node_sigma of the noisy reconstructions; over: noisy reconstructions "
           f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "

@@ -287,8 +287,20 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
     return FloorLevel(replace(contact, positions=moved), -level, area)
 
 
+#: Readings (one a contact) a relief-map cell keeps for its median height: beyond this many the
+#: oldest give way, so that a long log's map stays bounded (5 MB at the default 140² cells).
+CELL_READINGS = 32
+
+
 class ReliefMap:
-    """The stitched wall: a grid of ``size`` × ``size`` mm at ``step`` mm centred on the origin."""
+    """The stitched wall: a grid of ``size`` × ``size`` mm at ``step`` mm centred on the origin.
+
+    A cell's height is the median, over the contacts that reached it, of each contact's mean
+    height there: a press whose reconstruction or placement went wrong does not drag the cells
+    it shares with the others (each wall cell is met by several presses), where a mean over all
+    samples would carry its error at its share.  Each cell keeps its latest
+    :data:`CELL_READINGS` readings; counts, weights and sums (``scatter``, ``confidence``) cover
+    every sample."""
 
     def __init__(self, size: float = 120.0, step: float = 1.0, margin: float = 10.0) -> None:
         self.step = float(step)
@@ -300,6 +312,9 @@ class ReliefMap:
         self._w = np.zeros(self.shape)  # their summed weight
         self._sum = np.zeros(self.shape)
         self._sum2 = np.zeros(self.shape)
+        self._readings = np.full(self.shape + (CELL_READINGS,), np.nan)  # a ring per cell, one a contact
+        self._k = np.zeros(self.shape, dtype=np.int64)  # contacts a cell got
+        self._height: np.ndarray | None = None  # the medians, until the next contact
         self.contacts = 0
 
     @property
@@ -325,13 +340,23 @@ class ReliefMap:
         np.add.at(self._w, (ij[:, 1], ij[:, 0]), w)
         np.add.at(self._sum, (ij[:, 1], ij[:, 0]), w * h)
         np.add.at(self._sum2, (ij[:, 1], ij[:, 0]), w * h * h)
+        # this contact's own (weighted) mean height in every cell it reached: one reading each
+        cells, inv = np.unique(ij[:, 1] * self.shape[1] + ij[:, 0], return_inverse=True)
+        mean = np.bincount(inv, weights=w * h) / np.bincount(inv, weights=w)
+        rows, cols = np.divmod(cells, self.shape[1])
+        self._readings[rows, cols, self._k[rows, cols] % CELL_READINGS] = mean
+        self._k[rows, cols] += 1
+        self._height = None
         self.contacts += 1
-        return int(len(np.unique(ij, axis=0)))
+        return int(len(cells))
 
     def clear(self) -> None:
         """Forget every contact (the grid stays)."""
         for a in (self._n, self._w, self._sum, self._sum2):
             a[:] = 0.0
+        self._readings[:] = np.nan
+        self._k[:] = 0
+        self._height = None
         self.contacts = 0
 
     @property
@@ -339,9 +364,15 @@ class ReliefMap:
         return self._n.copy()
 
     def height(self) -> np.ndarray:
-        """(rows, cols) mean wall height, NaN where never touched."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self._n > 0, self._sum / np.where(self._w > 0, self._w, 1.0), np.nan)
+        """(rows, cols) wall height: the median of the contacts' readings of a cell (the mean
+        of the middle two for an even count), NaN where never touched."""
+        if self._height is None:
+            ordered = np.sort(self._readings, axis=-1)  # the NaN of unused slots sort last
+            count = np.minimum(self._k, CELL_READINGS)[..., None]
+            low = np.take_along_axis(ordered, np.maximum(count - 1, 0) // 2, axis=-1)[..., 0]
+            high = np.take_along_axis(ordered, count // 2, axis=-1)[..., 0]
+            self._height = np.where(count[..., 0] > 0, 0.5 * (low + high), np.nan)
+        return self._height.copy()
 
     def scatter(self) -> np.ndarray:
         """(rows, cols) s.d. of the heights the contacts gave a cell (NaN with fewer than two)."""

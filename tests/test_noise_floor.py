@@ -65,3 +65,25 @@ def test_noise_floor_is_a_linear_response() -> None:
         finally:
             bench.RESPONSE_STEP = saved
     assert small[0] == pytest.approx(large[0], rel=0.02)
+
+
+def test_noise_floor_says_so_where_a_decision_flips_within_the_step(monkeypatch) -> None:
+    """An answer with no linear response (here one that jumps by 1 mm with the sign of the
+    data's first gauge, as a flipped decision does) has no Cramér–Rao figure: NaN, printed as
+    such, rather than the jump divided by the step."""
+    eu, el, _ = film(SCENES[0])
+    real = bench.reconstruct
+
+    def flipping(u, lo, *args, **kw):
+        surf = real(u, lo, *args, **kw)
+        jump = 1.0 if u[0, 0, 0] > eu[0, 0, 0] else 0.0
+
+        class Jumped:
+            nodes = surf.nodes + np.array([0.0, 0.0, jump]) * (np.arange(N)[None, :, None] / N)
+        return Jumped()
+
+    noise = draws(4, 3, eu.shape)
+    assert np.isfinite(bench.noise_floor(eu, el, noise))
+    monkeypatch.setattr(bench, "reconstruct", flipping)
+    assert np.isnan(bench.noise_floor(eu, el, noise))
+    assert bench.floor_text([float("nan"), 0.01]) == "0.0100+" and bench.floor_text([float("nan")]) == "n/l"

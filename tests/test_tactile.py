@@ -362,3 +362,47 @@ def test_floor_levelling_names_a_bad_parameter():
             level_on_floor(c, ProbePose(-30.0, 30.0, 0.0, 3.0), GRID, **kw)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="depth"):
         level_on_floor(c, ProbePose(-30.0, 30.0, 0.0, math.inf), GRID)
+
+
+def test_one_misplaced_press_does_not_move_the_cells_the_others_agree_on():
+    """A cell's height is the median of the presses' readings: three presses agree, a fourth
+    comes in 1.5 mm off (its reconstruction or its level gone wrong); the mean of all samples
+    would carry a quarter of that, the median none of it."""
+    from dataclasses import replace
+
+    pose = ProbePose(0.0, 0.0, 0.0, 3.0)
+    good = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
+    off = replace(good, positions=good.positions + np.array([0.0, 0.0, 1.5]))
+    relief, alone = ReliefMap(), ReliefMap()
+    for c in (good, good, good, off):
+        relief.add(c, pose, GRID)
+    alone.add(good, pose, GRID)
+    h, ref = relief.height(), alone.height()
+    reached = np.isfinite(ref)
+    assert reached.sum() > 100 and np.array_equal(np.isfinite(h), reached)
+    assert np.max(np.abs(h - ref)[reached]) < 1e-9
+    # the mean of the samples, which scatter() and confidence() still describe, is a quarter off
+    assert np.nanmedian(relief.scatter()[reached]) > 0.5
+
+
+def test_a_cell_keeps_its_latest_readings_only():
+    """A long log's map stays bounded: past CELL_READINGS contacts a cell's oldest readings give
+    way, so the median follows the latest presses (here the wall moved 2 mm between sessions)."""
+    from dataclasses import replace
+
+    from skinmap.daemon.tactile import CELL_READINGS
+
+    pose = ProbePose(0.0, 0.0, 0.0, 3.0)
+    first = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
+    later = replace(first, positions=first.positions - np.array([0.0, 0.0, 2.0]))
+    relief = ReliefMap()
+    size = relief._readings.nbytes
+    for _ in range(CELL_READINGS):
+        relief.add(first, pose, GRID)
+    before = relief.height()
+    for _ in range(CELL_READINGS // 2 + 1):  # a majority of the kept readings
+        relief.add(later, pose, GRID)
+    after = relief.height()
+    reached = np.isfinite(before)
+    assert np.allclose((after - before)[reached], 2.0)
+    assert relief._readings.nbytes == size and relief.contacts == CELL_READINGS + CELL_READINGS // 2 + 1
