@@ -50,6 +50,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # one core, as in the gateway
 
 import argparse  # noqa: E402
+import functools  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -61,7 +62,7 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
-from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, reconstruct  # noqa: E402
+from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, reconstruct, to_sensor_frame  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import elastic_dataset as ed  # noqa: E402  (bench/elastic_dataset.py: the elastic scene classes)
@@ -316,6 +317,29 @@ def bump_grid_table(positions: int, seed: int) -> None:
         print(f"{height:>10.0f} " + " ".join(f"{c:>15s}" for c in cells))
 
 
+@functools.lru_cache(maxsize=4)
+def _fine_grid(n: int):
+    """The fine grid of reconstruct()'s n×n sheets (their positions' material coordinates)."""
+    return Reconstructor(n, n, PITCH, H, H, GAUGE).grid
+
+
+def frame_errors(shape: ph.Shape, nodes: np.ndarray, n: int) -> np.ndarray:
+    """Node errors in the sensor frame itself, with no alignment: the truth put in the frame by
+    its one definition (to_sensor_frame on the fine grid), as node_sigma describes them."""
+    grid = _fine_grid(n)
+    uu, vv = np.meshgrid(grid.u, grid.v)
+    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
+    return np.linalg.norm(nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1).reshape(-1)
+
+
+def _over_in_frame(shape: ph.Shape, surf, n: int) -> bool:
+    """Overconfident in the sensor frame: some node's error there (frame_errors) above 3 of its
+    node_sigma + 0.05 mm, for the answer and, where it says it is ambiguous, its mirror."""
+    bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
+    answers = [surf] + ([surf.mirror] if getattr(surf, "mirror", None) is not None else [])
+    return all(bool(np.any(frame_errors(shape, a.nodes, n) > bound)) for a in answers)
+
+
 def _over(e: np.ndarray, surf, truth: np.ndarray | None = None) -> bool:
     """Overconfident: some node's error exceeds 3 of the surface's own node_sigma + 0.05 mm.
     A surface that says it is ambiguous (``surf.mirror``) is overconfident only when neither
@@ -336,7 +360,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"h = {H:g} mm, {GAUGE:g} mm gauges ({k} random scenes per class, seed {seed}; noisy: s.d. "
           f"{100 * NOISE:.4f} % strain, {noisy_draws} draws each, the same draws on both forms)")
     head = (f"{'elastic scene class':46s} {'clean mean':>10s} {'clean max':>9s} {'noisy mean':>10s} {'noisy max':>9s} "
-            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'amb':>3s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} {'kamb':>4s} | {'graph':>5s}")
+            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'frame':>5s} {'amb':>3s} | {'kin clean':>9s} {'kin noisy':>9s} {'kin over':>8s} {'kamb':>4s} | {'graph':>5s}")
     print(head)
     print("-" * len(head))
     solved, cached = [], []
@@ -354,10 +378,10 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                 eu, el = ph.gauge_strains(form, n, n, PITCH, H, H, GAUGE)
                 forms.append((eu, el, ph.ground_truth(form, n, n, PITCH).nodes))
             noise = [ed.noise_draw(plan, d, NOISE, forms[0][0].shape) for d in range(noisy_draws)]
-            cases.append((plan, forms, noise))
+            cases.append((plan, forms, noise, shape))
         for name, default_sign in rows:
-            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "cr", "sig", "over", "amb", "kc", "kn", "kover", "kamb", "graph")}
-            for plan, forms, noise in cases:
+            stats: dict[str, list] = {col: [] for col in ("cm", "cx", "nm", "nx", "cr", "sig", "over", "frame", "amb", "kc", "kn", "kover", "kamb", "graph")}
+            for plan, forms, noise, shape in cases:
                 kw = {} if default_sign or plan.twist_sign is None else {"twist_sign": plan.twist_sign}
                 for f, (eu, el, truth) in enumerate(forms):
                     prefix = "" if f == 0 else "k"
@@ -378,6 +402,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                         stats[prefix + "over"].append(_over(e, surf, truth))
                         stats[prefix + "amb"].append(surf.mirror is not None)
                         if f == 0:
+                            stats["frame"].append(_over_in_frame(shape, surf, n))
                             stats["nm"].append(e.mean())
                             stats["nx"].append(e.max())
                             stats["sig"].append(surf.node_sigma.mean())
@@ -385,10 +410,11 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
                         else:
                             stats["kn"].append(e.mean())
             over = f"{sum(stats['over'])}/{len(stats['over'])}"
+            frame = f"{sum(stats['frame'])}/{len(stats['frame'])}"
             kover = f"{sum(stats['kover'])}/{len(stats['kover'])}"
             amb, kamb = f"{sum(stats['amb'])}", f"{sum(stats['kamb'])}"
             print(f"{name:46s} {np.mean(stats['cm']):10.4f} {np.max(stats['cx']):9.4f} {np.mean(stats['nm']):10.4f} "
-                  f"{np.max(stats['nx']):9.4f} {floor_text(stats['cr']):>6s} {np.mean(stats['sig']):6.3f} {over:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
+                  f"{np.max(stats['nx']):9.4f} {floor_text(stats['cr']):>6s} {np.mean(stats['sig']):6.3f} {over:>5s} {frame:>5s} {amb:>3s} | {np.mean(stats['kc']):9.4f} "
                   f"{np.mean(stats['kn']):9.4f} {kover:>8s} {kamb:>4s} | {100 * np.mean(stats['graph']):4.0f}%")
     scale = f"x{n / 5:g} on this sheet" if n > 5 else "as given"
     print(f"(mm; mean = mean over scenes of the mean node error after the best rigid alignment, max = largest "
@@ -397,7 +423,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"noise-free answer (noise_floor, {FLOOR_DRAWS} draws, the first the noisy frames'), mean over scenes: the noisy error should not exceed about "
           f"√(clean² + CR²); '+': some scene has no linear response (a decision flips within the step), 'n/l': none has; "
           f"sigma: mean node_sigma of the noisy reconstructions; over: noisy reconstructions "
-          f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
+          f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); frame: the same with the errors in the sensor frame itself, no alignment (frame_errors: the truth put in the frame by its definition), as node_sigma describes them; amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "
           f"{scale}; oblique cylinders get their twist_sign except in the default-sign row)")
     print(f"(scenes: {len(solved)} solved in {sum(solved):.1f} s, {len(cached)} loaded from the solver's cache "

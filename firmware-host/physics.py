@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence, TypedDict, cast
+from typing import Callable, Mapping, Sequence, TypedDict, cast
 
 import numpy as np
 
@@ -370,9 +370,11 @@ class GaussianBumps(GraphShape):
             bumps = [Bump(height=height, fwhm=fwhm, centre=centre if centre is not None else (u0, v0))]
         self.bumps: list[tuple[float, float, tuple[float, float]]] = []
         for k, b in enumerate(bumps):
+            if not isinstance(b, Mapping):
+                raise ValueError(f"bump {k}: a mapping of height, fwhm and centre (or u0, v0) is needed, got {b!r}")
             unknown = set(b) - {"height", "fwhm", "u0", "v0", "centre"}
             if unknown:
-                raise ValueError(f"bump {k}: unknown parameter(s) {sorted(unknown)}")
+                raise ValueError(f"bump {k}: unknown parameter(s) {sorted(map(str, unknown))}")
             c = b.get("centre", (b.get("u0", 0.0), b.get("v0", 0.0)))
             if len(c) != 2:
                 raise ValueError(f"bump {k}: centre must be (u, v), got {c!r}")

@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from typing import Any, cast
+from typing import Any, Callable, cast
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -48,10 +48,10 @@ from .airy import airy_curvature_range, airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import SigmaField, fine_sigma, resolution_sigma, sigma_field
+from .uncertainty import SigmaField, fine_sigma, frame_resolution_sigma, resolution_sigma, sigma_field
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
-           "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS"]
+           "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
@@ -422,7 +422,7 @@ class Reconstructor:
                     graph = self._graph.fit_cold(data, general[0], twist_sign, agree, starts)
         left_out = True
         if graph is not None and graph.accepted:
-            pos = _to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
+            pos = to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
             twist_c = graph.twist
             convex_info = {"status": "not needed (graph fit)", "iterations": 0}
             iterations = graph.iterations
@@ -526,7 +526,7 @@ class Reconstructor:
                 general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
                 fit_m = self._graph_fit().fit_cold(data, general_m[0], sign)
                 if fit_m.accepted:
-                    return _to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs))
+                    return to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs))
                 return general_m[0]
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
@@ -534,9 +534,19 @@ class Reconstructor:
             measured_fields = convex_info.get("measured_fields", product_fields) if fit is not None else None
             chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
+            frame_term: Callable[[], np.ndarray] | None = None
+            if fit is not None and not deferred:
+                # the general model's answer: its sensor frame turns with a slope the fields may
+                # misplace where the curvature changes at the gauge scale around the centre
+                def frame_field() -> np.ndarray:
+                    sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
+                    return frame_resolution_sigma(grid, valid, turning, sig_turn)
+
+                frame_term = frame_field
+
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
                                    product_fields, known, stretch if convex_info.get("graph_sheet") is None else None,
-                                   twist_mean, measured_fields, reading)
+                                   twist_mean, measured_fields, reading, frame_term)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
@@ -752,7 +762,7 @@ class Reconstructor:
         on_grid = self._position_on_grid
 
         def fine_positions(coeffs: np.ndarray) -> np.ndarray:
-            return _to_sensor_frame(grid, on_grid(coeffs)[0].reshape(grid.nf, grid.mf, 3))
+            return to_sensor_frame(grid, on_grid(coeffs)[0].reshape(grid.nf, grid.mf, 3))
 
         pos = fine_positions(best.coeffs)
         # Poisson's ratio is known to ±poisson_sd: the answer's first-order response to it
@@ -836,7 +846,8 @@ class Reconstructor:
     def _posterior(self, surf: Surface, eu, el, strain_sigma: float, positions_at, twist_sign, graph_mirror, turning,
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
                    stretch: np.ndarray | None = None, twist_mean: float | None = None,
-                   measured_fields=None, reading: TwistReading | None = None) -> Surface:
+                   measured_fields=None, reading: TwistReading | None = None,
+                   frame_term: Callable[[], np.ndarray] | None = None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -850,7 +861,10 @@ class Reconstructor:
           well, the answer is ambiguous and :attr:`Surface.mirror` holds the other one; when it
           explains them clearly better, it becomes the answer;
         - with ``stretch`` (the general model answered, not as a graph pushed out of plane),
-          holds the twist to the stretch pattern's Gaussian curvature (:meth:`_stretch_twist`).
+          holds the twist to the stretch pattern's Gaussian curvature (:meth:`_stretch_twist`);
+        - adds ``frame_term`` (the general model answered: its frame's resolution,
+          :func:`.uncertainty.frame_resolution_sigma`) in quadrature, not widened by the misfit
+          (it is no noise).
         """
         diag = surf.diagnostics
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -929,25 +943,36 @@ class Reconstructor:
         if pattern is not None:
             twist = pattern[3]
 
+        frame_known: list[np.ndarray | None] = []
+
+        def frame() -> np.ndarray | None:
+            # the frame's resolution term, once (None where it is zero)
+            if not frame_known:
+                field = frame_term() if frame_term is not None else None
+                frame_known.append(field if field is not None and field.any() else None)
+            return frame_known[0]
+
         def sigma() -> np.ndarray:
             base = noise_sigma()
             spread = twist()
-            if spread is None and scale == 1.0 and float(base.max()) <= ceiling:
+            tilt = frame()
+            if spread is None and tilt is None and scale == 1.0 and float(base.max()) <= ceiling:
                 return base  # the shared, read-only noise map (computed once per mask and noise)
             out = base * scale
-            if spread is not None:
-                out = np.sqrt(out * out + spread * spread)
+            for extra in (spread, tilt):
+                if extra is not None:
+                    out = np.sqrt(out * out + extra * extra)
             out = np.minimum(out, ceiling)
             out.flags.writeable = False
             return out
 
         def sigma_at(flat: np.ndarray) -> np.ndarray:
-            # the same, node by node (the twist's spread, where there is one, is a whole field)
+            # the same, node by node (the twist's spread and the frame's term are whole fields)
             out = noise_sigma.at(flat) * scale
-            spread = twist()
-            if spread is not None:
-                spread = spread.reshape(-1)[flat]
-                out = np.sqrt(out * out + spread * spread)
+            for extra in (twist(), frame()):
+                if extra is not None:
+                    extra = extra.reshape(-1)[flat]
+                    out = np.sqrt(out * out + extra * extra)
             return np.minimum(out, ceiling)
 
         surf._fine_sigma_fn = SigmaField(sigma, sigma_at)
@@ -1303,7 +1328,7 @@ class Reconstructor:
                     grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(twist), metric_stack,
                     self.shear_passes, self.frame_corrections, self._band, *grid.centre, *target,
                 ).transpose(1, 2, 0)
-            return _to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
+            return to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
 
         pos = positions_at(0.0)
         if shift0 != 0.0 and strains is not None and twist_mean is None:
@@ -1390,8 +1415,10 @@ def _differs(a: Surface, b: Surface) -> bool:
     return bool((gap > tol).any())
 
 
-def _to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
-    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x).
+def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
+    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x):
+    the sensor frame's one definition (docs/architecture.md), for any positions (nf, mf, 3) on
+    ``grid`` (a reconstruction's, or a reference surface's to compare with it there).
     Returns (nf, mf, 3), a view of a components-first array."""
     a0, b0 = grid.centre
     # the centre's tangents by the fourth-order differences the surface's patches use

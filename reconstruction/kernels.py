@@ -503,7 +503,7 @@ def _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band):
 @_helper
 def _sensor_frame(pos, nf, mf, a0, b0):
     """Positions (3, nf·mf) → components-first (3, nf, mf) in the sensor frame: centre at the origin, its
-    normal +z, its u-tangent in the xz-plane (as reconstruction._to_sensor_frame)."""
+    normal +z, its u-tangent in the xz-plane (as reconstruction.to_sensor_frame)."""
     c = a0 * mf + b0
     # the centre's tangents by the fourth-order differences the surface's patches use
     w = mf + mf

@@ -20,7 +20,17 @@ from .grid import FineGrid
 from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
-__all__ = ["height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field"]
+__all__ = ["height_response", "fine_sigma", "resolution_sigma", "frame_resolution_sigma", "SigmaField", "sigma_field",
+           "FRAME_RESOLUTION_SHARE"]
+
+#: The share of the change of the turning from unit to unit around the centre (its central
+#: differences) that the general model's fields may misplace within the gauges there, tilting
+#: the frame.  Measured on kinematic sheets of 1-3 random bumps (|h| 1.5-5 mm, FWHM 15-25 mm)
+#: with the general model and the sensor's noise, 40 sheets a size: the sheets whose
+#: sensor-frame errors stay within 3 σ + 0.05 mm at 5x5, 8x8 and 12x12 went from 0, 5 and 90 %
+#: to 100, 90 and 100 %, σ then 2.4, 3.9 and 10 times the error where that exceeds 0.1 mm
+#: (0.5: 93, 88, 100 %; 1.0: 100, 95, 100 % with σ 3.4-14 times; docs/reconstruction.md).
+FRAME_RESOLUTION_SHARE = 0.7
 
 
 class SigmaField:
@@ -207,6 +217,61 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
         fitted[k] = v
     if not fitted.all():
         excess[~fitted] = excess[fitted].mean() if fitted.any() else 0.0
+    return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
+
+
+def frame_resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, turning_sigma: float,
+                           share: float = FRAME_RESOLUTION_SHARE) -> np.ndarray:
+    """How far (one s.d., (nf, mf) mm) the general model's positions may be off in the sensor
+    frame because the sheet changes its curvature at the gauge scale around the centre.
+
+    The frame is the centre's tangent plane: a slope there, the derivative of a smooth
+    reconstruction at one point, is off wherever the fields misplace curvature within the centre
+    gauges, and the whole sheet turns with it about the centre (a bump beside the centre of a
+    5×5 sheet: 2-5° of tilt and 1-3 mm at the corners, while the shape itself, after the best
+    rigid alignment, is within 0.2 mm).  So each unit within one pitch of the centre whose
+    turning changes along the rows or columns (central differences d_u, d_v, half the change
+    between its two neighbours, beyond three noise s.d.) is given an uncertainty of its turning
+    of ``share`` · √(d_u² + d_v² − noise), carried to every node like the noise through the
+    height response about the flat sheet (centre height and slopes pinned).  Zero on spheres,
+    cylinders and saddles of constant curvature and on sheets whose features lie away from the
+    centre.  A difference whose units are not both measured takes the largest measured one of
+    its direction or, if larger, half the measured range's square twice, so that a missing
+    unit never lowers the term.  Dense-map grids with at least 3 × 3 cells only (zero
+    otherwise)."""
+    if not grid.dense_maps or grid.n < 3 or grid.m < 3:
+        return np.zeros((grid.nf, grid.mf))
+    valid = np.asarray(valid, dtype=bool).reshape(2, grid.n, grid.m)
+    turning = np.where(valid, np.asarray(turning, dtype=float).reshape(2, grid.n, grid.m), np.nan)
+    uc = np.abs(np.arange(grid.m) - 0.5 * (grid.m - 1)) * grid.pitch
+    vc = np.abs(np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
+    near = (uc[None, :] <= grid.pitch + 1e-9) & (vc[:, None] <= grid.pitch + 1e-9)
+    # the noise's own share of d_u² + d_v²: each central difference has σ²/2 of it
+    noise2 = turning_sigma * turning_sigma
+    excess = np.zeros((2, grid.n, grid.m))
+    for k in range(2):
+        t = turning[k]
+        d_u = np.full_like(t, np.nan)
+        d_v = np.full_like(t, np.nan)
+        d_u[:, 1:-1] = 0.5 * (t[:, 2:] - t[:, :-2])
+        d_u[:, 0], d_u[:, -1] = d_u[:, 1], d_u[:, -2]  # an edge unit: its inner neighbour's
+        d_v[1:-1, :] = 0.5 * (t[2:, :] - t[:-2, :])
+        d_v[0, :], d_v[-1, :] = d_v[1, :], d_v[-2, :]
+        d2 = d_u * d_u + d_v * d_v
+        measured = t[np.isfinite(t)]
+        if measured.size < 2:
+            continue
+        # a difference with a unit missing: at least any measured one, and as large as two
+        # half-changes across the measured range (a missing unit is not taken as calm)
+        d2 = np.where(np.isfinite(d2), d2, max(float(np.nanmax(d2, initial=0.0)),
+                                              0.5 * float(measured.max() - measured.min()) ** 2))
+        excess[k] = np.where(near & (d2 > 9.0 * noise2), share * share * (d2 - noise2), 0.0)
+    if not excess.any():
+        return np.zeros((grid.nf, grid.mf))
+    base = _all_valid_response(grid)
+    rsq = base.get("r_sq")
+    if rsq is None:
+        rsq = base["r_sq"] = base["r"] * base["r"]
     return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
 
 

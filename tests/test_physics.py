@@ -376,3 +376,14 @@ def test_quadric_matches_turned_saddle_and_checks_its_parameters():
     assert (spec.k_uu, spec.k_uv, spec.k_vv) == (0.01, -0.004, 0.0)
     with pytest.raises(ValueError, match="k_uv"):
         Quadric(0.0, float("nan"), 0.0)
+
+
+@pytest.mark.parametrize("bump, message", [
+    ((2.0, 18.0, (0.0, 0.0)), "a mapping of height, fwhm and centre"),
+    ({"height": 2.0, "width": 18.0}, "unknown parameter(s) ['width']"),
+    ({"height": 2.0, 3: 1.0}, "unknown parameter(s) ['3']"),
+])
+def test_a_malformed_bump_is_named_not_a_type_error(bump, message):
+    with pytest.raises(ValueError) as err:
+        GaussianBumps(bumps=[{"height": 1.0}, bump])
+    assert "bump 1" in str(err.value) and message in str(err.value)

@@ -217,9 +217,12 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     # (the graph fit's scatter is that of another nonlinear fit: a node may move a little either way)
     assert surf.diagnostics.extra["model"] == "graph"
     assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] > 5 * full.node_sigma[1, 4]
-    # the general model's linear propagation: never lower anywhere
-    full_g = reconstruct(eu, el, PITCH, graph_fit=False)
-    raised_g = reconstruct(eu_dead, el, PITCH, graph_fit=False).node_sigma - full_g.node_sigma
+    # the general model's linear propagation: never lower anywhere (on a cylinder, whose
+    # curvature does not change around the centre: no frame term to compare as well)
+    eu_c, el_c = strains(ph.Cylinder(radius=80.0))
+    full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False)
+    eu_c[0, 1, 3] = np.nan
+    raised_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False).node_sigma - full_g.node_sigma
     assert np.all(raised_g >= -1e-12) and raised_g[1, 4] > 5 * full_g.node_sigma[1, 4]
 
 
@@ -232,8 +235,9 @@ def test_all_gauges_missing_still_gives_a_surface():
 
 def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     # the general model (the graph fit's own: test_reconstruction_graphfit.py)
-    # a bump the model explains within the noise (χ² per gauge below 1: no misfit to add)
-    shape = ph.GaussianBumps(height=1.0, fwhm=30.0, centre=(0.0, 0.0))
+    # a sheet the model explains within the noise (χ² per gauge below 1: no misfit to add) and
+    # whose curvature does not change around the centre (no frame term: see below)
+    shape = ph.Cylinder(radius=80.0)
     eu, el = strains(shape)
     base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False)
     double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
@@ -256,16 +260,24 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
 def test_uncertainty_grows_with_the_misfit_the_noise_cannot_explain():
     # without defect correction the general model leaves a 2 mm bump of FWHM 24 mm misfitted
     # by several noise s.d.: its node_sigma grows by the misfit's Birge ratio
+    from skinmap.reconstruction.engine import unit_data
+    from skinmap.reconstruction.uncertainty import frame_resolution_sigma
+
     rec = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0)
     eu, el = strains(ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0)))
     fits = rec(eu, el)
     chi2 = fits.diagnostics.extra["chi2_per_gauge"]
     assert chi2 > 4.0
-    eu2, el2 = strains(ph.GaussianBumps(height=1.0, fwhm=30.0, centre=(0.0, 0.0)))
+    eu2, el2 = strains(ph.Cylinder(radius=80.0))
     calm = rec(eu2, el2)
     assert calm.diagnostics.extra["chi2_per_gauge"] < 1.0
-    # same noise map about the flat sheet, so the ratio is the misfit's Birge ratio
-    assert np.allclose(fits.node_sigma, calm.node_sigma * np.sqrt(chi2), rtol=2e-3)
+    # the same noise map about the flat sheet (the cylinder's σ: no frame term) by the Birge
+    # ratio, and the bump's frame term (its curvature changes around the centre) in quadrature
+    turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
+    grid = rec.grid
+    frame = frame_resolution_sigma(grid, valid, turning, np.sqrt(2.0) * NOISE / 0.4)[np.ix_(grid.node_rows, grid.node_cols)]
+    assert frame.max() > 0.1
+    assert np.allclose(fits.node_sigma, np.hypot(np.sqrt(chi2) * calm.node_sigma, frame), rtol=2e-3)
 
 
 @pytest.mark.slow

@@ -116,3 +116,70 @@ def test_sigma_field_reads_the_whole_field_once_and_repeats_for_free():
     assert sf.at(np.array([3])).tolist() == [3.0] and len(calls) == 3  # from the whole field now
     plain = SigmaField(whole)
     assert plain.at(np.array([7])).tolist() == [7.0]
+
+
+def _frame_errors(shape, surf, grid) -> np.ndarray:
+    """Node errors in the sensor frame itself: the truth put in the frame by its definition."""
+    from skinmap.reconstruction import to_sensor_frame
+
+    uu, vv = np.meshgrid(grid.u, grid.v)
+    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
+    return np.linalg.norm(surf.nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1)
+
+
+@pytest.mark.parametrize("spec", ["gaussian:height=3,fwhm=18,u0=8,v0=-5",
+                                  "gaussian:height=-4,fwhm=20,u0=-3,v0=14 + gaussian:height=2,fwhm=16,u0=15,v0=-12"])
+def test_sensor_frame_errors_of_elastic_bumps_near_the_centre_within_3_sigma(spec: str) -> None:
+    """A film on bumps beside the centre: the general model's centre slope, hence its sensor
+    frame, turns by degrees (1-3 mm at the corners) while the shape is right within 0.2 mm.
+    node_sigma says so (uncertainty.frame_resolution_sigma); the noise's σ alone does not."""
+    from skinmap.emulator import scenes
+    from skinmap.reconstruction.engine import unit_data
+    from skinmap.reconstruction.uncertainty import frame_resolution_sigma
+
+    rec = Reconstructor(N, M, graph_fit=False)
+    shape = scenes.parse_scene_spec(spec, "elastic", N, M, 12.0)
+    eu, el = gauge_strains(shape, N, M, pitch=12.0)
+    rng = np.random.default_rng(5)
+    eu, el = eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape)
+    surf = rec(eu, el)
+    err = _frame_errors(shape, surf, rec.grid)
+    assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
+    turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
+    frame = frame_resolution_sigma(rec.grid, valid, turning, np.sqrt(2.0) * 5.7e-5 / 0.4)
+    noise_only = np.sqrt(np.maximum(surf.node_sigma ** 2 - frame[np.ix_(rec.grid.node_rows, rec.grid.node_cols)] ** 2, 0.0))
+    assert np.any(err > 3.0 * noise_only + 0.05)
+
+
+@pytest.mark.parametrize("kind, params", [("sphere", {"radius": 70.0}), ("cylinder", {"radius": 60.0}),
+                                          ("saddle", {"radius": 90.0})])
+def test_no_frame_term_where_the_curvature_does_not_change(kind: str, params: dict) -> None:
+    from skinmap.reconstruction.engine import unit_data
+    from skinmap.reconstruction.uncertainty import frame_resolution_sigma
+
+    rec = Reconstructor(N, M)
+    eu, el = strains(kind, 1, **params)
+    turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
+    assert not frame_resolution_sigma(rec.grid, valid, turning, np.sqrt(2.0) * 5.7e-5 / 0.4).any()
+    # with a unit missing beside the centre, the bump's term stays finite and covers its neighbours
+    eu_b, el_b = strains("gaussian", 2, height=3.0, fwhm=18.0, u0=8.0, v0=-5.0)
+    eu_b[0, 2, 3] = np.nan
+    turning, _, valid = unit_data(eu_b, el_b, 0.2, 0.2, 10.0)
+    frame = frame_resolution_sigma(rec.grid, valid, turning, np.sqrt(2.0) * 5.7e-5 / 0.4)
+    assert np.all(np.isfinite(frame)) and frame.max() > 0.1
+
+
+@pytest.mark.parametrize("dead", [(0, 2, 2), (1, 2, 3), (0, 1, 1)])
+def test_a_missing_unit_by_the_centre_never_lowers_the_frame_term(dead: tuple[int, int, int]) -> None:
+    from skinmap.reconstruction.engine import unit_data
+    from skinmap.reconstruction.uncertainty import frame_resolution_sigma
+
+    rec = Reconstructor(N, M)
+    sig_t = np.sqrt(2.0) * 5.7e-5 / 0.4
+    eu, el = strains("gaussian", 3, height=3.0, fwhm=20.0, u0=4.0, v0=-3.0)
+    turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
+    full = frame_resolution_sigma(rec.grid, valid, turning, sig_t)
+    eu[dead] = np.nan
+    turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
+    missing = frame_resolution_sigma(rec.grid, valid, turning, sig_t)
+    assert full.max() > 0.1 and np.all(missing >= full * (1 - 1e-12))
