@@ -27,9 +27,9 @@ __all__ = ["height_response", "fine_sigma", "resolution_sigma", "frame_resolutio
 #: differences) that the general model's fields may misplace within the gauges there, tilting
 #: the frame.  Measured on kinematic sheets of 1-3 random bumps (|h| 1.5-5 mm, FWHM 15-25 mm)
 #: with the general model and the sensor's noise, 40 sheets a size: the sheets whose
-#: sensor-frame errors stay within 3 σ + 0.05 mm at 5x5, 8x8 and 12x12 went from 0, 5 and 90 %
-#: to 100, 90 and 100 %, σ then 2.4, 3.9 and 10 times the error where that exceeds 0.1 mm
-#: (0.5: 93, 88, 100 %; 1.0: 100, 95, 100 % with σ 3.4-14 times; docs/reconstruction.md).
+#: sensor-frame errors stay within 3 σ + 0.05 mm at 5x5 and 8x8 went from 0 and 5 % to 100 and
+#: 90 %, σ then 2.4 and 3.9 times the error where that exceeds 0.1 mm (0.5: 93 and 88 %; 1.0:
+#: 100 and 95 % with σ 3.4 and 5.6 times; docs/reconstruction.md).
 FRAME_RESOLUTION_SHARE = 0.7
 
 
@@ -237,9 +237,13 @@ def frame_resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarra
     cylinders and saddles of constant curvature and on sheets whose features lie away from the
     centre.  A difference whose units are not both measured takes the largest measured one of
     its direction or, if larger, half the measured range's square twice, so that a missing
-    unit never lowers the term.  Dense-map grids with at least 3 × 3 cells only (zero
-    otherwise)."""
-    if not grid.dense_maps or grid.n < 3 or grid.m < 3:
+    unit never lowers the term.  Only where the frame's tangent is read within the centre cell
+    (its stencil, two fine spacings either side, spans at most one pitch: 5×5 to 8×8 here):
+    a wider stencil averages the misplacement over the centre gauges and beyond (on 12×12
+    sheets, 6 mm spacing, 90 % of the bumpy kinematic sheets above are covered without it, and
+    with it σ was 10 times their error, 100 times on the bench's elastic ridges).  Zero otherwise, and on grids of fewer than
+    3 × 3 cells or without dense maps."""
+    if not grid.dense_maps or grid.n < 3 or grid.m < 3 or 4.0 * grid.spacing > grid.pitch + 1e-9:
         return np.zeros((grid.nf, grid.mf))
     valid = np.asarray(valid, dtype=bool).reshape(2, grid.n, grid.m)
     turning = np.where(valid, np.asarray(turning, dtype=float).reshape(2, grid.n, grid.m), np.nan)
