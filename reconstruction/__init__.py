@@ -72,6 +72,10 @@ MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
 # estimate scatters by 2-3 % from frame to frame with the sensor's noise).
 MOVE_SHARE = 0.05
+# Where the stretch pattern allows no twist and the answer has none, a twist refined on the
+# answer's family above this share of the interval's top is undecided, and joins node_sigma
+# (Reconstructor._stretch_twist).
+UNDECIDED_SHARE = 1.0 / 3.0
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
 # at most this share of the answer's misfit.
@@ -1087,16 +1091,35 @@ class Reconstructor:
         if m_hi * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
             return None
         info["stretch_twist"] = (round(m0, 7), round(m_lo, 7), round(m_hi, 7))
-        info["stretch_reading"] = (reading.source, round(reading.poisson, 3), round(reading.residual, 3))
+        info["stretch_reading"] = (reading.source, round(reading.poisson, 3), round(reading.residual, 3), round(reading.twist, 7))
         sign = float(twist_sign) if twist_sign is not None else (math.copysign(1.0, m0) if m0 != 0.0 else 1.0)
         sign_open = twist_sign is None
 
         def within(low: float, high: float) -> bool:
             return low <= abs(m0) <= high and (sign_open or m0 * sign >= 0.0)
 
-        if within(m_lo, m_hi) and m_lo <= 0.0:
-            return None  # the pattern allows no twist too (a sphere): it has nothing to add
         membrane = reading.source == "membrane"
+        if within(m_lo, m_hi) and m_lo <= 0.0:
+            # The pattern allows no twist too (a sphere): the answer stands.  But where the
+            # membrane's reading, refined on the answer's own family, still says a twist, the
+            # data have not decided between none and that one: the twists up to it, of either
+            # sign the data leave open, join node_sigma.  A refined twist below UNDECIDED_SHARE
+            # of the interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from
+            # the grid refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18).
+            if not membrane:
+                return None
+            mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
+            info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
+            if mag <= UNDECIDED_SHARE * m_hi or mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
+                return None
+            ends = (sign * mag, -sign * mag) if sign_open else (sign * mag,)
+
+            def undecided() -> np.ndarray:
+                here = positions_at(base_shift)
+                far = [positions_at(base_shift + m - m0) for m in ends]
+                return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in far], axis=0)
+
+            return surf, mirror, base_shift, _memo(undecided), chi0
         if membrane:
             # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
             # (the metric, the slopes): the twist's square is read again on the answer's family

@@ -183,3 +183,49 @@ def test_a_missing_unit_by_the_centre_never_lowers_the_frame_term(dead: tuple[in
     turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
     missing = frame_resolution_sigma(rec.grid, valid, turning, sig_t)
     assert full.max() > 0.1 and np.all(missing >= full * (1 - 1e-12))
+
+
+@pytest.mark.parametrize("params", [{"radius": 87.3, "axis_angle": 54.5}, {"radius": 114.4, "axis_angle": 0.2}])
+def test_graph_answer_sigma_median_within_0_7_to_1_6_of_its_monte_carlo_scatter_on_saddles(rec, params) -> None:
+    """A graph answer's node_sigma (the fit's Fisher information JᵀJ + P, the sensor frame by
+    to_sensor_frame's own stencil) against the scatter of 24 noisy reconstructions in the
+    sensor frame: the median ratio over the nodes within [0.7, 1.6] (with the fit's damping in
+    the information and central differences for the frame, 2.3-2.4; the saddle at 54.5° stays
+    at 1.5-1.6, the stretch's response to the noise is not linear at its full size)."""
+    shape = make_shape("saddle", **params)
+    eu, el = gauge_strains(shape, N, M, pitch=12.0)
+    rng = np.random.default_rng(11)
+    nodes, sigmas = [], []
+    for _ in range(24):
+        surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
+        assert surf.diagnostics.extra["model"] == "graph"
+        nodes.append(surf.nodes.reshape(-1, 3))
+        sigmas.append(surf.node_sigma.reshape(-1))
+    pts, sig = np.array(nodes), np.mean(sigmas, axis=0)
+    scatter = np.sqrt(((pts - pts.mean(axis=0)) ** 2).sum(axis=2).mean(axis=0))
+    keep = sig > 0  # the centre node is the frame's origin
+    ratio = float(np.median(scatter[keep] / sig[keep]))
+    assert 0.7 <= ratio <= 1.6, ratio
+
+
+def test_twist_the_stretch_leaves_undecided_joins_sigma_on_a_turned_poisson_0_3_saddle_within_3_sigma() -> None:
+    """A ν 0.3 film on a saddle turned 6° from the grid: the stretch pattern's interval reaches
+    zero twist on some noise draws, where the least-shear answer (no twist) stood 0.4 mm off
+    with σ 0.035 mm (5 times the bound).  The twist refined on the answer's family still says
+    one: it joins node_sigma, and the sensor-frame errors lie within 3σ + 0.05 mm."""
+    from skinmap.emulator import scenes
+
+    rec5 = Reconstructor(N, M)
+    shape = scenes.parse_scene_spec("saddle:radius=109.7,axis_angle=173.9,poisson=0.3", "elastic", N, M, 12.0)
+    eu, el = gauge_strains(shape, N, M, pitch=12.0)
+    rng = np.random.default_rng(3)
+    undecided = 0
+    for _ in range(24):
+        surf = rec5(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
+        extra = surf.diagnostics.extra
+        if extra.get("stretch_twist", (0.0, 1.0))[1] != 0.0 or "stretch_twist_refined" not in extra:
+            continue  # the pattern needed a twist on this draw: not the case under test
+        undecided += 1
+        err = _frame_errors(shape, surf, rec5.grid)
+        assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max(), extra)
+    assert undecided, "no draw reached the undecided case: the test no longer tests it"
