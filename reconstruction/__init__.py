@@ -1106,7 +1106,9 @@ class Reconstructor:
             # sign the data leave open, join node_sigma.  A refined twist below UNDECIDED_SHARE
             # of the interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from
             # the grid refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18).
-            if not membrane:
+            if not membrane or reading.twist <= 0.5 * m_hi:
+                # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
+                # it, that saddle 0.70; the refinement would double a warm sphere frame's cost)
                 return None
             mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
             info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
