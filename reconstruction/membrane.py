@@ -50,9 +50,11 @@ __all__ = ["MembraneMaps", "TwistReading", "membrane_maps", "read_twist", "basis
 FILM_MARGIN_PITCH = 0.5
 #: A reading is declined when the fit leaves more than this share of the stretch pattern's
 #: spread unexplained (rms over rms).  With the true K and strains the emulator's free-edge films
-#: leave 3–9 %; read through the model's fields, saddles and spheres (ν 0.3 and 0.48) 2–4 %,
-#: sharp bumps and ridges, whose K the fields smooth, 11–25 %, friction and frames 50–80 %.
-MAX_RESIDUAL = 0.08
+#: leave 3–9 %, so the bar sits above that; read through the model's fields, saddles and spheres
+#: (ν 0.3 and 0.48) 2–4 %, a saddle turned to 129° 8.6–9.7 % (at a bar of 8 % it fell back to
+#: the trace's interval, 0.12 mm off; read, 0.01 mm), sharp bumps and ridges, whose K the
+#: fields smooth, 11–25 %, friction and frames 50–80 %.
+MAX_RESIDUAL = 0.10
 #: The membrane model's own error in the Gaussian curvature's scale, relative, at least: films
 #: solved by the emulator read with their true K fit at a scale of 0.96-1.02 (free edges,
 #: frictionless); a residual smaller than this does not make the scale better known.
