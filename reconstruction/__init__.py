@@ -1157,13 +1157,29 @@ class Reconstructor:
             # correction fitted to the old twist), both signs where none is given
             cands = []
             n_valid = int(valid.sum())
-            for sg in signs:
-                fresh = self._general(turning, stretch, valid, n_valid, sigma_f, None, sg, (eu, el), sg * magnitude)
+            def fresh_at(sg: float, twist: float):
+                out = self._general(turning, stretch, valid, n_valid, sigma_f, None, sg, (eu, el), sg * twist)
                 if self.defect_steps:
-                    fresh = self._defect_correction(fresh, eu, el, valid, n_valid, sigma_f, None, sg, sg * magnitude)
+                    out = self._defect_correction(out, eu, el, valid, n_valid, sigma_f, None, sg, sg * twist)
+                return out
+
+            for sg in signs:
+                fresh, own = fresh_at(sg, magnitude), magnitude
+                if membrane and len(signs) > 1:
+                    # Each sign is weighed at the twist its own family explains best: the refined
+                    # magnitude above was read on the answer's family, whose sign may be the wrong
+                    # one, and the two signs prefer different magnitudes (a saddle R 74 mm at 32°:
+                    # at 0.0120 /mm, the wrong sign's best, it read the stretch 5 times better
+                    # than the right one; at 0.0114, the right sign's, 15 times worse).
+                    family_sg = fresh[5]
+                    own = self._refine_twist(lambda m: family_sg(sg * (m - magnitude)), reading, stretch, valid)
+                    if abs(own - magnitude) > MOVE_SHARE * magnitude:
+                        fresh = fresh_at(sg, own)
+                    else:
+                        own = magnitude
                 cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
                 score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
-                cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score))
+                cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score, own))
             if len(cands) > 1:
                 if membrane:
                     # the sign whose surface explains the stretch pattern better (it was the right
@@ -1175,7 +1191,11 @@ class Reconstructor:
                     # the trace: the answer's own sign stands where it has a twist of the
                     # interval's order unless the other reads the gauges clearly better
                     cands.reverse()
-            chi_t, sg, cand, family, _ = cands[0]
+            chi_t, sg, cand, family, _, own = cands[0]
+            if own != magnitude:  # the winner's own twist: the reading's width kept about it
+                magnitude = own
+                m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+                info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
             dof = misfit(cand, layout, eu, el, sigma_f)[1]
             if chi_t > chi0 + max(tell, 0.5 * chi0):
                 # the gauges reject the pattern's twist (the film is not what the model of the
