@@ -471,7 +471,7 @@ class Reconstructor:
             extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"], "kernels": self.kernels,
                    "model": "graph" if fit is None else "general"},
         )
-        for key in ("least_shear_shift", "least_shear_stretch_rss", "undecided_twist", "defect_steps"):
+        for key in ("least_shear_shift", "least_shear_stretch_rss", "undecided_twist", "open_twist", "defect_steps"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -628,16 +628,36 @@ class Reconstructor:
                                          turning_sigma)
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
-                     undecided: float = 0.0):
+                     undecided: float = 0.0, sign_open: bool = False, open_twist: float = 0.0,
+                     twist_sign: float | None = None):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
         through the model's field maps (:mod:`.productnoise`); c = √(product) then has the s.d. of that over
         2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  An
         ``undecided`` shift (a less-sheared twist within the noise, which the model did not
-        take) adds half the distance to that answer: 3 s.d. then reach past it."""
+        take) adds half the distance to that answer: 3 s.d. then reach past it.  ``sign_open``
+        (the twist's sign is within the noise and not told): half the distance to the mirror
+        image (the twist −c) joins it the same way (a cylinder turned 6° from the grid lines:
+        the product's noise hides the sign of its 0.0015 /mm twist, and the default sign was
+        0.65 mm off with σ 0.054 mm).  ``open_twist`` (the magnitude the curvature product
+        allows where its noise shrank the twist taken, engine.solve_twist): half the distance
+        to the twist of that magnitude, of either sign unless ``twist_sign`` tells it, joins
+        the rest (the same cylinder where the shrunk twist was none: 0.87 mm off, σ 0.058)."""
         if positions_at is None:
             return lambda: None
+        if open_twist > 0.0:
+            targets = [s * open_twist for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
+            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open)
+
+            def opened() -> np.ndarray:
+                here = positions_at(base_shift)
+                far = [positions_at(base_shift + t - c0) for t in targets]
+                out = 0.5 * np.max([np.sqrt(((e - here) ** 2).sum(axis=2)) for e in far], axis=0)
+                other = rest()
+                return out if other is None else np.maximum(out, other)
+
+            return _memo(opened)
         if undecided != 0.0:
             def other() -> np.ndarray:
                 gap = positions_at(base_shift + undecided) - positions_at(base_shift)
@@ -652,7 +672,11 @@ class Reconstructor:
         def spread() -> np.ndarray:
             step = 0.05 * abs(c0)
             response = positions_at(base_shift + step) - positions_at(base_shift - step)
-            return np.sqrt((response * response).sum(axis=2)) * (sigma_c / (2.0 * step))
+            out = np.sqrt((response * response).sum(axis=2)) * (sigma_c / (2.0 * step))
+            if sign_open:
+                gap = positions_at(base_shift - 2.0 * c0) - positions_at(base_shift)
+                out = np.maximum(out, 0.5 * np.sqrt((gap * gap).sum(axis=2)))
+            return out
 
         return _memo(spread)
 
@@ -942,8 +966,15 @@ class Reconstructor:
         # no position is less certain than "somewhere on the sheet's own extent"
         ceiling = math.sqrt(self._half_diagonal2)
 
+        # a twist whose sign the noise leaves open, not tried as a mirror above (within the
+        # noise's own product) and not told: the answer's mirror image is as likely
+        sign_open = (twist_sign is None and mirror is None
+                     and abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM
+                     and abs(c0) <= MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)))
         twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
-                                  diag.extra.get("undecided_twist", 0.0))
+                                  diag.extra.get("undecided_twist", 0.0), sign_open,
+                                  diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
+                                  None if twist_sign is None else float(twist_sign))
         if pattern is not None:
             twist = pattern[3]
 
@@ -1328,7 +1359,7 @@ class Reconstructor:
             metric_stack[6] -= debias
             metric_stack[8] -= debias
             metric = Metric(*metric_stack)
-        tau, twist_c, graph = solve_twist(
+        tau, twist_c, graph, open_twist = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=product_noise,
         )
@@ -1412,6 +1443,8 @@ class Reconstructor:
             convex_info["least_shear_shift"] = shift0
         if undecided != 0.0 and shift0 == 0.0:
             convex_info["undecided_twist"] = undecided
+        if open_twist > 0.0 and shift0 == 0.0 and twist_mean is None and shear_graph is None:
+            convex_info["open_twist"] = open_twist
         return pos, twist_c, fit, convex_info, left_out, positions_at
 
     def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:

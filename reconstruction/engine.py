@@ -89,8 +89,9 @@ def solve_twist(
     s.d. of one unit.  ``product_noise``: (bias, s.d.) of the mean product k_u k_v − τ₀² that
     the turning noise alone causes (:mod:`.productnoise`; the bias is removed before the product
     is read as a twist); without it, independent noise on every node is assumed.  Returns the τ
-    field and its constant without the graph refinement, and the graph model
-    (:class:`GraphTwist`) when the stretch pattern suggests one.
+    field and its constant without the graph refinement, the graph model
+    (:class:`GraphTwist`) when the stretch pattern suggests one, and the twist the product
+    allows where its noise shrank the one taken (``open``).
     """
     tau0 = tau0 - tau0.sum() / tau0.size
     # Only the region spanned by the cell centres: one-sided differences at the border would
@@ -137,7 +138,14 @@ def solve_twist(
                 return TwistResult(tau0 + graph.constant, graph.constant, graph)
             c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
     c = math.copysign(math.sqrt(c2), twist_sign)
-    return TwistResult(tau0 + c, c, graph)
+    # a product the data show (beyond 1 s.d. of its noise) but the significance test shrank:
+    # the twist it would be is not ruled out (a cylinder 6° off the grid lines, whose twist of
+    # 0.0015 /mm reads 2-4 s.d. of the product's noise)
+    # (the stretch's verdict on developability counts only where the stretch a doubly curved
+    # sheet would need exceeds three of its noise s.d.: below that its variation is the noise's)
+    allowed = max(prod, 0.0) * (weight if need > 3.0 * stretch_sigma else 1.0)
+    opened = math.sqrt(allowed) if significance < 1.0 and prod > noise / 3.0 and c2 < allowed else 0.0
+    return TwistResult(tau0 + c, c, graph, opened)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -168,6 +176,9 @@ class TwistResult(NamedTuple):
     tau: np.ndarray
     constant: float
     graph: GraphTwist | None
+    # the twist magnitude the curvature product allows where the noise's significance shrank
+    # what was taken below it (the product beyond 1 s.d. of its noise; 0 otherwise)
+    open: float = 0.0
 
 
 def graph_slopes(grid: FineGrid, k_u, k_v, tau0) -> tuple[np.ndarray, np.ndarray]:
