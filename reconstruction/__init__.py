@@ -647,23 +647,17 @@ class Reconstructor:
         if positions_at is None:
             return lambda: None
         if open_twist > 0.0:
-            targets = [s * open_twist for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
+            targets = [s * open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open)
 
             def opened() -> np.ndarray:
-                here = positions_at(base_shift)
-                far = [positions_at(base_shift + t - c0) for t in targets]
-                out = 0.5 * np.max([np.sqrt(((e - here) ** 2).sum(axis=2)) for e in far], axis=0)
+                out = _half_reach(positions_at, base_shift, targets)
                 other = rest()
                 return out if other is None else np.maximum(out, other)
 
             return _memo(opened)
         if undecided != 0.0:
-            def other() -> np.ndarray:
-                gap = positions_at(base_shift + undecided) - positions_at(base_shift)
-                return 0.5 * np.sqrt((gap * gap).sum(axis=2))
-
-            return _memo(other)
+            return _memo(lambda: _half_reach(positions_at, base_shift, (undecided,)))
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
             return lambda: None
         sigma_product = product_sd(strain_sigma)
@@ -674,11 +668,19 @@ class Reconstructor:
             response = positions_at(base_shift + step) - positions_at(base_shift - step)
             out = np.sqrt((response * response).sum(axis=2)) * (sigma_c / (2.0 * step))
             if sign_open:
-                gap = positions_at(base_shift - 2.0 * c0) - positions_at(base_shift)
-                out = np.maximum(out, 0.5 * np.sqrt((gap * gap).sum(axis=2)))
+                out = np.maximum(out, _half_reach(positions_at, base_shift, (-2.0 * c0,)))
             return out
 
         return _memo(spread)
+
+    def _fresh(self, turning, stretch, valid, sigma_f: float, sign: float, strains, twist_mean: float):
+        """The general model modelled afresh with the twist's ``sign`` and mean ``twist_mean``
+        given (no previous frame), through its defect correction: a candidate to weigh."""
+        n_valid = int(valid.sum())
+        out = self._general(turning, stretch, valid, n_valid, sigma_f, None, sign, strains, twist_mean)
+        if self.defect_steps:
+            out = self._defect_correction(out, strains[0], strains[1], valid, n_valid, sigma_f, None, sign, twist_mean)
+        return out
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
                            twist_mean: float | None = None):
@@ -943,12 +945,11 @@ class Reconstructor:
                 # rejected it is modelled afresh.
                 tm = twist_mean if twist_mean is not None else (
                     float(np.asarray(product_fields[2])[self.grid.inner].mean()) + c0)
-                sg_m = -math.copysign(1.0, c0)
-                t_m, s_m, _ = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
-                n_m = int(valid.sum())
-                fresh_m = self._general(t_m, s_m, valid, n_m, sigma_f, None, sg_m, (eu, el), -tm)
-                if self.defect_steps:  # (without it the mirror misreads the gauges by 3-13 per gauge)
-                    fresh_m = self._defect_correction(fresh_m, eu, el, valid, n_m, sigma_f, None, sg_m, -tm)
+                # (its defect correction matters: without it the mirror misread the gauges by 3-13
+                # per gauge)
+                s_m = stretch if stretch is not None else unit_data(eu, el, self.h_upper, self.h_lower,
+                                                                    self.gauge_length)[1]
+                fresh_m = self._fresh(turning, s_m, valid, sigma_f, -math.copysign(1.0, c0), (eu, el), -tm)
                 cand_f = self._surface(fresh_m[0], surf._fine_sigma_fn, _with_twist(diag, fresh_m[1]))
                 chi_f, _, _ = misfit(cand_f, layout, eu, el, sigma_f)
                 info["mirror_afresh_chi2_per_gauge"] = round(chi_f / max(dof, 1), 3)
@@ -963,8 +964,7 @@ class Reconstructor:
             # at 169° on 12×12: its mirror read 0.38 per gauge against the true sign's 0.92, and
             # was taken, 3.4 mm off).  A graph's misfit is the noise's alone: its χ² difference
             # is evidence however small both are.
-            within_noise = product_fields_general and (
-                max(chi0, chi_m) <= dof * chi2_noise * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1))))
+            within_noise = product_fields_general and _within_noise(chi0, chi_m, dof, chi2_noise)
             # (a mirror modelled afresh is flagged, never taken: on large sheets the general
             # model's sign evidence is its own systematic misfit, and on one noise draw in 20 a
             # saddle at 49° on 16×16 read 2.2 per gauge with the right sign against 0.74 with
@@ -1175,14 +1175,8 @@ class Reconstructor:
             info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
             if mag <= UNDECIDED_SHARE * m_hi or mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
                 return None
-            ends = (sign * mag, -sign * mag) if sign_open else (sign * mag,)
-
-            def undecided() -> np.ndarray:
-                here = positions_at(base_shift)
-                far = [positions_at(base_shift + m - m0) for m in ends]
-                return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in far], axis=0)
-
-            return surf, mirror, base_shift, _memo(undecided), chi0
+            ends = [m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))]
+            return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0
         if membrane:
             # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
             # (the metric, the slopes): the twist's square is read again on the answer's family
@@ -1214,15 +1208,8 @@ class Reconstructor:
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
             # correction fitted to the old twist), both signs where none is given
             cands = []
-            n_valid = int(valid.sum())
-            def fresh_at(sg: float, twist: float):
-                out = self._general(turning, stretch, valid, n_valid, sigma_f, None, sg, (eu, el), sg * twist)
-                if self.defect_steps:
-                    out = self._defect_correction(out, eu, el, valid, n_valid, sigma_f, None, sg, sg * twist)
-                return out
-
             for sg in signs:
-                fresh, own = fresh_at(sg, magnitude), magnitude
+                fresh, own = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * magnitude), magnitude
                 if membrane and len(signs) > 1:
                     # Each sign is weighed at the twist its own family explains best: the refined
                     # magnitude above was read on the answer's family, whose sign may be the wrong
@@ -1232,7 +1219,7 @@ class Reconstructor:
                     family_sg = fresh[5]
                     own = self._refine_twist(lambda m: family_sg(sg * (m - magnitude)), reading, stretch, valid)
                     if abs(own - magnitude) > MOVE_SHARE * magnitude:
-                        fresh = fresh_at(sg, own)
+                        fresh = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * own)
                     else:
                         own = magnitude
                 cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
@@ -1273,9 +1260,7 @@ class Reconstructor:
 
         def spread() -> np.ndarray:
             # the twists the reading allows: 3 s.d. reach past the farther end
-            here = positions_at(shift)
-            ends = [positions_at(shift + sign * m - m0) for m in (m_lo, m_hi)]
-            return 0.5 * np.max([np.linalg.norm(e - here, axis=-1) for e in ends], axis=0)
+            return _half_reach(positions_at, shift, [sign * m - m0 for m in (m_lo, m_hi)])
 
         if sign_open and m_lo > 0.0:
             # The pattern needs a twist whose sign nothing tells (the stretch of a saddle is even
@@ -1295,8 +1280,7 @@ class Reconstructor:
             # alone would, the kinematic forward model's preference proves nothing (a saddle on a
             # mold with friction, R 85 mm at 54°: the wrong sign read 0.10 per gauge, the right
             # one 0.43, and the answer was 4.4 mm off with nothing said)
-            within_noise = max(chi, chi_m) <= dof * chi2_noise * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
-            if (chi_m <= chi + max(tell, chi) or within_noise) and _differs(surf, cand):
+            if (chi_m <= chi + max(tell, chi) or _within_noise(chi, chi_m, dof, chi2_noise)) and _differs(surf, cand):
                 mirror = cand
         return surf, mirror, shift, _memo(spread), chi
 
@@ -1530,6 +1514,20 @@ def _memo(fn):
         return box[0]
 
     return once
+
+
+def _within_noise(chi_a: float, chi_b: float, dof: int, chi2_noise: float) -> bool:
+    """Both χ² at most what the noise alone leaves in the general model's answers, plus two of
+    its s.d. (``dof``·``chi2_noise``·(1 + 2√(2/dof))): their difference then proves nothing."""
+    return max(chi_a, chi_b) <= dof * chi2_noise * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
+
+
+def _half_reach(positions_at, base_shift: float, shifts) -> np.ndarray:
+    """Half the largest distance (fine grid, mm) from the sheet at ``base_shift`` on its twist
+    family to the sheet at each of ``base_shift + shifts``: a twist the data leave open joins
+    node_sigma so, and 3 s.d. then reach past it."""
+    here = positions_at(base_shift)
+    return 0.5 * np.max([np.linalg.norm(positions_at(base_shift + d) - here, axis=-1) for d in shifts], axis=0)
 
 
 def _differs(a: Surface, b: Surface) -> bool:
