@@ -181,7 +181,7 @@ def device_info(device: str, hello: Hello, pipeline: FramePipeline, cfg: DaemonC
             "firmware": ".".join(str(x) for x in hello.fw_version),
         },
         "source": source,
-        "frame": "sensor frame: sheet centre at the origin, normal +z, rows along +x (metres)",
+        "frame": "sensor frame: sheet centre at the origin, its best-fit plane z = 0 (+z upper side), rows along +x (metres)",
     }
 
 

@@ -48,7 +48,7 @@ from .airy import airy_curvature_range, airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import SigmaField, fine_sigma, frame_resolution_sigma, resolution_sigma, sigma_field
+from .uncertainty import RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame"]
@@ -85,6 +85,13 @@ _GRAPH_MIN_UNITS = 0.8
 ELASTIC_PRIOR_MAX_CELLS = 64  # the position fit's dense normal matrix grows as (N·M)²
 # Seeded noisy flat frames that measure the general model's answer to noise (Reconstructor._noise_response).
 RESPONSE_DRAWS, RESPONSE_SEED = 24, 20241201
+
+#: The sensor frame's plane is the sheet's best-fit plane while that is well defined: its
+#: normal's variance at most this share of the next direction's.  A sheet wrapped further
+#: (a half tube of a circular section is 0.19, a 240° wrap 0.37, a closed tube 1) turns to the
+#: centre's tangent plane by :data:`FRAME_PLANE_BLEND`, continuously.
+FRAME_PLANE_OPEN = 0.3
+FRAME_PLANE_BLEND = 0.2
 
 
 def _positive(name: str, value: float) -> float:
@@ -495,15 +502,13 @@ class Reconstructor:
                 if known is not None:
                     sigma = known * (strain_sigma / fit_sigma)
                 else:
-                    sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
-                                                          grid.spacing)
+                    sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.frame_nodes)
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
 
             # skinmapd reads the nodes and its elements' patches only: those alone, unless the
             # agreement test computed the whole field anyway
             graph_at = (None if known is not None else
-                        self._graph_fit().height_sigma_at(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre,
-                                                          grid.spacing))
+                        self._graph_fit().height_sigma_at(graph.coeffs, data, strain_sigma / fit_sigma, grid.frame_nodes))
 
             def graph_nodes(flat: np.ndarray) -> np.ndarray:
                 assert graph_at is not None
@@ -538,19 +543,19 @@ class Reconstructor:
             measured_fields = convex_info.get("measured_fields", product_fields) if fit is not None else None
             chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
-            frame_term: Callable[[], np.ndarray] | None = None
-            if fit is not None and not deferred:
-                # the general model's answer: its sensor frame turns with a slope the fields may
-                # misplace where the curvature changes at the gauge scale around the centre
-                def frame_field() -> np.ndarray:
+            resolution_term: Callable[[], np.ndarray] | None = None
+            if fit is not None and not deferred and grid.dense_maps:
+                # the general model's answer: its fields misplace curvature that changes at the
+                # gauge scale (a deferred frame carries the whole term already)
+                def resolution_field() -> np.ndarray:
                     sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
-                    return frame_resolution_sigma(grid, valid, turning, sig_turn)
+                    return RESOLUTION_SHARE * resolution_sigma(grid, valid, turning, sig_turn)
 
-                frame_term = frame_field
+                resolution_term = resolution_field
 
             surf = self._posterior(surf, eu, el, strain_sigma, positions_at, twist_sign, graph_mirror, turning, valid,
                                    product_fields, known, stretch if convex_info.get("graph_sheet") is None else None,
-                                   twist_mean, measured_fields, reading, frame_term)
+                                   twist_mean, measured_fields, reading, resolution_term)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
@@ -603,7 +608,14 @@ class Reconstructor:
             chi, dof, _ = misfit(self._candidate(pos), self._layout, eu, el, sigma_f)
             chi2.append(chi / max(dof, 1))
         nodes_a = np.array(nodes)
-        spread2 = ((nodes_a - nodes_a.mean(axis=0)) ** 2).sum(axis=3).mean(axis=0)
+        dev = nodes_a - nodes_a.mean(axis=0)
+        # less the twist the noise leaves open on a flat sheet (the mode u·v): the twist's own
+        # term carries it (engine.solve_twist's open twist, _twist_noise), so this ratio is the
+        # integration's alone
+        mode = np.outer(grid.v[rows], grid.u[cols])
+        if (mode * mode).sum() > 0.0:
+            dev[..., 2] -= np.multiply.outer(np.tensordot(dev[..., 2], mode, axes=2) / (mode * mode).sum(), mode)
+        spread2 = (dev ** 2).sum(axis=3).mean(axis=0)
         linear = fine_sigma(grid, valid, np.zeros(shape), key, self.h_upper, self.h_lower)[rows[:, None], cols]
         keep = linear > 0.0
         ratio = math.sqrt(float(spread2[keep].sum()) / float((linear[keep] ** 2).sum())) if keep.any() else 1.0
@@ -877,7 +889,7 @@ class Reconstructor:
                    valid, product_fields=None, known_chi2: tuple[float, int] | None = None,
                    stretch: np.ndarray | None = None, twist_mean: float | None = None,
                    measured_fields=None, reading: TwistReading | None = None,
-                   frame_term: Callable[[], np.ndarray] | None = None) -> Surface:
+                   resolution_term: Callable[[], np.ndarray] | None = None) -> Surface:
         """The posterior check (docs/reconstruction.md): the answer's own gauge readings
         against the measured ones (:mod:`.forward`), which
 
@@ -892,9 +904,9 @@ class Reconstructor:
           explains them clearly better, it becomes the answer;
         - with ``stretch`` (the general model answered, not as a graph pushed out of plane),
           holds the twist to the stretch pattern's Gaussian curvature (:meth:`_stretch_twist`);
-        - adds ``frame_term`` (the general model answered: its frame's resolution,
-          :func:`.uncertainty.frame_resolution_sigma`) in quadrature, not widened by the misfit
-          (it is no noise).
+        - adds ``resolution_term`` (the general model answered: a share of its resolution,
+          :func:`.uncertainty.resolution_sigma`) in quadrature, not widened by the misfit (it is
+          no noise).
         """
         diag = surf.diagnostics
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -1005,23 +1017,23 @@ class Reconstructor:
         if pattern is not None:
             twist = pattern[3]
 
-        frame_known: list[np.ndarray | None] = []
+        resolution_known: list[np.ndarray | None] = []
 
-        def frame() -> np.ndarray | None:
-            # the frame's resolution term, once (None where it is zero)
-            if not frame_known:
-                field = frame_term() if frame_term is not None else None
-                frame_known.append(field if field is not None and field.any() else None)
-            return frame_known[0]
+        def resolution() -> np.ndarray | None:
+            # the resolution term, once (None where it is zero)
+            if not resolution_known:
+                field = resolution_term() if resolution_term is not None else None
+                resolution_known.append(field if field is not None and field.any() else None)
+            return resolution_known[0]
 
         def sigma() -> np.ndarray:
             base = noise_sigma()
             spread = twist()
-            tilt = frame()
-            if spread is None and tilt is None and scale == 1.0 and float(base.max()) <= ceiling:
+            unresolved = resolution()
+            if spread is None and unresolved is None and scale == 1.0 and float(base.max()) <= ceiling:
                 return base  # the shared, read-only noise map (computed once per mask and noise)
             out = base * scale
-            for extra in (spread, tilt):
+            for extra in (spread, unresolved):
                 if extra is not None:
                     out = np.sqrt(out * out + extra * extra)
             out = np.minimum(out, ceiling)
@@ -1029,9 +1041,9 @@ class Reconstructor:
             return out
 
         def sigma_at(flat: np.ndarray) -> np.ndarray:
-            # the same, node by node (the twist's spread and the frame's term are whole fields)
+            # the same, node by node (the twist's spread and the resolution term are whole fields)
             out = noise_sigma.at(flat) * scale
-            for extra in (twist(), frame()):
+            for extra in (twist(), resolution()):
                 if extra is not None:
                     extra = extra.reshape(-1)[flat]
                     out = np.sqrt(out * out + extra * extra)
@@ -1056,10 +1068,16 @@ class Reconstructor:
         k_u, k_v, tau0 = product_fields
         if self._membrane is None:
             self._membrane = membrane_maps(self.grid)
+        # Both readings are linear in the strain: their relation between the pattern and K holds
+        # to first order, so their interval widens by the sheet's own strain level (a film
+        # pre-stretched 5 % on a cylinder at -38°: the trace read 0.00714-0.00749 /mm for a
+        # twist of 0.00693)
+        strain = stretch[valid]
+        level = float(np.mean(np.abs(strain - 1.0))) if strain.size else 0.0
         reading = read_twist(self._membrane, stretch, valid, k_u, k_v, tau0, self.grid.inner, self.poisson_range,
                              stretch_sd)
         if reading is not None:
-            return reading
+            return reading._replace(low=reading.low * max(1.0 - level, 0.0), high=reading.high * (1.0 + level))
         bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range,
                                       noise_sd=math.sqrt(2.0) * stretch_sd)  # a trace: two readings
         if bounds is None:
@@ -1068,7 +1086,7 @@ class Reconstructor:
         lo, hi = max(base - bounds[1], 0.0), base - bounds[0]
         if hi <= 0.0:
             return None  # no twist gets there: the curvature product alone is below the pattern's K
-        m_lo, m_hi = math.sqrt(lo), math.sqrt(hi)
+        m_lo, m_hi = math.sqrt(lo) * max(1.0 - level, 0.0), math.sqrt(hi) * (1.0 + level)
         return TwistReading(0.5 * (m_lo + m_hi), m_lo, m_hi, math.nan, math.nan, "trace")
 
     def _carried_twist(self, previous: Surface | None, twist_sign, turning, stretch, valid,
@@ -1308,7 +1326,7 @@ class Reconstructor:
             ratio = disagreement(surface, pos, np.sqrt(tol_sq))
             if ratio <= GRAPH_AGREE_SIGMAS:
                 return ratio  # the graph's own scatter could only widen the tolerance
-            sigma = self._graph_fit().fine_height_sigma(coeffs, data, 1.0, grid.centre, grid.spacing)
+            sigma = self._graph_fit().fine_height_sigma(coeffs, data, 1.0, grid.frame_nodes)
             graph_sigma[coeffs.tobytes()] = sigma
             return disagreement(surface, pos, np.sqrt(tol_sq + sigma**2))
 
@@ -1422,6 +1440,7 @@ class Reconstructor:
                 return compiled.surface_positions(
                     grid.spacing, k_u, k_v, lam_u, lam_v, compiled.as_field(twist), metric_stack,
                     self.shear_passes, self.frame_corrections, self._band, *grid.centre, *target,
+                    FRAME_PLANE_OPEN, FRAME_PLANE_BLEND,
                 ).transpose(1, 2, 0)
             return to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
 
@@ -1539,21 +1558,47 @@ def _differs(a: Surface, b: Surface) -> bool:
 
 
 def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
-    """Centre of the sheet at the origin, its normal +z, its u-tangent in the xz-plane (+x):
-    the sensor frame's one definition (docs/architecture.md), for any positions (nf, mf, 3) on
-    ``grid`` (a reconstruction's, or a reference surface's to compare with it there).
+    """The sensor frame's one definition (docs/architecture.md), for any positions (nf, mf, 3)
+    on ``grid`` (a reconstruction's, or a reference surface's to compare with it there): the
+    centre node at the origin; +z the normal of the sheet's best-fit plane (least squares over
+    every fine node, FineGrid.frame_nodes), towards the upper side; +x the rows' mean direction
+    (the sum of their chords) in that plane.
+
+    The whole sheet fixes the frame, not the centre's tangents: a slope read at one point turns
+    the whole sheet with any error of the fields there (a bump beside the centre of a 5×5 film:
+    0.25-0.52 mm mean error in the centre's tangent frame, 0.05 mm in this one; the error after
+    the best rigid alignment 0.03-0.05).  A sheet wrapped so far that its plane is ill defined
+    (:data:`FRAME_PLANE_OPEN`) takes the centre's tangent plane instead, blended continuously.
     Returns (nf, mf, 3), a view of a components-first array."""
-    a0, b0 = grid.centre
+    (a0, b0), rows, cols = grid.frame_nodes
+    pos_t = pos.transpose(2, 0, 1).reshape(3, -1)  # a view where pos is one of components first
+    if rows.size == grid.nf and cols.size == grid.mf:
+        nodes, flat = pos, pos_t
+    else:
+        nodes = pos[rows[:, None], cols]
+        flat = nodes.transpose(2, 0, 1).reshape(3, -1)
+    mean = flat.mean(axis=1)
+    var, axes = np.linalg.eigh(flat @ flat.T - flat.shape[1] * np.outer(mean, mean))  # ascending
+    nz = axes[:, 0]
     # the centre's tangents by the fourth-order differences the surface's patches use
-    x_u = (8.0 * (pos[a0, b0 + 1] - pos[a0, b0 - 1]) - (pos[a0, b0 + 2] - pos[a0, b0 - 2])).tolist()
-    x_v = (8.0 * (pos[a0 + 1, b0] - pos[a0 - 1, b0]) - (pos[a0 + 2, b0] - pos[a0 - 2, b0])).tolist()
-    nz = np.array(_cross3(x_u, x_v))
-    nz /= math.sqrt(nz @ nz)
-    ex = np.array(x_u) - nz * (nz @ x_u)
+    t_u = 8.0 * (pos[a0, b0 + 1] - pos[a0, b0 - 1]) - (pos[a0, b0 + 2] - pos[a0, b0 - 2])
+    t_v = 8.0 * (pos[a0 + 1, b0] - pos[a0 - 1, b0]) - (pos[a0 + 2, b0] - pos[a0 - 2, b0])
+    n_c = np.array(_cross3(t_u.tolist(), t_v.tolist()))
+    n_c /= math.sqrt(n_c @ n_c)
+    chord = nodes[:, -1].sum(axis=0) - nodes[:, 0].sum(axis=0)
+    ratio = var[0] / var[1] if var[1] > 0.0 else 1.0
+    if ratio > FRAME_PLANE_OPEN:  # a plane ill defined: towards the centre's tangent plane
+        t = min((ratio - FRAME_PLANE_OPEN) / FRAME_PLANE_BLEND, 1.0)
+        nz = (1.0 - t) * (nz if nz @ n_c >= 0.0 else -nz) + t * n_c
+        nz /= math.sqrt(nz @ nz)
+        chord = (1.0 - t) * chord / math.sqrt(chord @ chord) + t * t_u / math.sqrt(t_u @ t_u)
+    elif nz @ n_c < 0.0:
+        nz = -nz
+    ex = chord - nz * (nz @ chord)
     ex /= math.sqrt(ex @ ex)
-    rot = np.array([ex, _cross3(nz, ex), nz])  # rows: new axes in the old frame
-    pos_t = pos.transpose(2, 0, 1).reshape(3, -1)
-    out = rot @ (pos_t - pos[a0, b0][:, None])
+    rot = np.array([ex, _cross3(nz.tolist(), ex.tolist()), nz])  # rows: new axes in the old frame
+    out = rot @ pos_t
+    out -= (rot @ pos[a0, b0])[:, None]
     return out.reshape(3, grid.nf, grid.mf).transpose(1, 2, 0)
 
 

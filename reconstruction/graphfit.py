@@ -47,6 +47,7 @@ from scipy.linalg.lapack import dpbtrs as _pbtrs
 from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from .linalg import aligned_distances
+from .uncertainty import plane_slopes
 
 __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement"]
 
@@ -555,11 +556,10 @@ class GraphFit:
                            how if accepted else f"{how}: misfit chi2 {chi_t:.3g} (turning), {chi_s:.3g} (stretch)",
                            float(objective))
 
-    def fine_height_sigma(self, c: np.ndarray, data: tuple, noise_ratio: float, centre: tuple[int, int],
-                          spacing: float) -> np.ndarray:
+    def fine_height_sigma(self, c: np.ndarray, data: tuple, noise_ratio: float, frame: tuple) -> np.ndarray:
         """One-s.d. height error (nf, mf) mm of every fine node in the sensor frame (the height
-        over the tangent plane at the centre node ``centre``, its tangents by the fourth-order
-        differences of fine spacing ``spacing`` that to_sensor_frame takes), by linear propagation through the Gauss-Newton
+        over the best-fit plane from the centre node, to_sensor_frame to first order; ``frame``:
+        FineGrid.frame_nodes), by linear propagation through the Gauss-Newton
         normal equations at the solution c: δc = −H⁻¹Jᵀδr with H = JᵀJ + P, the residuals δr
         normalised by the fit's noise and scattering with s.d. ``noise_ratio`` (the actual noise
         over the fit's).  The prior's pull is part of H, so where the data say little (between
@@ -600,20 +600,19 @@ class GraphFit:
         a_t = np.ascontiguousarray(resp.T).reshape(k * self.nbv, self.nbu)
         t = (a_t @ self._fu[0].T).reshape(k, self.nbv, mf).transpose(1, 0, 2).reshape(self.nbv, k * mf)
         w = (self._fv[0] @ t).reshape(nf, k, mf)
-        a0, b0 = centre
-        # the sensor frame: height over the tangent plane at the centre node
-        slope_u = (8.0 * (w[a0, :, b0 + 1] - w[a0, :, b0 - 1]) - (w[a0, :, b0 + 2] - w[a0, :, b0 - 2])) / (12.0 * spacing)
-        slope_v = (8.0 * (w[a0 + 1, :, b0] - w[a0 - 1, :, b0]) - (w[a0 + 2, :, b0] - w[a0 - 2, :, b0])) / (12.0 * spacing)
+        (a0, b0), rows, cols = frame
+        # the sensor frame: height over the best-fit plane, from the centre node
+        slope_u, slope_v = plane_slopes(self._fine_u[cols], self._fine_v[rows], w[rows][:, :, cols].transpose(0, 2, 1))
         w -= w[a0, :, b0].copy()[None, :, None]
         w -= self._fine_u[None, None, :] * slope_u[None, :, None]
         w -= self._fine_v[:, None, None] * slope_v[None, :, None]
         return noise_ratio * np.sqrt(np.einsum("ikj,ikj->ij", w, w))
 
-    def height_sigma_at(self, c: np.ndarray, data: tuple, noise_ratio: float, centre: tuple[int, int],
-                        spacing: float) -> Callable[[np.ndarray], np.ndarray]:
+    def height_sigma_at(self, c: np.ndarray, data: tuple, noise_ratio: float,
+                        frame: tuple) -> Callable[[np.ndarray], np.ndarray]:
         """:meth:`fine_height_sigma` at chosen fine nodes only: a function of flat node indices
         (into the (nf, mf) grid) giving their s.d. (mm).  The same propagation read the other way
-        round: σ_p = |J H⁻¹ s_p| with s_p the node's height over the centre's tangent plane as a
+        round: σ_p = |J H⁻¹ s_p| with s_p the node's height in the sensor frame as a
         row over the coefficients, so each node costs one band solve instead of every datum's
         response over the whole grid (5×5: the 25 cell centres and an element row's patches are
         about 50 of 441 nodes).  The matrix is factorised on the first call and kept."""
@@ -663,27 +662,30 @@ class GraphFit:
 
         def at(flat: np.ndarray) -> np.ndarray:
             j, solve = solver()
-            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre, spacing)
+            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), frame)
             r = j @ solve(np.asfortranarray(rows.T))
             return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
 
         return at
 
-    def _frame_height_rows(self, flat: np.ndarray, centre: tuple[int, int], spacing: float) -> np.ndarray:
-        """(P, coefficients): the height of fine nodes ``flat`` over the tangent plane at the
-        centre node, as fine_height_sigma builds the sensor frame (fourth-order differences of
-        ``spacing``), as linear forms in the coefficients."""
+    def _frame_height_rows(self, flat: np.ndarray, frame: tuple) -> np.ndarray:
+        """(P, coefficients): the height of fine nodes ``flat`` in the sensor frame (over the
+        best-fit plane, from the centre node; ``frame``:
+        FineGrid.frame_nodes), as fine_height_sigma builds it, as linear forms in the
+        coefficients."""
         fv, fu = self._fv[0], self._fu[0]
         a, b = np.divmod(flat, len(self._fine_u))
-        a0, b0 = centre
+        (a0, b0), rows, cols = frame
 
-        def height(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-            return (fv[rows][:, :, None] * fu[cols][:, None, :]).reshape(len(rows), self.size)
+        def height(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+            return (fv[r][:, :, None] * fu[c][:, None, :]).reshape(len(r), self.size)
 
-        ref = height(np.array([a0, a0, a0, a0 + 1, a0 - 1, a0, a0, a0 + 2, a0 - 2]),
-                     np.array([b0, b0 + 1, b0 - 1, b0, b0, b0 + 2, b0 - 2, b0, b0]))
-        slope_u = (8.0 * (ref[1] - ref[2]) - (ref[5] - ref[6])) / (12.0 * spacing)
-        slope_v = (8.0 * (ref[3] - ref[4]) - (ref[7] - ref[8])) / (12.0 * spacing)
+        ref = height(np.array([a0]), np.array([b0]))
+        # the plane's slopes (uncertainty.plane_slopes) as linear forms: each a sum over the
+        # frame's nodes of separable rows, so one outer product
+        uc, vc = self._fine_u[cols], self._fine_v[rows]
+        slope_u = np.outer(fv[rows].sum(axis=0), uc @ fu[cols]).reshape(-1) / (len(rows) * float(uc @ uc))
+        slope_v = np.outer(vc @ fv[rows], fu[cols].sum(axis=0)).reshape(-1) / (len(cols) * float(vc @ vc))
         return (height(a, b) - ref[0] - self._fine_u[b][:, None] * slope_u[None, :]
                 - self._fine_v[a][:, None] * slope_v[None, :])
 

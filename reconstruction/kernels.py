@@ -501,25 +501,58 @@ def _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band):
 
 
 @_helper
-def _sensor_frame(pos, nf, mf, a0, b0):
-    """Positions (3, nf·mf) → components-first (3, nf, mf) in the sensor frame: centre at the origin, its
-    normal +z, its u-tangent in the xz-plane (as reconstruction.to_sensor_frame)."""
+def _sensor_frame(pos, nf, mf, a0, b0, plane_open, plane_blend):
+    """Positions (3, nf·mf) → components-first (3, nf, mf) in the sensor frame, as
+    reconstruction.to_sensor_frame (every fine node's best-fit plane; the centre's tangent plane
+    where that is ill defined, blended): the same steps in the same order."""
+    n = nf * mf
+    mean = np.zeros(3)
+    for k in range(3):
+        acc = 0.0
+        for p in range(n):
+            acc += pos[k, p]
+        mean[k] = acc / n
+    cov = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(i + 1):
+            acc = 0.0
+            for p in range(n):
+                acc += pos[i, p] * pos[j, p]
+            cov[i, j] = acc - n * mean[i] * mean[j]
+            cov[j, i] = cov[i, j]
+    var, axes = np.linalg.eigh(cov)
+    nz = axes[:, 0].copy()
     c = a0 * mf + b0
-    # the centre's tangents by the fourth-order differences the surface's patches use
     w = mf + mf
-    u0 = 8.0 * (pos[0, c + 1] - pos[0, c - 1]) - (pos[0, c + 2] - pos[0, c - 2])
-    u1 = 8.0 * (pos[1, c + 1] - pos[1, c - 1]) - (pos[1, c + 2] - pos[1, c - 2])
-    u2 = 8.0 * (pos[2, c + 1] - pos[2, c - 1]) - (pos[2, c + 2] - pos[2, c - 2])
-    v0 = 8.0 * (pos[0, c + mf] - pos[0, c - mf]) - (pos[0, c + w] - pos[0, c - w])
-    v1 = 8.0 * (pos[1, c + mf] - pos[1, c - mf]) - (pos[1, c + w] - pos[1, c - w])
-    v2 = 8.0 * (pos[2, c + mf] - pos[2, c - mf]) - (pos[2, c + w] - pos[2, c - w])
-    n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-    s = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-    n0, n1, n2 = n0 / s, n1 / s, n2 / s
-    d = n0 * u0 + n1 * u1 + n2 * u2
-    x0, x1, x2 = u0 - n0 * d, u1 - n1 * d, u2 - n2 * d
+    t_u = np.empty(3)
+    t_v = np.empty(3)
+    for k in range(3):
+        t_u[k] = 8.0 * (pos[k, c + 1] - pos[k, c - 1]) - (pos[k, c + 2] - pos[k, c - 2])
+        t_v[k] = 8.0 * (pos[k, c + mf] - pos[k, c - mf]) - (pos[k, c + w] - pos[k, c - w])
+    n_c = np.array([t_u[1] * t_v[2] - t_u[2] * t_v[1], t_u[2] * t_v[0] - t_u[0] * t_v[2],
+                    t_u[0] * t_v[1] - t_u[1] * t_v[0]])
+    n_c /= math.sqrt(n_c[0] * n_c[0] + n_c[1] * n_c[1] + n_c[2] * n_c[2])
+    chord = np.zeros(3)
+    for k in range(3):
+        for a in range(nf):
+            chord[k] += pos[k, a * mf + mf - 1] - pos[k, a * mf]
+    ratio = var[0] / var[1] if var[1] > 0.0 else 1.0
+    dot = nz[0] * n_c[0] + nz[1] * n_c[1] + nz[2] * n_c[2]
+    if ratio > plane_open:
+        t = min((ratio - plane_open) / plane_blend, 1.0)
+        sgn = 1.0 if dot >= 0.0 else -1.0
+        nz = (1.0 - t) * sgn * nz + t * n_c
+        nz /= math.sqrt(nz[0] * nz[0] + nz[1] * nz[1] + nz[2] * nz[2])
+        cn = math.sqrt(chord[0] * chord[0] + chord[1] * chord[1] + chord[2] * chord[2])
+        un = math.sqrt(t_u[0] * t_u[0] + t_u[1] * t_u[1] + t_u[2] * t_u[2])
+        chord = (1.0 - t) * chord / cn + t * t_u / un
+    elif dot < 0.0:
+        nz = -nz
+    d = nz[0] * chord[0] + nz[1] * chord[1] + nz[2] * chord[2]
+    x0, x1, x2 = chord[0] - nz[0] * d, chord[1] - nz[1] * d, chord[2] - nz[2] * d
     s = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
     x0, x1, x2 = x0 / s, x1 / s, x2 / s
+    n0, n1, n2 = nz[0], nz[1], nz[2]
     y0, y1, y2 = n1 * x2 - n2 * x1, n2 * x0 - n0 * x2, n0 * x1 - n1 * x0
     out = np.empty((3, nf, mf))
     o0, o1, o2 = pos[0, c], pos[1, c], pos[2, c]
@@ -556,11 +589,13 @@ def _shear_free_part(sin_gamma, lam_u, lam_v, target):
 
 
 @_compiled
-def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corrections, band, a0, b0, shear_target, use_target):
+def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corrections, band, a0, b0, shear_target, use_target,
+                      plane_open, plane_blend):
     """Fine-grid positions in the sensor frame, components first (3, nf, mf), from the fitted
     fields, the twist τ and the metric terms: shear, rotation rates, frames, chords and their
     least-squares positions in one call (engine.solve_shear, rotation_rates, integrate_frames,
-    integrate_positions and the sensor-frame transform).  With ``use_target`` the shear's free
+    integrate_positions and to_sensor_frame, whose plane thresholds are ``plane_open`` and
+    ``plane_blend``).  With ``use_target`` the shear's free
     part a(u) + b(v) comes from ``shear_target`` (a graph's F, reconstruction/graphsheet.py)."""
     nf, mf = k_u.shape
     if shear_passes > 0:
@@ -572,7 +607,7 @@ def surface_positions(h, k_u, k_v, lam_u, lam_v, tau, metric, shear_passes, corr
     rot_u, rot_v = _rotation_rates(h, k_u, k_v, lam_u, lam_v, tau, sin_gamma)
     fr = _integrate_frames(rot_u, rot_v, a0, b0, corrections, band)
     pos = _positions(h, fr, rot_u, rot_v, lam_u, lam_v, sin_gamma, band)
-    return _sensor_frame(pos, nf, mf, a0, b0)
+    return _sensor_frame(pos, nf, mf, a0, b0, plane_open, plane_blend)
 
 
 # ------------------------------------------------------------------- patches, forward model
@@ -884,7 +919,7 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     metric = metric_terms(float(h), one, one)
     pos = surface_positions(
         float(h), zero, zero, one, one, zero, metric, int(shear_passes), int(corrections), band, int(a0), int(b0),
-        zero, False,
+        zero, False, 0.3, 0.2,
     )
     if not np.isfinite(pos).all():
         raise RuntimeError("compiled reconstruction kernels gave a non-finite flat sheet")

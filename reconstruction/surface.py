@@ -177,8 +177,9 @@ class FrameState:
 
 
 class Surface:
-    """A reconstructed sheet in the sensor frame (centre of the sheet at the origin, its normal
-    +z, the row direction +u along +x; mm).
+    """A reconstructed sheet in the sensor frame (:func:`~skinmap.reconstruction.to_sensor_frame`:
+    the centre node at the origin, the sheet's best-fit plane z = 0 with +z towards its upper
+    side, the rows' mean direction along +x; mm).
 
     Attributes
     ----------

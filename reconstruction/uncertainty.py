@@ -2,7 +2,8 @@
 
 For small deflections the reconstruction is linear in the data: the bending potential z is a
 fixed linear map of the units' turning data, and z is the height of the sheet in the sensor
-frame once its value and slopes at the centre are pinned (the frame's definition).  The
+frame once its value at the centre and its best-fit plane's slopes are pinned (the frame's
+definition, to first order).  The
 one-s.d. height error of a fine node is the norm of its row of that map times the noise of a
 unit's turning per length; missing units enter with the spread of the measured ones, so the
 uncertainty rises around a dead gauge.  In-plane errors are a random walk of the stretch noise
@@ -20,17 +21,17 @@ from .grid import FineGrid
 from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
-__all__ = ["height_response", "fine_sigma", "resolution_sigma", "frame_resolution_sigma", "SigmaField", "sigma_field",
-           "FRAME_RESOLUTION_SHARE"]
+__all__ = ["plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
+           "RESOLUTION_SHARE"]
 
-#: The share of the change of the turning from unit to unit around the centre (its central
-#: differences) that the general model's fields may misplace within the gauges there, tilting
-#: the frame.  Measured on kinematic sheets of 1-3 random bumps (|h| 1.5-5 mm, FWHM 15-25 mm)
-#: with the general model and the sensor's noise, 40 sheets a size: the sheets whose
-#: sensor-frame errors stay within 3 σ + 0.05 mm at 5x5 and 8x8 went from 0 and 5 % to 100 and
-#: 90 %, σ then 2.4 and 3.9 times the error where that exceeds 0.1 mm (0.5: 93 and 88 %; 1.0:
-#: 100 and 95 % with σ 3.4 and 5.6 times; docs/reconstruction.md).
-FRAME_RESOLUTION_SHARE = 0.7
+#: The share of :func:`resolution_sigma` that joins the general model's node_sigma where it
+#: answers (the whole term stands for a deferred frame).  Measured on kinematic sheets of 1-3
+#: random bumps (|h| 1.5-5 mm, FWHM 15-25 mm, anywhere) with the general model and the sensor's
+#: noise, 40 sheets a size, errors in the sensor frame (the sheet's best-fit plane): the sheets
+#: within 3 σ + 0.05 mm went from 5 and 15 % (noise alone) to 95 and 100 % at 5×5 and 8×8 (the
+#: two 5×5 sheets beyond it are flagged ambiguous), the median error/(3σ + 0.05 mm) 0.15 and
+#: 0.17 (0.3: 95 and 93 %; 0.7: the same as 0.5 with σ a third larger; docs/reconstruction.md).
+RESOLUTION_SHARE = 0.5
 
 
 class SigmaField:
@@ -76,24 +77,34 @@ def sigma_field(fn: Callable[[], np.ndarray]) -> SigmaField:
 
 
 def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:
-    """Fine-node heights in the sensor frame (centre height and slopes pinned, mean twist
+    """Fine-node heights in the sensor frame (centre height and best-fit plane pinned, mean twist
     removed) of potential columns z_ext (n_potential, K) → (nf·mf, K); linear."""
     # the reconstruction replaces the potential's mean twist by the Gauss-equation constant
     # (zero about the flat sheet): remove it here too
     mean_twist = (grid.z_uv @ z_ext).mean(axis=0)
     z = z_ext.reshape(grid.nf + 2, grid.mf + 2, -1)[1:-1, 1:-1]
     z = z - np.multiply.outer(np.outer(grid.v, grid.u), mean_twist)
-    a0, b0 = grid.centre
-    h = grid.spacing
-    slope_u = (z[a0, b0 + 1] - z[a0, b0 - 1]) / (2 * h)
-    slope_v = (z[a0 + 1, b0] - z[a0 - 1, b0]) / (2 * h)
+    (a0, b0), rows, cols = grid.frame_nodes
+    slope_u, slope_v = plane_slopes(grid.u[cols], grid.v[rows], z[rows[:, None], cols])
     z = z - z[a0, b0] - grid.u[None, :, None] * slope_u - grid.v[:, None, None] * slope_v
     return z.reshape(grid.nf * grid.mf, -1)
 
 
+def plane_slopes(u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The slopes along u and v of the least-squares plane through heights ``z`` (n, m, ...)
+    over a grid symmetric about its centre (``u`` (m,), ``v`` (n,), each summing to zero; the
+    sensor frame's, FineGrid.frame_nodes):
+    the sensor frame's tilt (reconstruction.to_sensor_frame) to first order about a flat
+    sheet.  On such a grid 1, u and v are orthogonal, so each slope is one projection."""
+    z = np.asarray(z)
+    slope_u = np.tensordot(u, z.sum(axis=0), axes=(0, 0)) / (len(v) * float(u @ u))
+    slope_v = np.tensordot(v, z.sum(axis=1), axes=(0, 0)) / (len(u) * float(v @ v))
+    return slope_u, slope_v
+
+
 def height_response(grid: FineGrid, valid: np.ndarray) -> np.ndarray:
     """Linear map (nf·mf, 2·N·M) from the units' turning per length to fine-node heights in the
-    sensor frame (centre height and slopes pinned), about the flat sheet."""
+    sensor frame (centre height and best-fit plane pinned), about the flat sheet."""
     solver, obs_t_w = grid.potential_solver(valid)
     return _heights(grid, solver.solve(obs_t_w.toarray()))
 
@@ -191,8 +202,8 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
     uncertainty of that unit's turning and propagated like the noise, through the height
     response about the flat sheet: zero on spheres, cylinders and saddles of constant
     curvature, about the feature's own height around a bump (a generous bound: the general
-    model's actual error there is a tenth or less of it).  A missing unit's departure is unknown
-    with the mean excess of the measured ones.  Dense-map grids only (the response is held
+    model's actual error there is a tenth or less of it).  A missing unit's departure is unknown,
+    as large as the largest of the measured ones (a missing unit is not taken as calm).  Dense-map grids only (the response is held
     whole, from the cached all-valid one)."""
     base = _all_valid_response(grid)
     rsq = base.get("r_sq")
@@ -216,66 +227,7 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
         excess[k, v] = np.maximum(dev * dev - turning_sigma**2, 0.0)
         fitted[k] = v
     if not fitted.all():
-        excess[~fitted] = excess[fitted].mean() if fitted.any() else 0.0
-    return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
-
-
-def frame_resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, turning_sigma: float,
-                           share: float = FRAME_RESOLUTION_SHARE) -> np.ndarray:
-    """How far (one s.d., (nf, mf) mm) the general model's positions may be off in the sensor
-    frame because the sheet changes its curvature at the gauge scale around the centre.
-
-    The frame is the centre's tangent plane: a slope there, the derivative of a smooth
-    reconstruction at one point, is off wherever the fields misplace curvature within the centre
-    gauges, and the whole sheet turns with it about the centre (a bump beside the centre of a
-    5×5 sheet: 2-5° of tilt and 1-3 mm at the corners, while the shape itself, after the best
-    rigid alignment, is within 0.2 mm).  So each unit within one pitch of the centre whose
-    turning changes along the rows or columns (central differences d_u, d_v, half the change
-    between its two neighbours, beyond three noise s.d.) is given an uncertainty of its turning
-    of ``share`` · √(d_u² + d_v² − noise), carried to every node like the noise through the
-    height response about the flat sheet (centre height and slopes pinned).  Zero on spheres,
-    cylinders and saddles of constant curvature and on sheets whose features lie away from the
-    centre.  A difference whose units are not both measured takes the largest measured one of
-    its direction or, if larger, half the measured range's square twice, so that a missing
-    unit never lowers the term.  Only where the frame's tangent is read within the centre cell
-    (its stencil, two fine spacings either side, spans at most one pitch: 5×5 to 8×8 here):
-    a wider stencil averages the misplacement over the centre gauges and beyond (on 12×12
-    sheets, 6 mm spacing, 90 % of the bumpy kinematic sheets above are covered without it, and
-    with it σ was 10 times their error, 100 times on the bench's elastic ridges).  Zero otherwise, and on grids of fewer than
-    3 × 3 cells or without dense maps."""
-    if not grid.dense_maps or grid.n < 3 or grid.m < 3 or 4.0 * grid.spacing > grid.pitch + 1e-9:
-        return np.zeros((grid.nf, grid.mf))
-    valid = np.asarray(valid, dtype=bool).reshape(2, grid.n, grid.m)
-    turning = np.where(valid, np.asarray(turning, dtype=float).reshape(2, grid.n, grid.m), np.nan)
-    uc = np.abs(np.arange(grid.m) - 0.5 * (grid.m - 1)) * grid.pitch
-    vc = np.abs(np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
-    near = (uc[None, :] <= grid.pitch + 1e-9) & (vc[:, None] <= grid.pitch + 1e-9)
-    # the noise's own share of d_u² + d_v²: each central difference has σ²/2 of it
-    noise2 = turning_sigma * turning_sigma
-    excess = np.zeros((2, grid.n, grid.m))
-    for k in range(2):
-        t = turning[k]
-        d_u = np.full_like(t, np.nan)
-        d_v = np.full_like(t, np.nan)
-        d_u[:, 1:-1] = 0.5 * (t[:, 2:] - t[:, :-2])
-        d_u[:, 0], d_u[:, -1] = d_u[:, 1], d_u[:, -2]  # an edge unit: its inner neighbour's
-        d_v[1:-1, :] = 0.5 * (t[2:, :] - t[:-2, :])
-        d_v[0, :], d_v[-1, :] = d_v[1, :], d_v[-2, :]
-        d2 = d_u * d_u + d_v * d_v
-        measured = t[np.isfinite(t)]
-        if measured.size < 2:
-            continue
-        # a difference with a unit missing: at least any measured one, and as large as two
-        # half-changes across the measured range (a missing unit is not taken as calm)
-        d2 = np.where(np.isfinite(d2), d2, max(float(np.nanmax(d2, initial=0.0)),
-                                              0.5 * float(measured.max() - measured.min()) ** 2))
-        excess[k] = np.where(near & (d2 > 9.0 * noise2), share * share * (d2 - noise2), 0.0)
-    if not excess.any():
-        return np.zeros((grid.nf, grid.mf))
-    base = _all_valid_response(grid)
-    rsq = base.get("r_sq")
-    if rsq is None:
-        rsq = base["r_sq"] = base["r"] * base["r"]
+        excess[~fitted] = excess[fitted].max() if fitted.any() else 0.0
     return np.sqrt(rsq @ excess.ravel()).reshape(grid.nf, grid.mf)
 
 

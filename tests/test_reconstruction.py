@@ -73,13 +73,21 @@ def test_outputs_shapes_and_sensor_frame():
     assert np.allclose(np.linalg.norm(surf.normals, axis=-1), 1.0)
     c = (N // 2, M // 2)
     assert np.allclose(surf.nodes[c], 0.0, atol=1e-9)
-    assert np.allclose(surf.normals[c], [0.0, 0.0, 1.0], atol=1e-6)
-    # the row direction (+u) at the centre is +x; +v points to +y
-    # (a symmetric difference small enough that the surface's third derivative does not show)
-    p, _ = surf.locate([[-0.001, 0.0], [0.001, 0.0], [0.0, -0.001], [0.0, 0.001]])
-    t_u, t_v = (p[1] - p[0]) / 0.002, (p[3] - p[2]) / 0.002
-    assert t_u[0] > 0.9 and abs(t_u[1]) < 1e-4 and abs(t_u[2]) < 1e-4
-    assert t_v[1] > 0.9 and abs(t_v[2]) < 1e-4
+    assert surf.normals[c][2] > 0.9  # upper side up
+    # the sheet's best-fit plane is z = 0 and the rows' mean chord runs along +x
+    # (to_sensor_frame: least squares over the fine nodes, a quarter pitch apart at 5x5)
+    fine = np.arange(-2.5, 2.5 + 1e-9, 0.25) * PITCH
+    uu, vv = np.meshgrid(fine, fine)
+    p, _ = surf.locate(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    spread = p - p.mean(axis=0)
+    cov = spread.T @ spread
+    assert abs(cov[0, 2]) < 1e-6 * cov[0, 0] and abs(cov[1, 2]) < 1e-6 * cov[1, 1]
+    rows = p.reshape(len(fine), len(fine), 3)
+    chord = (rows[:, -1] - rows[:, 0]).sum(axis=0)
+    assert chord[0] > 0.9 * np.linalg.norm(chord) and abs(chord[1]) < 1e-6 * chord[0]
+    # +v points to +y
+    p, _ = surf.locate([[0.0, -0.001], [0.0, 0.001]])
+    assert (p[1] - p[0])[1] > 0.0018
     cloud = surf.points(per_pitch=20)
     assert cloud.shape == (N * M * 400, 3) and np.all(np.isfinite(cloud))
     d = surf.diagnostics
@@ -89,7 +97,7 @@ def test_outputs_shapes_and_sensor_frame():
 def test_convex_bending_points_normals_outward():
     eu, el = strains(ph.Cylinder(radius=30.0))
     surf = reconstruct(eu, el, PITCH)
-    # convex: the sheet curves away from its upper side, edges below the centre's tangent plane
+    # convex: the sheet curves away from its upper side, edges below the centre
     assert surf.nodes[2, 0, 2] < -5.0 and surf.nodes[2, 4, 2] < -5.0
     assert surf.normals[2, 0, 0] < -0.5 and surf.normals[2, 4, 0] > 0.5
 
@@ -217,9 +225,10 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     # (the graph fit's scatter is that of another nonlinear fit: a node may move a little either way)
     assert surf.diagnostics.extra["model"] == "graph"
     assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] > 5 * full.node_sigma[1, 4]
-    # the general model's linear propagation: never lower anywhere (on a cylinder, whose
-    # curvature does not change around the centre: no frame term to compare as well)
-    eu_c, el_c = strains(ph.Cylinder(radius=80.0))
+    # the general model's linear propagation: never lower anywhere (on a sphere, whose
+    # curvature does not change: no resolution term to compare as well, and whose curvature
+    # product leaves no twist open)
+    eu_c, el_c = strains(ph.SphereCap(radius=80.0))
     full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False)
     eu_c[0, 1, 3] = np.nan
     raised_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False).node_sigma - full_g.node_sigma
@@ -235,9 +244,10 @@ def test_all_gauges_missing_still_gives_a_surface():
 
 def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     # the general model (the graph fit's own: test_reconstruction_graphfit.py)
-    # a sheet the model explains within the noise (χ² per gauge below 1: no misfit to add) and
-    # whose curvature does not change around the centre (no frame term: see below)
-    shape = ph.Cylinder(radius=80.0)
+    # a sheet the model explains within the noise (χ² per gauge below 1: no misfit to add),
+    # whose curvature does not change (no resolution term: see below) and whose curvature
+    # product leaves no twist open (an aligned cylinder's does: test_twist_the_product_hides...)
+    shape = ph.SphereCap(radius=80.0)
     eu, el = strains(shape)
     base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False)
     double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
@@ -261,23 +271,25 @@ def test_uncertainty_grows_with_the_misfit_the_noise_cannot_explain():
     # without defect correction the general model leaves a 2 mm bump of FWHM 24 mm misfitted
     # by several noise s.d.: its node_sigma grows by the misfit's Birge ratio
     from skinmap.reconstruction.engine import unit_data
-    from skinmap.reconstruction.uncertainty import frame_resolution_sigma
+    from skinmap.reconstruction.uncertainty import RESOLUTION_SHARE, resolution_sigma
 
     rec = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0)
     eu, el = strains(ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0)))
     fits = rec(eu, el)
     chi2 = fits.diagnostics.extra["chi2_per_gauge"]
     assert chi2 > 4.0
-    eu2, el2 = strains(ph.Cylinder(radius=80.0))
+    eu2, el2 = strains(ph.SphereCap(radius=200.0))
     calm = rec(eu2, el2)
     assert calm.diagnostics.extra["chi2_per_gauge"] < 1.0
-    # the same noise map about the flat sheet (the cylinder's σ: no frame term) by the Birge
-    # ratio, and the bump's frame term (its curvature changes around the centre) in quadrature
+    # the same noise map about the flat sheet (the sphere's σ: no resolution term) by the
+    # Birge ratio, and the bump's resolution term (its curvature changes at the gauge scale) in
+    # quadrature
     turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
     grid = rec.grid
-    frame = frame_resolution_sigma(grid, valid, turning, np.sqrt(2.0) * NOISE / 0.4)[np.ix_(grid.node_rows, grid.node_cols)]
-    assert frame.max() > 0.1
-    assert np.allclose(fits.node_sigma, np.hypot(np.sqrt(chi2) * calm.node_sigma, frame), rtol=2e-3)
+    term = RESOLUTION_SHARE * resolution_sigma(grid, valid, turning, np.sqrt(2.0) * NOISE / 0.4)
+    term = term[np.ix_(grid.node_rows, grid.node_cols)]
+    assert term.max() > 0.1
+    assert np.allclose(fits.node_sigma, np.hypot(np.sqrt(chi2) * calm.node_sigma, term), rtol=2e-3)
 
 
 @pytest.mark.slow

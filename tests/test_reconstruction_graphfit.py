@@ -175,8 +175,46 @@ def test_graph_uncertainty_matches_monte_carlo(shape):
     runs = np.array(runs)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
     ratio = np.delete(scatter.ravel(), N * M // 2) / np.delete(base.node_sigma.ravel(), N * M // 2)
-    assert 0.6 < np.median(ratio) < 1.8
-    assert 0.3 < ratio.min() and ratio.max() < 2.5
+    # (at the sensor's noise the fit responds less than its linearisation where slopes are
+    # small: a unit's stretch is quadratic in its slope, and the noise hides slopes below
+    # about √(2σ); the bump's flat tails then scatter half the propagated σ; the linear limit
+    # below matches it)
+    assert 0.45 < np.median(ratio) < 1.8
+    assert 0.25 < ratio.min() and ratio.max() < 2.5
+
+
+@pytest.mark.parametrize("shape", [ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-5.0, 8.0)),
+                                   ph.Quadric(0.015, -0.008, 0.012)], ids=["bump", "quadric"])
+@pytest.mark.slow
+def test_graph_uncertainty_is_the_fits_linear_response_in_the_sensor_frame(shape):
+    """A hundredth of the sensor's noise, refitted from the noise-free answer: the scatter of
+    the nodes in the sensor frame over that of the propagated node_sigma, median within 20 %
+    of one (the propagation is the fit's linearisation, the frame's tilt included)."""
+    import math
+
+    from skinmap.reconstruction import to_sensor_frame
+    from skinmap.reconstruction.engine import unit_data
+
+    eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+    rec = Reconstructor(N, M, PITCH, H, H, G)
+    base = rec(eu, el, strain_sigma=NOISE)
+    assert base.diagnostics.extra["model"] == "graph"
+    fit, grid = rec._graph_fit(), rec.grid
+    sig_t, sig_s = math.sqrt(2.0) * NOISE / (2 * H), NOISE * math.hypot(H, H) / (2 * H)
+    rng = np.random.default_rng(8)
+    scale, nodes = 0.01, []
+    for _ in range(30):
+        turning, stretch, valid = unit_data(eu + scale * rng.normal(0, NOISE, eu.shape),
+                                            el + scale * rng.normal(0, NOISE, el.shape), H, H, G)
+        data = fit.prepare(turning, stretch, valid, sig_t, sig_s)
+        # converged, undamped Gauss-Newton (the warm steps' damping stops them short of so small
+        # a change)
+        coeffs = fit._descend(base.state.graph.copy(), *data[:4], data[5], 80, (0.0, 0.0), 0.0)[0]
+        nodes.append(to_sensor_frame(grid, fit.fine_positions(coeffs))[np.ix_(grid.node_rows, grid.node_cols)])
+    runs = np.array(nodes)
+    scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0)) / scale
+    keep = base.node_sigma > 0
+    assert 0.8 < np.median(scatter[keep] / base.node_sigma[keep]) < 1.25
 
 
 def test_graph_uncertainty_is_the_same_with_compiled_and_numpy_assembly():

@@ -62,7 +62,10 @@ def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertaint
     shape = ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(4.0, -3.0))
     eu, el = _strains(n, m, shape)
     truth = shape.position(ph.cell_centres(n, m, PITCH))
-    rec = Reconstructor(n, m, PITCH, H, H, G, graph_fit=False)  # linear propagation: never lower
+    # the general model: its noise map (linear propagation) never falls with a unit missing; its
+    # resolution term (uncertainty.resolution_sigma, the departures from the measured units'
+    # affine turning pattern) moves with the units that pattern is fitted to, by a percent
+    rec = Reconstructor(n, m, PITCH, H, H, G, graph_fit=False)
     clean = rec(eu, el)
     base_sigma = clean.node_sigma
     rng = np.random.default_rng(11)
@@ -75,7 +78,7 @@ def test_random_dead_gauge_sequence_gives_finite_surfaces_with_raised_uncertaint
         surf = rec(eu_k, el_k, previous=prev)
         assert np.isfinite(surf.nodes).all() and np.isfinite(surf.normals).all()
         sig = surf.node_sigma
-        assert np.isfinite(sig).all() and (sig >= base_sigma * (1 - 1e-9)).all()
+        assert np.isfinite(sig).all() and (sig >= base_sigma * 0.98).all()
         # the cell of every dead unit (both of its gauges are read as one unit) gets less certain
         cells = np.unravel_index(dead % (n * m), (n, m))
         raised += int((sig[cells] > 1.5 * base_sigma[cells]).sum())
