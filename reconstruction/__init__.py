@@ -48,7 +48,7 @@ from .airy import airy_curvature_range, airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field
+from .uncertainty import GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame"]
@@ -544,12 +544,15 @@ class Reconstructor:
             chi2_read = cast("tuple | None", convex_info.get("forward_chi2")) if fit is not None else None
             known = chi2_read[1:] if chi2_read is not None and chi2_read[0] is pos else None
             resolution_term: Callable[[], np.ndarray] | None = None
-            if fit is not None and not deferred and grid.dense_maps:
-                # the general model's answer: its fields misplace curvature that changes at the
-                # gauge scale (a deferred frame carries the whole term already)
+            if not deferred and grid.dense_maps:
+                # the general model's fields misplace curvature that changes at the gauge scale,
+                # and a graph fills it in between the gauges by its prior, less wrongly (a
+                # deferred frame carries the whole term already)
+                share = RESOLUTION_SHARE if fit is not None else GRAPH_RESOLUTION_SHARE
+
                 def resolution_field() -> np.ndarray:
                     sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
-                    return RESOLUTION_SHARE * resolution_sigma(grid, valid, turning, sig_turn)
+                    return share * resolution_sigma(grid, valid, turning, sig_turn)
 
                 resolution_term = resolution_field
 
@@ -904,7 +907,7 @@ class Reconstructor:
           explains them clearly better, it becomes the answer;
         - with ``stretch`` (the general model answered, not as a graph pushed out of plane),
           holds the twist to the stretch pattern's Gaussian curvature (:meth:`_stretch_twist`);
-        - adds ``resolution_term`` (the general model answered: a share of its resolution,
+        - adds ``resolution_term`` (a share of the model's resolution,
           :func:`.uncertainty.resolution_sigma`) in quadrature, not widened by the misfit (it is
           no noise).
         """

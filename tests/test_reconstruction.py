@@ -224,7 +224,9 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     raised = surf.node_sigma - full.node_sigma
     # (the graph fit's scatter is that of another nonlinear fit: a node may move a little either way)
     assert surf.diagnostics.extra["model"] == "graph"
-    assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] > 5 * full.node_sigma[1, 4]
+    # the dead unit's cell most, by much more than the noise's σ there (the graph's resolution
+    # term, uncertainty.GRAPH_RESOLUTION_SHARE, is most of its σ on a bump)
+    assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] == raised.max() and raised[1, 4] > 0.1
     # the general model's linear propagation: never lower anywhere (on a sphere, whose
     # curvature does not change: no resolution term to compare as well, and whose curvature
     # product leaves no twist open)

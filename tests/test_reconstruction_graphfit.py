@@ -151,6 +151,20 @@ def test_graph_fit_arguments_are_checked():
         Reconstructor(9, 9, graph_fit=True)
 
 
+def _noise_sigma(surf, eu, el, noise: float) -> np.ndarray:
+    """The noise's part of a graph answer's node_sigma: the fit's own propagation
+    (GraphFit.fine_height_sigma, as node_sigma has it before the resolution term joins it)."""
+    import math
+
+    from skinmap.reconstruction.engine import unit_data
+
+    rec = Reconstructor(N, M, PITCH, H, H, G)
+    fit, grid = rec._graph_fit(), rec.grid
+    turning, stretch, valid = unit_data(eu, el, H, H, G)
+    data = fit.prepare(turning, stretch, valid, math.sqrt(2.0) * noise / (2 * H), noise * math.hypot(H, H) / (2 * H))
+    return fit.fine_height_sigma(surf.state.graph, data, 1.0, grid.frame_nodes)[np.ix_(grid.node_rows, grid.node_cols)]
+
+
 @pytest.mark.parametrize("shape", [ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-5.0, 8.0)),
                                    ph.Quadric(0.015, -0.008, 0.012)], ids=["bump", "quadric"])
 @pytest.mark.slow
@@ -161,9 +175,12 @@ def test_graph_uncertainty_matches_monte_carlo(shape):
     assert base.diagnostics.extra["model"] == "graph"
     assert base.node_sigma[N // 2, M // 2] == pytest.approx(0.0, abs=1e-12)
     double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=True)
+    # the noise's part (the resolution term, not noise, joins node_sigma after it)
+    base_noise, double_noise = _noise_sigma(base, eu, el, NOISE), _noise_sigma(double, eu, el, 2 * NOISE)
+    assert np.all(base.node_sigma >= base_noise * (1 - 1e-9))
     # twice the noise (the fit weighs the data by it): more scatter, at most twice as much (the
     # prior, now relatively stiffer, holds more of the surface)
-    grow = np.delete((double.node_sigma / np.maximum(base.node_sigma, 1e-12)).ravel(), N * M // 2)
+    grow = np.delete((double_noise / np.maximum(base_noise, 1e-12)).ravel(), N * M // 2)
     assert 1.05 < grow.min() and grow.max() < 2.05
     rng = np.random.default_rng(21)
     runs = []
@@ -174,7 +191,7 @@ def test_graph_uncertainty_matches_monte_carlo(shape):
         runs.append(surf.nodes)
     runs = np.array(runs)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
-    ratio = np.delete(scatter.ravel(), N * M // 2) / np.delete(base.node_sigma.ravel(), N * M // 2)
+    ratio = np.delete(scatter.ravel(), N * M // 2) / np.delete(base_noise.ravel(), N * M // 2)
     # (at the sensor's noise the fit responds less than its linearisation where slopes are
     # small: a unit's stretch is quadratic in its slope, and the noise hides slopes below
     # about √(2σ); the bump's flat tails then scatter half the propagated σ; the linear limit
@@ -188,8 +205,8 @@ def test_graph_uncertainty_matches_monte_carlo(shape):
 @pytest.mark.slow
 def test_graph_uncertainty_is_the_fits_linear_response_in_the_sensor_frame(shape):
     """A hundredth of the sensor's noise, refitted from the noise-free answer: the scatter of
-    the nodes in the sensor frame over that of the propagated node_sigma, median within 20 %
-    of one (the propagation is the fit's linearisation, the frame's tilt included)."""
+    the nodes in the sensor frame over the noise's propagated σ, median within 20 % of one (the
+    propagation is the fit's linearisation, the frame's tilt included)."""
     import math
 
     from skinmap.reconstruction import to_sensor_frame
@@ -213,8 +230,9 @@ def test_graph_uncertainty_is_the_fits_linear_response_in_the_sensor_frame(shape
         nodes.append(to_sensor_frame(grid, fit.fine_positions(coeffs))[np.ix_(grid.node_rows, grid.node_cols)])
     runs = np.array(nodes)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0)) / scale
-    keep = base.node_sigma > 0
-    assert 0.8 < np.median(scatter[keep] / base.node_sigma[keep]) < 1.25
+    sigma = _noise_sigma(base, eu, el, NOISE)
+    keep = sigma > 0
+    assert 0.8 < np.median(scatter[keep] / sigma[keep]) < 1.25
 
 
 def test_graph_uncertainty_is_the_same_with_compiled_and_numpy_assembly():
