@@ -114,7 +114,7 @@ def solve_twist(
         n_units = grid.n * grid.m
         curv_rms = math.sqrt(float((ku_in * ku_in).sum() + (kv_in * kv_in).sum()) / count)
         noise = 3.0 * (turning_sigma * curv_rms + turning_sigma**2) / math.sqrt(n_units)
-    dev = math.sqrt(dev2)
+    dev = math.sqrt(max(dev2 - stretch_sigma**2, 0.0))  # the noise's own share removed, as stretch_supports_curvature
     ratio = dev / need if need > 0 else math.inf
     weight = min(max(1.5 - 3.0 * ratio, 0.0), 1.0)
     # unbiased above twice the noise level, off below it, continuous in between
