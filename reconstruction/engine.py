@@ -139,12 +139,13 @@ def solve_twist(
             c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
     c = math.copysign(math.sqrt(c2), twist_sign)
     # a product the data show (beyond 1 s.d. of its noise) but the significance test shrank:
-    # the twist it would be is not ruled out (a cylinder 6° off the grid lines, whose twist of
-    # 0.0015 /mm reads 2-4 s.d. of the product's noise)
+    # the twist it would be, and one s.d. of the product beyond, is not ruled out (a cylinder 6°
+    # off the grid lines, whose twist of 0.0015 /mm reads 2-4 s.d. of the product's noise; on
+    # one draw in 8 the product read 2.4 s.d. low)
     # (the stretch's verdict on developability counts only where the stretch a doubly curved
     # sheet would need exceeds three of its noise s.d.: below that its variation is the noise's)
     allowed = max(prod, 0.0) * (weight if need > 3.0 * stretch_sigma else 1.0)
-    opened = math.sqrt(allowed) if significance < 1.0 and prod > noise / 3.0 and c2 < allowed else 0.0
+    opened = math.sqrt(allowed + noise / 3.0) if significance < 1.0 and prod > noise / 3.0 and c2 < allowed else 0.0
     if c2 == 0.0 and graph is None and prod <= noise / 3.0 and (weight == 1.0 or need <= 3.0 * stretch_sigma):
         # nor is a product within one s.d. of its noise a proof of no twist, on a sheet the
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %

@@ -279,6 +279,24 @@ def test_a_twist_the_noise_hides_widens_sigma_on_a_cylinder_6_deg_off_the_grid_w
     assert wrong and untwisted, "the draws no longer reach both cases: the test no longer tests them"
 
 
+def test_a_twist_the_shrunk_product_allows_joins_sigma_on_a_cylinder_turned_6_deg() -> None:
+    """A cylinder of R 80 mm turned 6° (twist 0.0013 /mm, 1-3 s.d. of the curvature product's
+    noise): the significance test shrinks the twist taken; the twist the product allows, and
+    one s.d. of it beyond (on one draw in 8 the product read 2.4 s.d. low, the twist taken was
+    none and a corner 0.19 mm off, 1.2 times 3σ + 0.05 mm), joins σ: every node of 8 noisy draws
+    within 3σ + 0.05 mm in the sensor frame."""
+    from skinmap.emulator import physics as ph
+
+    shape = ph.Cylinder(radius=80.0, axis_angle=6.0)
+    eu, el = gauge_strains(shape, N, M, pitch=12.0)
+    rec = Reconstructor(N, M)
+    rng = np.random.default_rng(4)
+    for _ in range(8):
+        surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape), twist_sign=1.0)
+        err = _frame_errors(shape, surf, rec.grid)
+        assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
+
+
 def test_a_twist_the_curvature_product_hides_joins_sigma_on_a_cylinder_turned_2_deg() -> None:
     """A cylinder of R 80 mm turned 2° off the rows has a twist of 0.00044 /mm, below one s.d. of
     what the turning noise makes of the curvature product: the model takes none (the
