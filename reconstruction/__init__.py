@@ -502,13 +502,13 @@ class Reconstructor:
                 if known is not None:
                     sigma = known * (strain_sigma / fit_sigma)
                 else:
-                    sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.frame_nodes)
+                    sigma = self._graph_fit().fine_height_sigma(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre)
                 return sigma if n_valid == valid.size else np.maximum(sigma, general_sigma())
 
             # skinmapd reads the nodes and its elements' patches only: those alone, unless the
             # agreement test computed the whole field anyway
             graph_at = (None if known is not None else
-                        self._graph_fit().height_sigma_at(graph.coeffs, data, strain_sigma / fit_sigma, grid.frame_nodes))
+                        self._graph_fit().height_sigma_at(graph.coeffs, data, strain_sigma / fit_sigma, grid.centre))
 
             def graph_nodes(flat: np.ndarray) -> np.ndarray:
                 assert graph_at is not None
@@ -1329,7 +1329,7 @@ class Reconstructor:
             ratio = disagreement(surface, pos, np.sqrt(tol_sq))
             if ratio <= GRAPH_AGREE_SIGMAS:
                 return ratio  # the graph's own scatter could only widen the tolerance
-            sigma = self._graph_fit().fine_height_sigma(coeffs, data, 1.0, grid.frame_nodes)
+            sigma = self._graph_fit().fine_height_sigma(coeffs, data, 1.0, grid.centre)
             graph_sigma[coeffs.tobytes()] = sigma
             return disagreement(surface, pos, np.sqrt(tol_sq + sigma**2))
 
@@ -1568,8 +1568,9 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     """The sensor frame's one definition (docs/architecture.md), for any positions (nf, mf, 3)
     on ``grid`` (a reconstruction's, or a reference surface's to compare with it there): the
     centre node at the origin; +z the normal of the sheet's best-fit plane (least squares over
-    every fine node, FineGrid.frame_nodes), towards the upper side; +x the rows' mean direction
-    (the sum of their chords) in that plane.
+    every fine node: the cell centres alone jump from one plane to another on a sheet wrapped
+    round a tube), towards the upper side; +x the rows' mean direction (the sum of their chords)
+    in that plane.  The compiled kernel (kernels.surface_positions) takes the same steps.
 
     The whole sheet fixes the frame, not the centre's tangents: a slope read at one point turns
     the whole sheet with any error of the fields there (a bump beside the centre of a 5×5 film:
@@ -1577,13 +1578,8 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     the best rigid alignment 0.03-0.05).  A sheet wrapped so far that its plane is ill defined
     (:data:`FRAME_PLANE_OPEN`) takes the centre's tangent plane instead, blended continuously.
     Returns (nf, mf, 3), a view of a components-first array."""
-    (a0, b0), rows, cols = grid.frame_nodes
-    pos_t = pos.transpose(2, 0, 1).reshape(3, -1)  # a view where pos is one of components first
-    if rows.size == grid.nf and cols.size == grid.mf:
-        nodes, flat = pos, pos_t
-    else:
-        nodes = pos[rows[:, None], cols]
-        flat = nodes.transpose(2, 0, 1).reshape(3, -1)
+    a0, b0 = grid.centre
+    flat = pos.transpose(2, 0, 1).reshape(3, -1)  # a view where pos is one of components first
     mean = flat.mean(axis=1)
     var, axes = np.linalg.eigh(flat @ flat.T - flat.shape[1] * np.outer(mean, mean))  # ascending
     nz = axes[:, 0]
@@ -1592,7 +1588,7 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     t_v = 8.0 * (pos[a0 + 1, b0] - pos[a0 - 1, b0]) - (pos[a0 + 2, b0] - pos[a0 - 2, b0])
     n_c = np.array(_cross3(t_u.tolist(), t_v.tolist()))
     n_c /= math.sqrt(n_c @ n_c)
-    chord = nodes[:, -1].sum(axis=0) - nodes[:, 0].sum(axis=0)
+    chord = pos[:, -1].sum(axis=0) - pos[:, 0].sum(axis=0)
     ratio = var[0] / var[1] if var[1] > 0.0 else 1.0
     if ratio > FRAME_PLANE_OPEN:  # a plane ill defined: towards the centre's tangent plane
         t = min((ratio - FRAME_PLANE_OPEN) / FRAME_PLANE_BLEND, 1.0)
@@ -1604,7 +1600,7 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     ex = chord - nz * (nz @ chord)
     ex /= math.sqrt(ex @ ex)
     rot = np.array([ex, _cross3(nz.tolist(), ex.tolist()), nz])  # rows: new axes in the old frame
-    out = rot @ pos_t
+    out = rot @ flat
     out -= (rot @ pos[a0, b0])[:, None]
     return out.reshape(3, grid.nf, grid.mf).transpose(1, 2, 0)
 

@@ -556,10 +556,10 @@ class GraphFit:
                            how if accepted else f"{how}: misfit chi2 {chi_t:.3g} (turning), {chi_s:.3g} (stretch)",
                            float(objective))
 
-    def fine_height_sigma(self, c: np.ndarray, data: tuple, noise_ratio: float, frame: tuple) -> np.ndarray:
+    def fine_height_sigma(self, c: np.ndarray, data: tuple, noise_ratio: float, centre: tuple[int, int]) -> np.ndarray:
         """One-s.d. height error (nf, mf) mm of every fine node in the sensor frame (the height
-        over the best-fit plane from the centre node, to_sensor_frame to first order; ``frame``:
-        FineGrid.frame_nodes), by linear propagation through the Gauss-Newton
+        over the best-fit plane from the centre node ``centre``, to_sensor_frame to first
+        order), by linear propagation through the Gauss-Newton
         normal equations at the solution c: δc = −H⁻¹Jᵀδr with H = JᵀJ + P, the residuals δr
         normalised by the fit's noise and scattering with s.d. ``noise_ratio`` (the actual noise
         over the fit's).  The prior's pull is part of H, so where the data say little (between
@@ -600,16 +600,16 @@ class GraphFit:
         a_t = np.ascontiguousarray(resp.T).reshape(k * self.nbv, self.nbu)
         t = (a_t @ self._fu[0].T).reshape(k, self.nbv, mf).transpose(1, 0, 2).reshape(self.nbv, k * mf)
         w = (self._fv[0] @ t).reshape(nf, k, mf)
-        (a0, b0), rows, cols = frame
+        a0, b0 = centre
         # the sensor frame: height over the best-fit plane, from the centre node
-        slope_u, slope_v = plane_slopes(self._fine_u[cols], self._fine_v[rows], w[rows][:, :, cols].transpose(0, 2, 1))
+        slope_u, slope_v = plane_slopes(self._fine_u, self._fine_v, w.transpose(0, 2, 1))
         w -= w[a0, :, b0].copy()[None, :, None]
         w -= self._fine_u[None, None, :] * slope_u[None, :, None]
         w -= self._fine_v[:, None, None] * slope_v[None, :, None]
         return noise_ratio * np.sqrt(np.einsum("ikj,ikj->ij", w, w))
 
     def height_sigma_at(self, c: np.ndarray, data: tuple, noise_ratio: float,
-                        frame: tuple) -> Callable[[np.ndarray], np.ndarray]:
+                        centre: tuple[int, int]) -> Callable[[np.ndarray], np.ndarray]:
         """:meth:`fine_height_sigma` at chosen fine nodes only: a function of flat node indices
         (into the (nf, mf) grid) giving their s.d. (mm).  The same propagation read the other way
         round: σ_p = |J H⁻¹ s_p| with s_p the node's height in the sensor frame as a
@@ -662,32 +662,27 @@ class GraphFit:
 
         def at(flat: np.ndarray) -> np.ndarray:
             j, solve = solver()
-            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), frame)
+            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre)
             r = j @ solve(np.asfortranarray(rows.T))
             return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
 
         return at
 
-    def _frame_height_rows(self, flat: np.ndarray, frame: tuple) -> np.ndarray:
+    def _frame_height_rows(self, flat: np.ndarray, centre: tuple[int, int]) -> np.ndarray:
         """(P, coefficients): the height of fine nodes ``flat`` in the sensor frame (over the
-        best-fit plane, from the centre node; ``frame``:
-        FineGrid.frame_nodes), as fine_height_sigma builds it, as linear forms in the
-        coefficients."""
+        best-fit plane, from the centre node ``centre``), as fine_height_sigma builds it, as
+        linear forms in the coefficients."""
         fv, fu = self._fv[0], self._fu[0]
         a, b = np.divmod(flat, len(self._fine_u))
-        (a0, b0), rows, cols = frame
-
-        def height(r: np.ndarray, c: np.ndarray) -> np.ndarray:
-            return (fv[r][:, :, None] * fu[c][:, None, :]).reshape(len(r), self.size)
-
-        ref = height(np.array([a0]), np.array([b0]))
-        # the plane's slopes (uncertainty.plane_slopes) as linear forms: each a sum over the
-        # frame's nodes of separable rows, so one outer product
-        uc, vc = self._fine_u[cols], self._fine_v[rows]
-        slope_u = np.outer(fv[rows].sum(axis=0), uc @ fu[cols]).reshape(-1) / (len(rows) * float(uc @ uc))
-        slope_v = np.outer(vc @ fv[rows], fu[cols].sum(axis=0)).reshape(-1) / (len(cols) * float(vc @ vc))
-        return (height(a, b) - ref[0] - self._fine_u[b][:, None] * slope_u[None, :]
-                - self._fine_v[a][:, None] * slope_v[None, :])
+        a0, b0 = centre
+        ref = (fv[a0][:, None] * fu[b0][None, :]).reshape(-1)
+        # uncertainty.plane_slopes as linear forms: over a separable grid each slope's sum is one
+        # outer product (the whole (nf, mf, coefficients) array would cost megabytes a frame)
+        u, v = self._fine_u, self._fine_v
+        slope_u = np.outer(fv.sum(axis=0), u @ fu).reshape(-1) / (len(v) * float(u @ u))
+        slope_v = np.outer(v @ fv, fu.sum(axis=0)).reshape(-1) / (len(u) * float(v @ v))
+        height = (fv[a][:, :, None] * fu[b][:, None, :]).reshape(len(a), self.size)
+        return height - ref - u[b][:, None] * slope_u[None, :] - v[a][:, None] * slope_v[None, :]
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

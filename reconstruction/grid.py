@@ -104,10 +104,6 @@ class FineGrid:
         self.node_rows = s * np.arange(self.n) + s // 2
         self.node_cols = s * np.arange(self.m) + s // 2
         self.centre = (self.nf // 2, self.mf // 2)
-        # what the sensor frame is read from (reconstruction.to_sensor_frame): the centre node
-        # and the rows and columns of the nodes whose best-fit plane it is (every fine node: the
-        # cell centres alone jump from one plane to another on a sheet wrapped round a tube)
-        self.frame_nodes = (self.centre, np.arange(self.nf), np.arange(self.mf))
         self._build_operators()
         self._field_solvers: dict[tuple[bytes, int], tuple[FixedSolver, sp.csr_matrix]] = {}
         self._potential_solvers: dict[bytes, tuple[FixedSolver, sp.csr_matrix]] = {}

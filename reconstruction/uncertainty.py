@@ -90,8 +90,8 @@ def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:
     mean_twist = (grid.z_uv @ z_ext).mean(axis=0)
     z = z_ext.reshape(grid.nf + 2, grid.mf + 2, -1)[1:-1, 1:-1]
     z = z - np.multiply.outer(np.outer(grid.v, grid.u), mean_twist)
-    (a0, b0), rows, cols = grid.frame_nodes
-    slope_u, slope_v = plane_slopes(grid.u[cols], grid.v[rows], z[rows[:, None], cols])
+    a0, b0 = grid.centre
+    slope_u, slope_v = plane_slopes(grid.u, grid.v, z)
     z = z - z[a0, b0] - grid.u[None, :, None] * slope_u - grid.v[:, None, None] * slope_v
     return z.reshape(grid.nf * grid.mf, -1)
 
@@ -99,7 +99,7 @@ def _heights(grid: FineGrid, z_ext: np.ndarray) -> np.ndarray:
 def plane_slopes(u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The slopes along u and v of the least-squares plane through heights ``z`` (n, m, ...)
     over a grid symmetric about its centre (``u`` (m,), ``v`` (n,), each summing to zero; the
-    sensor frame's, FineGrid.frame_nodes):
+    fine grid's):
     the sensor frame's tilt (reconstruction.to_sensor_frame) to first order about a flat
     sheet.  On such a grid 1, u and v are orthogonal, so each slope is one projection."""
     z = np.asarray(z)

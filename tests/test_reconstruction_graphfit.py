@@ -162,7 +162,7 @@ def _noise_sigma(surf, eu, el, noise: float) -> np.ndarray:
     fit, grid = rec._graph_fit(), rec.grid
     turning, stretch, valid = unit_data(eu, el, H, H, G)
     data = fit.prepare(turning, stretch, valid, math.sqrt(2.0) * noise / (2 * H), noise * math.hypot(H, H) / (2 * H))
-    return fit.fine_height_sigma(surf.state.graph, data, 1.0, grid.frame_nodes)[np.ix_(grid.node_rows, grid.node_cols)]
+    return fit.fine_height_sigma(surf.state.graph, data, 1.0, grid.centre)[np.ix_(grid.node_rows, grid.node_cols)]
 
 
 @pytest.mark.parametrize("shape", [ph.GaussianBumps(height=3.0, fwhm=20.0, centre=(-5.0, 8.0)),

@@ -88,8 +88,8 @@ def test_graph_sigma_at_chosen_nodes_is_the_whole_propagation_there(rec):
     sig_s = 5.7e-5 * np.hypot(rec.h_upper, rec.h_lower) / (rec.h_upper + rec.h_lower)
     data = graph.prepare(turning, stretch, valid, sig_t, sig_s)
     coeffs = surf.state.graph
-    whole = graph.fine_height_sigma(coeffs, data, 0.7, rec.grid.frame_nodes)
-    at = graph.height_sigma_at(coeffs, data, 0.7, rec.grid.frame_nodes)
+    whole = graph.fine_height_sigma(coeffs, data, 0.7, rec.grid.centre)
+    at = graph.height_sigma_at(coeffs, data, 0.7, rec.grid.centre)
     nodes = np.random.default_rng(5).choice(whole.size, 60, replace=False)
     np.testing.assert_allclose(at(nodes), whole.reshape(-1)[nodes], rtol=1e-10, atol=1e-15)
     np.testing.assert_allclose(at(np.arange(whole.size)), whole.reshape(-1), rtol=1e-10, atol=1e-15)
