@@ -74,7 +74,9 @@ MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 MOVE_SHARE = 0.05
 # Where the stretch pattern allows no twist and the answer has none, a twist refined on the
 # answer's family above this share of the interval's top is undecided, and joins node_sigma
-# (Reconstructor._stretch_twist).
+# (below it, where the reading itself said a twist, the reading's twist joins it); where the
+# reading needs a twist but its refined interval reaches none, a refined twist above this share
+# of the reading's top decides the twist: the answer moves to it (Reconstructor._stretch_twist).
 UNDECIDED_SHARE = 1.0 / 3.0
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
@@ -984,7 +986,11 @@ class Reconstructor:
             # model's sign evidence is its own systematic misfit, and on one noise draw in 20 a
             # saddle at 49° on 16×16 read 2.2 per gauge with the right sign against 0.74 with
             # the wrong one, which was taken, 16.8 mm off, unflagged)
-            if chi_m < chi0 - tell and not within_noise and fresh_m is None:
+            # (nor is the family's mirror taken where the noise alone leaves the general model a
+            # χ² above one per gauge (32×32: 2.6): there a noisy answer of the right sign that
+            # its defect correction did not improve read 7.7 per gauge, its mirror 1.9, and the
+            # mirror was taken, 17 mm off, unflagged; it is flagged instead)
+            if chi_m < chi0 - tell and not within_noise and fresh_m is None and chi2_noise <= 1.0:
                 # the data prefer the mirror: it is the answer
                 surf, cand, chi0, chi_m = cand, surf, chi_m, chi0
                 diag = surf.diagnostics
@@ -1181,6 +1187,7 @@ class Reconstructor:
             return low <= abs(m0) <= high and (sign_open or m0 * sign >= 0.0)
 
         membrane = reading.source == "membrane"
+        decided = False  # a twist the refined reading gives where its interval allows none too
         if within(m_lo, m_hi) and m_lo <= 0.0:
             # The pattern allows no twist too (a sphere): the answer stands.  But where the
             # membrane's reading, refined on the answer's own family, still says a twist, the
@@ -1194,8 +1201,16 @@ class Reconstructor:
                 return None
             mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
             info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
-            if mag <= UNDECIDED_SHARE * m_hi or mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
+            if mag <= UNDECIDED_SHARE * m_hi:
+                # The refinement finds no twist where the reading itself said one: two readings
+                # of the same pattern disagree, so the twists up to the reading's stay open (a
+                # 16×16 saddle of R 293 mm 1° off the grid lines read 0.58 of the top, refined to
+                # none, and was 0.28 mm off with σ 0.06)
+                mag = reading.twist
+            if mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
                 return None
+            # (the answer stays: moved to the refined twist, a noisy 5×5 sphere and an aligned
+            # saddle went 0.3 mm off, refined to 0.4-0.5 of the top)
             ends = [m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))]
             return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0
         if membrane:
@@ -1208,13 +1223,18 @@ class Reconstructor:
             half = 0.5 * (reading.high ** 2 - reading.low ** 2)
             m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
             info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
+            # Refined to where zero twist is allowed too, but well above the reading's noise (a
+            # saddle of R 286 mm 7° off the grid lines on a 12×12 sheet refined to 0.69-0.84 of
+            # its 0.81·10⁻³/mm, while the least-shear answer kept none and was 1.0 mm off): the
+            # twist is decided, the answer moves to it below (both signs, the other the mirror)
+            decided = magnitude > UNDECIDED_SHARE * reading.high
         layout = self._layout
         shift, chi = base_shift, chi0
         other: tuple[Surface, float] | None = None  # the other sign's candidate and its χ²
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
         # off its estimate by more than MOVE_SHARE moves to it (within the interval too; the
         # trace's interval has no estimate, only ends)
-        off = membrane and m_lo > 0.0 and abs(abs(m0) - magnitude) > MOVE_SHARE * magnitude
+        off = membrane and (m_lo > 0.0 or decided) and abs(abs(m0) - magnitude) > MOVE_SHARE * magnitude
         signs = (sign, -sign) if sign_open else (sign,)
         if membrane and sign_open and m_lo > 0.0 and not off and within(m_lo, m_hi):
             # The answer's twist is the pattern's; its sign is the model's.  Its mirror image on
@@ -1275,7 +1295,7 @@ class Reconstructor:
             sign = sg
             surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
             positions_at = family
-        if membrane and m_lo > 0.0:
+        if membrane and (m_lo > 0.0 or decided):
             # where the next frame's general model starts (:meth:`_carried_twist`)
             info["stretch_estimate"] = (sign, round(abs(m0), 7))
 
@@ -1283,7 +1303,7 @@ class Reconstructor:
             # the twists the reading allows: 3 s.d. reach past the farther end
             return _half_reach(positions_at, shift, [sign * m - m0 for m in (m_lo, m_hi)])
 
-        if sign_open and m_lo > 0.0:
+        if sign_open and (m_lo > 0.0 or decided):
             # The pattern needs a twist whose sign nothing tells (the stretch of a saddle is even
             # in its turn; which sign's surface fits it better was wrong once in 11): the other
             # sign is the mirror unless the gauges reject it.

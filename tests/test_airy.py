@@ -151,3 +151,52 @@ def test_an_elastic_saddle_on_12x12_is_within_3_sigma_plus_0_05mm_or_said_to_be_
     answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
     within = [bool(np.all(aligned_distances(s.nodes.reshape(-1, 3), truth.reshape(-1, 3)) <= bound)) for s in answers]
     assert any(within), (spec, [aligned_error(s.nodes, truth) for s in answers], float(surf.node_sigma.mean()))
+
+
+def _noisy_frames(spec: str, n: int, cache, draws):
+    """(draw, the default Reconstructor's surface, the truth's nodes (K, 3)) of an elastic scene
+    on an n×n sheet, draw 0 noise-free, the others with the sensor's noise seeded by the draw."""
+    shape = parse_scene_spec(spec, "elastic", n, n, PITCH, cache_dir=cache)
+    eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, G)
+    truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
+    rec = Reconstructor(n, n, PITCH, H, H, G)
+    for draw in draws:
+        noise = np.random.default_rng(draw).normal(0.0, NOISE, (2, 2, n, n)) if draw else np.zeros((2, 2, n, n))
+        yield draw, rec(eu + noise[0], el + noise[1], strain_sigma=NOISE), truth
+
+
+@pytest.mark.slow
+def test_an_elastic_saddle_near_the_grid_lines_on_12x12_takes_its_refined_twist_within_0_15mm_or_as_its_mirror(cache):
+    """A 12×12 saddle 8° off the grid lines (twist 1.06·10⁻³/mm): where the membrane's interval
+    for the twist reaches down to none, the least-shear answer kept none and was 1.35 mm off (σ
+    covering it, the 0.15 mm target missed).  The twist refined on the answer's own family is
+    well above the reading's noise there, so the answer moves to it, both signs weighed: one of
+    the two answers is within 0.15 mm and 3 node_sigma + 0.05 mm, the other is the mirror."""
+    moved_open = 0
+    for draw, surf, truth in _noisy_frames("saddle:radius=260,axis_angle=8", 12, cache, range(5)):
+        refined = surf.diagnostics.extra.get("stretch_twist_refined")
+        moved_open += refined is not None and refined[1] == 0.0
+        bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
+        answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
+        errors = [aligned_distances(s.nodes.reshape(-1, 3), truth) for s in answers]
+        assert any(e.mean() <= 0.15 and np.all(e <= bound) for e in errors), (draw, [e.mean() for e in errors])
+    assert moved_open  # the case this test is about: a refined interval down to none
+
+
+@pytest.mark.slow
+def test_a_16x16_saddle_whose_refined_twist_says_none_against_its_reading_has_sigma_covering_the_twist(cache):
+    """A 16×16 saddle 1.5° off the grid lines (twist 1.7·10⁻⁴/mm, 0.4 mm at the corners): the
+    membrane read a twist, its refinement on the answer's family none.  Taken as none, σ was
+    0.06-0.08 mm against errors of 0.4 mm; the readings disagreeing, the twists up to the
+    reading's stay in node_sigma.  Every frame whose twist was refined is within
+    3 node_sigma + 0.05 mm (a frame whose reading is below half its interval's top is not
+    refined: docs/reconstruction.md, *Large sheets*)."""
+    refined_none = 0
+    for draw, surf, truth in _noisy_frames("saddle:radius=-300,axis_angle=1.5", 16, cache, range(1, 6)):
+        refined = surf.diagnostics.extra.get("stretch_twist_refined")
+        if refined is None:
+            continue
+        refined_none += refined[0] == 0.0
+        d = aligned_distances(surf.nodes.reshape(-1, 3), truth)
+        assert np.all(d <= 3.0 * surf.node_sigma.reshape(-1) + 0.05), (draw, d.mean(), float(surf.node_sigma.mean()))
+    assert refined_none >= 2

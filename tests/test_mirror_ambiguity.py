@@ -127,3 +127,28 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     bound = 3.0 * surf.node_sigma + 0.05
     within = [bool(np.all(np.linalg.norm(a.nodes - truth, axis=-1) <= bound)) for a in (surf, surf.mirror)]
     assert any(within), within
+
+
+@pytest.mark.slow
+def test_on_32x32_a_family_mirror_that_reads_the_gauges_better_is_flagged_not_taken_and_one_answer_is_within_0_3mm():
+    """On 32×32 the noise alone leaves the general model 2.6 per gauge, and an answer its
+    defect correction did not improve misreads the gauges well beyond that while its family's
+    mirror reads them better: a saddle R 520 mm at 15° without defect correction, noisy, had its
+    mirror taken on 5 draws of 6, 17.9 mm off, unflagged.  The mirror is flagged instead, and the
+    answer or its mirror is within 0.3 mm mean of the truth (the 32×32 target)."""
+    from skinmap.reconstruction import Reconstructor
+    from skinmap.reconstruction.linalg import aligned_distances
+
+    n = 32
+    shape = ph.Saddle(520.0, axis_angle=15.0)
+    eu, el = ph.gauge_strains(shape, n, n, PITCH, 0.2, 0.2, 10.0)
+    truth = shape.position(ph.cell_centres(n, n, PITCH)).reshape(-1, 3)
+    rec = Reconstructor(n, n, PITCH, defect_steps=0)
+    for draw in range(3):
+        rng = np.random.default_rng(1000 + draw)
+        surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
+        assert not surf.diagnostics.extra.get("mirror_swapped"), draw
+        errors = [aligned_distances(a.nodes.reshape(-1, 3), truth).mean()
+                  for a in [surf] + ([surf.mirror] if surf.mirror is not None else [])]
+        assert min(errors) <= 0.3, (draw, errors)
+        assert errors[0] <= 0.3 or surf.mirror is not None, (draw, errors)  # a wrong answer is flagged
