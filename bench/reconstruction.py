@@ -243,13 +243,13 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
           f"strain, told so, {noisy_draws} draws each; radii and bump positions x{scale:g} of the 5x5 classes, "
           f"bump sizes as given)")
     head = (f"{'shape class':44s} {'clean mean':>10s} {'clean max':>10s} {'noisy mean':>10s} {'noisy max':>10s} "
-            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
+            f"{'CR':>6s} {'sigma':>6s} {'over':>5s} {'frame':>5s} {'L_r/L_g':>16s} {'graph':>6s} {'amb':>5s} {'either':>7s}")
     print(head)
     print("-" * len(head))
     for name, shapes in shape_classes(rng, k, scale).items():
         clean_mean, clean_max, noisy_mean, noisy_max, fid, graphs = [], [], [], [], [], []
         ambiguous, either = [], []  # flagged ambiguous; of those, the answer or its mirror right (0.05 mm)
-        sigmas, over, floor = [], [], []
+        sigmas, over, in_frame, floor = [], [], [], []
         for shape, kw in shapes:
             eu, el = ph.gauge_strains(shape, n, m, PITCH, H, H, GAUGE)
             truth = shape.position(centres)
@@ -271,19 +271,21 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
                 noisy_max.append(e.max())
                 sigmas.append(noisy.node_sigma.mean())
                 over.append(_over(e, noisy, truth))
+                in_frame.append(_over_in_frame(shape, noisy, n))
             if isinstance(shape, ph.GaussianBumps):
                 fid.append(bump_fidelity(shape, surf, n, m))
         f = f"{np.mean(fid):.3f} [{np.min(fid):.2f},{np.max(fid):.2f}]" if fid else "-"
         print(f"{name:44s} {np.mean(clean_mean):10.4f} {np.max(clean_max):10.4f} "
               f"{np.mean(noisy_mean):10.4f} {np.max(noisy_max):10.4f} {floor_text(floor):>6s} {np.mean(sigmas):6.3f} "
-              f"{sum(over):>2d}/{len(over):<2d} {f:>16s} {100 * np.mean(graphs):5.0f}% "
+              f"{sum(over):>2d}/{len(over):<2d} {sum(in_frame):>2d}/{len(in_frame):<2d} {f:>16s} {100 * np.mean(graphs):5.0f}% "
               f"{sum(ambiguous):>2d}/{len(ambiguous):<2d} {sum(either):>3d}/{sum(ambiguous):<3d}")
     print("(mm; mean = mean over shapes of the mean node error, max = largest node error of any shape; CR: the "
           "Cramér–Rao figure, the mean node error the noise alone forces on the model linearised about its noise-free "
           "answer (noise_floor), mean over shapes: the noisy error should not exceed about √(clean² + CR²), '+': some "
           "shape has no linear response, 'n/l': none has; sigma: mean "
           "node_sigma of the noisy reconstructions; over: noisy reconstructions with some node error > 3 node_sigma + "
-          "0.05 mm (for one flagged ambiguous: in both its answers); "
+          "0.05 mm (for one flagged ambiguous: in both its answers), after the best rigid alignment; frame: the same "
+          "with the errors in the sensor frame itself (frame_errors), as node_sigma describes them; "
           "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
           "reconstructions flagged ambiguous (Surface.mirror set), either: of those, how many have the answer or "
           "its mirror within 0.05 mm mean of the truth)")

@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
-     [--weights none|sigma] [--reference floor|rim]
+     [--weights none|sigma] [--reference floor|rim] [--cell-quantile Q] [--rim-mm MM]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -49,8 +49,8 @@ from dataclasses import replace  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from skinmap.daemon.tactile import (Contact, ProbePose, ReliefMap, SampleGrid, capture_baseline, detect_contact,  # noqa: E402
-                                    level_on_floor, stitch_estimated)
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, ProbePose, ReliefMap,  # noqa: E402
+                                    SampleGrid, capture_baseline, detect_contact, level_on_floor, stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator.walls import BalloonOnWall, LetterRelief, Membrane  # noqa: E402
@@ -117,6 +117,10 @@ def main() -> None:
     ap.add_argument("--weights", choices=("none", "sigma"), default="none",
                     help="stitch the reconstructed contacts unweighted, as skinmap map does (none), or weighted by "
                          "1/sigma^2 of the reconstruction (sigma)")
+    ap.add_argument("--cell-quantile", type=float, default=CELL_QUANTILE,
+                    help="the quantile of a map cell's readings that is its height (ReliefMap; default %(default).3g)")
+    ap.add_argument("--rim-mm", type=float, default=CONTACT_RIM_MM,
+                    help="a contact's outer ring left out of the map, mm (ReliefMap; default %(default)g)")
     args = ap.parse_args()
     n, pitch = args.size, args.pitch
     grid = SampleGrid.for_array(n, n, pitch, 2.0)
@@ -185,7 +189,7 @@ def main() -> None:
                     t_detect = (time.perf_counter() - t0) / len(poses)
                     kept = [(c, p) for c, p in zip(contacts, poses) if c is not None]
                     for mode in ("given",) if args.quick or name in ("true frame", "rec true fit") else ("given", "estimated"):
-                        relief = ReliefMap(120.0, 1.0)
+                        relief = ReliefMap(120.0, 1.0, rim_mm=args.rim_mm, quantile=args.cell_quantile)
                         t0 = time.perf_counter()
                         levelled, refused = 0, ""
                         if mode == "given":

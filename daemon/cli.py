@@ -561,11 +561,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
+    from skinmap.daemon.tactile import CELL_QUANTILE, CONTACT_RIM_MM
     from skinmap.daemon.tactilemap import map_log, write_ply, write_png
 
     report = map_log(args.log, args.poses, estimate=args.estimate, baseline_frames=args.baseline_frames,
                      step_mm=args.step, k=args.k, min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell,
-                     floor=not args.rim)
+                     floor=not args.rim,
+                     cell_quantile=CELL_QUANTILE if args.cell_quantile is None else args.cell_quantile,
+                     rim_mm=CONTACT_RIM_MM if args.rim_mm is None else args.rim_mm)
     print(report.format())
     if (args.png or args.ply) and report.relief is None:
         print("skinmap map: the log holds no relief to write", file=sys.stderr)
@@ -708,6 +711,13 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--step", type=float, default=2.0, help="sampling of the sheet, mm")
     mp.add_argument("--wall-size", type=float, default=120.0, help="the mapped wall's side, mm")
     mp.add_argument("--cell", type=float, default=1.0, help="the relief map's cell, mm")
+    mp.add_argument("--cell-quantile", type=float, default=None,
+                    help="the quantile of a cell's readings (one a contact) that is its height (default "
+                         "tactile.CELL_QUANTILE, 2/3: the wall is rigid, a press reads it at most where it touched; "
+                         "0.5 for the median)")
+    mp.add_argument("--rim-mm", type=float, default=None,
+                    help="each contact's outer ring left out of the map, mm (default tactile.CONTACT_RIM_MM, 2: the "
+                         "sheet leaves the wall there)")
     mp.add_argument("--png", help="write the height and confidence maps to this PNG")
     mp.add_argument("--ply", help="write the relief's touched cells to this PLY point cloud")
     mp.set_defaults(func=cmd_map)

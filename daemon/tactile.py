@@ -287,22 +287,42 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
     return FloorLevel(replace(contact, positions=moved), -level, area)
 
 
-#: Readings (one a contact) a relief-map cell keeps for its median height: beyond this many the
+#: Readings (one a contact) a relief-map cell keeps for its height: beyond this many the
 #: oldest give way, so that a long log's map stays bounded (5 MB at the default 140² cells).
 CELL_READINGS = 32
+#: The quantile of a cell's readings that is its height.  The wall is rigid and the sheet never
+#: lies beyond it, so a press reads a cell at most at the wall's height (plus its error), and
+#: lower where its sheet spanned over the cell instead of touching it: the upper third, not the
+#: median (measured on the bench's letters, each press levelled on the floor: E 0.351 → 0.311
+#: mm, D 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median).
+#: With four readings it is the third lowest: one reading of four off either way moves nothing.
+CELL_QUANTILE = 2.0 / 3.0
+#: The contact's outer ring of this width (mm) is left out of the map: there the sheet is
+#: leaving the wall, pressed in beyond the threshold but spanning back to the rim, and the
+#: reconstruction rounds the edge (E 0.388 → 0.351 mm, D 0.353 → 0.324 with the median;
+#: coverage 99.1 → 96.9 %, 98.4 → 94.4 %; 4 mm: E 0.330, D 0.323, coverage 91.8 and 87.6 %).
+CONTACT_RIM_MM = 2.0
 
 
 class ReliefMap:
     """The stitched wall: a grid of ``size`` × ``size`` mm at ``step`` mm centred on the origin.
 
-    A cell's height is the median, over the contacts that reached it, of each contact's mean
-    height there: a press whose reconstruction or placement went wrong does not drag the cells
-    it shares with the others (each wall cell is met by several presses), where a mean over all
-    samples would carry its error at its share.  Each cell keeps its latest
+    A cell's height is the ``quantile`` (:data:`CELL_QUANTILE`), over the contacts that reached
+    it, of each contact's mean height there: a press whose reconstruction or placement went wrong does
+    not drag the cells it shares with the others (each wall cell is met by several presses),
+    where a mean over all samples would carry its error at its share.  A contact's outer
+    ``rim_mm`` (:data:`CONTACT_RIM_MM`) is left out.  Each cell keeps its latest
     :data:`CELL_READINGS` readings; counts, weights and sums (``scatter``, ``confidence``) cover
     every sample."""
 
-    def __init__(self, size: float = 120.0, step: float = 1.0, margin: float = 10.0) -> None:
+    def __init__(self, size: float = 120.0, step: float = 1.0, margin: float = 10.0,
+                 rim_mm: float = CONTACT_RIM_MM, quantile: float = CELL_QUANTILE) -> None:
+        if not (math.isfinite(rim_mm) and rim_mm >= 0):
+            raise ValueError(f"rim_mm must be >= 0, got {rim_mm!r}")
+        if not (0.0 <= quantile <= 1.0):
+            raise ValueError(f"quantile must be in [0, 1], got {quantile!r}")
+        self.rim_mm = float(rim_mm)
+        self.quantile = float(quantile)
         self.step = float(step)
         self.size = float(size)
         self.half = 0.5 * float(size) + float(margin)
@@ -314,7 +334,7 @@ class ReliefMap:
         self._sum2 = np.zeros(self.shape)
         self._readings = np.full(self.shape + (CELL_READINGS,), np.nan)  # a ring per cell, one a contact
         self._k = np.zeros(self.shape, dtype=np.int64)  # contacts a cell got
-        self._height: np.ndarray | None = None  # the medians, until the next contact
+        self._height: np.ndarray | None = None  # the heights, until the next contact
         self.contacts = 0
 
     @property
@@ -327,7 +347,11 @@ class ReliefMap:
     def add(self, contact: Contact, pose: ProbePose, grid: SampleGrid, upsample: int = 2) -> int:
         """Add one contact's samples (its aligned surface in the probe frame, densified by
         bilinear interpolation so that every map cell under the contact gets data); returns
-        the number of cells touched."""
+        the number of cells touched.  The contact's outer ``rim_mm`` is left out."""
+        rim = int(round(self.rim_mm / grid.step))
+        if rim:
+            mask = ndimage.binary_erosion(np.asarray(contact.mask, bool).reshape(grid.shape), iterations=rim)
+            contact = replace(contact, mask=mask)
         pts, weight = contact_points(contact, grid, upsample)
         if not len(pts):
             return 0
@@ -364,14 +388,18 @@ class ReliefMap:
         return self._n.copy()
 
     def height(self) -> np.ndarray:
-        """(rows, cols) wall height: the median of the contacts' readings of a cell (the mean
-        of the middle two for an even count), NaN where never touched."""
+        """(rows, cols) wall height: the map's ``quantile`` of the contacts' readings of a cell
+        (linear between the two readings about it), NaN where never touched."""
         if self._height is None:
             ordered = np.sort(self._readings, axis=-1)  # the NaN of unused slots sort last
             count = np.minimum(self._k, CELL_READINGS)[..., None]
-            low = np.take_along_axis(ordered, np.maximum(count - 1, 0) // 2, axis=-1)[..., 0]
-            high = np.take_along_axis(ordered, count // 2, axis=-1)[..., 0]
-            self._height = np.where(count[..., 0] > 0, 0.5 * (low + high), np.nan)
+            at = self.quantile * np.maximum(count - 1, 0)
+            low = np.floor(at).astype(np.int64)
+            frac = at - low
+            lo = np.take_along_axis(ordered, low, axis=-1)
+            hi = np.take_along_axis(ordered, np.minimum(low + 1, np.maximum(count - 1, 0)), axis=-1)
+            value = (lo + frac * (hi - lo))[..., 0]
+            self._height = np.where(count[..., 0] > 0, value, np.nan)
         return self._height.copy()
 
     def scatter(self) -> np.ndarray:
@@ -686,6 +714,11 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
     the sequence already placed (``max_move_mm`` and ``angle_range_deg`` bound the step).  Returns each contact's estimate (in order)."""
     if not contacts:
         return []
+    # placed against a working map of whole contacts and each cell's median (the overlap a
+    # registration needs: the rim left out and the upper quantile placed 5 of the bench's 64
+    # presses instead of 13); ``relief`` is the caller's map, filled once the poses are known
+    final, relief = relief, ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size, rim_mm=0.0,
+                                      quantile=0.5)
     out: list[PoseEstimate] = [PoseEstimate(None, "not tried")] * len(contacts)
     anchor = first or anchor_pose(contacts[0], grid)
     relief.add(contacts[0], anchor, grid)
@@ -712,7 +745,7 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
     placed = [i for i in range(1, len(contacts)) if out[i].pose is not None]
     for _ in range(max(0, sweeps)):
         for i in placed:
-            others = ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size)
+            others = ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size, rim_mm=0.0, quantile=0.5)
             for j in [0, *placed]:
                 if j != i:
                     others.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
@@ -720,7 +753,7 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
                                 **{**options, "max_move_mm": 3.0, "angle_range_deg": 3.0})
             if est.pose is not None:
                 out[i] = est
-    relief.clear()
+    final.clear()
     for j in [0, *placed]:
-        relief.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
+        final.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
     return out

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (Contact, FloorLevel, PoseEstimate, ProbePose, ReliefMap, SampleGrid,
-                                    capture_baseline, detect_contact, level_on_floor, read_poses_csv, stitch_estimated)
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, FloorLevel, PoseEstimate, ProbePose,
+                                    ReliefMap, SampleGrid, capture_baseline, detect_contact, level_on_floor, read_poses_csv, stitch_estimated)
 
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 
@@ -120,7 +120,7 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
 def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | None = None, *,
             estimate: bool = False, baseline_frames: int = 10, step_mm: float = 2.0, k: float = 3.0,
             min_depth_mm: float = 0.5, wall_size_mm: float = 120.0, cell_mm: float = 1.0,
-            floor: bool = True) -> MapReport:
+            floor: bool = True, cell_quantile: float = CELL_QUANTILE, rim_mm: float = CONTACT_RIM_MM) -> MapReport:
     """Replay the log and stitch its contact events with their poses (see the module); ValueError
     names what is wrong (no surfaces, too few baseline frames, no poses from any source, event
     and pose counts that differ, an event without a pose on the topic, a malformed pose)."""
@@ -169,7 +169,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         poses, report.pose_source = logged.config, "from the log's [tactile] poses"
     else:
         poses = None
-    relief = ReliefMap(wall_size_mm, cell_mm)
+    relief = ReliefMap(wall_size_mm, cell_mm, rim_mm=rim_mm, quantile=cell_quantile)
     if estimate:
         if not report.events:
             raise ValueError(f"{log}: no contact events to register")

@@ -365,9 +365,9 @@ def test_floor_levelling_names_a_bad_parameter():
 
 
 def test_one_misplaced_press_does_not_move_the_cells_the_others_agree_on():
-    """A cell's height is the median of the presses' readings: three presses agree, a fourth
-    comes in 1.5 mm off (its reconstruction or its level gone wrong); the mean of all samples
-    would carry a quarter of that, the median none of it."""
+    """A cell's height is a quantile of the presses' readings (the upper third): three presses
+    agree, a fourth comes in 1.5 mm off (its reconstruction or its level gone wrong); the mean
+    of all samples would carry a quarter of that, the quantile none of it."""
     from dataclasses import replace
 
     pose = ProbePose(0.0, 0.0, 0.0, 3.0)
@@ -387,7 +387,7 @@ def test_one_misplaced_press_does_not_move_the_cells_the_others_agree_on():
 
 def test_a_cell_keeps_its_latest_readings_only():
     """A long log's map stays bounded: past CELL_READINGS contacts a cell's oldest readings give
-    way, so the median follows the latest presses (here the wall moved 2 mm between sessions)."""
+    way, so the height follows the latest presses (here the wall moved 2 mm between sessions)."""
     from dataclasses import replace
 
     from skinmap.daemon.tactile import CELL_READINGS
@@ -406,3 +406,39 @@ def test_a_cell_keeps_its_latest_readings_only():
     reached = np.isfinite(before)
     assert np.allclose((after - before)[reached], 2.0)
     assert relief._readings.nbytes == size and relief.contacts == CELL_READINGS + CELL_READINGS // 2 + 1
+
+
+def test_a_cell_is_the_upper_third_of_its_readings_since_no_press_lies_beyond_the_wall():
+    """The wall is rigid: a press reads a cell at the wall's height where its sheet touched it,
+    lower where the sheet spanned over it.  Two presses touch, two span 1 mm below: the cell is
+    the touching presses' height (the median would split the difference)."""
+    from dataclasses import replace
+
+    from skinmap.daemon.tactile import CELL_QUANTILE
+
+    pose = ProbePose(0.0, 0.0, 0.0, 3.0)
+    touch = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
+    span = replace(touch, positions=touch.positions + np.array([0.0, 0.0, 1.0]))  # 1 mm off the wall
+    relief, median, alone = ReliefMap(rim_mm=0.0), ReliefMap(rim_mm=0.0, quantile=0.5), ReliefMap(rim_mm=0.0)
+    for c in (span, touch, span, touch):
+        relief.add(c, pose, GRID)
+        median.add(c, pose, GRID)
+    alone.add(touch, pose, GRID)
+    reached = np.isfinite(alone.height())
+    assert CELL_QUANTILE == pytest.approx(2.0 / 3.0)
+    assert np.max(np.abs(relief.height() - alone.height())[reached]) < 1e-9
+    assert np.allclose((alone.height() - median.height())[reached], 0.5)
+
+
+def test_a_contacts_rim_is_left_out_of_the_map():
+    """The contact's outer 2 mm (one sample ring at a 2 mm step), where the sheet leaves the wall,
+    reaches no map cell; what remains lies inside what the whole contact reaches."""
+    pose = ProbePose(-30.0, 30.0, 10.0, 3.0)
+    c = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
+    whole, inner = ReliefMap(rim_mm=0.0), ReliefMap()
+    n_whole, n_inner = whole.add(c, pose, GRID), inner.add(c, pose, GRID)
+    assert 0 < n_inner < n_whole
+    assert not np.any(np.isfinite(inner.height()) & ~np.isfinite(whole.height()))
+    for kw, name in (({"rim_mm": -1.0}, "rim_mm"), ({"rim_mm": math.nan}, "rim_mm"), ({"quantile": 1.5}, "quantile")):
+        with pytest.raises(ValueError, match=name):
+            ReliefMap(**kw)  # type: ignore[arg-type]

@@ -183,6 +183,22 @@ def test_map_refuses_a_pose_file_that_does_not_match_the_presses(press_log, caps
     assert "3 contact events, but" in capsys.readouterr().err
 
 
+def test_map_takes_the_cell_quantile_and_rim_and_refuses_a_quantile_outside_0_1_by_name(press_log, capsys):
+    """``--cell-quantile 0.5 --rim-mm 0`` stitches the median of whole contacts: more cells (the
+    rims) than the default; a quantile outside [0, 1] is refused, naming it."""
+    tmp, log, poses, _ = press_log
+    counts = []
+    for extra in ([], ["--cell-quantile", "0.5", "--rim-mm", "0"]):
+        ply = tmp / f"relief{len(extra)}.ply"
+        assert skinmap_main(["map", str(log), "--poses", str(poses), "--ply", str(ply), *extra]) == 0
+        capsys.readouterr()
+        text = ply.read_text().splitlines()
+        counts.append(int(next(line for line in text if line.startswith("element vertex")).split()[-1]))
+    assert counts[1] > counts[0] > 0
+    assert skinmap_main(["map", str(log), "--poses", str(poses), "--cell-quantile", "1.5"]) == 1
+    assert "quantile must be in [0, 1]" in capsys.readouterr().err
+
+
 def test_gateway_logs_the_poses_it_receives_and_refuses_a_malformed_one(press_log):
     import json
 
