@@ -1223,10 +1223,11 @@ class Reconstructor:
             half = 0.5 * (reading.high ** 2 - reading.low ** 2)
             m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
             info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
-            # Refined to where zero twist is allowed too, but well above the reading's noise (a
-            # saddle of R 286 mm 7° off the grid lines on a 12×12 sheet refined to 0.69-0.84 of
-            # its 0.81·10⁻³/mm, while the least-shear answer kept none and was 1.0 mm off): the
-            # twist is decided, the answer moves to it below (both signs, the other the mirror)
+            # Refined to where zero twist is allowed too, but above UNDECIDED_SHARE of the
+            # reading's top (a saddle of R 286 mm 7° off the grid lines on a 12×12 sheet refined
+            # to 0.69-0.84 of its 0.81·10⁻³/mm, while the least-shear answer kept none and was
+            # 1.0 mm off): the twist is decided, the answer moves to it below (both signs, the
+            # other the mirror unless the gauges reject it)
             decided = magnitude > UNDECIDED_SHARE * reading.high
         layout = self._layout
         shift, chi = base_shift, chi0
