@@ -587,6 +587,7 @@ def timing_table(sizes: list[int], frames_for: dict[int, int], seed: int, kernel
               f"{1e3 * cost_many:10.2f} {cost_many / base:6.2f}")
     cold_timing(max(frames_for[min(frames_for)] // 2, 20), seed, kernels)
     elastic_timing(frames_for[min(frames_for)], seed, kernels)
+    held_stream_table(30, seed, kernels)
     print(f"(load average during the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
 
 
@@ -640,6 +641,45 @@ def elastic_timing(count: int, seed: int, kernels: str = "compiled") -> None:
         cpu_arr = np.array(cpu[2:])
         how = prev.diagnostics.extra.get("stretch_reading", ("none",))[0]
         print(f"{spec:42s} {1e3 * np.median(cpu_arr):14.2f} {1e3 * np.percentile(cpu_arr, 90):11.2f}  {how}")
+
+
+#: Elastic 12×12 saddles near the grid lines held still (their twist read from the stretch, its
+#: interval reaching none on some frames): the twist and its sign from frame to frame.
+HELD_STREAM_SPECS = ("saddle:radius=285.7,axis_angle=83.3", "saddle:radius=260,axis_angle=8")
+
+
+def held_stream_table(frames: int, seed: int, kernels: str = "compiled") -> None:
+    """Warm frames of elastic 12×12 saddles held still, as skinmapd streams them: the CPU per
+    frame, how many frames carry the twist (not none), how often its sign changes from one frame
+    to the next, how many are flagged ambiguous, and the worst mean node error of the better of
+    each frame's two answers (after the best rigid alignment)."""
+    n = 12
+    rng = np.random.default_rng(seed)
+    rec = Reconstructor(n, n, PITCH, H, H, GAUGE, kernels=kernels)
+    rec.prepare()
+    print(f"\nElastic films held still, {n}x{n}, {frames} noisy frames each (reconstruct with previous, as skinmapd runs it)")
+    print(f"{'scene':42s} {'cpu median ms':>14s} {'twist':>7s} {'sign changes':>12s} {'flagged':>8s} {'worst mm':>9s}")
+    for spec in HELD_STREAM_SPECS:
+        shape = scenes.parse_scene_spec(spec, "elastic", n, n, PITCH)
+        eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
+        truth = ph.ground_truth(shape, n, n, PITCH).nodes
+        prev, cpu, twists, flagged, worst = None, [], [], 0, 0.0
+        for _ in range(frames):
+            du, dl = rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)
+            c0 = time.thread_time()
+            prev = rec(eu + du, el + dl, previous=prev)
+            prev.nodes, prev.normals
+            cpu.append(time.thread_time() - c0)
+            twists.append(prev.diagnostics.twist_constant)
+            flagged += prev.mirror is not None
+            answers = [prev] + ([prev.mirror] if prev.mirror is not None else [])
+            worst = max(worst, min(float(node_errors(a.nodes, truth).mean()) for a in answers))
+        tw = np.array(twists)
+        carried = np.abs(tw) > 0.5 * np.median(np.abs(tw[tw != 0])) if np.any(tw != 0) else np.zeros(len(tw), bool)
+        signs = np.sign(tw[carried])
+        changes = int(np.count_nonzero(signs[1:] != signs[:-1]))
+        print(f"{spec:42s} {1e3 * np.median(cpu[2:]):14.2f} {int(carried.sum()):>3d}/{frames:<3d} {changes:12d} "
+              f"{flagged:>3d}/{frames:<3d} {worst:9.3f}")
 
 
 def main() -> None:
