@@ -619,6 +619,18 @@ def cold_timing(count: int, seed: int, kernels: str = "compiled") -> None:
 ELASTIC_TIMING_SPECS = ("saddle:radius=90,axis_angle=75", "sphere:radius=70", "gaussian:height=3,fwhm=18,u0=4,v0=-3")
 
 
+def _held_frames(rec: Reconstructor, eu: np.ndarray, el: np.ndarray, rng: np.random.Generator, count: int):
+    """(surface, CPU seconds of its frame) for ``count`` noisy frames of one still scene, each
+    reconstructed warm from the one before, as skinmapd runs them."""
+    prev = None
+    for _ in range(count):
+        du, dl = rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)
+        c0 = time.thread_time()
+        prev = rec(eu + du, el + dl, previous=prev)
+        prev.nodes, prev.normals
+        yield prev, time.thread_time() - c0
+
+
 def elastic_timing(count: int, seed: int, kernels: str = "compiled") -> None:
     """CPU per warm frame on films laminated on molds (5×5, noisy frames of one still scene):
     the general model with the stretch pattern's twist (the membrane's reading, its refinement,
@@ -632,12 +644,9 @@ def elastic_timing(count: int, seed: int, kernels: str = "compiled") -> None:
         shape = scenes.parse_scene_spec(spec, "elastic", 5, 5, PITCH)
         eu, el = ph.gauge_strains(shape, 5, 5, PITCH, H, H, GAUGE)
         prev, cpu = None, []
-        for _ in range(max(count // 4, 12)):
-            du, dl = rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)
-            c0 = time.thread_time()
-            prev = rec(eu + du, el + dl, previous=prev)
-            prev.nodes, prev.normals
-            cpu.append(time.thread_time() - c0)
+        for prev, seconds in _held_frames(rec, eu, el, rng, max(count // 4, 12)):
+            cpu.append(seconds)
+        assert prev is not None
         cpu_arr = np.array(cpu[2:])
         how = prev.diagnostics.extra.get("stretch_reading", ("none",))[0]
         print(f"{spec:42s} {1e3 * np.median(cpu_arr):14.2f} {1e3 * np.percentile(cpu_arr, 90):11.2f}  {how}")
@@ -663,13 +672,9 @@ def held_stream_table(frames: int, seed: int, kernels: str = "compiled") -> None
         shape = scenes.parse_scene_spec(spec, "elastic", n, n, PITCH)
         eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
         truth = ph.ground_truth(shape, n, n, PITCH).nodes
-        prev, cpu, twists, flagged, worst = None, [], [], 0, 0.0
-        for _ in range(frames):
-            du, dl = rng.normal(0, NOISE, eu.shape), rng.normal(0, NOISE, el.shape)
-            c0 = time.thread_time()
-            prev = rec(eu + du, el + dl, previous=prev)
-            prev.nodes, prev.normals
-            cpu.append(time.thread_time() - c0)
+        cpu, twists, flagged, worst = [], [], 0, 0.0
+        for prev, seconds in _held_frames(rec, eu, el, rng, frames):
+            cpu.append(seconds)
             twists.append(prev.diagnostics.twist_constant)
             flagged += prev.mirror is not None
             answers = [prev] + ([prev.mirror] if prev.mirror is not None else [])

@@ -716,12 +716,11 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
         return []
     # placed against a working map of whole contacts and each cell's median (the overlap a
     # registration needs: the rim left out and the upper quantile placed 5 of the bench's 64
-    # presses instead of 13); ``relief`` is the caller's map, filled once the poses are known
-    final, relief = relief, ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size, rim_mm=0.0,
-                                      quantile=0.5)
+    # presses instead of 13); ``relief``, the caller's map, is filled once the poses are known
+    work = _registration_map(relief)
     out: list[PoseEstimate] = [PoseEstimate(None, "not tried")] * len(contacts)
     anchor = first or anchor_pose(contacts[0], grid)
-    relief.add(contacts[0], anchor, grid)
+    work.add(contacts[0], anchor, grid)
     out[0] = PoseEstimate(anchor, "the anchor")
     pending = list(range(1, len(contacts)))
     for _ in range(2):
@@ -731,12 +730,12 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
             # bounded step between presses)
             placed = [j for j in range(len(contacts)) if out[j].pose is not None]
             near = min(placed, key=lambda j: abs(j - i))
-            est = estimate_pose(relief, contacts[i], grid, prior=out[near].pose, **options)
+            est = estimate_pose(work, contacts[i], grid, prior=out[near].pose, **options)
             out[i] = est
             if est.pose is None:
                 later.append(i)
             else:
-                relief.add(contacts[i], est.pose, grid)
+                work.add(contacts[i], est.pose, grid)
         if len(later) == len(pending):
             break
         pending = later
@@ -745,7 +744,7 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
     placed = [i for i in range(1, len(contacts)) if out[i].pose is not None]
     for _ in range(max(0, sweeps)):
         for i in placed:
-            others = ReliefMap(relief.size, relief.step, relief.half - 0.5 * relief.size, rim_mm=0.0, quantile=0.5)
+            others = _registration_map(relief)
             for j in [0, *placed]:
                 if j != i:
                     others.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
@@ -753,7 +752,13 @@ def stitch_estimated(contacts: list[Contact], grid: SampleGrid, relief: ReliefMa
                                 **{**options, "max_move_mm": 3.0, "angle_range_deg": 3.0})
             if est.pose is not None:
                 out[i] = est
-    final.clear()
+    relief.clear()
     for j in [0, *placed]:
-        final.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
+        relief.add(contacts[j], out[j].pose, grid)  # type: ignore[arg-type]
     return out
+
+
+def _registration_map(like: ReliefMap) -> ReliefMap:
+    """An empty map of ``like``'s extent for registering contacts: whole contacts, each cell
+    the median of its readings."""
+    return ReliefMap(like.size, like.step, like.half - 0.5 * like.size, rim_mm=0.0, quantile=0.5)

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, FloorLevel, PoseEstimate, ProbePose,
-                                    ReliefMap, SampleGrid, capture_baseline, detect_contact, level_on_floor, read_poses_csv, stitch_estimated)
+                                    ReliefMap, SampleGrid, capture_baseline, detect_contact, level_on_floor,
+                                    read_poses_csv, stitch_estimated)
 
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 

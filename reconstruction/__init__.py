@@ -1193,6 +1193,12 @@ class Reconstructor:
 
         membrane = reading.source == "membrane"
         decided = False  # a twist the refined reading gives where its interval allows none too
+
+        def about(magnitude: float) -> tuple[float, float]:
+            # the reading's width (in the twist's square) kept about a refined magnitude
+            half = 0.5 * (reading.high ** 2 - reading.low ** 2)
+            return math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+
         if within(m_lo, m_hi) and m_lo <= 0.0:
             # The pattern allows no twist too (a sphere): the answer stands.  But where the
             # membrane's reading, refined on the answer's own family, still says a twist, the
@@ -1224,9 +1230,8 @@ class Reconstructor:
             # refinement confirms it: decided, as below, and its sign kept unless the stretch
             # clearly prefers the other (a held 12×12 saddle of R 286 mm at 83° went between its
             # twist and none frame by frame, 0.05 and 1.0 mm off)
-            half = 0.5 * (reading.high ** 2 - reading.low ** 2)
             magnitude, decided = mag, True
-            m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+            m_lo, m_hi = about(magnitude)
         elif membrane:
             # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
             # (the metric, the slopes): the twist's square is read again on the answer's family
@@ -1234,8 +1239,7 @@ class Reconstructor:
             # (Refined to where zero twist is allowed too, the answer stays, but the data have not
             # decided: the twists up to the interval's top join its σ below.)
             magnitude = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
-            half = 0.5 * (reading.high ** 2 - reading.low ** 2)
-            m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+            m_lo, m_hi = about(magnitude)
             info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
             # Refined to where zero twist is allowed too, but above UNDECIDED_SHARE of the
             # reading's top (a saddle of R 286 mm 7° off the grid lines on a 12×12 sheet refined
@@ -1299,7 +1303,7 @@ class Reconstructor:
             chi_t, sg, cand, family, _, own = cands[0]
             if own != magnitude:  # the winner's own twist: the reading's width kept about it
                 magnitude = own
-                m_lo, m_hi = math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
+                m_lo, m_hi = about(magnitude)
                 info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
             dof = misfit(cand, layout, eu, el, sigma_f)[1]
             if chi_t > chi0 + max(tell, 0.5 * chi0):
