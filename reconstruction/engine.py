@@ -74,6 +74,7 @@ def solve_twist(
     stretch_sigma: float = 0.0,
     sign_from_data: bool = True,
     product_noise: tuple[float, float] | None = None,
+    quiet: float = 1.0,
 ) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -88,7 +89,10 @@ def solve_twist(
     sign read from the data when ``sign_from_data`` is False.  ``stretch_sigma``: stretch noise
     s.d. of one unit.  ``product_noise``: (bias, s.d.) of the mean product k_u k_v − τ₀² that
     the turning noise alone causes (:mod:`.productnoise`; the bias is removed before the product
-    is read as a twist); without it, independent noise on every node is assumed.  Returns the τ
+    is read as a twist); without it, independent noise on every node is assumed.  ``quiet``: the
+    share of that noise the data themselves show, where they show clearly less (a positive
+    product is read against that share; the search for a turned saddle keeps the stated noise,
+    whose product has no sign to read).  Returns the τ
     field and its constant without the graph refinement, the graph model
     (:class:`GraphTwist`) when the stretch pattern suggests one, and the twist the product
     allows where its noise shrank the one taken, or hides where none was taken (``open``).
@@ -118,10 +122,11 @@ def solve_twist(
     ratio = dev / need if need > 0 else math.inf
     weight = min(max(1.5 - 3.0 * ratio, 0.0), 1.0)
     # unbiased above twice the noise level, off below it, continuous in between
-    significance = min(max(prod / noise - 1.0, 0.0), 1.0) if noise > 0 else float(prod > 0)
+    read = noise * quiet
+    significance = min(max(prod / read - 1.0, 0.0), 1.0) if read > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
     graph = None
-    if prod <= noise or weight < 1.0:
+    if prod <= read or weight < 1.0:
         # not a developable sheet: a sheet pushed out of plane (a graph) may explain its twist
         # through the stretch pattern, whatever the sign of k_u k_v (a turned saddle, a twisted
         # dome, an oblique trough pressed into a clamped film); the caller refines it and
@@ -133,7 +138,7 @@ def solve_twist(
             graph = graph._replace(
                 constant=math.copysign(graph.constant, twist_sign), slope_twist=math.copysign(graph.slope_twist, twist_sign)
             )
-        if prod <= noise:  # no positive curvature product to explain: look for a turned saddle
+        if prod <= read:  # no positive curvature product to explain: look for a turned saddle
             if graph is not None and graph.significant:
                 return TwistResult(tau0 + graph.constant, graph.constant, graph)
             c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
