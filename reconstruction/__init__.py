@@ -537,14 +537,15 @@ class Reconstructor:
             surface_sigma = SigmaField(general_sigma)
         surf = self._surface(pos, surface_sigma, diag)
         if n_valid:
-            def graph_mirror(sign: float) -> np.ndarray:
+            def graph_mirror(sign: float) -> tuple[np.ndarray, bool]:
                 """The graph fitted again with the opposite twist sign, from the general model's
-                answer with that sign (no agreement test: it is only weighed against the data)."""
+                answer with that sign (no agreement test: it is only weighed against the data),
+                and whether it is a graph (else the general model's answer with that sign)."""
                 general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
                 fit_m = self._graph_fit().fit_cold(data, general_m[0], sign)
                 if fit_m.accepted:
-                    return to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs))
-                return general_m[0]
+                    return to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs)), True
+                return general_m[0], False
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
             twist_mean = cast("float | None", convex_info.get("twist_mean")) if fit is not None else None
@@ -952,10 +953,15 @@ class Reconstructor:
         # within what the turning noise makes of the curvature product is no twist to mirror
         if (abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None
                 and abs(c0) > MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f))):
+            mirror_comparable = True  # the mirror is the same model's: its χ² may swap them
             if positions_at is not None:
                 pos_m = positions_at(-2.0 * c0)
             else:  # a graph answered: its mirror is the graph refitted with the opposite sign
-                pos_m = graph_mirror(-math.copysign(1.0, c0))
+                # (where no graph of that sign fits, the general model's answer with it stands in:
+                # its misfit is another model's, no evidence against the graph; an oblique trough
+                # on 8×8 read 0.04 per gauge so against the graph's 0.11 and was taken, 1.0 mm
+                # off with σ 0.016, where the graph of the other sign had 12 times its objective)
+                pos_m, mirror_comparable = graph_mirror(-math.copysign(1.0, c0))
             diag_m = _with_twist(diag, -c0)
             cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m)
             chi_m, _, _ = misfit(cand, layout, eu, el, sigma_f)
@@ -996,7 +1002,8 @@ class Reconstructor:
             # χ² above one per gauge (32×32: 2.6): there a noisy answer of the right sign that
             # its defect correction did not improve read 7.7 per gauge, its mirror 1.9, and the
             # mirror was taken, 17 mm off, unflagged; it is flagged instead)
-            if chi_m < chi0 - tell and not within_noise and fresh_m is None and chi2_noise <= 1.0:
+            if (chi_m < chi0 - tell and not within_noise and fresh_m is None and chi2_noise <= 1.0
+                    and mirror_comparable):
                 # the data prefer the mirror: it is the answer
                 surf, cand, chi0, chi_m = cand, surf, chi_m, chi0
                 diag = surf.diagnostics
