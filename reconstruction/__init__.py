@@ -1262,7 +1262,7 @@ class Reconstructor:
             decided = magnitude > UNDECIDED_SHARE * reading.high
         layout = self._layout
         shift, chi = base_shift, chi0
-        other: tuple[Surface, float] | None = None  # the other sign's candidate and its χ²
+        other: tuple[Surface, float, int] | None = None  # the other sign's candidate, its χ² and gauges counted
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
         # off its estimate by more than MOVE_SHARE moves to it (within the interval too; the
         # trace's interval has no estimate, only ends)
@@ -1297,7 +1297,8 @@ class Reconstructor:
                         own = magnitude
                 cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
                 score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
-                cands.append((misfit(cand, layout, eu, el, sigma_f)[0], sg, cand, fresh[5], score, own))
+                chi_c, dof = misfit(cand, layout, eu, el, sigma_f)[:2]
+                cands.append((chi_c, sg, cand, fresh[5], score, own))
             if len(cands) > 1:
                 if membrane:
                     # the sign whose surface explains the stretch pattern better (it was the right
@@ -1318,7 +1319,6 @@ class Reconstructor:
                 magnitude = own
                 m_lo, m_hi = about(magnitude)
                 info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
-            dof = misfit(cand, layout, eu, el, sigma_f)[1]
             if chi_t > chi0 + max(tell, 0.5 * chi0):
                 # the gauges reject the pattern's twist (the film is not what the model of the
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
@@ -1327,7 +1327,7 @@ class Reconstructor:
                 return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0
             info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
             if len(cands) > 1:
-                other = (cands[1][2], cands[1][0])
+                other = (cands[1][2], cands[1][0], dof)
             sign = sg
             surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
             positions_at = family
@@ -1348,10 +1348,9 @@ class Reconstructor:
                 target = -sign * abs(m0)
                 cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
                                      _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
-                chi_m = misfit(cand, layout, eu, el, sigma_f)[0]
+                chi_m, dof = misfit(cand, layout, eu, el, sigma_f)[:2]
             else:
-                cand, chi_m = other
-            dof = misfit(cand, layout, eu, el, sigma_f)[1]
+                cand, chi_m, dof = other
             info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
             # as in the posterior check: where both signs read the gauges as well as the noise
             # alone would, the kinematic forward model's preference proves nothing (a saddle on a
