@@ -126,6 +126,7 @@ def solve_twist(
     significance = min(max(prod / read - 1.0, 0.0), 1.0) if read > 0 else float(prod > 0)
     c2 = max(prod, 0.0) * weight * significance
     graph = None
+    from_shear = False
     if prod <= read or weight < 1.0:
         # not a developable sheet: a sheet pushed out of plane (a graph) may explain its twist
         # through the stretch pattern, whatever the sign of k_u k_v (a turned saddle, a twisted
@@ -142,6 +143,7 @@ def solve_twist(
             if graph is not None and graph.significant:
                 return TwistResult(tau0 + graph.constant, graph.constant, graph)
             c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
+            from_shear = c2 > 0.0
     c = math.copysign(math.sqrt(c2), twist_sign)
     # a product the data show (beyond 1 s.d. of its noise) but the significance test shrank:
     # the twist it would be, and one s.d. of the product beyond, is not ruled out (a cylinder 6°
@@ -156,7 +158,7 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
-    return TwistResult(tau0 + c, c, graph, opened)
+    return TwistResult(tau0 + c, c, graph, opened, from_shear)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -192,6 +194,9 @@ class TwistResult(NamedTuple):
     # hides where no twist was taken and the stretch cannot call the sheet doubly curved; 0
     # otherwise
     open: float = 0.0
+    # the constant came from the least-shear prior of a turned saddle (_saddle_twist), which no
+    # datum confirms: a film on a mold shears otherwise (measured up to 20 % off its twist)
+    from_shear: bool = False
 
 
 def graph_slopes(grid: FineGrid, k_u, k_v, tau0) -> tuple[np.ndarray, np.ndarray]:
