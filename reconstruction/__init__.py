@@ -1239,9 +1239,15 @@ class Reconstructor:
             # sign the data leave open, join node_sigma.  A refined twist below UNDECIDED_SHARE
             # of the interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from
             # the grid refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18).
-            if not membrane or reading.twist <= 0.5 * m_hi:
+            saddle_like = _mean_twist_terms(product_fields if measured_fields is None else measured_fields,
+                                            self.grid.inner)[1] < 0.0
+            if not membrane or (reading.twist <= 0.5 * m_hi and not saddle_like):
                 # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
-                # it, that saddle 0.70; the refinement would double a warm sphere frame's cost)
+                # it, that saddle 0.70; the refinement would double a warm sphere frame's cost.
+                # A sheet whose curvature product is negative, as a saddle's near the grid lines,
+                # has nothing but the stretch to tell its twist: it is refined whatever the
+                # reading (a 12×12 saddle of R 286 mm at 83° read 0.22 of the top on one draw in
+                # 20, its twist 0.84 of it: 1.0 mm off with σ 0.050, 10.9 times the bound))
                 return None
             mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
             info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
@@ -1250,8 +1256,8 @@ class Reconstructor:
                 # The refinement finds no twist where the reading itself said one: two readings
                 # of the same pattern disagree, so the twists up to the reading's stay open (a
                 # 16×16 saddle of R 293 mm 1° off the grid lines read 0.58 of the top, refined to
-                # none, and was 0.28 mm off with σ 0.06)
-                mag = reading.twist
+                # none, and was 0.28 mm off with σ 0.06); up to the larger of the two
+                mag = max(mag, reading.twist)
             if mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
                 return None
             # (the answer stays: moved to the refined twist, a noisy 5×5 sphere and an aligned
