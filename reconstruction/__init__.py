@@ -1233,43 +1233,16 @@ class Reconstructor:
             return math.sqrt(max(magnitude ** 2 - half, 0.0)), math.sqrt(magnitude ** 2 + half)
 
         if within(m_lo, m_hi) and m_lo <= 0.0:
-            # The pattern allows no twist too (a sphere): the answer stands.  But where the
-            # membrane's reading, refined on the answer's own family, still says a twist, the
-            # data have not decided between none and that one: the twists up to it, of either
-            # sign the data leave open, join node_sigma.  A refined twist below UNDECIDED_SHARE
-            # of the interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from
-            # the grid refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18).
-            saddle_like = _mean_twist_terms(product_fields if measured_fields is None else measured_fields,
-                                            self.grid.inner)[1] < 0.0
-            if not membrane or (reading.twist <= 0.5 * m_hi and not saddle_like):
-                # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
-                # it, that saddle 0.70; the refinement would double a warm sphere frame's cost.
-                # A sheet whose curvature product is negative, as a saddle's near the grid lines,
-                # has nothing but the stretch to tell its twist: it is refined whatever the
-                # reading (a 12×12 saddle of R 286 mm at 83° read 0.22 of the top on one draw in
-                # 20, its twist 0.84 of it: 1.0 mm off with σ 0.050, 10.9 times the bound))
+            # The pattern allows no twist too (a sphere): the answer stands, unless the data have
+            # not decided between none and the refined reading's twist (:meth:`_twist_left_open`)
+            left = self._twist_left_open(reading, m0, sign, sign_open, base_shift, positions_at, stretch, valid,
+                                         product_fields if measured_fields is None else measured_fields, carried, info)
+            if left is None:
                 return None
-            mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
-            info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
-            refined = mag
-            if mag <= UNDECIDED_SHARE * m_hi:
-                # The refinement finds no twist where the reading itself said one: two readings
-                # of the same pattern disagree, so the twists up to the reading's stay open (a
-                # 16×16 saddle of R 293 mm 1° off the grid lines read 0.58 of the top, refined to
-                # none, and was 0.28 mm off with σ 0.06); up to the larger of the two
-                mag = max(mag, reading.twist)
-            if mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
-                return None
-            # (the answer stays: moved to the refined twist, a noisy 5×5 sphere and an aligned
-            # saddle went 0.3 mm off, refined to 0.4-0.5 of the top)
-            if not (carried and m0 != 0.0 and abs(abs(m0) - refined) <= 0.25 * abs(m0)):
-                ends = [m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))]
+            if isinstance(left, list):
+                ends = left
                 return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0
-            # The answer carries the frame before's twist (:meth:`_carried_twist`) and the
-            # refinement confirms it: decided, as below, and its sign kept unless the stretch
-            # clearly prefers the other (a held 12×12 saddle of R 286 mm at 83° went between its
-            # twist and none frame by frame, 0.05 and 1.0 mm off)
-            magnitude, decided = mag, True
+            magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:
             # The reading's K is k_u k_v − τ² of the fields, a few percent off the surface's own
@@ -1286,7 +1259,6 @@ class Reconstructor:
             # 1.0 mm off): the twist is decided, the answer moves to it below (both signs, the
             # other the mirror unless the gauges reject it)
             decided = magnitude > UNDECIDED_SHARE * reading.high
-        layout = self._layout
         shift, chi = base_shift, chi0
         other: tuple[Surface, float, int] | None = None  # the other sign's candidate, its χ² and gauges counted
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
@@ -1306,25 +1278,7 @@ class Reconstructor:
         if off or not within(m_lo, m_hi):
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
             # correction fitted to the old twist), both signs where none is given
-            cands = []
-            for sg in signs:
-                fresh, own = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * magnitude), magnitude
-                if membrane and len(signs) > 1:
-                    # Each sign is weighed at the twist its own family explains best: the refined
-                    # magnitude above was read on the answer's family, whose sign may be the wrong
-                    # one, and the two signs prefer different magnitudes (a saddle R 74 mm at 32°:
-                    # at 0.0120 /mm, the wrong sign's best, it read the stretch 5 times better
-                    # than the right one; at 0.0114, the right sign's, 15 times worse).
-                    family_sg = fresh[5]
-                    own = self._refine_twist(lambda m: family_sg(sg * (m - magnitude)), reading, stretch, valid)
-                    if abs(own - magnitude) > MOVE_SHARE * magnitude:
-                        fresh = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * own)
-                    else:
-                        own = magnitude
-                cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
-                score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
-                chi_c, dof = misfit(cand, layout, eu, el, sigma_f)[:2]
-                cands.append((chi_c, sg, cand, fresh[5], score, own))
+            cands, dof = self._afresh_by_sign(signs, magnitude, reading, surf, turning, stretch, valid, sigma_f, eu, el)
             if len(cands) > 1:
                 if membrane:
                     # the sign whose surface explains the stretch pattern better (it was the right
@@ -1369,22 +1323,101 @@ class Reconstructor:
             # The pattern needs a twist whose sign nothing tells (the stretch of a saddle is even
             # in its turn; which sign's surface fits it better was wrong once in 11): the other
             # sign is the mirror unless the gauges reject it.
-            mirror = None
-            if other is None:
-                target = -sign * abs(m0)
-                cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
-                                     _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
-                chi_m, dof = misfit(cand, layout, eu, el, sigma_f)[:2]
-            else:
-                cand, chi_m, dof = other
-            info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
-            # as in the posterior check: where both signs read the gauges as well as the noise
-            # alone would, the kinematic forward model's preference proves nothing (a saddle on a
-            # mold with friction, R 85 mm at 54°: the wrong sign read 0.10 per gauge, the right
-            # one 0.43, and the answer was 4.4 mm off with nothing said)
-            if (chi_m <= chi + max(tell, chi) or _within_noise(chi, chi_m, dof, chi2_noise)) and _differs(surf, cand):
-                mirror = cand
+            mirror = self._pattern_mirror(surf, other, positions_at, shift, sign, m0, eu, el, sigma_f, chi, tell,
+                                          chi2_noise, info)
         return surf, mirror, shift, _memo(spread), chi
+
+    def _twist_left_open(self, reading: TwistReading, m0: float, sign: float, sign_open: bool, base_shift: float,
+                         positions_at, stretch, valid, fields, carried: bool, info: dict) -> list[float] | float | None:
+        """Where the stretch pattern's interval allows no twist too and the answer's twist lies in
+        it: None where the answer stands as it is; else the shifts on ``positions_at``'s family
+        whose twists the data leave open (their spread joins node_sigma); or, for an answer that
+        carries the frame before's twist which the refinement confirms, the decided magnitude.
+
+        The membrane's reading, refined on the answer's own family, may still say a twist: the
+        data have not decided between none and that one, and the twists up to it, of either sign
+        the data leave open, join node_sigma.  A refined twist below UNDECIDED_SHARE of the
+        interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from the grid
+        refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18)."""
+        m_hi = reading.high
+        saddle_like = _mean_twist_terms(fields, self.grid.inner)[1] < 0.0
+        if reading.source != "membrane" or (reading.twist <= 0.5 * m_hi and not saddle_like):
+            # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
+            # it, that saddle 0.70; the refinement would double a warm sphere frame's cost.
+            # A sheet whose curvature product is negative, as a saddle's near the grid lines,
+            # has nothing but the stretch to tell its twist: it is refined whatever the
+            # reading (a 12×12 saddle of R 286 mm at 83° read 0.22 of the top on one draw in
+            # 20, its twist 0.84 of it: 1.0 mm off with σ 0.050, 10.9 times the bound))
+            return None
+        mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
+        info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
+        refined = mag
+        if mag <= UNDECIDED_SHARE * m_hi:
+            # The refinement finds no twist where the reading itself said one: two readings
+            # of the same pattern disagree, so the twists up to the reading's stay open (a
+            # 16×16 saddle of R 293 mm 1° off the grid lines read 0.58 of the top, refined to
+            # none, and was 0.28 mm off with σ 0.06); up to the larger of the two
+            mag = max(mag, reading.twist)
+        if mag * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
+            return None
+        # (the answer stays: moved to the refined twist, a noisy 5×5 sphere and an aligned
+        # saddle went 0.3 mm off, refined to 0.4-0.5 of the top)
+        if not (carried and m0 != 0.0 and abs(abs(m0) - refined) <= 0.25 * abs(m0)):
+            return [m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))]
+        # The answer carries the frame before's twist (:meth:`_carried_twist`) and the
+        # refinement confirms it: decided, and its sign kept unless the stretch clearly prefers
+        # the other (a held 12×12 saddle of R 286 mm at 83° went between its twist and none frame
+        # by frame, 0.05 and 1.0 mm off)
+        return mag
+
+    def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
+                        sigma_f: float, eu, el) -> tuple[list, int]:
+        """The answer modelled afresh at the reading's twist ``magnitude`` with each of ``signs``
+        (the family of the answer keeps the fields the defect correction fitted to the old
+        twist): per sign (χ², sign, surface, its twist family, its stretch-pattern misfit through
+        its own Gaussian curvature (membrane readings), its magnitude), and the gauges counted."""
+        membrane = reading.source == "membrane"
+        cands, dof = [], 0
+        for sg in signs:
+            fresh, own = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * magnitude), magnitude
+            if membrane and len(signs) > 1:
+                # Each sign is weighed at the twist its own family explains best: the refined
+                # magnitude above was read on the answer's family, whose sign may be the wrong
+                # one, and the two signs prefer different magnitudes (a saddle R 74 mm at 32°:
+                # at 0.0120 /mm, the wrong sign's best, it read the stretch 5 times better
+                # than the right one; at 0.0114, the right sign's, 15 times worse).
+                family_sg = fresh[5]
+                own = self._refine_twist(lambda m: family_sg(sg * (m - magnitude)), reading, stretch, valid)
+                if abs(own - magnitude) > MOVE_SHARE * magnitude:
+                    fresh = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * own)
+                else:
+                    own = magnitude
+            cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
+            score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
+            chi_c, dof = misfit(cand, self._layout, eu, el, sigma_f)[:2]
+            cands.append((chi_c, sg, cand, fresh[5], score, own))
+        return cands, dof
+
+    def _pattern_mirror(self, surf: Surface, other, positions_at, shift: float, sign: float, m0: float, eu, el,
+                        sigma_f: float, chi: float, tell: float, chi2_noise: float, info: dict) -> Surface | None:
+        """The other sign of a twist the stretch pattern needs (``other``: the other sign modelled
+        afresh, (surface, χ², gauges counted), else its mirror on the answer's family), unless the
+        gauges reject it or it is the answer's own surface."""
+        if other is None:
+            target = -sign * abs(m0)
+            cand = self._surface(positions_at(shift + target - m0), surf._fine_sigma_fn,
+                                 _with_twist(surf.diagnostics, surf.diagnostics.twist_constant + target - m0))
+            chi_m, dof = misfit(cand, self._layout, eu, el, sigma_f)[:2]
+        else:
+            cand, chi_m, dof = other
+        info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
+        # as in the posterior check: where both signs read the gauges as well as the noise
+        # alone would, the kinematic forward model's preference proves nothing (a saddle on a
+        # mold with friction, R 85 mm at 54°: the wrong sign read 0.10 per gauge, the right
+        # one 0.43, and the answer was 4.4 mm off with nothing said)
+        if (chi_m <= chi + max(tell, chi) or _within_noise(chi, chi_m, dof, chi2_noise)) and _differs(surf, cand):
+            return cand
+        return None
 
     def _agreement(self, general, turning, valid, data, fit_sigma):
         """The test an accepted graph must pass on a cold frame (graphfit.AGREE_SIGMAS): its
