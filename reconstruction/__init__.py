@@ -85,6 +85,10 @@ MEMBRANE_SIGN_RATIO = 0.5
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it) is uncertain by this share of itself (elastic films on molds: 12-20 % off).
 SHEAR_PRIOR_SHARE = 0.25
+# A χ² per gauge above this for both the model's own twist and the least-shear prior's: the data
+# explain neither, so the prior has no answers it could choose among and the model's own stands
+# (a sharp 5 mm bump on a noisy 16×16 sheet: 2400 and 4800 per gauge, the prior's twist 7.9 mm off).
+GROSS_MISFIT = 100.0
 # Data whose own turning noise (productnoise.turning_noise_estimate) is below this share of the
 # stated read the constant twist against their own noise: a noise-free 16×16 cylinder 6.6° off
 # the rows had its twist shrunk to a third by the stated noise's test, 0.75 mm off.  (The MAD
@@ -1571,7 +1575,8 @@ class Reconstructor:
             sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
             chi_new, dof, _ = misfit(self._candidate(pos), self._layout, strains[0], strains[1], sigma_f)
             chi_own, _, _ = misfit(self._candidate(pos_own), self._layout, strains[0], strains[1], sigma_f)
-            if chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)):
+            if (chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1))
+                    or min(chi_new, chi_own) > GROSS_MISFIT * max(dof, 1)):
                 shift0, pos = 0.0, pos_own
             elif self.poisson_range is not None:
                 # nor among those the film's stretch tells apart: through each one's own
