@@ -75,14 +75,17 @@ def test_one_biased_gauge_costs_at_most_005_mm_and_is_named_right_on_unseen_shap
             assert surf.diagnostics.extra["suspect_gauges"][0]["gain"] == pytest.approx(gain, abs=0.1)
 
 
-def test_without_the_screen_a_biased_gauge_costs_millimetres_on_a_twisted_quadric(recs):
-    """What the screen removes: the same frame through the default path with the screen off."""
+def test_without_the_screen_a_biased_gauge_costs_more_than_the_0_05mm_bound_on_a_twisted_quadric(recs):
+    """What the screen removes: the same frame through the default path with the screen off.
+    (It cost 1-2 mm while the least-shear prior chose a twist among answers that misread the
+    biased gauge at hundreds per gauge; with GROSS_MISFIT it no longer does, and the cost is
+    0.06 mm, still above the bound.)"""
     rec, rec_off = recs
     eu, el = _strains(UNSEEN["twisted quadric"])
     bu, bl = _biased(eu, el, (1, 1, 1, 3), 1.3)
     off = rec_off(bu, bl, strain_sigma=SIGMA)
     assert off.diagnostics.suspect_gauges == "" and "gauge_screen" not in off.diagnostics.extra
-    assert aligned_error(off.nodes, rec_off(eu, el, strain_sigma=SIGMA).nodes) > 0.5
+    assert aligned_error(off.nodes, rec_off(eu, el, strain_sigma=SIGMA).nodes) > 0.05
     assert aligned_error(rec(bu, bl, strain_sigma=SIGMA).nodes, rec(eu, el, strain_sigma=SIGMA).nodes) < 0.01
 
 
