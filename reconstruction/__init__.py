@@ -661,7 +661,7 @@ class Reconstructor:
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
                      undecided: float = 0.0, sign_open: bool = False, open_twist: float = 0.0,
-                     twist_sign: float | None = None):
+                     twist_sign: float | None = None, prior_share: float = 0.0):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
@@ -675,19 +675,19 @@ class Reconstructor:
         0.65 mm off with σ 0.054 mm).  ``open_twist`` (the magnitude the curvature product
         allows where its noise shrank the twist taken, engine.solve_twist): half the distance
         to the twist of that magnitude, of either sign unless ``twist_sign`` tells it, joins
-        the rest (the same cylinder where the shrunk twist was none: 0.87 mm off, σ 0.058)."""
+        the rest (the same cylinder where the shrunk twist was none: 0.87 mm off, σ 0.058).
+        ``prior_share`` (a twist only a prior gave, nothing confirming it): half the distance
+        to the twists that share of it either side joins all of the above."""
         if positions_at is None:
             return lambda: None
+        if prior_share > 0.0:
+            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
+                                     open_twist, twist_sign)
+            return _widened(positions_at, base_shift, [prior_share * c0, -prior_share * c0], rest)
         if open_twist > 0.0:
             targets = [s * open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open)
-
-            def opened() -> np.ndarray:
-                out = _half_reach(positions_at, base_shift, targets)
-                other = rest()
-                return out if other is None else np.maximum(out, other)
-
-            return _memo(opened)
+            return _widened(positions_at, base_shift, targets, rest)
         if undecided != 0.0:
             return _memo(lambda: _half_reach(positions_at, base_shift, (undecided,)))
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
@@ -1040,28 +1040,19 @@ class Reconstructor:
         sign_open = (twist_sign is None and mirror is None
                      and abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM
                      and abs(c0) <= MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)))
+        # The twist is the least-shear prior's of a turned saddle, and the stretch pattern
+        # confirms nothing (neither reading explains it): a film on a mold shears otherwise, and
+        # the prior's twist was 12-20 % off (a saddle of R 286 mm at 49° on 12×12 with friction
+        # on its mold: 0.73 mm off with σ 0.048); the twists within SHEAR_PRIOR_SHARE of it join
+        # the spread
+        prior_only = "shear_prior_twist" in diag.extra and "stretch_reading" not in info
         twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
                                   diag.extra.get("undecided_twist", 0.0), sign_open,
                                   diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
-                                  None if twist_sign is None else float(twist_sign))
+                                  None if twist_sign is None else float(twist_sign),
+                                  SHEAR_PRIOR_SHARE if prior_only else 0.0)
         if pattern is not None:
             twist = pattern[3]
-        elif "shear_prior_twist" in diag.extra and "stretch_reading" not in info and positions_at is not None:
-            # The twist is the least-shear prior's of a turned saddle, and the stretch pattern
-            # confirms nothing (neither reading explains it): a film on a mold shears otherwise,
-            # and the prior's twist was 12-20 % off (a saddle of R 286 mm at 49° on 12×12 with
-            # friction on its mold: 0.73 mm off with σ 0.048); the twists within SHEAR_PRIOR_SHARE
-            # of it join the spread
-            noise_twist = twist
-            reach = [SHEAR_PRIOR_SHARE * c0, -SHEAR_PRIOR_SHARE * c0]
-            shift_at = base_shift
-
-            def prior_spread() -> np.ndarray:
-                out = _half_reach(positions_at, shift_at, reach)
-                other = noise_twist()
-                return out if other is None else np.maximum(out, other)
-
-            twist = _memo(prior_spread)
 
         resolution_known: list[np.ndarray | None] = []
 
@@ -1670,6 +1661,18 @@ def _within_noise(chi_a: float, chi_b: float, dof: int, chi2_noise: float) -> bo
     """Both χ² at most what the noise alone leaves in the general model's answers, plus two of
     its s.d. (``dof``·``chi2_noise``·(1 + 2√(2/dof))): their difference then proves nothing."""
     return max(chi_a, chi_b) <= dof * chi2_noise * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
+
+
+def _widened(positions_at, base_shift: float, shifts, rest: Callable[[], np.ndarray | None]):
+    """A spread function: half the distance to the family members at ``shifts``, or ``rest``'s
+    spread where that is larger (computed once, when first asked)."""
+
+    def widened() -> np.ndarray:
+        out = _half_reach(positions_at, base_shift, shifts)
+        other = rest()
+        return out if other is None else np.maximum(out, other)
+
+    return _memo(widened)
 
 
 def _half_reach(positions_at, base_shift: float, shifts) -> np.ndarray:
