@@ -25,7 +25,7 @@ stitched unweighted as ``skinmap map`` does (``--weights sigma``: each sample we
 the reconstruction); "rec true fit" the same reconstructed contacts, each placed by its best
 rigid fit to the sheet's true surface instead of by its rim (a perfect reference for the
 probe's frame: what the reconstruction's own shape allows at best, given poses only).
-Poses given or estimated.
+Poses given or estimated (then how far the placed contacts lie from their true places).
 
 Per row: "vs relief": mean and 90th percentile |stitched − relief| over the map cells where the
 sheet touched the wall in some press (clearance < 0.05 mm; the relief is only felt there);
@@ -191,7 +191,7 @@ def main() -> None:
                     for mode in ("given",) if args.quick or name in ("true frame", "rec true fit") else ("given", "estimated"):
                         relief = ReliefMap(120.0, 1.0, rim_mm=args.rim_mm, quantile=args.cell_quantile)
                         t0 = time.perf_counter()
-                        levelled, refused = 0, ""
+                        levelled, refused, placement = 0, "", ""
                         if mode == "given":
                             for c, p in kept:
                                 if args.reference == "floor" and name in ("scene", "reconstructed"):
@@ -206,6 +206,14 @@ def main() -> None:
                             refusals = Counter(re.sub(r"\d+(\.\d+)?", "#", e.reason.split("(")[0]).strip()
                                                for e in est if e.pose is None)
                             refused = "; ".join(f"{k} x{v}" for k, v in refusals.most_common()) or "none"
+                            # how far each placed contact lies from its true place (the anchor left out)
+                            off = [(float(np.hypot(e.pose.x_mm - p.x_mm, e.pose.y_mm - p.y_mm)),
+                                    abs((e.pose.angle_deg - p.angle_deg + 180.0) % 360.0 - 180.0))
+                                   for e, (_, p) in list(zip(est, kept))[1:] if e.pose is not None]
+                            if off:
+                                xy_off, ang_off = np.array(off).T
+                                placement = (f"  (placed off their true places by {np.median(xy_off):.1f} mm median, "
+                                             f"{xy_off.max():.1f} mm max, {np.median(ang_off):.1f}° median)")
                         per_press = t_scene + t_detect + (time.perf_counter() - t0) / len(poses)
                         h = relief.height()
                         truth = wall.height(relief.centres)
@@ -222,7 +230,7 @@ def main() -> None:
                               f"{100 * on.sum() / max(1, mapped.sum()):6.1f}% "
                               f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}"
                               + (f"  ({levelled} levelled on the floor)" if levelled else "")
-                              + (f"  (refused: {refused})" if refused else ""), flush=True)
+                              + (f"  (refused: {refused})" if refused else "") + placement, flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)
                             out = f"{root}-{wall_name}-{scene_name}-{name.replace(' ', '')}-{mode}{ext or '.png'}"

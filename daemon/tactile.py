@@ -290,12 +290,14 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
 #: Readings (one a contact) a relief-map cell keeps for its height: beyond this many the
 #: oldest give way, so that a long log's map stays bounded (5 MB at the default 140² cells).
 CELL_READINGS = 32
-#: The quantile of a cell's readings that is its height.  The wall is rigid and the sheet never
-#: lies beyond it, so a press reads a cell at most at the wall's height (plus its error), and
-#: lower where its sheet spanned over the cell instead of touching it: the upper third, not the
-#: median (measured on the bench's letters, each press levelled on the floor: E 0.351 → 0.311
-#: mm, D 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median).
-#: With four readings it is the third lowest: one reading of four off either way moves nothing.
+#: The quantile of a cell's readings that is its height: the upper third, not the median
+#: (measured on the bench's letters, each press levelled on the floor: E 0.351 → 0.311 mm, D
+#: 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median).  It
+#: answers this pipeline's bias, not the wall's physics: the film never lies beyond the wall, so
+#: an exact surface reads a cell at the wall's height where it touched and above it where it
+#: spanned (the lowest reading would be the wall's), but the reconstructed, levelled contacts
+#: read low on the touched cells (docs/tactile.md).  With four readings it is the third lowest:
+#: one reading of four off either way moves nothing.
 CELL_QUANTILE = 2.0 / 3.0
 #: The contact's outer ring of this width (mm) is left out of the map: there the sheet is
 #: leaving the wall, pressed in beyond the threshold but spanning back to the rim, and the

@@ -32,6 +32,18 @@ from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, Floo
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 
 
+#: What ``skinmap map --estimate`` says of its poses.  A pressurised probe touches only the flat
+#: parts of a relief (the floor, the strokes' tops) and spans its edges, which are what fix a
+#: position; the rest of a contact is the film on the balloon, alike from press to press.  On the
+#: emulator's balloon bench (docs/tactile.md) the placements that passed every check of
+#: estimate_pose lay 7-110 mm (66 median) from their true places, and with the sheet's exact surfaces and
+#: only its truly touching samples nothing could be placed at all.
+UNVERIFIED_ESTIMATE = ("caution: poses estimated from the contacts' overlap are not verified. A pressurised probe "
+                       "touches a relief's flat parts and spans its edges, so a contact's shape is mostly the probe's "
+                       "own and can fit far from where it was pressed; give the poses (--poses, the /pose topic or "
+                       "[tactile] poses) for a map to rely on")
+
+
 @dataclass
 class MapReport:
     frames: int = 0
@@ -180,6 +192,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         report.pose_source = (f"estimated by registration ({placed} of {len(report.events)} placed; "
                               + (f"anchored by the first pose {report.pose_source})" if first else
                                  "the map in the first press's frame)"))
+        report.problems.append(UNVERIFIED_ESTIMATE)
         report.relief = relief
         return report
     if poses is None:

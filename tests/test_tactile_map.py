@@ -242,3 +242,5 @@ def test_map_estimates_poses_or_names_the_contacts_it_cannot_place(press_log, ca
     assert "estimated by registration" in out and "anchored by the first pose" in out
     # three presses 60 mm apart hardly overlap: the registration must refuse rather than guess
     assert out.count("not placed:") >= 1 and "cannot decide" in out
+    # and whatever it placed, the map is said to rest on unverified poses
+    assert "caution: poses estimated from the contacts' overlap are not verified" in out
