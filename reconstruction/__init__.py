@@ -45,7 +45,7 @@ from .productnoise import ProductNoise, measure_product_noise, turning_noise_est
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_curvature_range, airy_gaussian_curvature
-from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_misfit
+from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_residual
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .uncertainty import GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field
@@ -82,6 +82,9 @@ UNDECIDED_SHARE = 1.0 / 3.0
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
 # at most this share of the answer's misfit.
 MEMBRANE_SIGN_RATIO = 0.5
+# ... and only by more than the noise could make it: this many s.d. of the misfits' difference
+# (see _sign_beyond_noise).
+SIGN_SIGMAS = 2.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it) is uncertain by this share of itself (elastic films on molds: 12-20 % off).
 SHEAR_PRIOR_SHARE = 0.25
@@ -123,6 +126,16 @@ def default_subdivision(n: int, m: int) -> int:
     """Fine-grid intervals per pitch: 4 (3 mm at 12 mm pitch) resolves features down to the
     gauge length; arrays of more than 100 cells use 2 to keep the frame time within budget."""
     return 4 if n * m <= 100 else 2
+
+
+
+def _sign_beyond_noise(own: np.ndarray, other: np.ndarray, noise_sd: float) -> bool:
+    """Whether the other twist sign explains the stretch pattern (residuals ``other``) better than
+    the answer's own (``own``) by more than noise of ``noise_sd`` per reading could: with
+    residuals r = y − p of the same readings, |r₁|² − |r₂|² = 2 (y − (p₁ + p₂)/2)·(p₂ − p₁)
+    moves with the noise by 2σ|p₂ − p₁| = 2σ|r₁ − r₂| (s.d.)."""
+    gain = float(own @ own) - float(other @ other)
+    return gain > 2.0 * SIGN_SIGMAS * noise_sd * float(np.linalg.norm(own - other))
 
 
 class Reconstructor:
@@ -1152,12 +1165,17 @@ class Reconstructor:
             return None, reading
         return float(estimate[0]) * float(estimate[1]), reading
 
-    def _stretch_rss(self, positions: np.ndarray, stretch, valid) -> float:
-        """The stretch pattern's misfit through a surface's own Gaussian curvature (fine-grid
-        positions), :func:`.membrane.stretch_misfit` at the best ν of the Poisson interval."""
+    def _stretch_residual(self, positions: np.ndarray, stretch, valid) -> np.ndarray:
+        """The stretch pattern's residuals through a surface's own Gaussian curvature (fine-grid
+        positions), :func:`.membrane.stretch_residual` at the best ν of the Poisson interval."""
         assert self.poisson_range is not None and self._membrane is not None
         k_basis = basis_curvature(self._membrane, positions, self.grid.spacing)
-        return stretch_misfit(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
+        return stretch_residual(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
+
+    def _stretch_rss(self, positions: np.ndarray, stretch, valid) -> float:
+        """The stretch pattern's misfit (sum of squares) through a surface's own Gaussian curvature."""
+        r = self._stretch_residual(positions, stretch, valid)
+        return float(r @ r)
 
     def _refine_twist(self, at_magnitude, reading: TwistReading, stretch, valid) -> float:
         """The mean twist's magnitude that best explains the stretch pattern through the
@@ -1221,6 +1239,7 @@ class Reconstructor:
 
         membrane = reading.source == "membrane"
         decided = False  # a twist the refined reading gives where its interval allows none too
+        stretch_sd = sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
 
         def about(magnitude: float) -> tuple[float, float]:
             # the reading's width (in the twist's square) kept about a refined magnitude
@@ -1265,10 +1284,11 @@ class Reconstructor:
             # The answer's twist is the pattern's; its sign is the model's.  Its mirror image on
             # its family is tried against the stretch pattern as well: a mirror that explains the
             # stretch with half the answer's misfit is modelled afresh as the answer.
-            here = self._stretch_rss(positions_at(shift), stretch, valid)
-            flipped = self._stretch_rss(positions_at(shift - 2.0 * m0), stretch, valid)
+            r_here = self._stretch_residual(positions_at(shift), stretch, valid)
+            r_flipped = self._stretch_residual(positions_at(shift - 2.0 * m0), stretch, valid)
+            here, flipped = float(r_here @ r_here), float(r_flipped @ r_flipped)
             info["stretch_sign_rss"] = (float(f"{here:.4g}"), float(f"{flipped:.4g}"))
-            if flipped <= MEMBRANE_SIGN_RATIO * here:
+            if flipped <= MEMBRANE_SIGN_RATIO * here and _sign_beyond_noise(r_here, r_flipped, stretch_sd):
                 off, signs = True, (-sign,)
         if off or not within(m_lo, m_hi):
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
@@ -1283,13 +1303,17 @@ class Reconstructor:
                     # explains the pattern with MEMBRANE_SIGN_RATIO of its misfit, as a mirror on
                     # the family must: a held 12×12 saddle flipped to the wrong sign on a frame
                     # whose twist was read afresh, and kept it)
-                    if cands[1][4] < (MEMBRANE_SIGN_RATIO if carried else 1.0) * cands[0][4]:
+                    # (and only by more than the noise could make the difference: a 5×5 ν 0.3
+                    # saddle of R 150-272 mm at 35-55°, whose sign the pattern does not tell,
+                    # took the wrong one on a difference of a third of the noise's s.d.)
+                    if (cands[1][4] < (MEMBRANE_SIGN_RATIO if carried else 1.0) * cands[0][4]
+                            and _sign_beyond_noise(cands[0][6], cands[1][6], stretch_sd)):
                         cands.reverse()
                 elif cands[1][0] < cands[0][0] - (0.0 if abs(m0) <= 0.5 * m_lo else tell):
                     # the trace: the answer's own sign stands where it has a twist of the
                     # interval's order unless the other reads the gauges clearly better
                     cands.reverse()
-            chi_t, sg, cand, family, _, own = cands[0]
+            chi_t, sg, cand, family, _, own, _ = cands[0]
             if own != magnitude:  # the winner's own twist: the reading's width kept about it
                 magnitude = own
                 m_lo, m_hi = about(magnitude)
@@ -1388,9 +1412,9 @@ class Reconstructor:
                 else:
                     own = magnitude
             cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
-            score = self._stretch_rss(fresh[0], stretch, valid) if membrane else 0.0
+            residual = self._stretch_residual(fresh[0], stretch, valid) if membrane else np.zeros(0)
             chi_c, dof = misfit(cand, self._layout, eu, el, sigma_f)[:2]
-            cands.append((chi_c, sg, cand, fresh[5], score, own))
+            cands.append((chi_c, sg, cand, fresh[5], float(residual @ residual), own, residual))
         return cands, dof
 
     def _pattern_mirror(self, surf: Surface, other, positions_at, shift: float, sign: float, m0: float, eu, el,
