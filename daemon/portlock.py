@@ -4,7 +4,9 @@ skinmapd holds it while it runs; `skinmap tare` and `skinmap calibrate` take it 
 the port, so a tool never fights the daemon for the scanner (a socket:// emulator or a tty opened
 without exclusive access would otherwise be shared, each side reconnecting in turn).  The lock is
 an flock on a small file in $XDG_RUNTIME_DIR (else the temp directory) that records the holder's
-pid and name; the kernel drops it when the holder exits, however it exits.
+pid and name; the kernel drops it when the holder exits, however it exits.  A lock file another
+user left behind (read-only to this one) still locks: it is opened for reading, and the holder's
+name is then not recorded.
 """
 from __future__ import annotations
 
@@ -34,9 +36,18 @@ class PortLock:
         self.port, self.holder = port, holder
         self.path = lock_path(port)
         self._fd: int | None = None
+        self._writable = False
 
     def acquire(self) -> "PortLock":
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        cloexec = getattr(os, "O_CLOEXEC", 0)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | cloexec, 0o644)
+            writable = True
+        except PermissionError:
+            # the file another user left (a tool run as root, the service's former dynamic
+            # user): it stays, as lock files do, and flock needs no write access to it
+            fd = os.open(self.path, os.O_RDONLY | cloexec)
+            writable = False
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -46,15 +57,17 @@ class PortLock:
                 os.close(fd)
             raise PortBusy(f"the scanner at {self.port} is in use by {who} (lock {self.path}); "
                            f"stop it first (e.g. systemctl stop skinmapd)") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{self.holder} (pid {os.getpid()})\n".encode(), 0)
-        self._fd = fd
+        if writable:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{self.holder} (pid {os.getpid()})\n".encode(), 0)
+        self._fd, self._writable = fd, writable
         return self
 
     def release(self) -> None:
         if self._fd is not None:
             try:
-                os.ftruncate(self._fd, 0)
+                if self._writable:
+                    os.ftruncate(self._fd, 0)
             finally:
                 os.close(self._fd)  # closing drops the flock
                 self._fd = None

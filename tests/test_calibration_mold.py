@@ -186,6 +186,35 @@ def test_port_lock_refuses_a_second_holder_and_names_the_first(tmp_path, monkeyp
     PortLock("socket://127.0.0.1:7999", "skinmap tare").acquire().release()  # free again
 
 
+
+def test_a_lock_file_another_user_left_still_locks_the_port(tmp_path, monkeypatch):
+    """A lock file left by another user (a tool run as root, the service's former dynamic user)
+    cannot be opened for writing: the daemon could not start ('Permission denied').  Opened for
+    reading, it locks as well; the other user's record is left as it was."""
+    import os
+
+    from skinmap.daemon import portlock
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    port = "socket://127.0.0.1:7997"
+    path = portlock.lock_path(port)
+    path.write_text("skinmap tare (pid 1)\n")
+    real_open = os.open
+
+    def open_as_another_user(file, flags, *args):
+        if str(file) == str(path) and flags & (os.O_RDWR | os.O_WRONLY):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, flags, *args)
+
+    monkeypatch.setattr(portlock.os, "open", open_as_another_user)
+    held = PortLock(port, "skinmapd").acquire()
+    monkeypatch.setattr(portlock.os, "open", real_open)
+    with pytest.raises(PortBusy):
+        PortLock(port, "skinmap calibrate").acquire()
+    held.release()
+    assert path.read_text() == "skinmap tare (pid 1)\n"
+    PortLock(port, "skinmap calibrate").acquire().release()  # free again
+
 def test_tare_refuses_while_the_daemon_holds_the_port(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     conf = tmp_path / "c.toml"
