@@ -48,7 +48,8 @@ from .airy import airy_curvature_range, airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_residual
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field
+from .uncertainty import (GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field,
+                          stretch_noise_sd)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame"]
@@ -126,7 +127,6 @@ def default_subdivision(n: int, m: int) -> int:
     """Fine-grid intervals per pitch: 4 (3 mm at 12 mm pitch) resolves features down to the
     gauge length; arrays of more than 100 cells use 2 to keep the frame time within budget."""
     return 4 if n * m <= 100 else 2
-
 
 
 def _sign_beyond_noise(own: np.ndarray, other: np.ndarray, noise_sd: float) -> bool:
@@ -437,7 +437,7 @@ class Reconstructor:
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
             sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
-            sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+            sig_s = self._stretch_sd(fit_sigma)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             state = previous.state if previous is not None and graph_warm else None
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
@@ -785,7 +785,7 @@ class Reconstructor:
         settings = self.elastic_prior
         fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         sig_t = math.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
-        sig_s = fit_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        sig_s = self._stretch_sd(fit_sigma)
         data = (turning, stretch, valid, sig_t, sig_s)
         # the mean Gaussian curvature the stretch pattern implies (Airy): the check of every answer
         try:
@@ -1106,6 +1106,10 @@ class Reconstructor:
             mirror.mirror = None
         return surf
 
+    def _stretch_sd(self, sigma_f: float) -> float:
+        """The noise s.d. of one unit's stretch reading for strain noise ``sigma_f`` on each layer."""
+        return stretch_noise_sd(sigma_f, self.h_upper, self.h_lower)
+
     def _twist_reading(self, stretch, valid, product_fields, sigma_f: float) -> TwistReading | None:
         """What the stretch pattern says of the mean twist's magnitude (docs/reconstruction.md):
         the free-edge membrane's reading (:func:`.membrane.read_twist`: the twist and ν together)
@@ -1113,8 +1117,7 @@ class Reconstructor:
         outline and edge load, ν anywhere in the Poisson interval; its middle is the estimate).
         None where neither says anything."""
         assert self.poisson_range is not None
-        # the noise of one unit's stretch reading: σ·√(h_u² + h_l²)/(h_u + h_l)
-        stretch_sd = sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        stretch_sd = self._stretch_sd(sigma_f)
         k_u, k_v, tau0 = product_fields
         if self._membrane is None:
             self._membrane = membrane_maps(self.grid)
@@ -1239,7 +1242,7 @@ class Reconstructor:
 
         membrane = reading.source == "membrane"
         decided = False  # a twist the refined reading gives where its interval allows none too
-        stretch_sd = sigma_f * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        stretch_sd = self._stretch_sd(sigma_f)
 
         def about(magnitude: float) -> tuple[float, float]:
             # the reading's width (in the twist's square) kept about a refined magnitude
@@ -1505,7 +1508,7 @@ class Reconstructor:
             metric_stack = compiled.metric_terms(grid.spacing, lam_u, lam_v)
         else:
             metric_stack = np.array(metric_terms(grid.spacing, lam_u, lam_v))
-        stretch_sigma = strain_sigma * math.hypot(self.h_upper, self.h_lower) / (self.h_upper + self.h_lower)
+        stretch_sigma = self._stretch_sd(strain_sigma)
         product_noise = self._product_stats(k_u, k_v, tau0, turning_sigma)
         metric = Metric(*metric_stack)
         # the noise these data carry (too few units to tell: the stated; at most twice the

@@ -12,6 +12,7 @@ along the rows and columns from the centre.
 from __future__ import annotations
 
 import hashlib
+import math
 from collections import OrderedDict
 from typing import Callable, cast
 
@@ -21,7 +22,7 @@ from .grid import FineGrid
 from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
-__all__ = ["plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
+__all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
            "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE"]
 
 #: The share of :func:`resolution_sigma` that joins the general model's node_sigma where it
@@ -75,6 +76,12 @@ class SigmaField:
     def wrapped(self, around: Callable[[Callable], Callable]) -> "SigmaField":
         """The same map with both ways of reading it run inside ``around`` (e.g. a thread limit)."""
         return SigmaField(around(self.__call__), around(self.at) if self._at_nodes is not None else None)
+
+
+def stretch_noise_sd(strain_sigma: float, h_upper: float, h_lower: float) -> float:
+    """The noise s.d. of one unit's stretch reading (the layers' mean, weighted by their
+    offsets) for strain noise ``strain_sigma`` on each layer: σ·√(h_u² + h_l²)/(h_u + h_l)."""
+    return float(strain_sigma * math.hypot(h_upper, h_lower) / (h_upper + h_lower))
 
 
 def sigma_field(fn: Callable[[], np.ndarray]) -> SigmaField:
@@ -293,7 +300,7 @@ def fine_sigma(
             spread2 = float(missing_spread) ** 2
         var = var + missing * spread2
     # in-plane: each pitch crossed adds one stretch reading's error times the pitch
-    sig_stretch = strain_sigma * np.hypot(h_upper, h_lower) / (h_upper + h_lower)
+    sig_stretch = stretch_noise_sd(strain_sigma, h_upper, h_lower)
     walk = grid.__dict__.get("_sigma_walk")
     if walk is None:  # |u| + |v| times the pitch, the same every frame
         walk = grid.__dict__["_sigma_walk"] = (np.abs(grid.u)[None, :] + np.abs(grid.v)[:, None]) * grid.pitch
