@@ -701,7 +701,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "(default: the log's /pose topic, else the [tactile] poses it was recorded with)")
     mp.add_argument("--estimate", action="store_true",
                     help="estimate the poses by registering each contact against the map so far (a known first "
-                         "pose anchors the map; contacts whose overlap cannot decide are left out and named)")
+                         "pose anchors the map; contacts whose overlap cannot decide are left out and named). "
+                         "Unverified: a pressurised probe's contacts hardly fix their place (docs/tactile.md)")
     mp.add_argument("--rim", action="store_true",
                     help="given poses: keep each contact registered by its rim (default: levelled on the wall's base "
                          "plane where the press touched it)")
