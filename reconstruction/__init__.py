@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from typing import Any, Callable, cast
+from typing import Any, Callable, NamedTuple, cast
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -137,6 +137,21 @@ def _sign_beyond_noise(own: np.ndarray, other: np.ndarray, noise_sd: float) -> b
     gain = float(own @ own) - float(other @ other)
     return gain > 2.0 * SIGN_SIGMAS * noise_sd * float(np.linalg.norm(own - other))
 
+
+
+class _SignCandidate(NamedTuple):
+    """The answer modelled afresh with one twist sign (Reconstructor._afresh_by_sign)."""
+
+    chi2: float  # its misfit to the gauges
+    sign: float
+    surface: Surface
+    family: Callable[[float], np.ndarray]  # shift of its twist constant → fine positions
+    residual: np.ndarray  # the stretch pattern's residuals through its own Gaussian curvature (membrane readings)
+    magnitude: float  # its twist's magnitude
+
+    @property
+    def rss(self) -> float:
+        return float(self.residual @ self.residual)
 
 class Reconstructor:
     """Reconstruction for one sensor geometry; holds the fine grid, its operators and their
@@ -1301,7 +1316,7 @@ class Reconstructor:
                 if membrane:
                     # the sign whose surface explains the stretch pattern better (it was the right
                     # one in 10 of 11 turned elastic saddles measured, the kinematic χ² in none)
-                    info["stretch_sign_rss"] = (float(f"{cands[0][4]:.4g}"), float(f"{cands[1][4]:.4g}"))
+                    info["stretch_sign_rss"] = (float(f"{cands[0].rss:.4g}"), float(f"{cands[1].rss:.4g}"))
                     # (an answer that carries the frame before's sign keeps it unless the other
                     # explains the pattern with MEMBRANE_SIGN_RATIO of its misfit, as a mirror on
                     # the family must: a held 12×12 saddle flipped to the wrong sign on a frame
@@ -1309,14 +1324,14 @@ class Reconstructor:
                     # (and only by more than the noise could make the difference: a 5×5 ν 0.3
                     # saddle of R 150-272 mm at 35-55°, whose sign the pattern does not tell,
                     # took the wrong one on a difference of a third of the noise's s.d.)
-                    if (cands[1][4] < (MEMBRANE_SIGN_RATIO if carried else 1.0) * cands[0][4]
-                            and _sign_beyond_noise(cands[0][6], cands[1][6], stretch_sd)):
+                    if (cands[1].rss < (MEMBRANE_SIGN_RATIO if carried else 1.0) * cands[0].rss
+                            and _sign_beyond_noise(cands[0].residual, cands[1].residual, stretch_sd)):
                         cands.reverse()
-                elif cands[1][0] < cands[0][0] - (0.0 if abs(m0) <= 0.5 * m_lo else tell):
+                elif cands[1].chi2 < cands[0].chi2 - (0.0 if abs(m0) <= 0.5 * m_lo else tell):
                     # the trace: the answer's own sign stands where it has a twist of the
                     # interval's order unless the other reads the gauges clearly better
                     cands.reverse()
-            chi_t, sg, cand, family, _, own, _ = cands[0]
+            chi_t, sg, cand, family, _, own = cands[0]
             if own != magnitude:  # the winner's own twist: the reading's width kept about it
                 magnitude = own
                 m_lo, m_hi = about(magnitude)
@@ -1329,7 +1344,7 @@ class Reconstructor:
                 return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0
             info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
             if len(cands) > 1:
-                other = (cands[1][2], cands[1][0], dof)
+                other = (cands[1].surface, cands[1].chi2, dof)
             sign = sg
             surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
             positions_at = family
@@ -1393,13 +1408,13 @@ class Reconstructor:
         return mag
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
-                        sigma_f: float, eu, el) -> tuple[list, int]:
+                        sigma_f: float, eu, el) -> tuple[list["_SignCandidate"], int]:
         """The answer modelled afresh at the reading's twist ``magnitude`` with each of ``signs``
         (the family of the answer keeps the fields the defect correction fitted to the old
-        twist): per sign (χ², sign, surface, its twist family, its stretch-pattern misfit through
-        its own Gaussian curvature (membrane readings), its magnitude), and the gauges counted."""
+        twist): one :class:`_SignCandidate` per sign, and the gauges counted."""
         membrane = reading.source == "membrane"
-        cands, dof = [], 0
+        cands: list[_SignCandidate] = []
+        dof = 0
         for sg in signs:
             fresh, own = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * magnitude), magnitude
             if membrane and len(signs) > 1:
@@ -1417,7 +1432,7 @@ class Reconstructor:
             cand = self._surface(fresh[0], surf._fine_sigma_fn, _with_twist(surf.diagnostics, fresh[1]))
             residual = self._stretch_residual(fresh[0], stretch, valid) if membrane else np.zeros(0)
             chi_c, dof = misfit(cand, self._layout, eu, el, sigma_f)[:2]
-            cands.append((chi_c, sg, cand, fresh[5], float(residual @ residual), own, residual))
+            cands.append(_SignCandidate(chi_c, sg, cand, fresh[5], residual, own))
         return cands, dof
 
     def _pattern_mirror(self, surf: Surface, other, positions_at, shift: float, sign: float, m0: float, eu, el,

@@ -77,7 +77,8 @@ def test_a_twist_only_the_stretch_shows_is_read_within_2_percent(n, nu):
     """A saddle at 45° turns no gauge (k_u = k_v = 0, no twist field): its twist m shows in the
     stretch alone, through K = −m².  The twists tried must reach it: they reached 4·√|k_u k_v −
     τ₀²| only, nothing here (a 12×12 elastic saddle of R 272 mm at 48.6° went unread, 0.7 mm
-    off)."""
+    off).  The stretch is the maps' own forward model: this checks the search only; the
+    emulator's finite-element films check the physics (the 12×12 test below)."""
     grid = FineGrid(n, n, PITCH, G, sub=default_subdivision(n, n))
     maps = membrane_maps(grid)
     m = 3.6e-3
