@@ -11,6 +11,7 @@ Per-geometry precomputation (operators and their factorisations) lives in a
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -458,7 +459,12 @@ class Reconstructor:
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
-            if graph is None or not graph.accepted:
+            ruled_out = self._graph.ruled_out(data) if graph is None or not graph.accepted else None
+            if ruled_out is not None:
+                # no graph can answer (the screen needs no start but the linear one): the general
+                # model answers, as it would after the cold fit's own screen
+                graph = ruled_out
+            elif graph is None or not graph.accepted:
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
@@ -485,15 +491,23 @@ class Reconstructor:
             if n_valid < valid.size:
                 left_out = getattr(grid.field_maps(valid), "left_out", True)
         else:
-            if general is None:
-                general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
-                                        carried)
             # (a deferred frame is the general model's first answer: its defect correction costs
             # as much as the cold fit it stands in for, and the posterior check widens its
             # uncertainty by the misfit left)
-            if n_valid and self.defect_steps and not deferred:
-                general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous, twist_sign,
-                                                  carried)
+            correct = bool(n_valid and self.defect_steps and not deferred)
+            warm_general = None
+            if general is None and correct and graph_warm:
+                warm_general = self._warm_general(previous, eu, el, turning, stretch, valid, n_valid, strain_sigma,
+                                                  twist_sign, carried)
+            if warm_general is not None:
+                general = warm_general
+            else:
+                if general is None:
+                    general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign,
+                                            (eu, el), carried)
+                if correct:
+                    general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous,
+                                                      twist_sign, carried)
             pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
@@ -522,7 +536,7 @@ class Reconstructor:
                    "model": "graph" if fit is None else "general"},
         )
         for key in ("least_shear_shift", "least_shear_stretch_rss", "undecided_twist", "open_twist", "shear_prior_twist",
-                    "defect_steps"):
+                    "defect_steps", "defect_warm"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -606,7 +620,10 @@ class Reconstructor:
                                    twist_mean, measured_fields, reading, resolution_term, carried is not None)
         # the next frame's start: this graph and the one before it (a moving shape is predicted)
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
-        surf.state = FrameState(graph.coeffs, earlier) if fit is None and graph is not None else FrameState()
+        # (and the general model's defect correction, from which the next frame's starts)
+        defect = cast("tuple[np.ndarray, float] | None", convex_info.get("defect")) if fit is not None else None
+        surf.state = (FrameState(graph.coeffs, earlier) if fit is None and graph is not None
+                      else FrameState() if defect is None else FrameState(defect=defect[0], defect_chi2=defect[1]))
         if self._position is not None and n_valid:
             surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous, (eu, el), twist_sign)
         diag.solve_time = time.perf_counter() - t0
@@ -743,7 +760,8 @@ class Reconstructor:
         return out
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
-                           twist_mean: float | None = None):
+                           twist_mean: float | None = None, applied: np.ndarray | None = None,
+                           enough: Callable[[int], float] | None = None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -751,17 +769,23 @@ class Reconstructor:
         slopes in the potential, the first-order Gauss and Codazzi terms, chords) are then
         corrected where the data see them; what the data cannot see stays the prior's.  At
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
-        and none once the answer fits within the noise.  The constant twist keeps its sign."""
+        and none once the answer fits within the noise.  The constant twist keeps its sign.
+        ``applied``: the correction (2, 2, N, M) the input ``general`` was already modelled with
+        (the previous frame's, :meth:`_warm_general`; None: none); ``enough``: the χ² at which
+        no pass is needed, of the count of gauges (None: that count, the noise's own).  The
+        answer's info carries the correction its input had and its χ² (``defect``)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
         chi, dof, fu, fl = misfit_and_strains(self._candidate(general[0]), layout, eu, el, sigma_f)
-        du, dl = eu, el
+        du, dl = (eu, el) if applied is None else (eu + applied[0], el + applied[1])
+        kept = (du, dl)  # the input of the answer kept
         sign = twist_sign
         if sign is None and general[1] != 0.0:
             sign = math.copysign(1.0, general[1])
         steps = 0
+        settled = dof if enough is None else enough(dof)
         for _ in range(self.defect_steps):
-            if chi <= dof:
+            if chi <= settled:
                 break
             du, dl = du + (eu - fu), dl + (el - fl)
             # (np.maximum keeps a missing gauge's NaN)
@@ -781,9 +805,50 @@ class Reconstructor:
                        trial[4], trial[5])
             chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
+            kept = (du, dl)
         # the answer's χ² at the posterior check's noise level, read once
         general[3]["forward_chi2"] = (general[0], chi, dof)
+        general[3]["defect"] = (np.stack([kept[0] - eu, kept[1] - el]), chi)
         return general
+
+    def _warm_general(self, previous: Surface | None, eu, el, turning, stretch, valid, n_valid: int,
+                      strain_sigma: float, twist_sign, twist_mean: float | None):
+        """The general model through its defect correction from the previous frame's correction
+        (``FrameState.defect``) instead of from none: a sheet that holds still or moves slowly
+        needs nearly the same, and its first pass then lands where two passes from none would
+        (a held 5×5 film: one pass of the model instead of two or three).  None where the
+        previous frame left none, or where this answer fits the gauges worse than the previous
+        frame's did by more than the noise's own χ² spread (3 s.d.; the shape moved): then the
+        frame starts from none, as a cold one."""
+        state = previous.state if previous is not None else None
+        if state is None or state.defect is None or state.defect.shape != (2,) + eu.shape:
+            return None
+        applied = np.nan_to_num(state.defect, nan=0.0)  # (a unit missing then has none)
+        du, dl = eu + applied[0], el + applied[1]
+        corrected_t, corrected_s, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper,
+                                                self.h_lower, self.gauge_length)
+        trial = self._general(corrected_t, corrected_s, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
+                              twist_mean)
+        if not np.isfinite(trial[0]).all():
+            return None
+        # the fields of the measured data, which the stretch pattern is read with (as the cold
+        # passes keep them)
+        trial[3]["measured_fields"] = self.grid.field_maps(valid)(turning, stretch)[:3]
+        chi2_noise = max(self._noise_response(strain_sigma)[1], 1.0)
+
+        def spread(dof: int) -> float:  # 3 s.d. of the χ² the noise alone gives
+            return 3.0 * math.sqrt(2.0 * dof) * chi2_noise
+
+        # passes as from none, but none needed only where the answer fits as well as the
+        # previous frame's did (its correction may be that of another twist: the posterior
+        # check moves the answer's)
+        out = self._defect_correction(trial, eu, el, valid, n_valid, strain_sigma, previous, twist_sign, twist_mean,
+                                      applied, lambda dof: min(dof, state.defect_chi2 + spread(dof)))
+        chi, dof = out[3]["defect"][1], out[3]["forward_chi2"][2]
+        if chi > max(state.defect_chi2, dof * chi2_noise) + spread(dof):
+            return None
+        out[3]["defect_warm"] = True
+        return out
 
     def _elastic_prior(self, surf: Surface, turning, stretch, valid, strain_sigma: float,
                        previous: Surface | None, strains, twist_sign) -> Surface:
@@ -887,7 +952,7 @@ class Reconstructor:
         diag.extra["model"] = "position (equilibrium prior)"
         diag.extra["elastic_prior"] = "used"
         answer = self._surface(pos, sigma, diag)
-        answer.state = FrameState(surf.state.graph, surf.state.graph_before, best.coeffs)
+        answer.state = dataclasses.replace(surf.state, position=best.coeffs)
         if surf.mirror is not None and len(results) > 1:
             # the mirror stays when the prior cannot tell the two either (an isometric cylinder)
             other = results[1]

@@ -473,6 +473,17 @@ class GraphFit:
                 reasons.append(self._screen(c, stretch, valid, sigma_s))
         return starts, reasons
 
+    def ruled_out(self, data: tuple) -> GraphResult | None:
+        """The cold fit's answer where its screen rules out every start before any is fitted
+        (the linear start's reason is one that a start with twist cannot answer either: a gauge
+        that shortens, too little stretch for the slopes, slopes within the noise), as
+        :meth:`fit_cold` gives it; None where a fit may be a graph.  The general model's surface,
+        the second start, is then not needed for the fit."""
+        starts, reasons = self.cold_starts(data)
+        if not reasons[0] or reasons[0].startswith(_MORE_STRETCH):
+            return None
+        return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[0], math.inf)
+
     def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None,
                  agree=None, prepared: tuple[list, list[str]] | None = None) -> GraphResult:
         """Fit from the linear fit of the turning data and, given ``general`` (the general

@@ -1,6 +1,8 @@
 """The reconstructed surface: nodes, normals, dense points and fast location of any material point."""
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any, Callable
@@ -168,12 +170,17 @@ def hermite_grid_eval(coeffs: np.ndarray, basis_u: sp.csr_matrix, basis_v: sp.cs
 class FrameState:
     """What a frame leaves for the next one to start from (pass its :class:`Surface` as
     ``previous``): the accepted height-graph coefficients and those of the frame before, from
-    which a moving shape is predicted.  None of it changes the answer of a frame that starts
-    cold (``graph_warm=False``), so a log replays bit for bit from such a frame."""
+    which a moving shape is predicted, and the general model's defect correction, from which
+    the next frame's starts.  None of it changes the answer of a frame that starts cold
+    (``graph_warm=False``), so a log replays bit for bit from such a frame."""
 
     graph: np.ndarray | None = None
     graph_before: np.ndarray | None = None
     position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)
+    # the general model's defect correction, (2, 2, N, M): what its answer's input added to the
+    # measured strains (upper, lower layer), and that answer's χ² against the gauges
+    defect: np.ndarray | None = None
+    defect_chi2: float = math.inf
 
 
 class Surface:

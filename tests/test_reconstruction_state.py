@@ -31,9 +31,70 @@ def test_a_graph_answer_leaves_its_coefficients_and_a_warm_frame_starts_from_the
     assert np.array_equal(cold.nodes, rec(*moved).nodes)
 
 
-def test_a_general_model_answer_leaves_no_graph_state():
+def test_a_general_model_answer_leaves_no_graph_state_but_its_defect_correction():
     surf = Reconstructor(5, 5, graph_fit=False)(*_strains(ph.SphereCap(80.0)))
-    assert surf.state == FrameState()
+    assert (surf.state.graph, surf.state.graph_before, surf.state.position) == (None, None, None)
+    assert surf.state.defect is not None and surf.state.defect.shape == (2, 2, 5, 5)
+    assert np.isfinite(surf.state.defect).all() and np.isfinite(surf.state.defect_chi2)
+
+
+def _noisy_frames(shape, count: int, seed: int = 3):
+    eu, el = _strains(shape)
+    rng = np.random.default_rng(seed)
+    return [(eu + rng.normal(0, 5.7e-5, eu.shape), el + rng.normal(0, 5.7e-5, el.shape)) for _ in range(count)], shape
+
+
+def test_a_held_sheet_starts_its_defect_correction_from_the_previous_frames_with_the_same_answer():
+    # A sheet the general model answers (graph_fit off), held still under noise: each warm frame
+    # takes one pass of the model where a cold one takes two or three (the first, then its
+    # corrections)
+    rec = Reconstructor(5, 5, graph_fit=False)
+    frames, shape = _noisy_frames(ph.GaussianBumps(height=3.0, fwhm=18.0, centre=(4.0, -3.0)), 6)
+    passes: list[int] = []
+    general = rec._general
+
+    def counted(*args, **kwargs):
+        passes[-1] += 1
+        return general(*args, **kwargs)
+
+    rec._general = counted  # type: ignore[method-assign]
+    truth = shape.position(ph.cell_centres(5, 5, PITCH))
+    prev = None
+    for eu, el in frames:
+        passes.append(0)
+        surf = rec(eu, el, previous=prev)
+        cold = Reconstructor(5, 5, graph_fit=False)(eu, el)  # the same frame from no previous one
+        assert cold.diagnostics.extra.get("defect_steps", 0) >= 1  # (it needs a correction)
+        if prev is not None:
+            assert surf.diagnostics.extra.get("defect_warm") is True
+            assert passes[-1] == 1
+            # the same answer within the noise's own scatter (0.01-0.02 mm on this sheet)
+            assert np.abs(surf.nodes - cold.nodes).max() < 0.005
+            assert abs(float(np.linalg.norm(surf.nodes - truth, axis=-1).mean())
+                       - float(np.linalg.norm(cold.nodes - truth, axis=-1).mean())) < 0.005
+        prev = surf
+    # graph_warm=False: the frame starts from none, as a cold one
+    again = rec(*frames[-1], previous=prev, graph_warm=False)
+    assert "defect_warm" not in again.diagnostics.extra
+
+
+def test_a_previous_correction_that_no_longer_fits_is_not_used():
+    # the shape moved (here: a correction that belongs to no shape at all, gauge by gauge 0.2 %
+    # strain, which two passes cannot undo): the frame starts from none, and its answer is the
+    # one it has without that correction
+    import dataclasses
+
+    rec = Reconstructor(5, 5, graph_fit=False)
+    frames, _ = _noisy_frames(ph.SphereCap(70.0), 2)
+    first = rec(*frames[0])
+    assert first.state.defect is not None
+    scrambled = np.random.default_rng(0).normal(0.0, 2e-3, first.state.defect.shape)
+    wrong = dataclasses.replace(first.state, defect=first.state.defect + scrambled)
+    first.state = wrong
+    surf = rec(*frames[1], previous=first)
+    assert "defect_warm" not in surf.diagnostics.extra
+    first.state = dataclasses.replace(wrong, defect=None)
+    assert np.array_equal(surf.nodes, rec(*frames[1], previous=first).nodes)
 
 
 def test_reconstruct_from_several_threads_gives_the_sequential_answers():
