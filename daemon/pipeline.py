@@ -574,8 +574,10 @@ class FramePipeline:
             # repeat it
             self._catch_up = None
             if previous is None or getattr(previous.state, "graph", None) is None:
-                # no graph to warm-start from: this frame starts cold by itself
+                # no graph to warm-start from: this frame starts cold by itself (nor does the
+                # general model's defect correction start from the frame before's)
                 self.chain_origin = seq
+                kwargs["graph_warm"] = False
                 return
             self._chain = _Chain(seq, None, self.element_uv)
             self._begin(self._chain, eps_u, eps_l, seq, {**kwargs, "previous": previous, "graph_warm": False})

@@ -343,8 +343,9 @@ class Reconstructor:
         −1) picks one; by default the sign of ``previous`` (the last frame's surface) is kept,
         else +1.  Where the stretch pattern fixes the sign (a saddle turned off 0° and 45°) the
         data decide unless ``twist_sign`` is given.  ``graph_warm=False``: the graph fit starts
-        cold although ``previous`` holds a graph (a warm fit depends on the frames before it;
-        skinmapd restarts it cold every 64 scans so that a log replays bit for bit from there).
+        cold although ``previous`` holds a graph, and the general model's defect correction from
+        none, not from the previous frame's (a warm start depends on the frames before it;
+        skinmapd restarts cold every 64 scans so that a log replays bit for bit from there).
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
         model (its first answer, no defect correction), with ``diagnostics.extra``
