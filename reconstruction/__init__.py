@@ -74,6 +74,16 @@ MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
 # estimate scatters by 2-3 % from frame to frame with the sensor's noise).
 MOVE_SHARE = 0.05
+# A frame's defect correction starts from the previous frame's where the strains changed by no
+# more than this many times what two noise draws differ by (rms over the gauges): the sheet held
+# still (Reconstructor._warm_general).
+HELD_SIGMAS = 2.0
+# ... on sheets of up to this many cells.  On larger ones a feature that moves by about the
+# noise per gauge each frame passes that test, yet the correction it carries away no longer
+# fits: a bump circling on 16×16 failed 15 of 24 such starts, each a pass spent (4.9 → 6.3 ms
+# a frame); on 12×12 and smaller the test rejected the moving bump's frames, and held films
+# gained (5×5 ×0.5–0.8, 12×12 saddles ×0.9).
+WARM_DEFECT_MAX_CELLS = 144
 # Where the stretch pattern allows no twist and the answer has none, a twist refined on the
 # answer's family above this share of the interval's top is undecided, and joins node_sigma
 # (below it, where the reading itself said a twist, the reading's twist joins it); where the
@@ -449,7 +459,17 @@ class Reconstructor:
         general = None
         warm = None
         deferred = False
-        carried, reading = self._carried_twist(previous, twist_sign, turning, stretch, valid, strain_sigma)
+        measured: list = []
+
+        def data_fields() -> tuple:
+            # the fields of the measured data, once a frame (the twist carried over and a warm
+            # defect correction both read them)
+            if not measured:
+                measured.append(grid.field_maps(valid)(turning, stretch)[:3])
+            return measured[0]
+
+        carried, reading = self._carried_twist(previous, twist_sign, turning, stretch, valid, strain_sigma,
+                                               data_fields)
         graph_sigma: dict = {}
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
@@ -498,7 +518,7 @@ class Reconstructor:
             correct = bool(n_valid and self.defect_steps and not deferred)
             warm_general = None
             if general is None and correct and graph_warm:
-                warm_general = self._warm_general(previous, eu, el, turning, stretch, valid, n_valid, strain_sigma,
+                warm_general = self._warm_general(previous, eu, el, data_fields, valid, n_valid, strain_sigma,
                                                   twist_sign, carried)
             if warm_general is not None:
                 general = warm_general
@@ -624,7 +644,8 @@ class Reconstructor:
         # (and the general model's defect correction, from which the next frame's starts)
         defect = cast("tuple[np.ndarray, float] | None", convex_info.get("defect")) if fit is not None else None
         surf.state = (FrameState(graph.coeffs, earlier) if fit is None and graph is not None
-                      else FrameState() if defect is None else FrameState(defect=defect[0], defect_chi2=defect[1]))
+                      else FrameState() if defect is None
+                      else FrameState(defect=defect[0], defect_chi2=defect[1], strains=np.stack([eu, el])))
         if self._position is not None and n_valid:
             surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous, (eu, el), twist_sign)
         diag.solve_time = time.perf_counter() - t0
@@ -761,8 +782,7 @@ class Reconstructor:
         return out
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
-                           twist_mean: float | None = None, applied: np.ndarray | None = None,
-                           enough: Callable[[int], float] | None = None):
+                           twist_mean: float | None = None, applied: np.ndarray | None = None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -772,9 +792,8 @@ class Reconstructor:
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
         and none once the answer fits within the noise.  The constant twist keeps its sign.
         ``applied``: the correction (2, 2, N, M) the input ``general`` was already modelled with
-        (the previous frame's, :meth:`_warm_general`; None: none); ``enough``: the χ² at which
-        no pass is needed, of the count of gauges (None: that count, the noise's own).  The
-        answer's info carries the correction its input had and its χ² (``defect``)."""
+        (the previous frame's, :meth:`_warm_general`; None: none).  The answer's info carries
+        the correction its input had and its χ² (``defect``)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
         chi, dof, fu, fl = misfit_and_strains(self._candidate(general[0]), layout, eu, el, sigma_f)
@@ -784,9 +803,8 @@ class Reconstructor:
         if sign is None and general[1] != 0.0:
             sign = math.copysign(1.0, general[1])
         steps = 0
-        settled = dof if enough is None else enough(dof)
         for _ in range(self.defect_steps):
-            if chi <= settled:
+            if chi <= dof:
                 break
             du, dl = du + (eu - fu), dl + (el - fl)
             # (np.maximum keeps a missing gauge's NaN)
@@ -812,17 +830,32 @@ class Reconstructor:
         general[3]["defect"] = (np.stack([kept[0] - eu, kept[1] - el]), chi)
         return general
 
-    def _warm_general(self, previous: Surface | None, eu, el, turning, stretch, valid, n_valid: int,
-                      strain_sigma: float, twist_sign, twist_mean: float | None):
+    def _warm_general(self, previous: Surface | None, eu, el, measured_fields: Callable[[], tuple], valid,
+                      n_valid: int, strain_sigma: float, twist_sign, twist_mean: float | None):
         """The general model through its defect correction from the previous frame's correction
-        (``FrameState.defect``) instead of from none: a sheet that holds still or moves slowly
-        needs nearly the same, and its first pass then lands where two passes from none would
-        (a held 5×5 film: one pass of the model instead of two or three).  None where the
-        previous frame left none, or where this answer fits the gauges worse than the previous
-        frame's did by more than the noise's own χ² spread (3 s.d.; the shape moved): then the
-        frame starts from none, as a cold one."""
+        (``FrameState.defect``) instead of from none: a sheet that holds still needs nearly the
+        same, and its first pass then lands where two passes from none would (a held 5×5 film:
+        one pass of the model instead of two or three).  None where the previous frame left
+        none, where the strains changed by more than the noise (:data:`HELD_SIGMAS`), where the
+        previous answer misfit the gauges beyond the noise, or where this answer does (χ² above
+        one per gauge: it would need passes): then the frame starts from none, as a cold one."""
         state = previous.state if previous is not None else None
-        if state is None or state.defect is None or state.defect.shape != (2,) + eu.shape:
+        if (self.n * self.m > WARM_DEFECT_MAX_CELLS or state is None or state.defect is None or state.strains is None
+                or state.defect.shape != (2,) + eu.shape or state.strains.shape != (2,) + eu.shape):
+            return None
+        # Only a sheet that held still: a feature that moves carries its correction away with
+        # it, and the previous one then adds misfit where the feature was (a bump circling on
+        # 16×16 took two passes from it where it took none from none).  Held still: the strains
+        # changed by no more than twice what two noise draws differ by (rms over the gauges).
+        change = np.stack([eu, el]) - state.strains
+        both = np.isfinite(change)
+        sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
+        if not both.any() or math.sqrt(float(np.mean(change[both] ** 2))) > HELD_SIGMAS * math.sqrt(2.0) * sigma_f:
+            return None
+        # ... and whose answer fitted the gauges within the noise (χ² at most one per gauge, where
+        # the correction stops): a correction that left more misfit is no better a start than
+        # none (32×32, whose general model leaves 2.6 a gauge under noise alone)
+        if not state.defect_chi2 <= np.count_nonzero(np.isfinite(eu)) + np.count_nonzero(np.isfinite(el)):
             return None
         applied = np.nan_to_num(state.defect, nan=0.0)  # (a unit missing then has none)
         du, dl = eu + applied[0], el + applied[1]
@@ -834,20 +867,15 @@ class Reconstructor:
             return None
         # the fields of the measured data, which the stretch pattern is read with (as the cold
         # passes keep them)
-        trial[3]["measured_fields"] = self.grid.field_maps(valid)(turning, stretch)[:3]
-        chi2_noise = max(self._noise_response(strain_sigma)[1], 1.0)
-
-        def spread(dof: int) -> float:  # 3 s.d. of the χ² the noise alone gives
-            return 3.0 * math.sqrt(2.0 * dof) * chi2_noise
-
-        # passes as from none, but none needed only where the answer fits as well as the
-        # previous frame's did (its correction may be that of another twist: the posterior
-        # check moves the answer's)
-        out = self._defect_correction(trial, eu, el, valid, n_valid, strain_sigma, previous, twist_sign, twist_mean,
-                                      applied, lambda dof: min(dof, state.defect_chi2 + spread(dof)))
-        chi, dof = out[3]["defect"][1], out[3]["forward_chi2"][2]
-        if chi > max(state.defect_chi2, dof * chi2_noise) + spread(dof):
+        trial[3]["measured_fields"] = measured_fields()
+        # kept only where it needs no pass: its χ² at most one per gauge (where a pass from none
+        # stops), or within the noise's own spread (3 s.d. of χ²) of the previous answer's, which
+        # this frame's sheet held still from; else the frame starts from none, one pass spent
+        chi, dof = misfit(self._candidate(trial[0]), self._layout, eu, el, sigma_f)[:2]
+        if chi > max(dof, state.defect_chi2 + 3.0 * math.sqrt(2.0 * dof)):
             return None
+        out = self._defect_correction(trial, eu, el, valid, n_valid, strain_sigma, previous, twist_sign, twist_mean,
+                                      applied)
         out[3]["defect_warm"] = True
         return out
 
@@ -1224,7 +1252,7 @@ class Reconstructor:
         return TwistReading(0.5 * (m_lo + m_hi), m_lo, m_hi, math.nan, math.nan, "trace")
 
     def _carried_twist(self, previous: Surface | None, twist_sign, turning, stretch, valid,
-                       strain_sigma: float) -> tuple[float | None, TwistReading | None]:
+                       strain_sigma: float, measured_fields: Callable[[], tuple]) -> tuple[float | None, TwistReading | None]:
         """The mean twist (signed, 1/mm) the stretch pattern gave the frame before, where
         ``twist_sign`` does not contradict its sign and this frame's stretch still needs a twist
         (the membrane's reading of this frame excludes zero and holds the last estimate, within
@@ -1237,7 +1265,7 @@ class Reconstructor:
         estimate = previous.diagnostics.extra.get("stretch_estimate")
         if estimate is None or (twist_sign is not None and float(estimate[0]) != float(twist_sign)):
             return None, None
-        fields = self.grid.field_maps(valid)(turning, stretch)[:3]
+        fields = measured_fields()
         reading = self._twist_reading(stretch, valid, fields, max(strain_sigma, DEFAULT_STRAIN_SIGMA))
         # (an interval reaching none carries the estimate too where the reading itself still
         # says a twist, above half its top: a held 12×12 saddle of R 286 mm at 83° otherwise

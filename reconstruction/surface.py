@@ -178,9 +178,11 @@ class FrameState:
     graph_before: np.ndarray | None = None
     position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)
     # the general model's defect correction, (2, 2, N, M): what its answer's input added to the
-    # measured strains (upper, lower layer), and that answer's χ² against the gauges
+    # measured strains (upper, lower layer), that answer's χ² against the gauges, and the
+    # measured strains themselves (whether the next frame's sheet held still)
     defect: np.ndarray | None = None
     defect_chi2: float = math.inf
+    strains: np.ndarray | None = None
 
 
 class Surface:

@@ -78,6 +78,23 @@ def test_a_held_sheet_starts_its_defect_correction_from_the_previous_frames_with
     assert "defect_warm" not in again.diagnostics.extra
 
 
+def test_a_moving_sheet_and_a_large_one_start_their_correction_from_none():
+    # a bump moving 3 mm a frame: its strains change by more than the noise, and the correction
+    # the frame before carried would misfit where the bump was
+    rec = Reconstructor(5, 5, graph_fit=False)
+    prev = None
+    for k in range(4):
+        eu, el = _strains(ph.GaussianBumps(height=3.0, fwhm=18.0, centre=(-6.0 + 3.0 * k, 2.0)))
+        prev = rec(eu, el, previous=prev)
+        assert "defect_warm" not in prev.diagnostics.extra
+    # a held sheet of more than WARM_DEFECT_MAX_CELLS cells (13×13) starts from none as well
+    big = Reconstructor(13, 13)
+    eu, el = _strains(ph.SphereCap(400.0), 13)
+    first = big(eu, el)
+    assert first.state.defect is not None
+    assert "defect_warm" not in big(eu, el, previous=first).diagnostics.extra
+
+
 def test_a_previous_correction_that_no_longer_fits_is_not_used():
     # the shape moved (here: a correction that belongs to no shape at all, gauge by gauge 0.2 %
     # strain, which two passes cannot undo): the frame starts from none, and its answer is the
