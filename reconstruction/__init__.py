@@ -782,7 +782,7 @@ class Reconstructor:
         return out
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
-                           twist_mean: float | None = None, applied: np.ndarray | None = None):
+                           twist_mean: float | None = None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -791,13 +791,12 @@ class Reconstructor:
         corrected where the data see them; what the data cannot see stays the prior's.  At
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
         and none once the answer fits within the noise.  The constant twist keeps its sign.
-        ``applied``: the correction (2, 2, N, M) the input ``general`` was already modelled with
-        (the previous frame's, :meth:`_warm_general`; None: none).  The answer's info carries
-        the correction its input had and its χ² (``defect``)."""
+        The answer's info carries the correction its input had (2, 2, N, M) and its χ²
+        (``defect``: where the next frame's starts, :meth:`_warm_general`)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
         chi, dof, fu, fl = misfit_and_strains(self._candidate(general[0]), layout, eu, el, sigma_f)
-        du, dl = (eu, el) if applied is None else (eu + applied[0], el + applied[1])
+        du, dl = eu, el
         kept = (du, dl)  # the input of the answer kept
         sign = twist_sign
         if sign is None and general[1] != 0.0:
@@ -874,10 +873,9 @@ class Reconstructor:
         chi, dof = misfit(self._candidate(trial[0]), self._layout, eu, el, sigma_f)[:2]
         if chi > max(dof, state.defect_chi2 + 3.0 * math.sqrt(2.0 * dof)):
             return None
-        out = self._defect_correction(trial, eu, el, valid, n_valid, strain_sigma, previous, twist_sign, twist_mean,
-                                      applied)
-        out[3]["defect_warm"] = True
-        return out
+        # (as _defect_correction leaves its answer: its χ², read once, and the correction it had)
+        trial[3].update(forward_chi2=(trial[0], chi, dof), defect=(applied, chi), defect_warm=True)
+        return trial
 
     def _elastic_prior(self, surf: Surface, turning, stretch, valid, strain_sigma: float,
                        previous: Surface | None, strains, twist_sign) -> Surface:
