@@ -449,11 +449,13 @@ class FramePipeline:
         kwargs: dict[str, Any] = {"strain_sigma": self.strain_sigma}
         if self.twist_sign is not None:
             kwargs["twist_sign"] = self.twist_sign
-        self._restart_chain(eps_u, eps_l, seq, kwargs)
+        starts_cold = self._restart_chain(eps_u, eps_l, seq, kwargs)
         t_chain = time.perf_counter()
         chained = self._chained()
         previous = self._previous if self.warm_start else None
         call = dict(kwargs)
+        if starts_cold:
+            call["graph_warm"] = False
         if previous is not None:
             call["previous"] = previous
         if chained and self.defer_cold_fits and _graph_tried(previous) and not self._catch_up_failed:
@@ -542,13 +544,14 @@ class FramePipeline:
 
         self._submit(chain, begin)
 
-    def _restart_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> None:
+    def _restart_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> bool:
         """The chains' part of a frame, before it is reconstructed (GRAPH_RESTART_SCANS,
         GRAPH_CATCH_UP_SCANS): take over a chain that is due (a restart chain after a catch-up
         chain due at the same scan: it begins the lineage), begin a restart chain at a block's
-        first scan, or feed the chains under way this scan."""
+        first scan, or feed the chains under way this scan.  True where this frame itself must
+        start cold (a block's first scan with no graph to begin a chain from)."""
         if not self._chained():
-            return
+            return False
         for restart in (False, True):
             chain = self._chain if restart else self._catch_up
             if chain is None or not graph_adopt(chain.origin, seq, chain.adopt_after):
@@ -577,14 +580,14 @@ class FramePipeline:
                 # no graph to warm-start from: this frame starts cold by itself (nor does the
                 # general model's defect correction start from the frame before's)
                 self.chain_origin = seq
-                kwargs["graph_warm"] = False
-                return
+                return True
             self._chain = _Chain(seq, None, self.element_uv)
             self._begin(self._chain, eps_u, eps_l, seq, {**kwargs, "previous": previous, "graph_warm": False})
-            return
+            return False
         for chain in (self._chain, self._catch_up):
             if chain is not None:
                 self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
+        return False
 
     def _catch_up_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                         previous: Any) -> None:

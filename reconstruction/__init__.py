@@ -480,7 +480,8 @@ class Reconstructor:
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
-            ruled_out = self._graph.ruled_out(data) if graph is None or not graph.accepted else None
+            linear = self._graph.cold_starts(data) if graph is None or not graph.accepted else None
+            ruled_out = self._graph.ruled_out(linear) if linear is not None else None
             if ruled_out is not None:
                 # no graph can answer (the screen needs no start but the linear one): the general
                 # model answers, as it would after the cold fit's own screen
@@ -490,8 +491,8 @@ class Reconstructor:
                 # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
                                         carried)
-                starts = None if graph_cold else self._graph.cold_starts(data, general[0])
-                if starts is not None and not all(starts[1]):
+                starts = self._graph.cold_starts(data, general[0], linear)
+                if not graph_cold and not all(starts[1]):
                     # a cold fit to do, left to the caller: this frame is the general model's
                     why = "no warm start" if graph is None else graph.how
                     graph = (graph if graph is not None else

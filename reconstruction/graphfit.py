@@ -456,33 +456,33 @@ class GraphFit:
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
 
-    def cold_starts(self, data: tuple, general: np.ndarray | None = None) -> tuple[list, list[str]]:
+    def cold_starts(self, data: tuple, general: np.ndarray | None = None,
+                    linear: tuple[list, list[str]] | None = None) -> tuple[list, list[str]]:
         """The cold fit's starts, [(name, coefficients)], and why each cannot be a graph ('' where
         it may be; :meth:`_screen`): cheap, so that a caller can tell before paying for the fit
-        whether there is one to do (all reasons given: none)."""
+        whether there is one to do (all reasons given: none).  ``linear``: this method's answer
+        without ``general`` (the linear start alone), if already known."""
         turning, stretch, _, _, valid, _, sigma_t, sigma_s = data
-        starts = [("linear", self._start(turning, valid, sigma_t))]
-        reasons = [self._screen(starts[0][1], stretch, valid, sigma_s)]
-        # a gauge that shortens, slopes within the noise or too little stretch for the slopes
-        # the turning implies rule out every graph; more stretch than that may be twist, which
-        # the linear start lacks and the general model's has
-        if general is not None and (not reasons[0] or reasons[0].startswith(_MORE_STRETCH)):
+        if linear is None:
+            starts = [("linear", self._start(turning, valid, sigma_t))]
+            reasons = [self._screen(starts[0][1], stretch, valid, sigma_s)]
+        else:
+            starts, reasons = list(linear[0][:1]), list(linear[1][:1])
+        if general is not None and _twist_may_answer(reasons[0]):
             c = self.coeffs_from_positions(general)
             if np.isfinite(c).all():
                 starts.append(("general", c))
                 reasons.append(self._screen(c, stretch, valid, sigma_s))
         return starts, reasons
 
-    def ruled_out(self, data: tuple) -> GraphResult | None:
-        """The cold fit's answer where its screen rules out every start before any is fitted
-        (the linear start's reason is one that a start with twist cannot answer either: a gauge
-        that shortens, too little stretch for the slopes, slopes within the noise), as
-        :meth:`fit_cold` gives it; None where a fit may be a graph.  The general model's surface,
-        the second start, is then not needed for the fit."""
-        starts, reasons = self.cold_starts(data)
-        if not reasons[0] or reasons[0].startswith(_MORE_STRETCH):
-            return None
-        return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[0], math.inf)
+    @staticmethod
+    def ruled_out(linear: tuple[list, list[str]]) -> GraphResult | None:
+        """The cold fit's answer where its screen rules out every graph from the linear start
+        alone (:meth:`cold_starts` without the general model's surface), as :meth:`fit_cold`
+        gives it; None where a fit may be a graph.  The general model's surface, the second
+        start, is then not needed for the fit."""
+        starts, reasons = linear
+        return None if _twist_may_answer(reasons[0]) else _rejected(starts, reasons[0])
 
     def fit_cold(self, data: tuple, general: np.ndarray | None = None, twist_sign: float | None = None,
                  agree=None, prepared: tuple[list, list[str]] | None = None) -> GraphResult:
@@ -497,7 +497,7 @@ class GraphFit:
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, sigma_s = data
         starts, reasons = self.cold_starts(data, general) if prepared is None else prepared
         if all(reasons):
-            return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reasons[-1], math.inf)
+            return _rejected(starts, reasons[-1])
         results = [self._judge(self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
                                                            curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR),
                                             n_valid, sigma_t, how), twist_sign)
@@ -727,3 +727,15 @@ class GraphFit:
         out[..., 2] = w
         return out
 
+
+def _twist_may_answer(linear_reason: str) -> bool:
+    """Whether a start with twist (the general model's surface) may still be a graph where the
+    linear start's screen gave ``linear_reason``: a gauge that shortens, slopes within the noise
+    or too little stretch for the slopes the turning implies rule out every graph; more stretch
+    than that may be twist, which the linear start lacks."""
+    return not linear_reason or linear_reason.startswith(_MORE_STRETCH)
+
+
+def _rejected(starts: list, reason: str) -> GraphResult:
+    """The cold fit's answer where its screen rules out every start (none was fitted)."""
+    return GraphResult(False, starts[0][1], math.inf, math.inf, 0, 0.0, math.inf, reason, math.inf)
