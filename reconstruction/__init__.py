@@ -16,6 +16,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from functools import partial
 from typing import Any, Callable, NamedTuple, cast
 
 import numpy as np
@@ -378,6 +379,8 @@ class Reconstructor:
         for answer in (surf, surf.mirror):
             if answer is not None and answer._fine_sigma_fn is not None:
                 answer._fine_sigma_fn = sigma_field(answer._fine_sigma_fn).wrapped(self._one_blas_thread)
+            if answer is not None and answer._scatter_sigma_fn is not None:
+                answer._scatter_sigma_fn = sigma_field(answer._scatter_sigma_fn).wrapped(self._one_blas_thread)
             if answer is not None and screened is not None:
                 _report_screen(answer.diagnostics, screened[0], screened[1], t_screen)
         return surf
@@ -608,6 +611,8 @@ class Reconstructor:
         else:
             surface_sigma = SigmaField(general_sigma)
         surf = self._surface(pos, surface_sigma, diag)
+        if deferred:
+            surf._scatter_sigma_fn = SigmaField(general_sigma)
         if n_valid:
             def graph_mirror(sign: float) -> tuple[np.ndarray, bool]:
                 """The graph fitted again with the opposite twist sign, from the general model's
@@ -971,15 +976,21 @@ class Reconstructor:
                 default_sigma = surf._fine_sigma_fn
                 undecided = self._surface(surf._coeffs[..., 0, :], lambda: np.maximum(default_sigma(), rival), diag)
                 undecided.state, undecided.mirror = surf.state, surf.mirror
+                undecided._scatter_sigma_fn = lambda: surf.scatter_sigma
                 return undecided
             spread = np.maximum(spread, rival)
 
         def sigma() -> np.ndarray:
             return np.sqrt((misfit * base_sigma()) ** 2 + spread ** 2)
 
+        def scatter() -> np.ndarray:
+            # (ν's response is no scatter: the same every frame)
+            return misfit * surf.scatter_sigma
+
         diag.extra["model"] = "position (equilibrium prior)"
         diag.extra["elastic_prior"] = "used"
         answer = self._surface(pos, sigma, diag)
+        answer._scatter_sigma_fn = scatter
         answer.state = dataclasses.replace(surf.state, position=best.coeffs)
         if surf.mirror is not None and len(results) > 1:
             # the mirror stays when the prior cannot tell the two either (an isometric cylinder)
@@ -988,6 +999,7 @@ class Reconstructor:
             diag.extra["elastic_cost"] = round(best.cost, 4)
             if other.cost <= settings.mirror_cost_ratio * best.cost + 1e-9:
                 answer.mirror = self._surface(fine_positions(other.coeffs), sigma, diag)
+                answer.mirror._scatter_sigma_fn = scatter
             else:
                 diag.extra["ambiguous"] = False
                 diag.extra["mirror_resolved_by"] = (f"equilibrium prior: cost {best.cost:.3g} against the mirror "
@@ -1077,6 +1089,9 @@ class Reconstructor:
         mirror = None
         noise_sigma = sigma_field(surf._fine_sigma_fn)
         surf._fine_sigma_fn = noise_sigma
+        # the part of it that repeated frames scatter by (a deferred frame's σ holds the
+        # resolution term already)
+        scatter_base = noise_sigma if surf._scatter_sigma_fn is None else sigma_field(surf._scatter_sigma_fn)
         # a twist c bends the far corners out of the untwisted shape by about c·ρ²/2 (ρ the
         # half-diagonal): below the mirror floor the two images are one answer; and a twist
         # within what the turning noise makes of the curvature product is no twist to mirror
@@ -1146,7 +1161,7 @@ class Reconstructor:
                                           twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean, measured_fields,
                                           reading, chi2_noise, carried)
         if pattern is not None:
-            surf, mirror, base_shift, chi0 = pattern[0], pattern[1], pattern[2], pattern[4]
+            surf, mirror, base_shift, chi0, positions_at = pattern[0], pattern[1], pattern[2], pattern[4], pattern[5]
             diag = surf.diagnostics
         diag.extra.update(info)
         diag.extra["ambiguous"] = mirror is not None
@@ -1172,6 +1187,12 @@ class Reconstructor:
                                   diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
                                   None if twist_sign is None else float(twist_sign),
                                   SHEAR_PRIOR_SHARE if prior_only else 0.0)
+        # the twist's own scatter: the noise through the curvature product, on the answer's own
+        # family (the intervals and reaches above are the same every frame: no scatter)
+        # (and the stretch reading's own noise where it holds the twist)
+        twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, product_sd, strain_sigma)
+        if pattern is not None:
+            twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern[6]))
         if pattern is not None:
             twist = pattern[3]
 
@@ -1184,32 +1205,40 @@ class Reconstructor:
                 resolution_known.append(field if field is not None and field.any() else None)
             return resolution_known[0]
 
-        def sigma() -> np.ndarray:
-            base = noise_sigma()
-            spread = twist()
-            unresolved = resolution()
-            if spread is None and unresolved is None and scale == 1.0 and float(base.max()) <= ceiling:
-                return base  # the shared, read-only noise map (computed once per mask and noise)
-            out = base * scale
-            for extra in (spread, unresolved):
-                if extra is not None:
-                    out = np.sqrt(out * out + extra * extra)
-            out = np.minimum(out, ceiling)
-            out.flags.writeable = False
-            return out
+        def combined(base_field: SigmaField, twist: Callable[[], np.ndarray | None], scale: float,
+                     resolved: bool) -> SigmaField:
+            # base_field scaled by ``scale`` (the misfit), the twist's spread and (unless
+            # ``resolved``) the resolution term, in quadrature
+            def whole() -> np.ndarray:
+                base = base_field()
+                spread = twist()
+                unresolved = None if resolved else resolution()
+                if spread is None and unresolved is None and scale == 1.0 and float(base.max()) <= ceiling:
+                    return base  # the shared, read-only noise map (computed once per mask and noise)
+                out = base * scale
+                for extra in (spread, unresolved):
+                    if extra is not None:
+                        out = np.sqrt(out * out + extra * extra)
+                out = np.minimum(out, ceiling)
+                out.flags.writeable = False
+                return out
 
-        def sigma_at(flat: np.ndarray) -> np.ndarray:
-            # the same, node by node (the twist's spread and the resolution term are whole fields)
-            out = noise_sigma.at(flat) * scale
-            for extra in (twist(), resolution()):
-                if extra is not None:
-                    extra = extra.reshape(-1)[flat]
-                    out = np.sqrt(out * out + extra * extra)
-            return np.minimum(out, ceiling)
+            def at(flat: np.ndarray) -> np.ndarray:
+                # the same, node by node (the twist's spread and the resolution term are whole fields)
+                out = base_field.at(flat) * scale
+                for extra in (twist(), None if resolved else resolution()):
+                    if extra is not None:
+                        extra = extra.reshape(-1)[flat]
+                        out = np.sqrt(out * out + extra * extra)
+                return np.minimum(out, ceiling)
 
-        surf._fine_sigma_fn = SigmaField(sigma, sigma_at)
+            return SigmaField(whole, at)
+
+        surf._fine_sigma_fn = combined(noise_sigma, twist, scale, False)
+        surf._scatter_sigma_fn = combined(scatter_base, twist_scatter, 1.0, True)
         if mirror is not None:
             mirror._fine_sigma_fn = surf._fine_sigma_fn
+            mirror._scatter_sigma_fn = surf._scatter_sigma_fn
             mirror.diagnostics.extra.update(diag.extra)
             mirror.mirror = None
         return surf
@@ -1326,7 +1355,8 @@ class Reconstructor:
         gauge the noise alone leaves in the general model's answers (the posterior check's):
         where both signs read the gauges within it, their χ² difference rejects neither.  Returns
         None where the pattern says nothing, else (answer, mirror or None, its shift on its family, the twist's
-        spread function, its χ²)."""
+        spread function, its χ², its family, the s.d. of its twist's magnitude from the noise
+        alone (0 where it is not known))."""
         if reading is None:
             reading = self._twist_reading(stretch, valid, product_fields if measured_fields is None else measured_fields,
                                           sigma_f)
@@ -1366,7 +1396,7 @@ class Reconstructor:
                 return None
             if isinstance(left, list):
                 ends = left
-                return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0
+                return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0, positions_at, 0.0
             magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:
@@ -1434,7 +1464,7 @@ class Reconstructor:
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
                 gap = np.linalg.norm(cand._coeffs[..., 0, :] - surf._coeffs[..., 0, :], axis=-1)
-                return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0
+                return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0, positions_at, 0.0
             info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
             if len(cands) > 1:
                 other = (cands[1].surface, cands[1].chi2, dof)
@@ -1455,7 +1485,8 @@ class Reconstructor:
             # sign is the mirror unless the gauges reject it.
             mirror = self._pattern_mirror(surf, other, positions_at, shift, sign, m0, eu, el, sigma_f, chi, tell,
                                           chi2_noise, info)
-        return surf, mirror, shift, _memo(spread), chi
+        noise_sd = reading.noise_sd if membrane and math.isfinite(reading.noise_sd) else 0.0
+        return surf, mirror, shift, _memo(spread), chi, positions_at, noise_sd
 
     def _twist_left_open(self, reading: TwistReading, m0: float, sign: float, sign_open: bool, base_shift: float,
                          positions_at, stretch, valid, fields, carried: bool, info: dict) -> list[float] | float | None:
@@ -1796,6 +1827,19 @@ def _within_noise(chi_a: float, chi_b: float, dof: int, chi2_noise: float) -> bo
     """Both χ² at most what the noise alone leaves in the general model's answers, plus two of
     its s.d. (``dof``·``chi2_noise``·(1 + 2√(2/dof))): their difference then proves nothing."""
     return max(chi_a, chi_b) <= dof * chi2_noise * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
+
+
+def _with_reading_noise(rest: Callable[[], np.ndarray | None], positions_at, base_shift: float,
+                        sd: float) -> np.ndarray | None:
+    """``rest`` (a spread field or None) and the spread that a twist read with s.d. ``sd`` on
+    ``positions_at``'s family causes, in quadrature."""
+    other = rest()
+    if sd <= 0.0 or positions_at is None:
+        return other
+    step = max(sd, 1e-7)
+    response = positions_at(base_shift + step) - positions_at(base_shift - step)
+    own = np.sqrt((response * response).sum(axis=2)) * (sd / (2.0 * step))
+    return own if other is None else np.sqrt(own * own + other * other)
 
 
 def _widened(positions_at, base_shift: float, shifts, rest: Callable[[], np.ndarray | None]):

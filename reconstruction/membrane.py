@@ -91,7 +91,10 @@ class TwistReading(NamedTuple):
     interval [low, high] of magnitudes whose best fit lies within 2 s.d. of it (the residual's
     own scatter, at least the noise's, and the model's error in K's scale); the Poisson ratio of
     the best fit; the fit's relative residual (rms misfit over the pattern's rms).  The sign is
-    not read: its only trace, the coupling 2·m·τ₀, is below the model's error."""
+    not read: its only trace, the coupling 2·m·τ₀, is below the model's error.  ``noise_sd``:
+    the s.d. of the magnitude that the stretch noise alone causes (the part of the interval that
+    moves from frame to frame; the rest, the misfit and the model's error, does not); NaN where
+    it is not known."""
 
     twist: float
     low: float
@@ -99,6 +102,7 @@ class TwistReading(NamedTuple):
     poisson: float
     residual: float
     source: str = "membrane"
+    noise_sd: float = math.nan
 
 
 def _film_grid(grid: FineGrid, margin: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -292,6 +296,19 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     allowed[best_m] = True
     mags = np.abs(ms[allowed])
     low, high = float(mags.min()), float(mags.max())
+    # the noise's own part: the twists about the best whose profile lies within 2 s.d. of the
+    # noise alone (the connected run, ν free), or the quartic's own curvature where that run is
+    # narrower than the grid's step
+    near = profile <= rss_min + 4.0 * noise_sd * noise_sd
+    run_lo = run_hi = best_m
+    while run_lo > 0 and near[run_lo - 1]:
+        run_lo -= 1
+    while run_hi < ms.size - 1 and near[run_hi + 1]:
+        run_hi += 1
+    c = (c4[best_nu], c3[best_nu], c2[best_nu])
+    bend = float((12.0 * c[0] * m + 6.0 * c[1]) * m + 2.0 * c[2])
+    local = math.sqrt(2.0 / bend) * noise_sd if bend > 0.0 else math.inf
+    noise_m = max(0.25 * float(ms[run_hi] - ms[run_lo]), min(local, 0.25 * float(ms[-1] - ms[0])))
     # the grid's step bounds how finely the interval is read
     pad = ms[1] - ms[0]
     low, high = max(low - pad, 0.0), high + pad
@@ -304,7 +321,8 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     model = 2.0 * max(residual, MODEL_SD) * math.sqrt(float(k_fit @ k_fit) / k_fit.size)
     low = min(low, math.sqrt(max(m * m - model, 0.0)))
     high = max(high, math.sqrt(m * m + model))
-    return TwistReading(abs(m), min(low, abs(m)), max(high, abs(m)), float(nus[best_nu]), residual)
+    return TwistReading(abs(m), min(low, abs(m)), max(high, abs(m)), float(nus[best_nu]), residual,
+                        noise_sd=noise_m)
 
 
 # The quartic's vectors as combinations of [y, A K₀, A(−2τ₀), A(−1), B K₀, B(−2τ₀), B(−1)], each

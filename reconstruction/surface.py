@@ -193,8 +193,12 @@ class Surface:
     ----------
     nodes : (N, M, 3) cell-centre positions.
     normals : (N, M, 3) unit normals towards the upper side.
-    node_sigma : (N, M) one-s.d. position uncertainty (mm) from the strain noise level, raised
-        where gauges are missing.
+    node_sigma : (N, M) one-s.d. position uncertainty (mm): the strain noise carried through the
+        fit, raised where gauges are missing, where the answer misfits the gauges, where the twist
+        is read only within an interval, and by the model's gauge-scale resolution (a bound on a
+        bias no repeated frame shows).
+    node_scatter_sigma : (N, M) the part of ``node_sigma`` that repeated frames of a still sheet
+        scatter by: ``node_sigma`` without the resolution term (equal to it where there is none).
     diagnostics : :class:`Diagnostics`.
     mirror : the other answer (a :class:`Surface`) when the gauges cannot tell two mirror-image
         shapes apart (an oblique cylinder, a saddle at 45°: opposite constant twists), else None;
@@ -249,6 +253,9 @@ class Surface:
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None
+        # the part of σ that repeated frames scatter by, where σ holds more (None: all of σ)
+        self._scatter_sigma_fn: Callable[[], np.ndarray] | None = None
+        self._scatter_sigma: np.ndarray | None = None
         self._uv_bounds: tuple[np.ndarray, np.ndarray] | None = None
         self._origin: np.ndarray | None = None
         self.diagnostics = diagnostics
@@ -266,8 +273,27 @@ class Surface:
     @property
     def node_sigma(self) -> np.ndarray:
         """(N, M) one-s.d. position uncertainty of the nodes (mm)."""
+        return self._at_nodes(self._sigma_at)
+
+    @property
+    def scatter_sigma(self) -> np.ndarray:
+        """(nf, mf) fine-node map of the part of σ that repeated frames scatter by."""
+        if self._scatter_sigma_fn is None:
+            return self.fine_sigma
+        if self._scatter_sigma is None:
+            self._scatter_sigma = self._scatter_sigma_fn()
+        return self._scatter_sigma
+
+    @property
+    def node_scatter_sigma(self) -> np.ndarray:
+        """(N, M) the part of :attr:`node_sigma` (mm) that repeated frames of a still sheet
+        scatter by: the noise carried through the fit and the twist's reading, without the
+        model's gauge-scale resolution term (a bound on a bias, the same every frame)."""
+        return self._at_nodes(self._scatter_at)
+
+    def _at_nodes(self, read: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         rows, cols = self._node_index
-        return np.array(self._sigma_at(rows[:, None] * len(self._u) + cols[None, :]))  # a fresh array
+        return np.array(read(rows[:, None] * len(self._u) + cols[None, :]))  # a fresh array
 
     def _sigma_at(self, flat: np.ndarray) -> np.ndarray:
         """σ at fine nodes of flat indices ``flat``: from the whole field once it is computed, else
@@ -276,6 +302,15 @@ class Surface:
         if self._fine_sigma is None and at is not None:
             return at(flat)
         return self.fine_sigma.reshape(-1)[flat]
+
+    def _scatter_at(self, flat: np.ndarray) -> np.ndarray:
+        """The scatter's part of σ at fine nodes ``flat``, as :meth:`_sigma_at` reads σ."""
+        if self._scatter_sigma_fn is None:
+            return self._sigma_at(flat)
+        at = getattr(self._scatter_sigma_fn, "at", None)
+        if self._scatter_sigma is None and at is not None:
+            return at(flat)
+        return self.scatter_sigma.reshape(-1)[flat]
 
     # ----------------------------------------------------------------------------- queries
     @property
@@ -333,8 +368,9 @@ class Surface:
             self._origin = np.array([self._u[0], self._v[0]])
         return self._origin
 
-    def locate_sigma(self, uv) -> np.ndarray:
-        """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine grid)."""
+    def locate_sigma(self, uv, scatter: bool = False) -> np.ndarray:
+        """One-s.d. position uncertainty (K,) mm of material points ``uv`` (bilinear in the fine
+        grid); ``scatter``: only its part that repeated frames scatter by (:attr:`node_scatter_sigma`)."""
         uv = self._check_uv(uv)
         nf, mf = len(self._v), len(self._u)
         cell, t = _patch_cells(uv, self._uv_origin(), 1.0 / self._spacing, np.array([mf - 2, nf - 2]))
@@ -348,7 +384,7 @@ class Surface:
         # not read, so that a map computed node by node is asked for no more than it must
         need = w != 0.0
         sig = np.zeros(w.shape)
-        sig[need] = self._sigma_at(corners[need])
+        sig[need] = (self._scatter_at if scatter else self._sigma_at)(corners[need])
         return (w * sig).sum(axis=1)
 
     def points(self, per_pitch: int = 20) -> np.ndarray:

@@ -218,3 +218,26 @@ def test_a_12x12_saddle_near_45_degrees_is_read_from_its_stretch_within_0_05mm(c
     surf = Reconstructor(n, n, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
     assert surf.diagnostics.extra["stretch_reading"][0] == "membrane", surf.diagnostics.extra
     assert aligned_distances(surf.nodes.reshape(-1, 3), truth).mean() <= 0.05, surf.diagnostics.extra
+
+
+@pytest.mark.parametrize("n, m", [(5, 5e-3), (8, 2.5e-3), (8, 5e-3)])
+def test_the_readings_noise_sd_is_the_scatter_of_its_twist_over_noisy_stretch(n, m):
+    """TwistReading.noise_sd (the profile over ν within 2 noise s.d. of its best) against the
+    scatter of the reading over 60 draws of the stretch noise, on a saddle at 45° (the twist in
+    the stretch alone, ν 0.45): the ratio within [0.8, 1.3]."""
+    grid = FineGrid(n, n, PITCH, G, sub=default_subdivision(n, n))
+    maps = membrane_maps(grid)
+    stretch = 1.0 + ((maps.a + 0.45 * maps.b) @ np.full(maps.a.shape[1], -m * m)).reshape(2, n, n)
+    flat = np.zeros((grid.nf, grid.mf))
+    valid = np.ones((2, n, n), dtype=bool)
+    sd = NOISE / np.sqrt(2.0)  # one stretch reading: the mean of two layers' strains
+    rng = np.random.default_rng(21)
+    twists, said = [], []
+    for _ in range(60):
+        reading = read_twist(maps, stretch + rng.normal(0.0, sd, stretch.shape), valid, flat, flat, flat, grid.inner,
+                             (0.3, 0.5), sd)
+        assert reading is not None
+        twists.append(reading.twist)
+        said.append(reading.noise_sd)
+    ratio = float(np.std(twists) / np.mean(said))
+    assert 0.8 <= ratio <= 1.3, ratio
