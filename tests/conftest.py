@@ -151,6 +151,18 @@ def aligned_error(nodes: Any, truth: Any) -> float:
     return float(aligned_distances(p, q).mean())
 
 
+def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
+    """Node errors (N, M) in the sensor frame itself, no alignment: the truth (an emulator
+    shape) put in the frame by its definition, as node_sigma describes the nodes."""
+    import numpy as np
+
+    from skinmap.reconstruction import to_sensor_frame
+
+    uu, vv = np.meshgrid(grid.u, grid.v)
+    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
+    return np.linalg.norm(surf.nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1)
+
+
 def rigid_motion(src: Any, dst: Any) -> tuple[Any, Any]:
     """R, t minimising |R·src + t − dst| (Kabsch) for (K, 3) point sets, for tests that move
     other points with the same motion (distances alone: `aligned_error`)."""

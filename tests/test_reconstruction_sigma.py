@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import frame_errors
 
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.reconstruction import Reconstructor
@@ -118,15 +119,6 @@ def test_sigma_field_reads_the_whole_field_once_and_repeats_for_free():
     assert plain.at(np.array([7])).tolist() == [7.0]
 
 
-def _frame_errors(shape, surf, grid) -> np.ndarray:
-    """Node errors in the sensor frame itself: the truth put in the frame by its definition."""
-    from skinmap.reconstruction import to_sensor_frame
-
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
-    return np.linalg.norm(surf.nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1)
-
-
 @pytest.mark.parametrize("spec", ["gaussian:height=3,fwhm=18,u0=8,v0=-5",
                                   "gaussian:height=-4,fwhm=20,u0=-3,v0=14 + gaussian:height=2,fwhm=16,u0=15,v0=-12"])
 def test_sensor_frame_errors_of_elastic_bumps_near_the_centre_within_3_sigma(spec: str) -> None:
@@ -143,7 +135,7 @@ def test_sensor_frame_errors_of_elastic_bumps_near_the_centre_within_3_sigma(spe
     rng = np.random.default_rng(5)
     eu, el = eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape)
     surf = rec(eu, el)
-    err = _frame_errors(shape, surf, rec.grid)
+    err = frame_errors(shape, surf, rec.grid)
     assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
     turning, _, valid = unit_data(eu, el, 0.2, 0.2, 10.0)
     term = RESOLUTION_SHARE * resolution_sigma(rec.grid, valid, turning, np.sqrt(2.0) * 5.7e-5 / 0.4)
@@ -255,7 +247,7 @@ def test_twist_the_stretch_leaves_undecided_joins_sigma_on_a_turned_poisson_0_3_
         if extra.get("stretch_twist", (0.0, 1.0))[1] != 0.0 or "stretch_twist_refined" not in extra:
             continue  # the pattern needed a twist on this draw: not the case under test
         undecided += 1
-        err = _frame_errors(shape, surf, rec5.grid)
+        err = frame_errors(shape, surf, rec5.grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max(), extra)
     assert undecided, "no draw reached the undecided case: the test no longer tests it"
 
@@ -274,7 +266,7 @@ def test_a_twist_the_noise_hides_widens_sigma_on_a_cylinder_6_deg_off_the_grid_w
     wrong = untwisted = 0
     for _ in range(10):
         surf = rec5(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
-        err = _frame_errors(shape, surf, rec5.grid)
+        err = frame_errors(shape, surf, rec5.grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max(), surf.diagnostics.twist_constant)
         wrong += err.mean() > 0.5  # the other sign's answer
         untwisted += surf.diagnostics.twist_constant == 0.0
@@ -295,7 +287,7 @@ def test_a_twist_the_shrunk_product_allows_joins_sigma_on_a_cylinder_turned_6_de
     rng = np.random.default_rng(4)
     for _ in range(8):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape), twist_sign=1.0)
-        err = _frame_errors(shape, surf, rec.grid)
+        err = frame_errors(shape, surf, rec.grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
 
 
@@ -314,7 +306,7 @@ def test_a_twist_the_curvature_product_hides_joins_sigma_on_a_cylinder_turned_2_
     grid = rec.grid
     for _ in range(6):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape), twist_sign=1.0)
-        err = _frame_errors(shape, surf, grid)
+        err = frame_errors(shape, surf, grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
 
 
@@ -331,7 +323,7 @@ def test_a_prestretched_cylinder_near_the_rows_is_within_3_sigma_in_the_sensor_f
     rng = np.random.default_rng(6)
     for _ in range(4):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
-        err = _frame_errors(shape, surf, rec.grid)
+        err = frame_errors(shape, surf, rec.grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
 
 
@@ -352,7 +344,7 @@ def test_the_stretch_noise_does_not_shrink_a_turned_cylinders_twist() -> None:
     ratios = []
     for _ in range(20):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape), twist_sign=-1.0)
-        err = _frame_errors(shape, surf, rec.grid)
+        err = frame_errors(shape, surf, rec.grid)
         assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
         ratios.append(surf.diagnostics.twist_constant / true)
     assert abs(np.mean(ratios) - 1.0) < 0.02, np.mean(ratios)
@@ -376,7 +368,7 @@ def test_a_less_sheared_twist_taken_keeps_the_products_own_within_sigma() -> Non
     surf = rec(eu + du, el + dl, twist_sign=-1.0)
     shift = surf.diagnostics.extra.get("least_shear_shift")
     assert shift is not None and surf.diagnostics.extra["undecided_twist"] == -shift
-    err = _frame_errors(shape, surf, rec.grid)
+    err = frame_errors(shape, surf, rec.grid)
     assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
 
 
