@@ -1434,7 +1434,12 @@ class Reconstructor:
             here, flipped = float(r_here @ r_here), float(r_flipped @ r_flipped)
             info["stretch_sign_rss"] = (float(f"{here:.4g}"), float(f"{flipped:.4g}"))
             if flipped <= MEMBRANE_SIGN_RATIO * here and _sign_beyond_noise(r_here, r_flipped, stretch_sd):
-                off, signs = True, (-sign,)
+                # (a carried sign is weighed again against the other, each modelled afresh at
+                # its own twist: the mirror on a family whose fields were fitted to the carried
+                # twist is no model of the other sign where that twist lags a sheet that changes
+                # shape (a 5×5 saddle at 60° whose radius grew 0.5 % a frame, 90 to 110 mm:
+                # 10 sign changes in 40 frames, each 3.6 mm off, flagged; now none))
+                off, signs = True, ((sign, -sign) if carried else (-sign,))
         if off or not within(m_lo, m_hi):
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
             # correction fitted to the old twist), both signs where none is given
