@@ -62,7 +62,7 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
-from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, reconstruct, to_sensor_frame  # noqa: E402
+from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor, nodes_in_sensor_frame, reconstruct  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import elastic_dataset as ed  # noqa: E402  (bench/elastic_dataset.py: the elastic scene classes)
@@ -327,11 +327,8 @@ def _fine_grid(n: int):
 
 def frame_errors(shape: ph.Shape, nodes: np.ndarray, n: int) -> np.ndarray:
     """Node errors in the sensor frame itself, with no alignment: the truth put in the frame by
-    its one definition (to_sensor_frame on the fine grid), as node_sigma describes them."""
-    grid = _fine_grid(n)
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
-    return np.linalg.norm(nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1).reshape(-1)
+    its one definition (nodes_in_sensor_frame), as node_sigma describes them."""
+    return np.linalg.norm(nodes - nodes_in_sensor_frame(_fine_grid(n), shape.position), axis=-1).reshape(-1)
 
 
 def _over_in_frame(shape: ph.Shape, surf, n: int) -> bool:

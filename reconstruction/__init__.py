@@ -54,7 +54,7 @@ from .uncertainty import (GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, 
                           stretch_noise_sd)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
-           "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame"]
+           "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame", "nodes_in_sensor_frame"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
@@ -482,7 +482,7 @@ class Reconstructor:
         graph_sigma: dict = {}
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
-            sig_t = np.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
+            sig_t = self._turning_sd(fit_sigma)
             sig_s = self._stretch_sd(fit_sigma)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             state = previous.state if previous is not None and graph_warm else None
@@ -903,7 +903,7 @@ class Reconstructor:
         pf = elastic.fine
         settings = self.elastic_prior
         fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
-        sig_t = math.sqrt(2.0) * fit_sigma / (self.h_upper + self.h_lower)
+        sig_t = self._turning_sd(fit_sigma)
         sig_s = self._stretch_sd(fit_sigma)
         data = (turning, stretch, valid, sig_t, sig_s)
         # the mean Gaussian curvature the stretch pattern implies (Airy): the check of every answer
@@ -1075,9 +1075,7 @@ class Reconstructor:
             product_fields = self.grid.field_maps(valid)(turning, np.ones(turning.shape))[:3]
 
         def product_sd(sigma_strain: float) -> float:
-            sig_t = math.sqrt(2.0) * sigma_strain / (self.h_upper + self.h_lower)
-            k_u, k_v, tau0 = product_fields
-            return self._product_stats(k_u, k_v, tau0, sig_t)[1]
+            return self._product_sd(product_fields, sigma_strain)
 
         chi0, dof = known_chi2 if known_chi2 is not None else misfit(surf, layout, eu, el, sigma_f)[:2]
         # Birge's ratio counts only misfit beyond what the noise alone leaves in the model that
@@ -1252,6 +1250,17 @@ class Reconstructor:
     def _stretch_sd(self, sigma_f: float) -> float:
         """The noise s.d. of one unit's stretch reading for strain noise ``sigma_f`` on each layer."""
         return stretch_noise_sd(sigma_f, self.h_upper, self.h_lower)
+
+    def _turning_sd(self, sigma_f: float) -> float:
+        """The noise s.d. of one unit's turning per length (1/mm) for strain noise ``sigma_f`` on
+        each layer: (ε_u − ε_l)/(h_u + h_l)."""
+        return math.sqrt(2.0) * sigma_f / (self.h_upper + self.h_lower)
+
+    def _product_sd(self, product_fields, sigma_f: float) -> float:
+        """The s.d. of the mean curvature product k_u k_v − τ₀² of ``product_fields`` that strain
+        noise ``sigma_f`` causes (:meth:`_product_stats`)."""
+        k_u, k_v, tau0 = product_fields
+        return self._product_stats(k_u, k_v, tau0, self._turning_sd(sigma_f))[1]
 
     def _twist_reading(self, stretch, valid, product_fields, sigma_f: float) -> TwistReading | None:
         """What the stretch pattern says of the mean twist's magnitude (docs/reconstruction.md):
@@ -1518,11 +1527,8 @@ class Reconstructor:
     def _estimate_sd(self, magnitude: float, reading: TwistReading, product_fields, sigma_f: float) -> float:
         """The s.d. (1/mm) of a refined twist estimate ``magnitude`` from the noise: the mean
         curvature product's (its s.d. over 2|c|, :meth:`_product_stats`) with the reading's own."""
-        k_u, k_v, tau0 = product_fields
-        turning_sigma = math.sqrt(2.0) * sigma_f / (self.h_upper + self.h_lower)
-        product_sd = self._product_stats(k_u, k_v, tau0, turning_sigma)[1]
         reading_sd = reading.noise_sd if math.isfinite(reading.noise_sd) else 0.0
-        return math.hypot(product_sd / (2.0 * magnitude), reading_sd)
+        return math.hypot(self._product_sd(product_fields, sigma_f) / (2.0 * magnitude), reading_sd)
 
     def _twist_left_open(self, reading: TwistReading, m0: float, sign: float, sign_open: bool, base_shift: float,
                          positions_at, stretch, valid, fields, carried: bool, info: dict,
@@ -1681,7 +1687,7 @@ class Reconstructor:
             sign = math.copysign(1.0, previous.diagnostics.twist_constant)
         else:
             sign_known = False
-        turning_sigma = np.sqrt(2.0) * strain_sigma / (self.h_upper + self.h_lower)
+        turning_sigma = self._turning_sd(strain_sigma)
         compiled = self._compiled
         if compiled is not None:
             k_u, k_v, lam_u, lam_v = compiled.as_field(k_u), compiled.as_field(k_v), compiled.as_field(lam_u), compiled.as_field(lam_v)
@@ -1918,6 +1924,15 @@ def _differs(a: Surface, b: Surface) -> bool:
     gap = aligned_distances(a.nodes.reshape(-1, 3), b.nodes.reshape(-1, 3))
     tol = MIRROR_SIGMAS * np.sqrt(2.0) * a.node_sigma.ravel() + MIRROR_FLOOR_MM
     return bool((gap > tol).any())
+
+
+def nodes_in_sensor_frame(grid: FineGrid, position: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The cell-centre nodes (N, M, 3) of a reference surface, given as a map from material
+    coordinates (K, 2) to positions (K, 3) such as an emulator shape's truth, put in the sensor
+    frame by its one definition on ``grid``: what ``node_sigma`` describes, with no alignment."""
+    uu, vv = np.meshgrid(grid.u, grid.v)
+    fine = np.asarray(position(np.stack([uu.ravel(), vv.ravel()], axis=1))).reshape(grid.nf, grid.mf, 3)
+    return to_sensor_frame(grid, fine)[np.ix_(grid.node_rows, grid.node_cols)]
 
 
 def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:

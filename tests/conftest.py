@@ -156,11 +156,9 @@ def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
     shape) put in the frame by its definition, as node_sigma describes the nodes."""
     import numpy as np
 
-    from skinmap.reconstruction import to_sensor_frame
+    from skinmap.reconstruction import nodes_in_sensor_frame
 
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
-    return np.linalg.norm(surf.nodes - truth[np.ix_(grid.node_rows, grid.node_cols)], axis=-1)
+    return np.linalg.norm(surf.nodes - nodes_in_sensor_frame(grid, shape.position), axis=-1)
 
 
 def rigid_motion(src: Any, dst: Any) -> tuple[Any, Any]:

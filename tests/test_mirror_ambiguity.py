@@ -110,7 +110,7 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
     import elastic_dataset as ed
 
-    from skinmap.reconstruction import Reconstructor, to_sensor_frame
+    from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
 
     n = 16
     plan = ed.class_plans("poisson_0.3", 2024, 1, n)[0]
@@ -121,9 +121,7 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     surf = rec(eu + du, el + dl)
     assert surf.mirror is not None and not surf.diagnostics.extra.get("mirror_swapped")
     grid = rec.grid
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
-    truth = truth[np.ix_(grid.node_rows, grid.node_cols)]
+    truth = nodes_in_sensor_frame(grid, shape.position)
     bound = 3.0 * surf.node_sigma + 0.05
     within = [bool(np.all(np.linalg.norm(a.nodes - truth, axis=-1) <= bound)) for a in (surf, surf.mirror)]
     assert any(within), within

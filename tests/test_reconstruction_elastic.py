@@ -282,7 +282,7 @@ def test_a_saddle_near_the_rows_whose_reading_is_low_is_refined_and_every_node_i
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
     import elastic_dataset as ed
 
-    from skinmap.reconstruction import to_sensor_frame
+    from skinmap.reconstruction import nodes_in_sensor_frame
 
     n = 16
     plan = ed.class_plans("saddle", 2024, 1, n)[0]
@@ -294,9 +294,7 @@ def test_a_saddle_near_the_rows_whose_reading_is_low_is_refined_and_every_node_i
     surf = rec(eu + du, el + dl)
     assert "stretch_twist_refined" in surf.diagnostics.extra
     grid = rec.grid
-    uu, vv = np.meshgrid(grid.u, grid.v)
-    truth = to_sensor_frame(grid, shape.position(np.stack([uu.ravel(), vv.ravel()], axis=1)).reshape(grid.nf, grid.mf, 3))
-    truth = truth[np.ix_(grid.node_rows, grid.node_cols)]
+    truth = nodes_in_sensor_frame(grid, shape.position)
     bound = 3.0 * surf.node_sigma + 0.05
     answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
     assert any(bool(np.all(np.linalg.norm(a.nodes - truth, axis=-1) <= bound)) for a in answers)
