@@ -1324,8 +1324,18 @@ class Reconstructor:
         """The stretch pattern's residuals through a surface's own Gaussian curvature (fine-grid
         positions), :func:`.membrane.stretch_residual` at the best ν of the Poisson interval."""
         assert self.poisson_range is not None and self._membrane is not None
-        k_basis = basis_curvature(self._membrane, positions, self.grid.spacing)
-        return stretch_residual(self._membrane, k_basis, stretch, valid, self.poisson_range)[0]
+        maps = self._membrane
+        if self._compiled is None:
+            return stretch_residual(maps, basis_curvature(maps, positions, self.grid.spacing), stretch, valid,
+                                    self.poisson_range)[0]
+        # the same steps compiled: a frame weighs up to seven members of its twist family
+        k_basis = np.empty(maps.rows.size * maps.cols.size)
+        self._compiled.basis_curvature(positions, maps.rows, maps.cols, self.grid.spacing, k_basis)
+        ok = np.ascontiguousarray(valid, dtype=bool).reshape(-1)
+        r = np.empty(int(np.count_nonzero(ok)))
+        self._compiled.stretch_residual(maps.ab, k_basis, np.ascontiguousarray(stretch, dtype=float).reshape(-1), ok,
+                                        *self.poisson_range, r)
+        return r
 
     def _stretch_rss(self, positions: np.ndarray, stretch, valid) -> float:
         """The stretch pattern's misfit (sum of squares) through a surface's own Gaussian curvature."""

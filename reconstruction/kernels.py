@@ -34,7 +34,8 @@ except ImportError:  # the numpy reference still works without it
 
 __all__ = [
     "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
-    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "gauge_strains",
+    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "gauge_strains", "basis_curvature",
+    "stretch_residual",
 ]
 
 AVAILABLE = numba is not None
@@ -753,6 +754,89 @@ def gauge_strains(coeffs, base, mf, weights, per, h_upper, h_lower, gauge_length
 
 
 
+# ------------------------------------------------------------------- the membrane's curvature
+@_compiled
+def basis_curvature(pos, rows, cols, h, out):
+    """membrane.basis_curvature: the Gaussian curvature (LN − M²)/(EG − F²) of fine positions
+    ``pos`` (nf, mf, 3) at the basis nodes ``rows`` × ``cols`` (central differences, a node on
+    the outer edge taking its inner neighbour's) into ``out`` (rows·cols), in its order of
+    operations.  A frame reads it for each member of a twist family it weighs."""
+    nf, mf = pos.shape[0], pos.shape[1]
+    h2 = h * h
+    xu, xv, xuu, xvv, xuv = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    k = 0
+    for r in rows:
+        a = min(max(r, 1), nf - 2)
+        for c in cols:
+            b = min(max(c, 1), mf - 2)
+            for d in range(3):
+                p0 = pos[a, b, d]
+                xu[d] = (pos[a, b + 1, d] - pos[a, b - 1, d]) / (2.0 * h)
+                xv[d] = (pos[a + 1, b, d] - pos[a - 1, b, d]) / (2.0 * h)
+                xuu[d] = (pos[a, b + 1, d] - 2.0 * p0 + pos[a, b - 1, d]) / h2
+                xvv[d] = (pos[a + 1, b, d] - 2.0 * p0 + pos[a - 1, b, d]) / h2
+                xuv[d] = (pos[a + 1, b + 1, d] - pos[a - 1, b + 1, d] - pos[a + 1, b - 1, d]
+                          + pos[a - 1, b - 1, d]) / (4.0 * h2)
+            n0 = xu[1] * xv[2] - xu[2] * xv[1]
+            n1 = xu[2] * xv[0] - xu[0] * xv[2]
+            n2 = xu[0] * xv[1] - xu[1] * xv[0]
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+            l_ = xuu[0] * n0 + xuu[1] * n1 + xuu[2] * n2
+            m_ = xuv[0] * n0 + xuv[1] * n1 + xuv[2] * n2
+            n_ = xvv[0] * n0 + xvv[1] * n1 + xvv[2] * n2
+            e = xu[0] * xu[0] + xu[1] * xu[1] + xu[2] * xu[2]
+            f = xu[0] * xv[0] + xu[1] * xv[1] + xu[2] * xv[2]
+            g = xv[0] * xv[0] + xv[1] * xv[1] + xv[2] * xv[2]
+            out[k] = (l_ * n_ - m_ * m_) / (e * g - f * f)
+            k += 1
+
+
+@_compiled
+def stretch_residual(ab, k_basis, stretch, ok, nu_low, nu_high, out):
+    """membrane.stretch_residual: the residuals of s = e_dir + (A + νB)K over the measured
+    units ``ok`` (flat, row gauges then column gauges) into ``out`` (one per measured unit),
+    each direction's mean taken out, ν fitted and held to [``nu_low``, ``nu_high``]; returns ν."""
+    units = ok.size
+    half = units // 2
+    predicted = np.zeros(2 * units)
+    for i in range(2 * units):
+        acc = 0.0
+        for j in range(k_basis.size):
+            acc += ab[i, j] * k_basis[j]
+        predicted[i] = acc
+    # each direction's means of the stretch and of the two parts over its measured units
+    sums = np.zeros((2, 3))
+    counts = np.zeros(2)
+    for i in range(units):
+        if ok[i]:
+            g = 0 if i < half else 1
+            sums[g, 0] += stretch[i] - 1.0
+            sums[g, 1] += predicted[i]
+            sums[g, 2] += predicted[units + i]
+            counts[g] += 1.0
+    for g in range(2):
+        c = max(counts[g], 1.0)
+        for col in range(3):
+            sums[g, col] /= c
+    along = np.empty(out.size)
+    k = 0
+    for i in range(units):
+        if ok[i]:
+            g = 0 if i < half else 1
+            out[k] = (stretch[i] - 1.0 - sums[g, 0]) - (predicted[i] - sums[g, 1])
+            along[k] = predicted[units + i] - sums[g, 2]
+            k += 1
+    num, den = 0.0, 0.0
+    for k in range(out.size):
+        num += out[k] * along[k]
+        den += along[k] * along[k]
+    nu = min(max(num / max(den, 1e-300), nu_low), nu_high)
+    for k in range(out.size):
+        out[k] -= nu * along[k]
+    return nu
+
+
 # ------------------------------------------------------------------------ geometry, warm-up
 def as_field(x: np.ndarray) -> np.ndarray:
     """``x`` as the kernels take it: float64, C-contiguous, writeable (another layout would be
@@ -937,6 +1021,11 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
                            np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res, np.zeros((2, 4)))
+    # the membrane's curvature on that sheet, at one node (a flat sheet's is 0)
+    corner = np.zeros(1, dtype=np.intp)
+    k_flat = np.empty(1)
+    basis_curvature(pos.transpose(1, 2, 0), corner, corner, float(h), k_flat)
+    stretch_residual(np.zeros((4, 1)), k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
 
 
 if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use
