@@ -1758,9 +1758,7 @@ class Reconstructor:
             options = [opt for opt in options if abs(opt[0] ** 2 - tau_mean**2) > noise]
             if within_noise and not options:
                 # a less-sheared twist the noise cannot rule out: kept as the answer's spread
-                # (of mirror-image minima, the one of the requested, kept or default (+) sign)
-                same_sign = [opt for opt in within_noise if opt[0] * sign > 0.0]
-                undecided = (same_sign or within_noise)[0][0] - tau_mean
+                undecided = within_noise[0][0] - tau_mean
             if options and stretch_supports_curvature(grid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma):
                 # the stretch varies as much as the model's doubly curved sheet needs: it stands,
                 # unless the stretch pattern itself says otherwise (below)
@@ -1799,44 +1797,20 @@ class Reconstructor:
                 ).transpose(1, 2, 0)
             return to_sensor_frame(grid, self._positions(k_u, k_v, lam_u, lam_v, twist, metric, shear_graph))
 
-        def gauges_reject(pos_new: np.ndarray, pos_own: np.ndarray) -> bool:
-            # the gauges read pos_new clearly worse than pos_own, or neither at all
-            assert strains is not None
-            sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
-            chi_new, dof, _ = misfit(self._candidate(pos_new), self._layout, strains[0], strains[1], sigma_f)
-            chi_own, _, _ = misfit(self._candidate(pos_own), self._layout, strains[0], strains[1], sigma_f)
-            if min(chi_new, chi_own) > GROSS_MISFIT * max(dof, 1):
-                return True
-            # (where the own twist's curvature has the stretch's support, the least-shear twist
-            # is weighed by the stretch pattern alone unless the gauges read it beyond the noise:
-            # a family member keeps the fields fitted to the own twist, and within the noise
-            # their preference for it proves nothing)
-            return chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1)) and not (
-                curvature_supported and _within_noise(chi_new, chi_own, dof, 1.0))
-
         pos = positions_at(0.0)
-        if (undecided != 0.0 and strains is not None and twist_mean is None and self.poisson_range is not None
-                and not stretch_supports_curvature(grid, k_u, k_v, tau, lam_u, lam_v, stretch_sigma)):
-            # A less-sheared twist the curvature product's noise leaves open: the film's stretch
-            # may still tell the two apart, through each one's own Gaussian curvature.  The
-            # less-sheared one explaining the stretch pattern with half the misfit or less is the
-            # answer, the model's own twist its spread (a cylinder of R 374 mm 8° off the columns
-            # on a noisy 32×32 sheet: its twist, 3.8·10⁻⁴ /mm, lay within the product's noise on
-            # two draws of three and the answer kept none, 3.5 mm off, 13 mm at a corner, beyond
-            # 3σ; on the third the twist was beyond it, and its stretch misfit was a twelfth of
-            # the untwisted sheet's)
-            if self._membrane is None:
-                self._membrane = membrane_maps(grid)
-            pos_less = positions_at(undecided)
-            rss_less = self._stretch_rss(pos_less, stretch, valid)
-            rss_own = self._stretch_rss(pos, stretch, valid)
-            convex_info["undecided_stretch_rss"] = (float(f"{rss_less:.4g}"), float(f"{rss_own:.4g}"))
-            if rss_less <= MEMBRANE_SIGN_RATIO * rss_own:
-                shift0, pos, undecided = undecided, pos_less, 0.0
-        elif shift0 != 0.0 and strains is not None and twist_mean is None:
+        if shift0 != 0.0 and strains is not None and twist_mean is None:
             # the prior only chooses among answers the data cannot tell apart
             pos_own = positions_at(-shift0)
-            if gauges_reject(pos, pos_own):
+            sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
+            chi_new, dof, _ = misfit(self._candidate(pos), self._layout, strains[0], strains[1], sigma_f)
+            chi_own, _, _ = misfit(self._candidate(pos_own), self._layout, strains[0], strains[1], sigma_f)
+            # (where the own twist's curvature has the stretch's support, the least-shear twist
+            # is weighed by the stretch pattern below unless the gauges read it worse beyond the
+            # noise: the family member keeps the fields fitted to the own twist, and within the
+            # noise their preference for it proves nothing)
+            if (chi_new > chi_own + MIRROR_CHI2 * max(1.0, chi_own / max(dof, 1))
+                    and not (curvature_supported and _within_noise(chi_new, chi_own, dof, 1.0))
+                    or min(chi_new, chi_own) > GROSS_MISFIT * max(dof, 1)):
                 shift0, pos = 0.0, pos_own
             elif self.poisson_range is not None:
                 # nor among those the film's stretch tells apart: through each one's own

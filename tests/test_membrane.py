@@ -271,26 +271,6 @@ def test_a_saddle_that_grows_slowly_keeps_its_sign_frame_after_frame(cache):
 
 
 @pytest.mark.slow
-def test_a_32x32_oblique_cylinder_whose_twist_is_within_the_products_noise_takes_it_from_the_stretch_within_1mm():
-    """A cylinder of R 374 mm 8° off the columns on a noisy 32×32 sheet (384 mm): its twist,
-    3.8·10⁻⁴ /mm, lies within the curvature product's noise on most draws.  The untwisted sheet
-    has a Gaussian curvature whose stretch the gauges do not show; the twisted one explains the
-    stretch (there: none).  Mean node error over six draws within 1 mm (it was 2.4 mm, up to
-    13 mm at a corner, while the untwisted answer was kept)."""
-    n = 32
-    shape = ph.Cylinder(-374.4, axis_angle=-81.7)
-    eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, G)
-    truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
-    rec = Reconstructor(n, n, PITCH, H, H, G)
-    errors = []
-    for seed in range(6):
-        rng = np.random.default_rng(seed)
-        surf = rec(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), twist_sign=1.0)
-        errors.append(aligned_distances(surf.nodes.reshape(-1, 3), truth).mean())
-    assert np.mean(errors) < 1.0, errors
-
-
-@pytest.mark.slow
 def test_a_prestretched_32x32_film_on_an_oblique_cylinder_is_not_taken_for_a_doubly_curved_sheet(cache):
     """A film pre-stretched 5 % on a cylinder of R 407 mm at −43° (a 384 mm sheet) relaxes at its
     edges by about as much stretch as the untwisted, doubly curved sheet would need, and that
