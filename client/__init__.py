@@ -65,31 +65,33 @@ def _check_elements(m: messages.ElementsMessage, raw: bytes) -> None:
         i = _first_bad(unknown)
         raise RejectedMessage(f"elements: element {i} has unknown flag bits 0x{int(m.flags[i]):02x}")
     valid = m.valid
+    scatter = m.uncertainty if m.scatter is None else m.scatter
     bad = valid & ~(np.isfinite(m.positions).all(axis=1) & np.isfinite(m.normals).all(axis=1)
-                    & np.isfinite(m.uncertainty))
+                    & np.isfinite(m.uncertainty) & np.isfinite(scatter))
     if bad.any():
         raise RejectedMessage(f"elements: element {_first_bad(bad)} is flagged VALID but its position, "
-                              "normal or uncertainty is not finite")
+                              "normal, uncertainty or scatter is not finite")
     with np.errstate(invalid="ignore"):
         norm_off = np.abs(np.linalg.norm(m.normals, axis=1) - 1.0) > _UNIT_TOLERANCE
-        negative = m.uncertainty < 0
+        negative = (m.uncertainty < 0) | (scatter < 0)
     if (valid & norm_off).any():
         raise RejectedMessage(f"elements: element {_first_bad(valid & norm_off)} is flagged VALID but "
                               "its normal is not a unit vector")
     if negative.any():
-        raise RejectedMessage(f"elements: element {_first_bad(negative)} has a negative uncertainty")
+        raise RejectedMessage(f"elements: element {_first_bad(negative)} has a negative uncertainty or scatter")
 
 
 def _check_surface(m: messages.SurfaceMessage, raw: bytes) -> None:
     if raw[messages.HEADER_SIZE + 13:messages.HEADER_SIZE + 16] != b"\0\0\0":
         raise RejectedMessage("surface: padding after the counts is not 0")
     # skinmapd never publishes a non-finite node (it holds the last good frame instead)
+    scatter = m.uncertainty if m.scatter is None else m.scatter
     for name, arr in (("node", m.nodes), ("normal", m.normals), ("uncertainty", m.uncertainty),
-                      ("cloud point", m.cloud)):
+                      ("scatter", scatter), ("cloud point", m.cloud)):
         if not np.isfinite(arr).all():
             raise RejectedMessage(f"surface: a {name} is not finite")
-    if (m.uncertainty < 0).any():
-        raise RejectedMessage("surface: a node has a negative uncertainty")
+    if (m.uncertainty < 0).any() or (scatter < 0).any():
+        raise RejectedMessage("surface: a node has a negative uncertainty or scatter")
 
 
 def _check_strains(m: messages.StrainsMessage, raw: bytes) -> None:

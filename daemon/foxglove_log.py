@@ -246,6 +246,8 @@ ELEMENTS_PLOT_SCHEMA: dict[str, Any] = {
         "latency_ms": {"type": ["number", "null"]},
         "valid_count": {"type": "integer"},
         "sigma_um": {**_NUMBER_ARRAY, "description": "per element, null where not finite"},
+        "scatter_um": {**_NUMBER_ARRAY, "description": "the part of σ that repeated frames of a still "
+                                                       "sheet scatter by, per element (absent in logs of layout 1)"},
         "flags": {**_INT_ARRAY, "description": "ElementFlag bits per element"},
         "valid": {**_INT_ARRAY, "description": "1 where the VALID bit is set"},
     },
@@ -288,6 +290,8 @@ def elements_plot(el: wire.ElementsMessage, latency_ms: float | None = None) -> 
             else round(float(latency_ms), 3),
             "valid_count": int(valid.sum()), "sigma_um": _nullable(el.uncertainty, 1e6),
             "flags": [int(f) for f in el.flags], "valid": [int(v) for v in valid]}
+    if el.scatter is not None:
+        body["scatter_um"] = _nullable(el.scatter, 1e6)
     return json.dumps(body, separators=(",", ":")).encode()
 
 

@@ -30,6 +30,24 @@ log = logging.getLogger("skinmapd")
 MAX_CLOUD_POINTS = 40_000  # the published dense cloud is thinned beyond this (32×32 at 20/pitch is 410k)
 
 
+def _metres(mm: np.ndarray | None) -> np.ndarray | None:
+    return None if mm is None else np.asarray(mm) / 1000.0
+
+
+def encode_result_elements(r: FrameResult) -> bytes:
+    """The elements message of one result (metres on the wire)."""
+    return messages.encode_elements(
+        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.element_positions_mm / 1000.0, r.element_normals,
+        r.element_sigma_mm / 1000.0, r.element_flags, _metres(r.element_scatter_mm))
+
+
+def encode_result_surface(r: FrameResult, cloud_mm: Any) -> bytes:
+    """The surface message of one result with the dense cloud ``cloud_mm`` (P, 3) mm."""
+    return messages.encode_surface(
+        r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
+        r.node_sigma_mm / 1000.0, np.asarray(cloud_mm).reshape(-1, 3) / 1000.0, scatter=_metres(r.node_scatter_mm))
+
+
 @dataclass
 class OutputStats:
     published: int = 0
@@ -82,9 +100,7 @@ class ResultOutput:
     def publish(self, r: FrameResult, t_mono: int, pipeline: FramePipeline) -> bool:
         """Publish one result and hand it to the log; False if publishing failed."""
         seq = r.seq & 0xFFFFFFFF
-        elements = messages.encode_elements(
-            seq, r.device_time_us, r.host_time_ns,
-            r.element_positions_mm / 1000.0, r.element_normals, r.element_sigma_mm / 1000.0, r.element_flags)
+        elements = encode_result_elements(r)
         ok = True
         pub = self.publisher
         if pub is not None:
@@ -107,9 +123,7 @@ class ResultOutput:
             try:
                 if want_surface:
                     points = self._points(r, pipeline)
-                    pub.publish_surface(messages.encode_surface(
-                        seq, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
-                        r.node_sigma_mm / 1000.0, points / 1000.0))
+                    pub.publish_surface(encode_result_surface(r, points))
                 if want_strains:
                     pub.publish_strains(strains)
                 self.stats.published += 1
@@ -127,9 +141,7 @@ class ResultOutput:
         self._track_contact(r, pipeline)
         if self._logging_on and self._log_surface.due(t_mono):
             cloud = r.surface.points(per_pitch=self.cfg.log.points_per_pitch) if r.surface is not None else r.nodes_mm
-            self.notifier.notify(WireRecord("surface", r.host_time_ns, messages.encode_surface(
-                seq, r.device_time_us, r.host_time_ns, r.nodes_mm / 1000.0, r.normals,
-                r.node_sigma_mm / 1000.0, np.asarray(cloud).reshape(-1, 3) / 1000.0)))
+            self.notifier.notify(WireRecord("surface", r.host_time_ns, encode_result_surface(r, cloud)))
         return ok
 
     def _track_contact(self, r: FrameResult, pipeline: FramePipeline) -> None:

@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterator, Protocol
 import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
-                              locate_elements, prior_elements)
+                              locate_elements, locate_scatter, prior_elements)
 from skinmap.strains import (Calibration, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
                              turning_noise_rad)
 
@@ -69,6 +69,10 @@ class FrameResult:
     # seconds per stage: strains, restart (the restart chain's part: handing it this scan, or
     # waiting for it when taken over), reconstruct, uncertainty (node σ), elements (located, σ)
     stage_s: dict[str, float] = field(default_factory=dict)
+    # the part of node_sigma_mm / element_sigma_mm that repeated frames of a still sheet scatter
+    # by (Surface.node_scatter_sigma); None: not known, the whole σ stands for it
+    node_scatter_mm: np.ndarray | None = None  # (N, M)
+    element_scatter_mm: np.ndarray | None = None  # (K,)
 
 
 #: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
@@ -478,8 +482,11 @@ class FramePipeline:
             # node by node then answers node_sigma and the elements from it)
             locate_sigma(self._sigma_uv)
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
+        # (a part of σ: never above it)
+        node_scatter = np.fmin(np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64), node_sigma)
         t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements)
+        scatter = np.fmin(locate_scatter(surf, self.elements, sig), sig)
         t_end = time.perf_counter()
         solve_s = t_end - t0
         stages = {"strains": t0 - t_start, "restart": (t_chain - t0) + (t_caught - t_rec), "reconstruct": t_rec - t_chain,
@@ -526,6 +533,8 @@ class FramePipeline:
             diagnostics=diagnostics,
             surface=surf,
             stage_s=stages,
+            node_scatter_mm=np.where(np.isfinite(node_scatter), node_scatter, UNKNOWN_SIGMA_MM),
+            element_scatter_mm=np.where(np.isfinite(scatter), scatter, UNKNOWN_SIGMA_MM),
         )
         self._last_good = result
         return result
@@ -608,14 +617,17 @@ class FramePipeline:
             nodes, normals, node_sigma = prev.nodes_mm, prev.normals, prev.node_sigma_mm
             pos, nrm, sig = prev.element_positions_mm, prev.element_normals, prev.element_sigma_mm
             flags = held_flags(prev.element_flags)
+            scatters = (prev.node_scatter_mm, prev.element_scatter_mm)
         else:
             uv = g.cell_uv()
             nodes = np.concatenate([uv, np.zeros((g.n, g.m, 1))], axis=-1)
             normals = np.broadcast_to([0.0, 0.0, 1.0], nodes.shape).copy()
             node_sigma = np.full((g.n, g.m), UNKNOWN_SIGMA_MM)
             pos, nrm, sig, flags = prior_elements(self.elements)
+            scatters = (None, None)
         return FrameResult(seq, device_time_us, host_time_ns, eps_u, eps_l, valid, nodes, normals, node_sigma,
-                           pos, nrm, sig, flags, solve_s, {"status": "non-finite solution; held last good frame"}, None)
+                           pos, nrm, sig, flags, solve_s, {"status": "non-finite solution; held last good frame"}, None,
+                           node_scatter_mm=scatters[0], element_scatter_mm=scatters[1])
 
 
 def _diagnostics_dict(diag: Any) -> dict[str, Any]:

@@ -32,6 +32,7 @@ from skinmap.wire import messages
 from skinmap.strains import Calibration
 from skinmap.daemon.config import DaemonConfig, parse_config
 from skinmap.daemon.mcapread import DEFAULT_MAX_RECORD_BYTES, iter_messages_file_order
+from skinmap.daemon.output import encode_result_elements
 from skinmap.daemon.pipeline import FramePipeline
 from skinmap.protocol import Hello, Scan, StreamDecoder, decode_frame
 
@@ -266,12 +267,12 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
                 report.processed += 1
                 if on_result is not None:
                     on_result(result)
-                payload = messages.encode_elements(
-                    seq, result.device_time_us, result.host_time_ns, result.element_positions_mm / 1000.0,
-                    result.element_normals, result.element_sigma_mm / 1000.0, result.element_flags)
+                payload = encode_result_elements(result)
                 if keep_results:
                     report.results.append(messages.decode_elements(payload))
                 live = logged.get(seq)
+                if live is not None and _older_layout_alike(live, payload):
+                    live = payload  # a log of an earlier layout: the fields it has are the same bytes
                 if live is not None and live != payload and not synced and getattr(pipeline.reconstructor, "graph_fit", False):
                     report.unsynced += 1
                 elif live is not None:
@@ -360,3 +361,17 @@ def resistances_from_log(path: str | Path, *, start_s: float = 0.0, count: int =
                 if len(scans) >= count:
                     return serial, scans
     return serial, scans
+
+
+def _older_layout_alike(live: bytes, payload: bytes) -> bool:
+    """Whether ``live``, an elements message of an earlier layout (without the scatter array),
+    holds the same bytes as ``payload`` in every field it has."""
+    try:
+        a, b = messages.decode_elements(live), messages.decode_elements(payload)
+    except messages.MessageError:
+        return False
+    if a.scatter is not None:
+        return False
+    return (a.seq, a.device_time_us, a.host_time_ns) == (b.seq, b.device_time_us, b.host_time_ns) and all(
+        x.tobytes() == y.tobytes() for x, y in ((a.positions, b.positions), (a.normals, b.normals),
+                                                (a.uncertainty, b.uncertainty), (a.flags, b.flags)))

@@ -109,3 +109,32 @@ def test_a_prepared_pipeline_gives_the_same_elements_and_a_continued_one_has_not
     successor = make()
     successor.continue_from(prepared)
     assert successor.prepare() is False
+
+
+def test_published_scatter_is_the_surfaces_frame_to_frame_part_of_sigma_and_never_above_it():
+    """The elements' and nodes' scatter (layout 2) are the surface's own
+    (Surface.locate_sigma(uv, scatter=True), node_scatter_sigma): on an elastic saddle, whose σ
+    holds the twist's interval, below σ; on the wire as given."""
+    from skinmap.daemon.output import encode_result_elements
+    from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.scenes import parse_scene_spec
+    from skinmap.strains import Calibration
+    from skinmap.wire.messages import decode_elements
+
+    geometry = ArrayGeometry(5, 5, 12.0, 0.2, 0.2)
+    gf, r0 = np.full((2, 2, 5, 5), 1.24), np.full((2, 2, 5, 5), 6.55)
+    uv = np.array([[-18.0, 0.0], [0.0, 0.0], [6.0, 12.0], [24.0, -24.0]])
+    pipeline = FramePipeline(geometry, Calibration(gf, r0), uv, np.zeros(len(uv)))
+    shape = parse_scene_spec("saddle:radius=90,axis_angle=60", "elastic", 5, 5, 12.0)
+    eu, el = ph.gauge_strains(shape, 5, 5, pitch=12.0)
+    noise = np.random.default_rng(3).normal(0.0, 5.7e-5, (2,) + eu.shape)
+    r = pipeline.process(r0 * (1.0 + gf * np.stack([eu + noise[0], el + noise[1]])), 7, 0, 0)
+    surf = r.surface
+    np.testing.assert_allclose(r.element_scatter_mm, surf.locate_sigma(uv, scatter=True), rtol=1e-12)
+    np.testing.assert_allclose(r.node_scatter_mm, surf.node_scatter_sigma, rtol=1e-12)
+    assert (r.element_scatter_mm <= r.element_sigma_mm).all() and (r.node_scatter_mm <= r.node_sigma_mm).all()
+    assert (r.node_scatter_mm < 0.9 * r.node_sigma_mm).any()  # the bias bounds are not scatter
+    msg = decode_elements(encode_result_elements(r))
+    assert msg.scatter is not None
+    np.testing.assert_array_equal(msg.scatter, r.element_scatter_mm / 1000.0)

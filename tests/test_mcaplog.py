@@ -117,7 +117,7 @@ def test_every_helper_round_trips(tmp_path):
     np.testing.assert_allclose(np.frombuffer(cloud.data, "<f4").reshape(-1, 3) * 1e3, points,
                                rtol=1e-6, atol=1e-4)
     assert msgs["/elements"][4] == elements_payload(7, points[:5])
-    assert msgs["/elements"][2] == "skinmap.elements/1"
+    assert msgs["/elements"][2] == "skinmap.elements/2"
     poses = decode_protobuf("foxglove.PosesInFrame", msgs["/elements/poses"][4])
     got = np.array([[p.position.x, p.position.y, p.position.z] for p in poses.poses]) * 1e3
     np.testing.assert_allclose(got, points[:5], rtol=1e-9, atol=1e-9)

@@ -22,14 +22,16 @@ def _elements(k=5, seed=0):
 
 def test_elements_round_trip_is_exact_and_zero_copy():
     pos, nrm, unc, flags = _elements(7)
-    buf = msg.encode_elements(42, 123_456_789, 1_700_000_000_123_456_789, pos, nrm, unc, flags)
-    assert len(buf) == msg.HEADER_SIZE + 8 + 57 * 7
+    scatter = 0.5 * unc
+    buf = msg.encode_elements(42, 123_456_789, 1_700_000_000_123_456_789, pos, nrm, unc, flags, scatter)
+    assert len(buf) == msg.HEADER_SIZE + 8 + 65 * 7
     out = msg.decode_elements(buf)
     assert (out.seq, out.device_time_us, out.host_time_ns) == (42, 123_456_789,
                                                                1_700_000_000_123_456_789)
     np.testing.assert_array_equal(out.positions, pos)
     np.testing.assert_array_equal(out.normals, nrm)
     np.testing.assert_array_equal(out.uncertainty, unc)
+    np.testing.assert_array_equal(out.scatter, scatter)
     np.testing.assert_array_equal(out.flags, flags)
     assert out.count == 7
     np.testing.assert_array_equal(out.valid, (flags & 1) != 0)
@@ -42,10 +44,39 @@ def test_elements_header_layout_is_as_documented():
     pos, nrm, unc, flags = _elements(2)
     buf = msg.encode_elements(7, 8, 9, pos, nrm, unc, flags)
     magic, ver, kind, _r, seq, length, dev, host = struct.unpack_from("<4sBBHIIQQ", buf)
-    assert (magic, ver, kind, seq, length, dev, host) == (b"SKMP", 1, 1, 7, len(buf), 8, 9)
+    assert (magic, ver, kind, seq, length, dev, host) == (b"SKMP", 2, 1, 7, len(buf), 8, 9)
     assert struct.unpack_from("<I", buf, 32)[0] == 2
     assert np.frombuffer(buf, "<f8", 3, 40).tolist() == pos[0].tolist()
+    # without a scatter given, the whole uncertainty stands for it (never less than it is)
+    assert np.frombuffer(buf, "<f8", 2, 40 + 96 + 16).tolist() == unc.tolist()
     assert buf[-2:] == flags.tobytes()
+
+
+def _layout_1(buf: bytes, cut: tuple[int, int]) -> bytes:
+    """A layout-2 message as layout 1 wrote it: the scatter block (bytes ``cut``) removed."""
+    old = bytearray(buf[:cut[0]] + buf[cut[1]:])
+    old[4] = 1
+    struct.pack_into("<I", old, 12, len(old))
+    return bytes(old)
+
+
+def test_layout_1_messages_of_earlier_logs_still_decode_without_scatter():
+    pos, nrm, unc, flags = _elements(3)
+    k = 3
+    start = msg.HEADER_SIZE + 8 + 56 * k
+    old = _layout_1(msg.encode_elements(5, 6, 7, pos, nrm, unc, flags, unc / 2), (start, start + 8 * k))
+    assert len(old) == msg.HEADER_SIZE + 8 + 57 * k
+    out = msg.decode_elements(old)
+    assert out.scatter is None
+    np.testing.assert_array_equal(out.uncertainty, unc)
+    np.testing.assert_array_equal(out.flags, flags)
+    nodes, unc_n = np.zeros((2, 3, 3)), np.full((2, 3), 1e-4)
+    buf = msg.encode_surface(1, 2, 3, nodes, nodes + [0.0, 0.0, 1.0], unc_n, np.ones((4, 3)), scatter=unc_n / 3)
+    start = msg.HEADER_SIZE + 16 + 56 * 6
+    surf = msg.decode_surface(_layout_1(buf, (start, start + 8 * 6)))
+    assert surf.scatter is None and surf.cloud.shape == (4, 3)
+    np.testing.assert_array_equal(surf.uncertainty, unc_n)
+    np.testing.assert_array_equal(msg.decode_surface(buf).scatter, unc_n / 3)
 
 
 def test_empty_element_set_round_trips():
@@ -98,7 +129,10 @@ def test_decode_rejects_bad_headers():
     with pytest.raises(msg.MessageError, match="magic"):
         msg.decode_elements(bad)
     bad = bytearray(buf); bad[4] = 99
-    with pytest.raises(msg.MessageError, match="version 99"):
+    with pytest.raises(msg.MessageError, match="version 99 .this decoder reads 1, 2"):
+        msg.decode_elements(bad)
+    bad = bytearray(buf); bad[4] = 1  # layout 1 of the same length: its counts imply fewer bytes
+    with pytest.raises(msg.MessageError, match="counts imply"):
         msg.decode_elements(bad)
     bad = bytearray(buf); bad[5] = 77
     with pytest.raises(msg.MessageError, match="kind 77"):
@@ -244,3 +278,20 @@ def test_decoders_accept_any_bytes_like_and_zenoh_payloads():
     info = msg.encode_info({"device": "d", "rows": 1, "cols": 1, "pitch_m": 0.01,
                             "elements": {"count": 0}, "calibration": {}, "versions": {}})
     assert msg.decode_info(zenoh.ZBytes(info))["device"] == "d"
+
+
+def test_replay_compares_a_layout_1_log_by_the_fields_it_has():
+    """Replaying a log written before layout 2: its elements messages lack the scatter array, and
+    are the same as the replayed ones where every field they have holds the same bytes."""
+    from skinmap.daemon.replay import _older_layout_alike
+
+    pos, nrm, unc, flags = _elements(3)
+    k, start = 3, msg.HEADER_SIZE + 8 + 56 * 3
+    new = msg.encode_elements(5, 6, 7, pos, nrm, unc, flags, unc / 2)
+    old = _layout_1(new, (start, start + 8 * k))
+    assert _older_layout_alike(old, new)
+    moved = pos.copy()
+    moved[1, 2] += 1e-9
+    assert not _older_layout_alike(_layout_1(msg.encode_elements(5, 6, 7, moved, nrm, unc, flags), (start, start + 8 * k)),
+                                   new)
+    assert not _older_layout_alike(new, new)  # a layout-2 log is compared byte for byte

@@ -155,6 +155,7 @@ def test_dead_gauge_degrades_nearby_elements_and_is_reported(emulator, tmp_path)
             if status["healthy"]:  # the first report may predate the first processed scan
                 status = client.next("status", timeout=30.0)
     assert np.isfinite(msg.positions).all() and np.isfinite(msg.uncertainty).all()
+    assert msg.scatter is not None and (msg.scatter <= msg.uncertainty).all()
     degraded = (msg.flags & 0x04) != 0
     near = np.abs(ELEMENT_UV).max(axis=1) <= 18.0  # within 1.5 pitch of the centre cell
     assert degraded[near].all() and not degraded[~near].all()

@@ -361,8 +361,8 @@ def test_client_rejects_forged_elements_and_names_why():
 
             assert wait_until(drained)  # 5 forged puts and the forged delete (an empty payload)
             reasons = client.rejections("elements")
-            assert reasons[:5] == ["elements: element 0 is flagged VALID but its position, normal or "
-                                   "uncertainty is not finite"] * 5
+            assert reasons[:5] == ["elements: element 0 is flagged VALID but its position, normal, "
+                                   "uncertainty or scatter is not finite"] * 5
             assert reasons[5] == "truncated message: 0 bytes, header needs 32"
     finally:
         run.close()
@@ -380,8 +380,8 @@ def test_check_message_applies_the_layout_rules():
     sig = np.full(k, 1e-4)
     flags = np.full(k, msg.ElementFlag.VALID, np.uint8)
 
-    def enc(p=pos, n=nrm, s=sig, f=flags):
-        return msg.encode_elements(1, 2, 3, p, n, s, f)
+    def enc(p=pos, n=nrm, s=sig, f=flags, c=None):
+        return msg.encode_elements(1, 2, 3, p, n, s, f, c)
 
     assert check_message("elements", enc()).count == k
     nan_clear = pos.copy()
@@ -392,6 +392,8 @@ def test_check_message_applies_the_layout_rules():
     cases = [(enc(p=nan_clear), "element 2 is flagged VALID but its position"),
              (enc(n=nrm * 2), "element 0 is flagged VALID but its normal is not a unit vector"),
              (enc(s=-sig), "element 0 has a negative uncertainty"),
+             (enc(c=-sig), "element 0 has a negative uncertainty or scatter"),
+             (enc(c=np.full(k, np.nan)), "element 0 is flagged VALID but its position, normal, uncertainty or scatter"),
              (enc(f=flags | 0x40), "element 0 has unknown flag bits 0x41")]
     for payload, reason in cases:
         with pytest.raises(RejectedMessage, match=reason):

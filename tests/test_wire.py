@@ -50,7 +50,7 @@ def test_logged_layouts_are_the_published_ones():
     for topic, kind in (("/strains", "strains"), ("/surface/nodes", "surface"),
                         ("/elements", "elements")):
         assert wire.layout_table(kind).encode() in TOPICS[topic].schema_data
-        assert TOPICS[topic].message_encoding == f"skinmap.{kind}/1"
+        assert TOPICS[topic].message_encoding == f"skinmap.{kind}/{wire.LAYOUT_VERSION}"
 
 
 HEAVY = ("scipy", "numba", "clarabel", "serial", "matplotlib", "mcap", "mcap_protobuf",

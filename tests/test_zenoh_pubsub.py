@@ -294,6 +294,6 @@ def test_samples_carry_the_documented_qos_and_encoding(daemon):
     elements, status = samples["elements"], samples["status"]
     assert elements.congestion_control == zenoh.CongestionControl.DROP and elements.express
     assert elements.priority == zenoh.Priority.DATA_HIGH
-    assert str(elements.encoding) == "application/octet-stream;skinmap.elements/1"
+    assert str(elements.encoding) == "application/octet-stream;skinmap.elements/2"
     assert status.congestion_control == zenoh.CongestionControl.DROP and not status.express
     assert str(status.encoding) == "application/json;skinmap.status/1"

@@ -22,9 +22,9 @@ DATA_KINDS = ("elements", "surface", "strains")
 ALL_KINDS = (*DATA_KINDS, "status", "contact", "info")
 
 ENCODINGS = {
-    "elements": "application/octet-stream;skinmap.elements/1",
-    "surface": "application/octet-stream;skinmap.surface/1",
-    "strains": "application/octet-stream;skinmap.strains/1",
+    "elements": f"application/octet-stream;skinmap.elements/{messages.LAYOUT_VERSION}",
+    "surface": f"application/octet-stream;skinmap.surface/{messages.LAYOUT_VERSION}",
+    "strains": f"application/octet-stream;skinmap.strains/{messages.LAYOUT_VERSION}",
     "status": "application/json;" + messages.STATUS_SCHEMA,
     "contact": "application/json;skinmap.contact/1",
     "info": "application/json;" + messages.INFO_SCHEMA,

@@ -39,7 +39,10 @@ from typing import Any, Callable, Mapping, TypedDict, cast, get_origin, get_type
 import numpy as np
 
 MAGIC = b"SKMP"
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2
+#: Versions the decoders read.  Layout 1 (up to skinmap 0.1's logs) had no scatter arrays: its
+#: elements and surface messages decode with ``scatter`` None.
+READABLE_VERSIONS = (1, 2)
 
 _HEADER = struct.Struct("<4sBBHIIQQ")
 HEADER_SIZE = _HEADER.size  # 32
@@ -99,6 +102,9 @@ class ElementsMessage:
     normals: np.ndarray  # (K, 3) float64, unit vectors toward the upper side
     uncertainty: np.ndarray  # (K,) float64, metres, 1 s.d.
     flags: np.ndarray  # (K,) uint8, ElementFlag bits
+    # (K,) float64, metres, 1 s.d.: the part of the uncertainty that repeated frames of a still
+    # sheet scatter by (the rest is a bound on a bias, the same every frame); None in layout 1
+    scatter: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -120,6 +126,7 @@ class SurfaceMessage:
     normals: np.ndarray  # (N, M, 3) float64, unit
     uncertainty: np.ndarray  # (N, M) float64, metres, 1 s.d.
     cloud: np.ndarray  # (P, 3) float32 or float64, metres
+    scatter: np.ndarray | None = None  # (N, M) float64, metres: as ElementsMessage.scatter
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -155,7 +162,7 @@ Size = dict[str, int]
 LAYOUT_TABLES: dict[str, list[tuple[Size, str, str]]] = {
     "header": [
         ({"": 4}, "bytes", "magic `SKMP` (`53 4B 4D 50`)"),
-        ({"": 1}, "u8", "layout version, currently 1"),
+        ({"": 1}, "u8", "layout version, currently 2 (decoders also read 1: no scatter arrays)"),
         ({"": 1}, "u8", "kind: 1 elements, 2 surface, 3 strains"),
         ({"": 2}, "u16", "reserved, 0"),
         ({"": 4}, "u32", "sequence number: the scanner's `sample_index` of the scan (below)"),
@@ -169,6 +176,8 @@ LAYOUT_TABLES: dict[str, list[tuple[Size, str, str]]] = {
         ({"K": 24}, "f64 (K, 3)", "positions x, y, z [m]"),
         ({"K": 24}, "f64 (K, 3)", "unit normals, toward the upper (+normal) side"),
         ({"K": 8}, "f64 (K)", "position uncertainty, 1 s.d. [m]"),
+        ({"K": 8}, "f64 (K)", "position scatter, 1 s.d. [m]: the part of the uncertainty that "
+                              "repeated frames of a still sheet scatter by (layout 2 on)"),
         ({"K": 1}, "u8 (K)", "flags (below)"),
     ],
     "surface": [
@@ -180,6 +189,7 @@ LAYOUT_TABLES: dict[str, list[tuple[Size, str, str]]] = {
         ({"N·M": 24}, "f64 (N, M, 3)", "cell-centre nodes x, y, z [m]"),
         ({"N·M": 24}, "f64 (N, M, 3)", "unit normals at the nodes"),
         ({"N·M": 8}, "f64 (N, M)", "node position uncertainty, 1 s.d. [m]"),
+        ({"N·M": 8}, "f64 (N, M)", "node position scatter, 1 s.d. [m] (layout 2 on)"),
         ({"P·s": 3}, "f32/f64 (P, 3)", "dense point cloud [m]"),
     ],
     "strains": [
@@ -279,9 +289,9 @@ def decode_header(buf: Any) -> Header:
     magic, version, kind, _reserved, seq, length, dev_us, host_ns = _HEADER.unpack_from(view, 0)
     if magic != MAGIC:
         raise MessageError(f"bad magic {magic!r}, expected {MAGIC!r}")
-    if version != LAYOUT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise MessageError(f"unsupported layout version {version} (this decoder reads "
-                           f"{LAYOUT_VERSION})")
+                           f"{', '.join(map(str, READABLE_VERSIONS))})")
     try:
         kind = MessageKind(kind)
     except ValueError:
@@ -319,9 +329,10 @@ def _read_arrays(view: memoryview, offset: int, specs: list[tuple[str, str, tupl
 
 
 def encode_elements(seq: int, device_time_us: int, host_time_ns: int, positions: Any,
-                    normals: Any, uncertainty: Any, flags: Any) -> bytes:
-    """Encode per-element positions (K,3) m, unit normals (K,3), 1-s.d. uncertainty (K,) m
-    and ElementFlag bits (K,) into an elements message."""
+                    normals: Any, uncertainty: Any, flags: Any, scatter: Any = None) -> bytes:
+    """Encode per-element positions (K,3) m, unit normals (K,3), 1-s.d. uncertainty (K,) m,
+    ElementFlag bits (K,) and the uncertainty's scatter part (K,) m (None: the whole
+    uncertainty, never less than the scatter) into an elements message."""
     positions = np.asarray(positions)
     if positions.ndim != 2 or positions.shape[1] != 3:
         raise ValueError(f"positions must have shape (K, 3), got {positions.shape}")
@@ -330,12 +341,13 @@ def encode_elements(seq: int, device_time_us: int, host_time_ns: int, positions:
     pos = _as_array("positions", positions, "<f8", (k, 3))
     nrm = _as_array("normals", normals, "<f8", (k, 3))
     unc = _as_array("uncertainty", uncertainty, "<f8", (k,))
+    sca = unc if scatter is None else _as_array("scatter", scatter, "<f8", (k,))
     flg = _as_array("flags", flags, "u1", (k,))
-    length = HEADER_SIZE + _ELEMENTS_COUNTS.size + 57 * k
+    length = HEADER_SIZE + _ELEMENTS_COUNTS.size + 65 * k
     return b"".join((_header_bytes(MessageKind.ELEMENTS, seq, length, device_time_us,
                                    host_time_ns),
                      _ELEMENTS_COUNTS.pack(k, 0), pos.tobytes(), nrm.tobytes(), unc.tobytes(),
-                     flg.tobytes()))
+                     sca.tobytes(), flg.tobytes()))
 
 
 def decode_elements(buf: Any) -> ElementsMessage:
@@ -346,12 +358,13 @@ def decode_elements(buf: Any) -> ElementsMessage:
     if len(view) < HEADER_SIZE + _ELEMENTS_COUNTS.size:
         raise MessageError("truncated elements message: no element count")
     (k, _reserved) = _ELEMENTS_COUNTS.unpack_from(view, HEADER_SIZE)
-    pos, nrm, unc, flg = _read_arrays(
+    scatter = [("scatter", "<f8", (k,))] if header.version >= 2 else []
+    pos, nrm, unc, *sca, flg = _read_arrays(
         view, HEADER_SIZE + _ELEMENTS_COUNTS.size,
         [("positions", "<f8", (k, 3)), ("normals", "<f8", (k, 3)),
-         ("uncertainty", "<f8", (k,)), ("flags", "u1", (k,))], header)
+         ("uncertainty", "<f8", (k,)), *scatter, ("flags", "u1", (k,))], header)
     return ElementsMessage(header.seq, header.device_time_us, header.host_time_ns,
-                           pos, nrm, unc, flg)
+                           pos, nrm, unc, flg, sca[0] if sca else None)
 
 
 # ---------------------------------------------------------------------------------------
@@ -359,9 +372,11 @@ def decode_elements(buf: Any) -> ElementsMessage:
 
 
 def encode_surface(seq: int, device_time_us: int, host_time_ns: int, nodes: Any, normals: Any,
-                   uncertainty: Any, cloud: Any = None, *, cloud_dtype: str = "float32") -> bytes:
-    """Encode the node grid (N,M,3) m, node normals (N,M,3), node uncertainty (N,M) m and a
-    dense point cloud (P,3) m stored as ``cloud_dtype`` ('float32' or 'float64')."""
+                   uncertainty: Any, cloud: Any = None, *, cloud_dtype: str = "float32",
+                   scatter: Any = None) -> bytes:
+    """Encode the node grid (N,M,3) m, node normals (N,M,3), node uncertainty (N,M) m, a dense
+    point cloud (P,3) m stored as ``cloud_dtype`` ('float32' or 'float64') and the
+    uncertainty's scatter part (N,M) m (None: the whole uncertainty)."""
     nodes = np.asarray(nodes)
     if nodes.ndim != 3 or nodes.shape[2] != 3:
         raise ValueError(f"nodes must have shape (N, M, 3), got {nodes.shape}")
@@ -369,6 +384,7 @@ def encode_surface(seq: int, device_time_us: int, host_time_ns: int, nodes: Any,
     nd = _as_array("nodes", nodes, "<f8", (n, m, 3))
     nr = _as_array("normals", normals, "<f8", (n, m, 3))
     un = _as_array("uncertainty", uncertainty, "<f8", (n, m))
+    sc = un if scatter is None else _as_array("scatter", scatter, "<f8", (n, m))
     if cloud_dtype not in ("float32", "float64"):
         raise ValueError(f"cloud_dtype must be 'float32' or 'float64', got {cloud_dtype!r}")
     cloud = np.zeros((0, 3)) if cloud is None else np.asarray(cloud)
@@ -378,11 +394,11 @@ def encode_surface(seq: int, device_time_us: int, host_time_ns: int, nodes: Any,
     itemsize = 4 if cloud_dtype == "float32" else 8
     cl = _as_array("cloud", cloud, f"<f{itemsize}", (p, 3))
     _check_uint("point count P", p, _U32_MAX)
-    length = HEADER_SIZE + _SURFACE_COUNTS.size + n * m * 56 + p * 3 * itemsize
+    length = HEADER_SIZE + _SURFACE_COUNTS.size + n * m * 64 + p * 3 * itemsize
     return b"".join((_header_bytes(MessageKind.SURFACE, seq, length, device_time_us,
                                    host_time_ns),
                      _SURFACE_COUNTS.pack(n, m, p, itemsize), nd.tobytes(), nr.tobytes(),
-                     un.tobytes(), cl.tobytes()))
+                     un.tobytes(), sc.tobytes(), cl.tobytes()))
 
 
 def decode_surface(buf: Any) -> SurfaceMessage:
@@ -395,12 +411,13 @@ def decode_surface(buf: Any) -> SurfaceMessage:
     n, m, p, itemsize = _SURFACE_COUNTS.unpack_from(view, HEADER_SIZE)
     if itemsize not in (4, 8):
         raise MessageError(f"surface cloud coordinate size must be 4 or 8 bytes, got {itemsize}")
-    nd, nr, un, cl = _read_arrays(
+    scatter = [("scatter", "<f8", (n, m))] if header.version >= 2 else []
+    nd, nr, un, *sc, cl = _read_arrays(
         view, HEADER_SIZE + _SURFACE_COUNTS.size,
         [("nodes", "<f8", (n, m, 3)), ("normals", "<f8", (n, m, 3)),
-         ("uncertainty", "<f8", (n, m)), ("cloud", f"<f{itemsize}", (p, 3))], header)
+         ("uncertainty", "<f8", (n, m)), *scatter, ("cloud", f"<f{itemsize}", (p, 3))], header)
     return SurfaceMessage(header.seq, header.device_time_us, header.host_time_ns,
-                          nd, nr, un, cl)
+                          nd, nr, un, cl, sc[0] if sc else None)
 
 
 # ---------------------------------------------------------------------------------------
