@@ -740,14 +740,16 @@ class Reconstructor:
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
                      undecided: float = 0.0, sign_open: bool = False, open_twist: float = 0.0,
-                     twist_sign: float | None = None, prior_share: float = 0.0):
+                     twist_sign: float | None = None, prior_share: float = 0.0, undecided_read: bool = False):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
         through the model's field maps (:mod:`.productnoise`); c = √(product) then has the s.d. of that over
         2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  An
         ``undecided`` shift (a less-sheared twist within the noise, which the model did not
-        take) adds half the distance to that answer: 3 s.d. then reach past it.  ``sign_open``
+        take) adds half the distance to that answer: 3 s.d. then reach past it (``undecided_read``:
+        that twist is the product's reading, which the answer did not take: past it by
+        OPEN_SIGMAS s.d. of the reading's own noise, in the square).  ``sign_open``
         (the twist's sign is within the noise and not told): half the distance to the mirror
         image (the twist −c) joins it the same way (a cylinder turned 6° from the grid lines:
         the product's noise hides the sign of its 0.0015 /mm twist, and the default sign was
@@ -761,14 +763,25 @@ class Reconstructor:
             return lambda: None
         if prior_share > 0.0:
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
-                                     open_twist, twist_sign)
+                                     open_twist, twist_sign, undecided_read=undecided_read)
             return _widened(positions_at, base_shift, [prior_share * c0, -prior_share * c0], rest)
         if open_twist > 0.0:
             targets = [s * open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
-            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open)
+            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
+                                     undecided_read=undecided_read)
             return _widened(positions_at, base_shift, targets, rest)
-        if undecided != 0.0:
+        if undecided != 0.0 and not undecided_read:
             return _memo(lambda: _half_reach(positions_at, base_shift, (undecided,)))
+        if undecided != 0.0:
+            # (past that twist by OPEN_SIGMAS s.d. of its own estimate, which the same product
+            # gives: a cylinder of R 374 mm 8° off the columns on a noisy 32×32 sheet left its
+            # 3.8·10⁻⁴ /mm twist undecided at 2.6·10⁻⁴ and was 1.14 × (3σ + 0.05) off at a corner)
+            # (in the square, which the product reads: near zero the twist's own s.d. diverges)
+            other = c0 + undecided
+            sigma_product = product_sd(strain_sigma) if strain_sigma > 0.0 else 0.0
+            beyond = math.copysign(math.sqrt(other * other + OPEN_SIGMAS * sigma_product), other) - other
+            reach = undecided + math.copysign(abs(beyond), undecided)
+            return _memo(lambda: _half_reach(positions_at, base_shift, (reach,)))
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
             return lambda: None
         sigma_product = product_sd(strain_sigma)
@@ -1190,7 +1203,8 @@ class Reconstructor:
                                   diag.extra.get("undecided_twist", 0.0), sign_open,
                                   diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
                                   None if twist_sign is None else float(twist_sign),
-                                  SHEAR_PRIOR_SHARE if prior_only else 0.0)
+                                  SHEAR_PRIOR_SHARE if prior_only else 0.0,
+                                  undecided_read="least_shear_shift" not in diag.extra)
         # the twist's own scatter: the noise through the curvature product, on the answer's own
         # family (the intervals and reaches above are the same every frame: no scatter)
         # (and the stretch reading's own noise where it holds the twist)
