@@ -481,6 +481,8 @@ class FramePipeline:
             # the cell centres' and the elements' σ in one reading (a surface whose σ is read
             # node by node then answers node_sigma and the elements from it)
             locate_sigma(self._sigma_uv)
+            if hasattr(surf, "node_scatter_sigma"):
+                locate_sigma(self._sigma_uv, scatter=True)  # and the scatter's part, the same way
         node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
         # (a part of σ: never above it)
         node_scatter = np.fmin(np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64), node_sigma)
