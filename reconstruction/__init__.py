@@ -11,6 +11,7 @@ Per-geometry precomputation (operators and their factorisations) lives in a
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import threading
@@ -330,6 +331,7 @@ class Reconstructor:
         self._scaled_maps: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
         # BLAS thread limits for each call (the libraries' list is read once, here)
         self._blas = ThreadpoolController()
+        self._blas_libraries = self._blas.select(user_api="blas").lib_controllers
 
     def _check_strains(self, name: str, eps) -> np.ndarray:
         eps = np.asarray(eps, dtype=float)
@@ -374,7 +376,7 @@ class Reconstructor:
         BLAS runs on one thread during the call and when the surface's uncertainty is first
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
         made a 5×5 frame 5 times slower)."""
-        with self._blas.limit(limits=1, user_api="blas"):
+        with self._one_blas_thread_context():
             t0 = time.perf_counter()
             screened = self._screen_gauges(eps_upper, eps_lower, strain_sigma)
             if screened is not None and screened[0]:
@@ -438,10 +440,18 @@ class Reconstructor:
         assert self._graph is not None
         return self._graph
 
+    def _one_blas_thread_context(self) -> contextlib.AbstractContextManager:
+        """BLAS on one thread within the block; nothing to do where it runs on one already
+        (skinmapd limits the process: a limit entered and left costs about 20 µs, a frame
+        enters it several times)."""
+        if all(lib.num_threads == 1 for lib in self._blas_libraries):
+            return contextlib.nullcontext()
+        return self._blas.limit(limits=1, user_api="blas")
+
     def _one_blas_thread(self, fn):
         """``fn`` run with BLAS on one thread."""
         def run(*args):
-            with self._blas.limit(limits=1, user_api="blas"):
+            with self._one_blas_thread_context():
                 return fn(*args)
 
         return run

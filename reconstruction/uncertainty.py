@@ -53,7 +53,11 @@ class SigmaField:
         self._field = field
         self._at_nodes = at_nodes
         self._whole: np.ndarray | None = None
-        self._known: dict[int, float] = {}  # nodes read so far, each computed once
+        # nodes read so far, each computed once: their values and which are known, by flat
+        # index (grown to the largest index asked for; arrays, so a frame's few reads cost
+        # microseconds, not a Python loop over nodes)
+        self._values = np.empty(0)
+        self._known = np.zeros(0, dtype=bool)
 
     def __call__(self) -> np.ndarray:
         if self._whole is None:
@@ -66,12 +70,16 @@ class SigmaField:
         flat = np.asarray(flat, dtype=np.intp)
         if self._whole is not None or self._at_nodes is None:
             return self().reshape(-1)[flat]
-        nodes, back = np.unique(flat.reshape(-1), return_inverse=True)
-        known = self._known
-        new = np.array([k for k in nodes.tolist() if k not in known], dtype=np.intp)
-        if new.size:
-            known.update(zip(new.tolist(), np.asarray(self._at_nodes(new), dtype=float).tolist()))
-        return np.array([known[k] for k in nodes.tolist()])[back].reshape(flat.shape)
+        if flat.size and int(flat.max()) >= self._known.size:
+            size = int(flat.max()) + 1
+            self._values = np.concatenate([self._values, np.empty(size - self._values.size)])
+            self._known = np.concatenate([self._known, np.zeros(size - self._known.size, dtype=bool)])
+        need = ~self._known[flat]
+        if need.any():
+            new = np.unique(flat[need])
+            self._values[new] = np.asarray(self._at_nodes(new), dtype=float).reshape(-1)
+            self._known[new] = True
+        return self._values[flat]
 
     def wrapped(self, around: Callable[[Callable], Callable]) -> "SigmaField":
         """The same map with both ways of reading it run inside ``around`` (e.g. a thread limit)."""
@@ -203,6 +211,25 @@ def _probe_sums(grid: FineGrid, valid: np.ndarray, probes: int = 32) -> tuple[np
     return (measured * measured).mean(axis=1), (missing * missing).mean(axis=1)
 
 
+def _affine_fit(grid: FineGrid, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The least-squares affine fit over the ``valid`` unit centres (one direction, flat): its
+    design D (k, 3) and pseudo-inverse D⁺ (3, k), kept per mask (a frame fits two directions);
+    None for too few units to fit one."""
+    cache = grid.__dict__.setdefault("_affine_fit", {})
+    key = valid.tobytes()
+    if key not in cache:
+        uc = (np.arange(grid.m) - 0.5 * (grid.m - 1)) * grid.pitch
+        vc = (np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
+        design = np.stack(np.broadcast_arrays(1.0, uc[None, :], vc[:, None]), axis=-1).reshape(-1, 3)[valid]
+        if len(design) <= design.shape[1]:
+            cache[key] = None
+        else:
+            cache[key] = (design, np.linalg.pinv(design))
+        if len(cache) > 16:
+            cache.pop(next(iter(cache)))
+    return cache[key]
+
+
 def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, turning_sigma: float) -> np.ndarray:
     """How far (one s.d., (nf, mf) mm) the general model's heights may be off because the sheet
     has structure at the gauge scale, which its fields cannot resolve.
@@ -225,18 +252,15 @@ def resolution_sigma(grid: FineGrid, valid: np.ndarray, turning: np.ndarray, tur
         rsq = base["r_sq"] = r * r
     valid = np.asarray(valid, dtype=bool).reshape(2, grid.n, grid.m)
     turning = np.asarray(turning, dtype=float).reshape(2, grid.n, grid.m)
-    uc = (np.arange(grid.m) - 0.5 * (grid.m - 1)) * grid.pitch
-    vc = (np.arange(grid.n) - 0.5 * (grid.n - 1)) * grid.pitch
-    design = np.stack(np.broadcast_arrays(1.0, uc[None, :], vc[:, None]), axis=-1).reshape(-1, 3)
     excess = np.zeros((2, grid.n * grid.m))
     fitted = np.zeros((2, grid.n * grid.m), dtype=bool)
     for k in range(2):
         v = valid[k].ravel()
-        if v.sum() <= design.shape[1]:
+        fit = _affine_fit(grid, v)
+        if fit is None:
             continue  # too few units for a pattern: their departures stay unknown (below)
         t = turning[k].ravel()[v]
-        coef = np.linalg.lstsq(design[v], t, rcond=None)[0]
-        dev = t - design[v] @ coef
+        dev = t - fit[0] @ (fit[1] @ t)
         excess[k, v] = np.maximum(dev * dev - turning_sigma**2, 0.0)
         fitted[k] = v
     if not fitted.all():

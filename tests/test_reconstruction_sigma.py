@@ -423,3 +423,25 @@ def test_locate_sigma_of_the_scatter_is_bilinear_in_its_fine_map_read_node_by_no
     whole = rec5(eu, el)
     assert np.allclose(by_node, bilinear(whole, whole.scatter_sigma, SCATTERED_UV), rtol=1e-9, atol=1e-12)
     assert np.all(by_node < whole.locate_sigma(SCATTERED_UV))  # the resolution term is left out
+
+
+def test_frames_limit_blas_to_one_thread_and_skip_the_limit_where_it_already_holds():
+    """A frame's BLAS work runs on one thread (small problems; several threads made a busy
+    machine's frames 5× slower).  skinmapd limits the whole process, and there entering and
+    leaving the limit on every σ read (about 20 µs each) is skipped."""
+    import contextlib
+
+    from threadpoolctl import threadpool_limits
+
+    rec = Reconstructor(3, 3)
+    libraries = rec._blas_libraries
+    if not libraries:
+        pytest.skip("no BLAS library that threadpoolctl can see")
+    with threadpool_limits(limits=1):
+        assert isinstance(rec._one_blas_thread_context(), contextlib.nullcontext)
+    with threadpool_limits(limits=2):
+        if all(lib.num_threads == 1 for lib in libraries):
+            pytest.skip("this BLAS runs on one thread only")
+        with rec._one_blas_thread_context():
+            assert all(lib.num_threads == 1 for lib in libraries)
+        assert any(lib.num_threads == 2 for lib in libraries)
