@@ -477,18 +477,24 @@ class FramePipeline:
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
         locate_sigma = getattr(surf, "locate_sigma", None)
+        read: tuple[np.ndarray, np.ndarray] | None = None
         if locate_sigma is not None and self.elements.count:
-            # the cell centres' and the elements' σ in one reading (a surface whose σ is read
-            # node by node then answers node_sigma and the elements from it)
-            locate_sigma(self._sigma_uv)
-            if hasattr(surf, "node_scatter_sigma"):
-                locate_sigma(self._sigma_uv, scatter=True)  # and the scatter's part, the same way
-        node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
-        # (a part of σ: never above it)
-        node_scatter = np.fmin(np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64), node_sigma)
+            # the cell centres' and the elements' σ in one reading each (the cell centres are
+            # fine-grid nodes, read there exactly), and the scatter's part the same way
+            cells = nodes.shape[0] * nodes.shape[1]
+            sigma_all = np.asarray(locate_sigma(self._sigma_uv), dtype=np.float64)
+            scatter_all = (np.asarray(locate_sigma(self._sigma_uv, scatter=True), dtype=np.float64)
+                           if hasattr(surf, "node_scatter_sigma") else sigma_all)
+            node_sigma = sigma_all[:cells].reshape(nodes.shape[:2])
+            node_scatter = scatter_all[:cells].reshape(nodes.shape[:2])
+            read = sigma_all[cells:], scatter_all[cells:]
+        else:
+            node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
+            node_scatter = np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64)
+        node_scatter = np.fmin(node_scatter, node_sigma)  # (a part of σ: never above it)
         t_sigma = time.perf_counter()
-        pos, nrm, sig = locate_elements(surf, self.elements)
-        scatter = np.fmin(locate_scatter(surf, self.elements, sig), sig)
+        pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0])
+        scatter = np.fmin(read[1] if read is not None else locate_scatter(surf, self.elements, sig), sig)
         t_end = time.perf_counter()
         solve_s = t_end - t0
         stages = {"strains": t0 - t_start, "restart": (t_chain - t0) + (t_caught - t_rec), "reconstruct": t_rec - t_chain,

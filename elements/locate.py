@@ -64,15 +64,20 @@ def element_layout(uv_mm: np.ndarray, offset_mm: np.ndarray, cell_uv_mm: np.ndar
     return ElementLayout(uv, offset, dist <= 1.5 * pitch_mm, extrapolated)
 
 
-def locate_elements(surface: LocatableSurface, layout: ElementLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(positions (K, 3) mm, unit normals (K, 3), σ (K,) mm, NaN where the surface gives none)."""
+def locate_elements(surface: LocatableSurface, layout: ElementLayout,
+                    sigma_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions (K, 3) mm, unit normals (K, 3), σ (K,) mm, NaN where the surface gives none).
+    ``sigma_mm``: the elements' σ where the caller read it already (skinmapd reads it with the
+    cell centres')."""
     uv = layout.uv_mm
     if uv.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
     out = surface.locate(uv)
     pos, nrm = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.float64)
     locate_sigma: Any = getattr(surface, "locate_sigma", None)
-    if len(out) > 2:
+    if sigma_mm is not None:
+        sig = np.asarray(sigma_mm, dtype=np.float64)
+    elif len(out) > 2:
         sig = np.asarray(out[2], dtype=np.float64)
     elif locate_sigma is not None:
         sig = np.asarray(locate_sigma(uv), dtype=np.float64)

@@ -131,6 +131,9 @@ def test_published_scatter_is_the_surfaces_frame_to_frame_part_of_sigma_and_neve
     noise = np.random.default_rng(3).normal(0.0, 5.7e-5, (2,) + eu.shape)
     r = pipeline.process(r0 * (1.0 + gf * np.stack([eu + noise[0], el + noise[1]])), 7, 0, 0)
     surf = r.surface
+    # (skinmapd reads the cell centres' and the elements' σ in one reading: the same values)
+    np.testing.assert_array_equal(r.node_sigma_mm, surf.node_sigma)
+    np.testing.assert_array_equal(r.element_sigma_mm, surf.locate_sigma(uv))
     np.testing.assert_allclose(r.element_scatter_mm, surf.locate_sigma(uv, scatter=True), rtol=1e-12)
     np.testing.assert_allclose(r.node_scatter_mm, surf.node_scatter_sigma, rtol=1e-12)
     assert (r.element_scatter_mm <= r.element_sigma_mm).all() and (r.node_scatter_mm <= r.node_sigma_mm).all()
