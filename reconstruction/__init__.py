@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import math
 import threading
 import time
@@ -1515,7 +1516,8 @@ class Reconstructor:
                 magnitude = own
                 m_lo, m_hi = about(magnitude)
                 info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
-            if chi_t > chi0 + max(tell, 0.5 * chi0):
+            if chi_t > chi0 + max(tell, 0.5 * chi0) and not (
+                    chi2_noise > 1.0 and chi_t <= self._noise_reach(cands[0], eu, el, valid, sigma_f, info)):
                 # the gauges reject the pattern's twist (the film is not what the model of the
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
@@ -1639,6 +1641,30 @@ class Reconstructor:
             chi_c, dof = misfit(cand, self._layout, eu, el, sigma_f)[:2]
             cands.append(_SignCandidate(chi_c, sg, cand, fresh[5], residual, own))
         return cands, dof
+
+    def _noise_reach(self, cand: "_SignCandidate", eu, el, valid, sigma_f: float, info: dict) -> float:
+        """The χ² (over the gauges counted) up to which strain noise alone reaches in an answer
+        modelled afresh at ``cand``'s sign and twist, measured on the candidate's own forward
+        strains plus one noise draw (seeded by the frame's strains: replay gives the same bytes),
+        plus two of the χ² distribution's s.d.  Where the general model's answers leave the noise
+        a χ² above one per gauge (large sheets), the noise's misfit grows with how far the
+        held twist lies from what the noisy fields' own least-shear twist would be, so a χ²
+        difference of a few per gauge between two twists proves nothing: a 32×32 saddle of
+        R 431 mm at 150° read 2.1 per gauge at the wrong sign's least-shear twist and 5.5 at
+        the right sign's (0.24 mm off), while the right one's own strains with another noise draw
+        read 8.5-12.8 at its twist, and 0.33 without noise."""
+        _, dof, fu, fl = misfit_and_strains(cand.surface, self._layout, eu, el, sigma_f)
+        seed = int.from_bytes(hashlib.blake2b(np.ascontiguousarray(eu).tobytes(), digest_size=8).digest(), "little")
+        rng = np.random.default_rng(seed)
+        nu = np.where(np.isnan(eu), np.nan, fu + rng.normal(0.0, sigma_f, fu.shape))
+        nl = np.where(np.isnan(el), np.nan, fl + rng.normal(0.0, sigma_f, fl.shape))
+        turning, stretch, sim_valid = unit_data(nu, nl, self.h_upper, self.h_lower, self.gauge_length)
+        twist = float(cand.sign) * float(cand.magnitude)
+        sim = self._fresh(turning, stretch, sim_valid & valid, sigma_f, cand.sign, (nu, nl), twist)
+        chi_s, dof_s, _ = misfit(self._candidate(sim[0]), self._layout, nu, nl, sigma_f)
+        per_gauge = chi_s / max(dof_s, 1)
+        info["noise_reach_chi2_per_gauge"] = round(per_gauge, 3)
+        return dof * per_gauge * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
 
     def _pattern_mirror(self, surf: Surface, other, positions_at, shift: float, sign: float, m0: float, eu, el,
                         sigma_f: float, chi: float, tell: float, chi2_noise: float, info: dict) -> Surface | None:
