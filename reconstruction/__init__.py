@@ -113,6 +113,10 @@ SHEAR_PRIOR_SHARE = 0.25
 # explain neither, so the prior has no answers it could choose among and the model's own stands
 # (a sharp 5 mm bump on a noisy 16×16 sheet: 2400 and 4800 per gauge, the prior's twist 7.9 mm off).
 GROSS_MISFIT = 100.0
+#: The share of the stated noise that a frame's own turning noise (productnoise.
+#: turning_noise_estimate) must reach before the gauges' veto of a twist the stretch pattern
+#: moves to is weighed against the noise's reach (Reconstructor._noise_reach, large sheets).
+NOISE_REACH_LEVEL = 0.5
 # Data whose own turning noise (productnoise.turning_noise_estimate) is below this share of the
 # stated read the constant twist against their own noise: a noise-free 16×16 cylinder 6.6° off
 # the rows had its twist shrunk to a third by the stated noise's test, 0.75 mm off.  (The MAD
@@ -1652,18 +1656,30 @@ class Reconstructor:
         difference of a few per gauge between two twists proves nothing: a 32×32 saddle of
         R 431 mm at 150° read 2.1 per gauge at the wrong sign's least-shear twist and 5.5 at
         the right sign's (0.24 mm off), while the right one's own strains with another noise draw
-        read 8.5-12.8 at its twist, and 0.33 without noise."""
+        read 8.5-12.8 at its twist, and 0.33 without noise.  0 (the veto stands) where the
+        frame's own turning noise is below NOISE_REACH_LEVEL of the stated."""
+        # Only where the data carry the noise they are told of (its estimate from the data at
+        # least NOISE_REACH_LEVEL of the stated): quieter data keep the gauges' veto, whose χ²
+        # differences then mean what they say (a clean 32×32 sphere cap told the sensor's noise
+        # was moved to a trace's twist, 7 mm off, with the veto lifted)
+        measured, _, measured_valid = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
+        present = turning_noise_estimate(measured, measured_valid)
+        level = min(present / self._turning_sd(sigma_f), 1.0) if math.isfinite(present) else 1.0
+        if level < NOISE_REACH_LEVEL:
+            info["noise_reach_chi2_per_gauge"] = (None, round(level, 3))
+            return 0.0
         _, dof, fu, fl = misfit_and_strains(cand.surface, self._layout, eu, el, sigma_f)
         seed = int.from_bytes(hashlib.blake2b(np.ascontiguousarray(eu).tobytes(), digest_size=8).digest(), "little")
         rng = np.random.default_rng(seed)
-        nu = np.where(np.isnan(eu), np.nan, fu + rng.normal(0.0, sigma_f, fu.shape))
-        nl = np.where(np.isnan(el), np.nan, fl + rng.normal(0.0, sigma_f, fl.shape))
+        sd = level * sigma_f
+        nu = np.where(np.isnan(eu), np.nan, fu + rng.normal(0.0, sd, fu.shape))
+        nl = np.where(np.isnan(el), np.nan, fl + rng.normal(0.0, sd, fl.shape))
         turning, stretch, sim_valid = unit_data(nu, nl, self.h_upper, self.h_lower, self.gauge_length)
         twist = float(cand.sign) * float(cand.magnitude)
         sim = self._fresh(turning, stretch, sim_valid & valid, sigma_f, cand.sign, (nu, nl), twist)
         chi_s, dof_s, _ = misfit(self._candidate(sim[0]), self._layout, nu, nl, sigma_f)
         per_gauge = chi_s / max(dof_s, 1)
-        info["noise_reach_chi2_per_gauge"] = round(per_gauge, 3)
+        info["noise_reach_chi2_per_gauge"] = (round(per_gauge, 3), round(level, 3))
         return dof * per_gauge * (1.0 + 2.0 * math.sqrt(2.0 / max(dof, 1)))
 
     def _pattern_mirror(self, surf: Surface, other, positions_at, shift: float, sign: float, m0: float, eu, el,
