@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterator, Protocol
 import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
-                              locate_elements, locate_scatter, prior_elements)
+                              locate_elements, prior_elements)
 from skinmap.strains import (Calibration, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
                              turning_noise_rad)
 
@@ -494,7 +494,8 @@ class FramePipeline:
         node_scatter = np.fmin(node_scatter, node_sigma)  # (a part of σ: never above it)
         t_sigma = time.perf_counter()
         pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0])
-        scatter = np.fmin(read[1] if read is not None else locate_scatter(surf, self.elements, sig), sig)
+        # (a surface that tells no σ by position, or no elements: the scatter is σ itself, never less)
+        scatter = np.fmin(read[1], sig) if read is not None else sig
         t_end = time.perf_counter()
         solve_s = t_end - t0
         stages = {"strains": t0 - t_start, "restart": (t_chain - t0) + (t_caught - t_rec), "reconstruct": t_rec - t_chain,

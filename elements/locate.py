@@ -13,7 +13,7 @@ import numpy as np
 
 from skinmap.wire.messages import ElementFlag
 
-__all__ = ["ElementLayout", "LocatableSurface", "element_layout", "locate_elements", "locate_scatter", "element_flags",
+__all__ = ["ElementLayout", "LocatableSurface", "element_layout", "locate_elements", "element_flags",
            "fit_inconsistent", "prior_elements", "held_flags", "DEGRADED_SIGMA_MM", "INCONSISTENT_RESIDUAL_RAD",
            "INCONSISTENT_RESIDUAL_SIGMAS", "UNKNOWN_SIGMA_MM"]
 
@@ -84,16 +84,6 @@ def locate_elements(surface: LocatableSurface, layout: ElementLayout,
     else:
         sig = np.full(uv.shape[0], np.nan)
     return pos + layout.offset_mm[:, None] * nrm, nrm, sig
-
-
-def locate_scatter(surface: LocatableSurface, layout: ElementLayout, sigma_mm: np.ndarray) -> np.ndarray:
-    """(K,) mm: the part of the elements' σ ``sigma_mm`` that repeated frames of a still sheet
-    scatter by, where the surface tells it (``node_scatter_sigma``, ``locate_sigma(uv,
-    scatter=True)``); else ``sigma_mm`` itself, which is never less."""
-    locate_sigma: Any = getattr(surface, "locate_sigma", None)
-    if layout.count == 0 or locate_sigma is None or not hasattr(surface, "node_scatter_sigma"):
-        return np.asarray(sigma_mm, dtype=np.float64)
-    return np.asarray(locate_sigma(layout.uv_mm, scatter=True), dtype=np.float64)
 
 
 def fit_inconsistent(residual_rad: float, turning_noise_rad: float) -> bool:

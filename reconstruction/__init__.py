@@ -1521,7 +1521,7 @@ class Reconstructor:
                 m_lo, m_hi = about(magnitude)
                 info["stretch_twist_refined"] = (round(magnitude, 7), round(m_lo, 7), round(m_hi, 7))
             if chi_t > chi0 + max(tell, 0.5 * chi0) and not (
-                    chi2_noise > 1.0 and chi_t <= self._noise_reach(cands[0], eu, el, valid, sigma_f, info)):
+                    chi2_noise > 1.0 and chi_t <= self._noise_reach(cands[0], eu, el, turning, valid, sigma_f, info)):
                 # the gauges reject the pattern's twist (the film is not what the model of the
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
@@ -1646,10 +1646,11 @@ class Reconstructor:
             cands.append(_SignCandidate(chi_c, sg, cand, fresh[5], residual, own))
         return cands, dof
 
-    def _noise_reach(self, cand: "_SignCandidate", eu, el, valid, sigma_f: float, info: dict) -> float:
+    def _noise_reach(self, cand: "_SignCandidate", eu, el, turning, valid, sigma_f: float, info: dict) -> float:
         """The χ² (over the gauges counted) up to which strain noise alone reaches in an answer
         modelled afresh at ``cand``'s sign and twist, measured on the candidate's own forward
-        strains plus one noise draw (seeded by the frame's strains: replay gives the same bytes),
+        strains plus one noise draw (seeded by the frame's strains: replay gives the same bytes;
+        ``turning``, ``valid``: the frame's own units, whose noise sets the draw's),
         plus two of the χ² distribution's s.d.  Where the general model's answers leave the noise
         a χ² above one per gauge (large sheets), the noise's misfit grows with how far the
         held twist lies from what the noisy fields' own least-shear twist would be, so a χ²
@@ -1662,8 +1663,7 @@ class Reconstructor:
         # least NOISE_REACH_LEVEL of the stated): quieter data keep the gauges' veto, whose χ²
         # differences then mean what they say (a clean 32×32 sphere cap told the sensor's noise
         # was moved to a trace's twist, 7 mm off, with the veto lifted)
-        measured, _, measured_valid = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
-        present = turning_noise_estimate(measured, measured_valid)
+        present = turning_noise_estimate(turning, valid)
         level = min(present / self._turning_sd(sigma_f), 1.0) if math.isfinite(present) else 1.0
         if level < NOISE_REACH_LEVEL:
             info["noise_reach_chi2_per_gauge"] = (None, round(level, 3))
@@ -1674,9 +1674,9 @@ class Reconstructor:
         sd = level * sigma_f
         nu = np.where(np.isnan(eu), np.nan, fu + rng.normal(0.0, sd, fu.shape))
         nl = np.where(np.isnan(el), np.nan, fl + rng.normal(0.0, sd, fl.shape))
-        turning, stretch, sim_valid = unit_data(nu, nl, self.h_upper, self.h_lower, self.gauge_length)
+        sim_turning, sim_stretch, sim_valid = unit_data(nu, nl, self.h_upper, self.h_lower, self.gauge_length)
         twist = float(cand.sign) * float(cand.magnitude)
-        sim = self._fresh(turning, stretch, sim_valid & valid, sigma_f, cand.sign, (nu, nl), twist)
+        sim = self._fresh(sim_turning, sim_stretch, sim_valid & valid, sigma_f, cand.sign, (nu, nl), twist)
         chi_s, dof_s, _ = misfit(self._candidate(sim[0]), self._layout, nu, nl, sigma_f)
         per_gauge = chi_s / max(dof_s, 1)
         info["noise_reach_chi2_per_gauge"] = (round(per_gauge, 3), round(level, 3))
