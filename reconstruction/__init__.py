@@ -107,8 +107,10 @@ MEMBRANE_SIGN_RATIO = 0.5
 # (see _sign_beyond_noise).
 SIGN_SIGMAS = 2.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
-# confirms it) is uncertain by this share of itself (elastic films on molds: 12-20 % off).
-SHEAR_PRIOR_SHARE = 0.25
+# confirms it; none included) has its square uncertain by this share of the answer's mean
+# Gaussian curvature (films with friction on 12×12 saddle molds: off by up to 0.42 of it, 15
+# scenes; the prior was as far off in the square on large and small twists alike).
+SHEAR_PRIOR_SHARE = 0.5
 # A χ² per gauge above this for both the model's own twist and the least-shear prior's: the data
 # explain neither, so the prior has no answers it could choose among and the model's own stands
 # (a sharp 5 mm bump on a noisy 16×16 sheet: 2400 and 4800 per gauge, the prior's twist 7.9 mm off).
@@ -582,7 +584,7 @@ class Reconstructor:
                    "model": "graph" if fit is None else "general"},
         )
         for key in ("least_shear_shift", "least_shear_stretch_rss", "undecided_twist", "open_twist", "shear_prior_twist",
-                    "defect_steps", "defect_warm"):
+                    "shear_prior_curvature", "defect_steps", "defect_warm"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -755,7 +757,8 @@ class Reconstructor:
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
                      undecided: float = 0.0, sign_open: bool = False, open_twist: float = 0.0,
-                     twist_sign: float | None = None, prior_share: float = 0.0, undecided_read: bool = False):
+                     twist_sign: float | None = None, prior_span: float = 0.0, undecided_read: bool = False,
+                     prior_sign_told: bool = False):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
@@ -772,14 +775,26 @@ class Reconstructor:
         allows where its noise shrank the twist taken, engine.solve_twist): half the distance
         to the twist of that magnitude, of either sign unless ``twist_sign`` tells it, joins
         the rest (the same cylinder where the shrunk twist was none: 0.87 mm off, σ 0.058).
-        ``prior_share`` (a twist only a prior gave, nothing confirming it): half the distance
-        to the twists that share of it either side joins all of the above."""
+        ``prior_span`` (a twist only a prior gave, nothing confirming it; 1/mm²): half the
+        distance to the twists whose squares lie that far either side of the answer's joins all
+        of the above, of both signs unless ``twist_sign`` or ``prior_sign_told`` (a mirror
+        answer stands for the other) keeps the answer's."""
         if positions_at is None:
             return lambda: None
-        if prior_share > 0.0:
+        if prior_span > 0.0:
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
                                      open_twist, twist_sign, undecided_read=undecided_read)
-            return _widened(positions_at, base_shift, [prior_share * c0, -prior_share * c0], rest)
+            # the squares c0² ± span, of the answer's sign where it is told or its mirror stands
+            # beside it, else of either (the prior reads a square, not a sign: a saddle 18° off
+            # the columns took 5.9·10⁻⁴ /mm of the default sign, unflagged, for −2.5·10⁻³)
+            if twist_sign is not None:
+                signs: tuple[float, ...] = (float(twist_sign),)
+            elif prior_sign_told and c0 != 0.0:
+                signs = (math.copysign(1.0, c0),)
+            else:
+                signs = (1.0, -1.0)
+            ends = [s * math.sqrt(max(c0 * c0 + d, 0.0)) - c0 for s in signs for d in (prior_span, -prior_span)]
+            return _widened(positions_at, base_shift, ends, rest)
         if open_twist > 0.0:
             targets = [s * open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
@@ -1211,15 +1226,18 @@ class Reconstructor:
         # The twist is the least-shear prior's of a turned saddle, and the stretch pattern
         # confirms nothing (neither reading explains it): a film on a mold shears otherwise, and
         # the prior's twist was 12-20 % off (a saddle of R 286 mm at 49° on 12×12 with friction
-        # on its mold: 0.73 mm off with σ 0.048); the twists within SHEAR_PRIOR_SHARE of it join
-        # the spread
+        # on its mold: 0.73 mm off with σ 0.048), or none for 1.3·10⁻³ /mm (R 284 mm at 169°:
+        # 1.7 mm off with σ 0.05); the twists whose squares lie within SHEAR_PRIOR_SHARE of the
+        # answer's mean Gaussian curvature join the spread
         prior_only = "shear_prior_twist" in diag.extra and "stretch_reading" not in info
+        prior_span = SHEAR_PRIOR_SHARE * abs(float(diag.extra.get("shear_prior_curvature", 0.0))) if prior_only else 0.0
         twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
                                   diag.extra.get("undecided_twist", 0.0), sign_open,
                                   diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
                                   None if twist_sign is None else float(twist_sign),
-                                  SHEAR_PRIOR_SHARE if prior_only else 0.0,
-                                  undecided_read="least_shear_shift" not in diag.extra)
+                                  prior_span,
+                                  undecided_read="least_shear_shift" not in diag.extra,
+                                  prior_sign_told=mirror is not None)
         # the twist's own scatter: the noise through the curvature product, on the answer's own
         # family (the intervals and reaches above are the same every frame: no scatter)
         # (and the stretch reading's own noise where it holds the twist)
@@ -1792,7 +1810,7 @@ class Reconstructor:
             metric_stack[6] -= debias
             metric_stack[8] -= debias
             metric = Metric(*metric_stack)
-        tau, twist_c, graph, open_twist, from_shear = solve_twist(
+        tau, twist_c, graph, open_twist, from_shear, prior_curvature = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=product_noise, quiet=quiet if quiet < QUIET_SHARE else 1.0,
         )
@@ -1912,6 +1930,7 @@ class Reconstructor:
             convex_info["open_twist"] = open_twist
         if from_shear and shift0 == 0.0 and twist_mean is None and shear_graph is None:
             convex_info["shear_prior_twist"] = twist_c
+            convex_info["shear_prior_curvature"] = prior_curvature
         return pos, twist_c, fit, convex_info, left_out, positions_at
 
     def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:

@@ -142,8 +142,11 @@ def solve_twist(
         if prod <= read:  # no positive curvature product to explain: look for a turned saddle
             if graph is not None and graph.significant:
                 return TwistResult(tau0 + graph.constant, graph.constant, graph)
-            c2 = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
-            from_shear = c2 > 0.0
+            c2, clipped = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
+            # the search's answer is the least-shear prior's alone; so is none where the prior
+            # asked for a negative square beyond the noise (a film with friction on a saddle 11°
+            # off the rows: -4·10⁻⁶ /mm², the twist taken none for 1.3·10⁻³ /mm)
+            from_shear = c2 > 0.0 or clipped
     c = math.copysign(math.sqrt(c2), twist_sign)
     # a product the data show (beyond 1 s.d. of its noise) but the significance test shrank:
     # the twist it would be, and one s.d. of the product beyond, is not ruled out (a cylinder 6°
@@ -158,7 +161,7 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
-    return TwistResult(tau0 + c, c, graph, opened, from_shear)
+    return TwistResult(tau0 + c, c, graph, opened, from_shear, prod - c2 if from_shear else 0.0)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -194,9 +197,12 @@ class TwistResult(NamedTuple):
     # hides where no twist was taken and the stretch cannot call the sheet doubly curved; 0
     # otherwise
     open: float = 0.0
-    # the constant came from the least-shear prior of a turned saddle (_saddle_twist), which no
-    # datum confirms: a film on a mold shears otherwise (measured up to 20 % off its twist)
+    # the constant (none included) came from the least-shear prior of a turned saddle
+    # (_saddle_twist), which no datum confirms: a film on a mold shears otherwise
     from_shear: bool = False
+    # with it, the mean Gaussian curvature k_u k_v − c² of that answer over the cells' region
+    # (the noise's own product removed), which scales how far the prior may be off
+    shear_prior_curvature: float = 0.0
 
 
 def graph_slopes(grid: FineGrid, k_u, k_v, tau0) -> tuple[np.ndarray, np.ndarray]:
@@ -320,7 +326,7 @@ def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_
     return GraphTwist(c_eff, decisive, best < 0.5 * zero, c, p_full, q_full)
 
 
-def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> float:
+def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> tuple[float, bool]:
     """Squared constant twist of a sheet whose stretch pattern needs negative Gaussian curvature
     (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
 
@@ -332,6 +338,9 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     F(c²)² = (E − 1)(G − 1) covers both: with no stretch (E = G = 1) it is the least-shear
     value.  A twist is used only when the least-shear fit removes most of the shear (a uniform
     twist, as on a saddle, not the local shear around a bump) and stands above the noise.
+    Also returns whether the least-shear square is negative beyond the noise while explaining
+    most of the shear as well: no twist can give it, the shear is not the prior's (in-plane
+    loads), and the none returned is the prior's boundary, not a reading.
     """
     h = grid.spacing
     eg = metric.eg
@@ -340,15 +349,15 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     f0, f1 = f0[inner], f1[inner]
     den = float((f1 * f1).sum())
     if den <= 0.0:
-        return 0.0
+        return 0.0, False
     x = float((f0 * f1).sum()) / den
-    if x <= 0.0:
-        return 0.0
     explained = x * x * den / max(float((f0 * f0).sum()), 1e-300)
     weight = min(max((explained - 0.5) / 0.3, 0.0), 1.0)
-    significance = min(max(x / noise - 1.0, 0.0), 1.0) if noise > 0 else 1.0
+    significance = min(max(abs(x) / noise - 1.0, 0.0), 1.0) if noise > 0 else 1.0
+    if x <= 0.0:
+        return 0.0, weight * significance > 0.0
     if weight * significance == 0.0:
-        return 0.0
+        return 0.0, False
     # Σ ((f₀ − x f₁)² − P)² over x ∈ [0, x_ls]: a quartic; its stationary points are the roots
     # of the cubic below (g = a x² + b x + c, cost' = 2 Σ g g')
     a, b = f1 * f1, -2.0 * f0 * f1
@@ -358,7 +367,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     cands = np.array([0.0, x, *(r.real for r in roots if abs(r.imag) <= 1e-12 * abs(r) and 0.0 < r.real < x)])
     g = a[None] * cands[:, None, None] ** 2 + b[None] * cands[:, None, None] + c[None]
     best = float(cands[np.argmin((g * g).sum(axis=(1, 2)))])
-    return best * weight * significance
+    return best * weight * significance, False
 
 
 def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:
