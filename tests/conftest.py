@@ -161,6 +161,16 @@ def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
     return np.linalg.norm(surf.nodes - nodes_in_sensor_frame(grid, shape.position), axis=-1)
 
 
+def within_3_sigma_in_frame(shape: Any, surf: Any, grid: Any) -> bool:
+    """Every sensor-frame node error of the answer, or of its mirror where it is flagged
+    ambiguous, within 3 node_sigma + 0.05 mm."""
+    import numpy as np
+
+    bound = 3.0 * surf.node_sigma + 0.05
+    answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
+    return any(bool(np.all(frame_errors(shape, a, grid) <= bound)) for a in answers)
+
+
 def rigid_motion(src: Any, dst: Any) -> tuple[Any, Any]:
     """R, t minimising |R·src + t − dst| (Kabsch) for (K, 3) point sets, for tests that move
     other points with the same motion (distances alone: `aligned_error`)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import frame_errors
+from conftest import frame_errors, within_3_sigma_in_frame
 
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.reconstruction import Reconstructor
@@ -257,8 +257,10 @@ def test_a_twist_the_noise_hides_widens_sigma_on_a_cylinder_6_deg_off_the_grid_w
     of the curvature product's noise.  Where the twist is taken, its sign is within the noise, no
     mirror is tried and the default sign stands: 0.65 mm off with σ 0.054 mm where it is wrong;
     where the noise's significance shrinks it to none, 0.31 mm off with σ 0.035.  Half the
-    distance to the mirror image, or to the twist the product allows, joins σ: every draw's
-    sensor-frame errors lie within 3σ + 0.05 mm."""
+    distance to the mirror image, or to the twist the product allows, joins σ, or the mirror
+    stands beside the answer (a less-sheared twist the product agrees with, whose sign nothing
+    reads): on every draw the sensor-frame errors of the answer or its mirror lie within
+    3σ + 0.05 mm."""
     rec5 = Reconstructor(N, M)
     shape = make_shape("cylinder", radius=-71.2, axis_angle=84.1)
     eu, el = gauge_strains(shape, N, M, pitch=12.0)
@@ -267,7 +269,8 @@ def test_a_twist_the_noise_hides_widens_sigma_on_a_cylinder_6_deg_off_the_grid_w
     for _ in range(10):
         surf = rec5(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
         err = frame_errors(shape, surf, rec5.grid)
-        assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max(), surf.diagnostics.twist_constant)
+        assert within_3_sigma_in_frame(shape, surf, rec5.grid), (err.max(), surf.node_sigma.max(),
+                                                                 surf.diagnostics.twist_constant)
         wrong += err.mean() > 0.5  # the other sign's answer
         untwisted += surf.diagnostics.twist_constant == 0.0
     assert wrong and untwisted, "the draws no longer reach both cases: the test no longer tests them"
@@ -314,7 +317,8 @@ def test_a_twist_the_curvature_product_hides_joins_sigma_on_a_cylinder_turned_2_
 def test_a_prestretched_cylinder_near_the_rows_is_within_3_sigma_in_the_sensor_frame() -> None:
     """A film pre-stretched 5 % on a cylinder of R 93 mm turned 4.9° off the rows (twist
     0.0009 /mm, 0.8 s.d. of the curvature product's noise): 0.2 mm off with σ 0.03 mm before
-    the hidden twist joined σ; now every node within 3σ + 0.05 mm."""
+    the hidden twist joined σ; now every node within 3σ + 0.05 mm (of the answer, or of its
+    mirror where a less-sheared twist of no known sign was taken and flagged)."""
     from skinmap.emulator import scenes
 
     shape = scenes.parse_scene_spec("cylinder:radius=93,axis_angle=4.9,prestretch=0.05", "elastic", N, M, 12.0)
@@ -324,7 +328,7 @@ def test_a_prestretched_cylinder_near_the_rows_is_within_3_sigma_in_the_sensor_f
     for _ in range(4):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
         err = frame_errors(shape, surf, rec.grid)
-        assert np.all(err <= 3.0 * surf.node_sigma + 0.05), (err.max(), surf.node_sigma.max())
+        assert within_3_sigma_in_frame(shape, surf, rec.grid), (err.max(), surf.node_sigma.max())
 
 
 def test_the_stretch_noise_does_not_shrink_a_turned_cylinders_twist() -> None:
