@@ -44,9 +44,10 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {
 _STREAM_KINDS = (*DATA_KINDS, "status")
 _REJECTIONS_KEPT = 16
 _UNIT_TOLERANCE = 1e-6
-_KNOWN_ELEMENT_FLAGS = int(messages.ElementFlag.VALID | messages.ElementFlag.EXTRAPOLATED
-                           | messages.ElementFlag.DEGRADED | messages.ElementFlag.STALE)
-_KNOWN_GAUGE_FLAGS = int(messages.GaugeFlag.UPPER_VALID | messages.GaugeFlag.LOWER_VALID)
+# every bit the wire format defines (its enums are the one list: a flag added there is known
+# here; AMBIGUOUS, missing from a hand-kept copy, made every ambiguous frame a rejected one)
+_KNOWN_ELEMENT_FLAGS = sum(int(flag) for flag in messages.ElementFlag)
+_KNOWN_GAUGE_FLAGS = sum(int(flag) for flag in messages.GaugeFlag)
 
 
 class RejectedMessage(messages.MessageError):

@@ -1146,10 +1146,11 @@ class Reconstructor:
         # a twist c bends the far corners out of the untwisted shape by about c·ρ²/2 (ρ the
         # half-diagonal): below the mirror floor the two images are one answer; and a twist
         # within what the turning noise makes of the curvature product is no twist to mirror
-        # (nor, alone, where the least-shear prior took a twist the product's reading agreed
-        # with: its magnitude is read twice, its sign not at all)
+        # (nor, alone, where the less-sheared twist was taken because it agreed with the
+        # product's shrunk reading: its magnitude is read twice, its sign by nothing)
+        agreed = bool(diag.extra.get("least_shear_contested")) and "least_shear_shift" in diag.extra
         if (abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None
-                and (abs(c0) > MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)) or "least_shear_shift" in diag.extra)):
+                and (abs(c0) > MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)) or agreed)):
             mirror_comparable = True  # the mirror is the same model's: its χ² may swap them
             if positions_at is not None:
                 pos_m = positions_at(-2.0 * c0)
@@ -1859,11 +1860,11 @@ class Reconstructor:
                 contested = (open_twist > 0.0 and product > noise / 3.0 and abs(tau_mean) < abs(c_ls)
                              and abs(c_ls**2 - product) <= noise)
                 if contested and product > noise and tau_mean != 0.0:
-                    # the product's twist, beyond its noise but shrunk by its significance ramp,
-                    # and the least-shear prior's, an independent reading, agree: the prior's is weighed as a
-                    # choice (a noisy 12×12 cylinder of R 225 mm 9.7° off the rows, twist
-                    # 7.4·10⁻⁴ /mm: the product read 3.3 s.d., shrunk to 2.2·10⁻⁴, 0.67 mm
-                    # off; the prior said 6.3·10⁻⁴)
+                    # the product's twist, beyond its noise but shrunk by its significance
+                    # ramp, and the least-shear prior's, an independent reading, agree: the
+                    # prior's is weighed as a choice (a noisy 12×12 cylinder of R 225 mm 9.7°
+                    # off the rows, twist 7.4·10⁻⁴ /mm: the product read 3.3 s.d., shrunk to
+                    # 2.2·10⁻⁴, 0.67 mm off; the prior said 6.3·10⁻⁴)
                     options = [within_noise[0]]
                 else:
                     # a less-sheared twist the noise cannot rule out: kept as the answer's spread

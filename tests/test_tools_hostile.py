@@ -389,6 +389,10 @@ def test_check_message_applies_the_layout_rules():
     cleared = flags.copy()
     cleared[2] = msg.ElementFlag.DEGRADED
     assert check_message("elements", enc(p=nan_clear, f=cleared)).count == k  # NaN allowed when not VALID
+    # every flag the wire format defines is accepted: an ambiguous frame is no malformed one
+    every_flag = np.full(k, sum(int(f) for f in msg.ElementFlag), np.uint8)
+    assert check_message("elements", enc(f=every_flag)).count == k
+    assert check_message("elements", enc(f=flags | msg.ElementFlag.AMBIGUOUS)).count == k
     cases = [(enc(p=nan_clear), "element 2 is flagged VALID but its position"),
              (enc(n=nrm * 2), "element 0 is flagged VALID but its normal is not a unit vector"),
              (enc(s=-sig), "element 0 has a negative uncertainty"),
