@@ -108,8 +108,8 @@ MEMBRANE_SIGN_RATIO = 0.5
 SIGN_SIGMAS = 2.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it; none included) has its square uncertain by this share of the answer's mean
-# Gaussian curvature (films with friction on 12×12 saddle molds: off by up to 0.42 of it, 15
-# scenes; the prior was as far off in the square on large and small twists alike).
+# Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
+# the prior was as far off in the square on large and small twists alike).
 SHEAR_PRIOR_SHARE = 0.5
 # A χ² per gauge above this for both the model's own twist and the least-shear prior's: the data
 # explain neither, so the prior has no answers it could choose among and the model's own stands
