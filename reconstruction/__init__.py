@@ -1821,7 +1821,7 @@ class Reconstructor:
             metric_stack[6] -= debias
             metric_stack[8] -= debias
             metric = Metric(*metric_stack)
-        tau, twist_c, graph, open_twist, from_shear, prior_curvature, product = solve_twist(
+        tau, twist_c, graph, open_twist, from_shear, product = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=product_noise, quiet=quiet if quiet < QUIET_SHARE else 1.0,
         )
@@ -1959,7 +1959,8 @@ class Reconstructor:
             convex_info["open_twist"] = open_twist
         if from_shear and shift0 == 0.0 and twist_mean is None and shear_graph is None:
             convex_info["shear_prior_twist"] = twist_c
-            convex_info["shear_prior_curvature"] = prior_curvature
+            # (the answer's mean Gaussian curvature, which scales how far the prior may be off)
+            convex_info["shear_prior_curvature"] = product - twist_c * twist_c
         return pos, twist_c, fit, convex_info, left_out, positions_at
 
     def _positions(self, k_u, k_v, lam_u, lam_v, tau, metric: Metric, shear_graph: np.ndarray | None = None) -> np.ndarray:

@@ -161,7 +161,7 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
-    return TwistResult(tau0 + c, c, graph, opened, from_shear, prod - c2 if from_shear else 0.0, prod)
+    return TwistResult(tau0 + c, c, graph, opened, from_shear, prod)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -200,10 +200,8 @@ class TwistResult(NamedTuple):
     # the constant (none included) came from the least-shear prior of a turned saddle
     # (_saddle_twist), which no datum confirms: a film on a mold shears otherwise
     from_shear: bool = False
-    # with it, the mean Gaussian curvature k_u k_v − c² of that answer over the cells' region
-    # (the noise's own product removed), which scales how far the prior may be off
-    shear_prior_curvature: float = 0.0
-    # the mean curvature product k_u k_v − τ₀² read (the noise's own part removed)
+    # the mean curvature product k_u k_v − τ₀² read (the noise's own part removed); less the
+    # constant's square, the answer's mean Gaussian curvature
     product: float = 0.0
 
 

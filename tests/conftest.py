@@ -161,6 +161,31 @@ def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
     return np.linalg.norm(surf.nodes - nodes_in_sensor_frame(grid, shape.position), axis=-1)
 
 
+def elastic_dataset() -> Any:
+    """bench/elastic_dataset.py, the elastic bench's scenes and noise draws (imported from the
+    bench folder: tests replay the bench's own cases, not copies of its seeds)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+    import elastic_dataset as ed
+
+    return ed
+
+
+def worst_of_answers(surf: Any, truth: Any) -> list[float]:
+    """Largest node error after the best rigid alignment over 3 node_sigma + 0.05 mm, for the
+    answer and, where it is flagged ambiguous, its mirror (either may be the right one)."""
+    import numpy as np
+
+    from skinmap.reconstruction.linalg import aligned_distances
+
+    bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
+    truth = np.asarray(truth, dtype=float).reshape(-1, 3)
+    answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
+    return [float(np.max(aligned_distances(a.nodes.reshape(-1, 3), truth) / bound)) for a in answers]
+
+
 def within_3_sigma_in_frame(shape: Any, surf: Any, grid: Any) -> bool:
     """Every sensor-frame node error of the answer, or of its mirror where it is flagged
     ambiguous, within 3 node_sigma + 0.05 mm."""

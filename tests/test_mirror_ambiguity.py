@@ -104,13 +104,11 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     sign) misreads the gauges at 2.2 per gauge, its mirror modelled afresh at 0.74.  Taking the
     mirror put the answer 16.8 mm off, unflagged; the mirror is flagged, and the answer or its
     mirror lies within 3σ + 0.05 mm of the truth in the sensor frame."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-    import elastic_dataset as ed
+    from conftest import elastic_dataset
 
     from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
+
+    ed = elastic_dataset()
 
     n = 16
     plan = ed.class_plans("poisson_0.3", 2024, 1, n)[0]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import aligned_error
+from conftest import aligned_error, elastic_dataset, worst_of_answers
 
 from skinmap.emulator import physics as ph
 from skinmap.emulator.scenes import parse_scene_spec
@@ -284,26 +284,14 @@ def test_a_twist_the_least_shear_prior_cannot_give_is_left_open_so_every_node_is
     truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
     surf = Reconstructor(n, n, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
     assert "shear_prior_twist" in surf.diagnostics.extra and "stretch_reading" not in surf.diagnostics.extra
-    bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
-    answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
-    worst = [float(np.max(aligned_distances(a.nodes.reshape(-1, 3), truth) / bound)) for a in answers]
+    worst = worst_of_answers(surf, truth)
     assert min(worst) <= 1.0, worst
-
-
-def _dataset():
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-    import elastic_dataset as ed
-
-    return ed
 
 
 def _dataset_frame(key: str, index: int, n: int, spec: str, draw: int, cache):
     """The elastic bench's scene ``index`` of class ``key`` at n×n (its spec checked), with its
     noise draw ``draw``: (plan, shape, upper strains, lower strains, true nodes (K, 3))."""
-    ed = _dataset()
+    ed = elastic_dataset()
     plan = ed.class_plans(key, 2024, index + 1, n)[index]
     assert plan.spec == spec
     shape = parse_scene_spec(plan.spec, "elastic", n, n, PITCH, cache_dir=cache)
@@ -341,9 +329,7 @@ def test_a_cylinder_whose_less_sheared_twist_has_no_sign_told_has_an_answer_with
     if agreed:
         assert surf.mirror is not None
     assert draw != 1 or agreed
-    bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
-    answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
-    worst = [float(np.max(aligned_distances(a.nodes.reshape(-1, 3), truth) / bound)) for a in answers]
+    worst = worst_of_answers(surf, truth)
     assert min(worst) <= 1.0, worst
 
 
