@@ -285,7 +285,7 @@ def accuracy_table(k: int, noisy_draws: int, seed: int, graph_fit: bool | None =
           "shape has no linear response, 'n/l': none has; sigma: mean "
           "node_sigma of the noisy reconstructions; over: noisy reconstructions with some node error > 3 node_sigma + "
           "0.05 mm (for one flagged ambiguous: in both its answers), after the best rigid alignment; frame: the same "
-          "with the errors in the sensor frame itself (frame_errors), as node_sigma describes them; "
+          "with the errors in the sensor frame itself (frame_errors); node_sigma describes both (its alignment floor); "
           "graph: share of reconstructions the height-graph fit answered, the rest the general model; amb: "
           "reconstructions flagged ambiguous (Surface.mirror set), either: of those, how many have the answer or "
           "its mirror within 0.05 mm mean of the truth)")
@@ -327,7 +327,7 @@ def _fine_grid(n: int):
 
 def frame_errors(shape: ph.Shape, nodes: np.ndarray, n: int) -> np.ndarray:
     """Node errors in the sensor frame itself, with no alignment: the truth put in the frame by
-    its one definition (nodes_in_sensor_frame), as node_sigma describes them."""
+    its one definition (nodes_in_sensor_frame)."""
     return np.linalg.norm(nodes - nodes_in_sensor_frame(_fine_grid(n), shape.position), axis=-1).reshape(-1)
 
 
@@ -422,7 +422,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"noise-free answer (noise_floor, {FLOOR_DRAWS} draws, the first the noisy frames'), mean over scenes: the noisy error should not exceed about "
           f"√(clean² + CR²); '+': some scene has no linear response (a decision flips within the step), 'n/l': none has; "
           f"sigma: mean node_sigma of the noisy reconstructions; over: noisy reconstructions "
-          f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); frame: the same with the errors in the sensor frame itself, no alignment (frame_errors: the truth put in the frame by its definition), as node_sigma describes them; amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
+          f"with some node error > 3 node_sigma + 0.05 mm (for one flagged ambiguous: in both its answers); frame: the same with the errors in the sensor frame itself, no alignment (frame_errors: the truth put in the frame by its definition); node_sigma describes both (its alignment floor); amb: reconstructions flagged ambiguous (Surface.mirror set); kin: the same shapes in kinematic "
           f"form, same noise; graph: share of the elastic reconstructions the height-graph fit answered; radii "
           f"{scale}; oblique cylinders get their twist_sign except in the default-sign row)")
     print(f"(scenes: {len(solved)} solved in {sum(solved):.1f} s, {len(cached)} loaded from the solver's cache "
@@ -436,9 +436,9 @@ def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | N
     median over the nodes (the centre node, the frame's origin, left out); the same divided by
     the whole node_sigma (which adds the model's resolution term, a bias bound no repeat
     shows); and the largest error over the draws in units of 3σ + 0.05 mm (the whole σ), in
-    the sensor frame itself (frame_errors: what node_sigma describes) and after the best rigid
-    alignment (node_errors: beside the centre, where a sensor-frame σ is near zero by
-    definition, the alignment moves the error onto nodes whose σ does not carry it); a
+    the sensor frame itself (frame_errors) and after the best rigid alignment (node_errors),
+    both of which node_sigma describes (the alignment moves errors onto the centre, the frame's
+    origin, which its alignment floor covers); a
     reconstruction flagged ambiguous by the better of its two answers (its scatter too: between
     draws the answer may be either image, and the flag says so)."""
     print(f"\nUncertainty calibration, {n}x{n} cells ({k} scenes per class, {draws} noisy draws each, s.d. "

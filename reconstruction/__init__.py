@@ -52,7 +52,7 @@ from .airy import airy_curvature_range, airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, basis_curvature, membrane_maps, read_twist, stretch_residual
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .uncertainty import (GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, fine_sigma, resolution_sigma, sigma_field,
+from .uncertainty import (GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, alignment_floor, fine_sigma, resolution_sigma, sigma_field,
                           stretch_noise_sd)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
@@ -178,6 +178,38 @@ class _SignCandidate(NamedTuple):
     @property
     def rss(self) -> float:
         return float(self.residual @ self.residual)
+
+
+@dataclasses.dataclass(frozen=True)
+class TwistLeftOpen:
+    """What the data leave open about an answer's constant twist c0: each joins ``node_sigma``
+    as a reach on the answer's family (:meth:`Reconstructor._twist_noise`), besides the noise
+    through the curvature product."""
+
+    #: a less-sheared twist within the noise that the model did not take (the shift to it,
+    #: 1/mm): half the distance to it joins, so that 3 s.d. reach past it
+    undecided: float = 0.0
+    #: that twist is the curvature product's reading, which the answer did not take: reached
+    #: past by OPEN_SIGMAS s.d. of the reading's own noise, in the square
+    undecided_read: bool = False
+    #: the twist's sign is within the noise and not told: half the distance to the mirror image
+    #: (the twist −c0) joins (a cylinder turned 6° from the grid lines: the product's noise hid
+    #: the sign of its 0.0015 /mm twist, and the default sign was 0.65 mm off with σ 0.054 mm)
+    sign_open: bool = False
+    #: the magnitude the curvature product allows where its noise shrank the twist taken
+    #: (engine.solve_twist): half the distance to the twist of that magnitude, of either sign
+    #: unless ``twist_sign`` tells it (the same cylinder where the shrunk twist was none: 0.87
+    #: mm off, σ 0.058)
+    open_twist: float = 0.0
+    #: the sign the user told (±1), or None
+    twist_sign: float | None = None
+    #: a twist only a prior gave, nothing confirming it (1/mm²): half the distance to the twists
+    #: whose squares lie that far either side of the answer's joins all of the above, of both
+    #: signs unless ``twist_sign`` or ``prior_sign_told`` keeps the answer's
+    prior_span: float = 0.0
+    #: a mirror answer stands beside this one and covers the other sign
+    prior_sign_told: bool = False
+
 
 class Reconstructor:
     """Reconstruction for one sensor geometry; holds the fine grid, its operators and their
@@ -335,7 +367,7 @@ class Reconstructor:
         self._product_noise: ProductNoise | None = None
         # the general model's scatter over the linear map's, per noise level (measured on first use)
         self._noise_responses: dict[float, tuple[float, float]] = {}
-        self._scaled_maps: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
+        self._shared_maps: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
         # BLAS thread limits for each call (the libraries' list is read once, here)
         self._blas = ThreadpoolController()
         self._blas_libraries = self._blas.select(user_api="blas").lib_controllers
@@ -685,14 +717,23 @@ class Reconstructor:
         """``base * scale``, read-only and shared like ``base`` (one copy per map and scale)."""
         if scale == 1.0:
             return base
-        key = (id(base), scale)
-        hit = self._scaled_maps.get(key)
+        return self._shared_map(base, scale, lambda b: b * scale)
+
+    def _floored(self, base: np.ndarray, floor: float) -> np.ndarray:
+        """``base`` raised to ``floor`` (the alignment floor of ``base`` itself, so one value per
+        map), read-only and shared like ``base``."""
+        return self._shared_map(base, -1.0, lambda b: np.maximum(b, floor))
+
+    def _shared_map(self, base: np.ndarray, tag: float, make: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """``make(base)``, made once per shared map ``base`` and ``tag`` (the last 16 kept)."""
+        key = (id(base), tag)
+        hit = self._shared_maps.get(key)
         if hit is None or hit[0] is not base:
-            out = base * scale
+            out = make(base)
             out.flags.writeable = False
-            if len(self._scaled_maps) >= 16:
-                self._scaled_maps.pop(next(iter(self._scaled_maps)))
-            hit = self._scaled_maps[key] = (base, out)
+            if len(self._shared_maps) >= 16:
+                self._shared_maps.pop(next(iter(self._shared_maps)))
+            hit = self._shared_maps[key] = (base, out)
         return hit[1]
 
     def _noise_response(self, strain_sigma: float) -> tuple[float, float]:
@@ -756,55 +797,41 @@ class Reconstructor:
                                          turning_sigma)
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
-                     undecided: float = 0.0, sign_open: bool = False, open_twist: float = 0.0,
-                     twist_sign: float | None = None, prior_span: float = 0.0, undecided_read: bool = False,
-                     prior_sign_told: bool = False):
+                     left: TwistLeftOpen = TwistLeftOpen()):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
         through the model's field maps (:mod:`.productnoise`); c = √(product) then has the s.d. of that over
-        2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  An
-        ``undecided`` shift (a less-sheared twist within the noise, which the model did not
-        take) adds half the distance to that answer: 3 s.d. then reach past it (``undecided_read``:
-        that twist is the product's reading, which the answer did not take: past it by
-        OPEN_SIGMAS s.d. of the reading's own noise, in the square).  ``sign_open``
-        (the twist's sign is within the noise and not told): half the distance to the mirror
-        image (the twist −c) joins it the same way (a cylinder turned 6° from the grid lines:
-        the product's noise hides the sign of its 0.0015 /mm twist, and the default sign was
-        0.65 mm off with σ 0.054 mm).  ``open_twist`` (the magnitude the curvature product
-        allows where its noise shrank the twist taken, engine.solve_twist): half the distance
-        to the twist of that magnitude, of either sign unless ``twist_sign`` tells it, joins
-        the rest (the same cylinder where the shrunk twist was none: 0.87 mm off, σ 0.058).
-        ``prior_span`` (a twist only a prior gave, nothing confirming it; 1/mm²): half the
-        distance to the twists whose squares lie that far either side of the answer's joins all
-        of the above, of both signs unless ``twist_sign`` or ``prior_sign_told`` (a mirror
-        answer stands for the other) keeps the answer's."""
+        2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  What
+        the data leave open about the twist (``left``, :class:`TwistLeftOpen`) joins it as
+        reaches on the answer's family (``positions_at``, the answer at ``base_shift``)."""
         if positions_at is None:
             return lambda: None
-        if prior_span > 0.0:
-            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
-                                     open_twist, twist_sign, undecided_read=undecided_read)
+        twist_sign, sign_open, undecided = left.twist_sign, left.sign_open, left.undecided
+        if left.prior_span > 0.0:
+            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
+                                     dataclasses.replace(left, prior_span=0.0, prior_sign_told=False))
             # the squares c0² ± span, of the answer's sign where it is told or its mirror stands
             # beside it, else of either (the prior reads a square, not a sign: a saddle 18° off
             # the columns took 5.9·10⁻⁴ /mm of the default sign, unflagged, for −2.5·10⁻³)
             if twist_sign is not None:
                 signs: tuple[float, ...] = (float(twist_sign),)
-            elif prior_sign_told and c0 != 0.0:
+            elif left.prior_sign_told and c0 != 0.0:
                 signs = (math.copysign(1.0, c0),)
             else:
                 signs = (1.0, -1.0)
-            ends = [s * math.sqrt(max(c0 * c0 + d, 0.0)) - c0 for s in signs for d in (prior_span, -prior_span)]
+            ends = [s * math.sqrt(max(c0 * c0 + d, 0.0)) - c0 for s in signs for d in (left.prior_span, -left.prior_span)]
             return _widened(positions_at, base_shift, ends, rest)
-        if open_twist > 0.0:
-            targets = [s * open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
-            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, undecided, sign_open,
-                                     undecided_read=undecided_read)
+        if left.open_twist > 0.0:
+            targets = [s * left.open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
+            rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
+                                     TwistLeftOpen(undecided, left.undecided_read, sign_open))
             return _widened(positions_at, base_shift, targets, rest)
         # (a sign the noise leaves open reaches the mirror image as well: a 5×5 cylinder 5.6° off
         # the columns took the less-sheared twist of the default sign, 1.5 mm off at a corner,
         # its σ reaching back only to the product's shrunk twist)
         mirrored = (-2.0 * c0,) if sign_open else ()
-        if undecided != 0.0 and not undecided_read:
+        if undecided != 0.0 and not left.undecided_read:
             return _memo(lambda: _half_reach(positions_at, base_shift, (undecided, *mirrored)))
         if undecided != 0.0:
             # (past that twist by OPEN_SIGMAS s.d. of its own estimate, which the same product
@@ -1238,21 +1265,22 @@ class Reconstructor:
         # answer's mean Gaussian curvature join the spread
         prior_only = "shear_prior_twist" in diag.extra and "stretch_reading" not in info
         prior_span = SHEAR_PRIOR_SHARE * abs(float(diag.extra.get("shear_prior_curvature", 0.0))) if prior_only else 0.0
-        twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
-                                  diag.extra.get("undecided_twist", 0.0), sign_open,
-                                  diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
-                                  None if twist_sign is None else float(twist_sign),
-                                  prior_span,
-                                  undecided_read="least_shear_shift" not in diag.extra,
-                                  prior_sign_told=mirror is not None)
+        twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, TwistLeftOpen(
+            undecided=diag.extra.get("undecided_twist", 0.0),
+            undecided_read="least_shear_shift" not in diag.extra,
+            sign_open=sign_open,
+            open_twist=diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
+            twist_sign=None if twist_sign is None else float(twist_sign),
+            prior_span=prior_span,
+            prior_sign_told=mirror is not None))
         # the twist's own scatter: the noise through the curvature product, on the answer's own
         # family (the intervals and reaches above are the same every frame: no scatter, except
         # the way between the ramp's shrunk product twist and the least-shear one weighed
         # against it: the noise takes one on some frames, the other on others)
         # (and the stretch reading's own noise where it holds the twist)
         twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, product_sd, strain_sigma,
-                                          diag.extra.get("undecided_twist", 0.0) if diag.extra.get("least_shear_contested")
-                                          else 0.0)
+                                          TwistLeftOpen(undecided=diag.extra.get("undecided_twist", 0.0)
+                                                        if diag.extra.get("least_shear_contested") else 0.0))
         if pattern is not None:
             twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern[6]))
         if pattern is not None:
@@ -1267,31 +1295,50 @@ class Reconstructor:
                 resolution_known.append(field if field is not None and field.any() else None)
             return resolution_known[0]
 
+        node_flat = (self.grid.node_rows[:, None] * self.grid.mf + self.grid.node_cols[None, :]).ravel()
+
         def combined(base_field: SigmaField, twist: Callable[[], np.ndarray | None], scale: float,
                      resolved: bool) -> SigmaField:
-            # base_field scaled by ``scale`` (the misfit), the twist's spread and (unless
-            # ``resolved``) the resolution term, in quadrature
+            # base_field scaled by ``scale`` (the misfit) and (unless ``resolved``) the resolution
+            # term, in quadrature; unless ``resolved``, no less anywhere than their mean over the
+            # nodes (ALIGNMENT_FLOOR); then the twist's spread in quadrature
+            floor_known: list[float] = []
+
+            def local_at(flat: np.ndarray) -> np.ndarray:
+                out = base_field.at(flat) * scale
+                unresolved = None if resolved else resolution()
+                if unresolved is not None:
+                    out = np.sqrt(out * out + unresolved.reshape(-1)[flat] ** 2)
+                return out
+
+            def floor() -> float:
+                if not floor_known:
+                    floor_known.append(0.0 if resolved else alignment_floor(local_at(node_flat)))
+                return floor_known[0]
+
             def whole() -> np.ndarray:
                 base = base_field()
                 spread = twist()
                 unresolved = None if resolved else resolution()
                 if spread is None and unresolved is None and scale == 1.0 and float(base.max()) <= ceiling:
-                    return base  # the shared, read-only noise map (computed once per mask and noise)
+                    # the shared, read-only noise map (computed once per mask and noise), floored once
+                    return base if resolved else self._floored(base, floor())
                 out = base * scale
-                for extra in (spread, unresolved):
-                    if extra is not None:
-                        out = np.sqrt(out * out + extra * extra)
+                if unresolved is not None:
+                    out = np.sqrt(out * out + unresolved * unresolved)
+                out = np.maximum(out, floor())
+                if spread is not None:
+                    out = np.sqrt(out * out + spread * spread)
                 out = np.minimum(out, ceiling)
                 out.flags.writeable = False
                 return out
 
             def at(flat: np.ndarray) -> np.ndarray:
                 # the same, node by node (the twist's spread and the resolution term are whole fields)
-                out = base_field.at(flat) * scale
-                for extra in (twist(), None if resolved else resolution()):
-                    if extra is not None:
-                        extra = extra.reshape(-1)[flat]
-                        out = np.sqrt(out * out + extra * extra)
+                out = np.maximum(local_at(flat), floor())
+                spread = twist()
+                if spread is not None:
+                    out = np.sqrt(out * out + spread.reshape(-1)[flat] ** 2)
                 return np.minimum(out, ceiling)
 
             return SigmaField(whole, at)

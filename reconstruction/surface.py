@@ -196,9 +196,13 @@ class Surface:
     node_sigma : (N, M) one-s.d. position uncertainty (mm): the strain noise carried through the
         fit, raised where gauges are missing, where the answer misfits the gauges, where the twist
         is read only within an interval, and by the model's gauge-scale resolution (a bound on a
-        bias no repeated frame shows).
+        bias no repeated frame shows).  It describes the error in the sensor frame and after a
+        reference's best rigid fit over the nodes alike: no node, the frame's pinned centre
+        included, is given less than the mean over the nodes of its parts but the twist's
+        spread (``reconstruction.uncertainty.alignment_floor``).
     node_scatter_sigma : (N, M) the part of ``node_sigma`` that repeated frames of a still sheet
-        scatter by: ``node_sigma`` without the resolution term (equal to it where there is none).
+        scatter by in the sensor frame: ``node_sigma`` without the resolution term and the
+        alignment floor (zero at the centre node, the frame's origin).
     diagnostics : :class:`Diagnostics`.
     mirror : the other answer (a :class:`Surface`) when the gauges cannot tell two mirror-image
         shapes apart (an oblique cylinder, a saddle at 45°: opposite constant twists), else None;
@@ -287,8 +291,9 @@ class Surface:
     @property
     def node_scatter_sigma(self) -> np.ndarray:
         """(N, M) the part of :attr:`node_sigma` (mm) that repeated frames of a still sheet
-        scatter by: the noise carried through the fit and the twist's reading, without the
-        model's gauge-scale resolution term (a bound on a bias, the same every frame)."""
+        scatter by in the sensor frame: the noise carried through the fit and the twist's
+        reading, without the model's gauge-scale resolution term (a bound on a bias, the same
+        every frame) and without the alignment floor (the frame's centre does not scatter)."""
         return self._at_nodes(self._scatter_at)
 
     def _at_nodes(self, read: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

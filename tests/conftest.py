@@ -153,7 +153,7 @@ def aligned_error(nodes: Any, truth: Any) -> float:
 
 def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
     """Node errors (N, M) in the sensor frame itself, no alignment: the truth (an emulator
-    shape) put in the frame by its definition, as node_sigma describes the nodes."""
+    shape) put in the frame by its definition."""
     import numpy as np
 
     from skinmap.reconstruction import nodes_in_sensor_frame
