@@ -1262,8 +1262,11 @@ class Reconstructor:
         # the prior's twist was 12-20 % off (a saddle of R 286 mm at 49° on 12×12 with friction
         # on its mold: 0.73 mm off with σ 0.048), or none for 1.3·10⁻³ /mm (R 284 mm at 169°:
         # 1.7 mm off with σ 0.05); the twists whose squares lie within SHEAR_PRIOR_SHARE of the
-        # answer's mean Gaussian curvature join the spread
-        prior_only = "shear_prior_twist" in diag.extra and "stretch_reading" not in info
+        # answer's mean Gaussian curvature join the spread.  (A reading that only bounds the
+        # twist, the trace's interval from none upwards, confirms nothing either: a 5×5 saddle of
+        # R 93 mm at 13.7° with friction read [0, 0.0082] /mm, took the prior's none for 0.0049
+        # and was 1.0 mm off with σ 0.03)
+        prior_only = "shear_prior_twist" in diag.extra and pattern is None
         prior_span = SHEAR_PRIOR_SHARE * abs(float(diag.extra.get("shear_prior_curvature", 0.0))) if prior_only else 0.0
         twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, TwistLeftOpen(
             undecided=diag.extra.get("undecided_twist", 0.0),
