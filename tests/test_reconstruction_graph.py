@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-import skinmap.reconstruction as recon
+import skinmap.reconstruction.reconstructor as recon
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor
 from skinmap.reconstruction.linalg import aligned_distances
