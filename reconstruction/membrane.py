@@ -94,7 +94,9 @@ class TwistReading(NamedTuple):
     not read: its only trace, the coupling 2·m·τ₀, is below the model's error.  ``noise_sd``:
     the s.d. of the magnitude that the stretch noise alone causes (the part of the interval that
     moves from frame to frame; the rest, the misfit and the model's error, does not); NaN where
-    it is not known."""
+    it is not known.  ``low_square``: the interval's lower end in the square before it is
+    clipped at none (1/mm²; at most 0 where the interval reaches none, by how far it would reach
+    past it); NaN where it is not known."""
 
     twist: float
     low: float
@@ -103,6 +105,7 @@ class TwistReading(NamedTuple):
     residual: float
     source: str = "membrane"
     noise_sd: float = math.nan
+    low_square: float = math.nan
 
 
 def _film_grid(grid: FineGrid, margin: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -319,10 +322,11 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     # its K, not 0; an aligned saddle's 2 %).
     k_fit = (fields @ np.array([1.0, m, m * m]))[maps.cells]
     model = 2.0 * max(residual, MODEL_SD) * math.sqrt(float(k_fit @ k_fit) / k_fit.size)
+    low_square = min(low * low, m * m - model)
     low = min(low, math.sqrt(max(m * m - model, 0.0)))
     high = max(high, math.sqrt(m * m + model))
     return TwistReading(abs(m), min(low, abs(m)), max(high, abs(m)), float(nus[best_nu]), residual,
-                        noise_sd=noise_m)
+                        noise_sd=noise_m, low_square=low_square)
 
 
 # The quartic's vectors as combinations of [y, A K₀, A(−2τ₀), A(−1), B K₀, B(−2τ₀), B(−1)], each

@@ -103,6 +103,11 @@ MEMBRANE_SIGN_RATIO = 0.5
 # ... and only by more than the noise could make it: this many s.d. of the misfits' difference
 # (see _sign_beyond_noise).
 SIGN_SIGMAS = 2.0
+# The reading's lower end in the square (TwistReading.low_square) within this many s.d. of the
+# curvature product of none: the noise moves the pattern's decision from frame to frame (the
+# 12×12 saddle of StretchTwist.contested: over 10 noisy frames that end scattered by 1.6 times the
+# product's s.d. about none, and 4 of them cleared it)
+CONTESTED_SIGMAS = 3.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it; none included) has its square uncertain by this share of the answer's mean
 # Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
@@ -175,6 +180,22 @@ class _SignCandidate(NamedTuple):
     @property
     def rss(self) -> float:
         return float(self.residual @ self.residual)
+
+
+class StretchTwist(NamedTuple):
+    """What the stretch pattern made of an answer's twist (Reconstructor._stretch_twist)."""
+
+    answer: Surface
+    mirror: Surface | None
+    shift: float  # where the answer sits on ``family``
+    spread: Callable[[], np.ndarray | None]  # the twists the reading allows, as node_sigma's term
+    chi2: float  # the answer's misfit to the gauges
+    family: Callable[[float], np.ndarray]  # shift of the twist constant → fine positions
+    noise_sd: float  # the s.d. of the reading's magnitude from the stretch noise alone (0: not known)
+    #: shifts on ``family`` to the answer the other branch of the decision gives, where the
+    #: noise takes one branch on some frames and the other on others (their way joins the
+    #: scatter part of σ)
+    contested: tuple[float, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1239,7 +1260,8 @@ class Reconstructor:
                                           twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean, measured_fields,
                                           reading, chi2_noise, carried)
         if pattern is not None:
-            surf, mirror, base_shift, chi0, positions_at = pattern[0], pattern[1], pattern[2], pattern[4], pattern[5]
+            surf, mirror, base_shift, chi0, positions_at = (pattern.answer, pattern.mirror, pattern.shift, pattern.chi2,
+                                                            pattern.family)
             diag = surf.diagnostics
         diag.extra.update(info)
         diag.extra["ambiguous"] = mirror is not None
@@ -1282,9 +1304,17 @@ class Reconstructor:
                                           TwistLeftOpen(undecided=diag.extra.get("undecided_twist", 0.0)
                                                         if diag.extra.get("least_shear_contested") else 0.0))
         if pattern is not None:
-            twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern[6]))
-        if pattern is not None:
-            twist = pattern[3]
+            if pattern.contested:
+                # (where the noise flips the pattern's decision, frames land on either answer: a
+                # 12×12 saddle of R 286 mm 6.7° off the columns moved to its twist on 11 noisy
+                # frames of 20 and kept none on 9, 1.0 mm apart; its scatter was 4.7 times the
+                # part of σ said to scatter)
+                # (and node_sigma reaches the other answer too: never below the scatter's part)
+                twist_scatter = _widened(positions_at, base_shift, list(pattern.contested), twist_scatter)
+                twist = _widened(positions_at, base_shift, list(pattern.contested), pattern.spread)
+            else:
+                twist = pattern.spread
+            twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern.noise_sd))
 
         resolution_known: list[np.ndarray | None] = []
 
@@ -1387,7 +1417,9 @@ class Reconstructor:
         reading = read_twist(self._membrane, stretch, valid, k_u, k_v, tau0, self.grid.inner, self.poisson_range,
                              stretch_sd)
         if reading is not None:
-            return reading._replace(low=reading.low * max(1.0 - level, 0.0), high=reading.high * (1.0 + level))
+            shrink = max(1.0 - level, 0.0)
+            return reading._replace(low=reading.low * shrink, high=reading.high * (1.0 + level),
+                                    low_square=reading.low_square * (shrink * shrink if reading.low_square > 0.0 else 1.0))
         bounds = airy_curvature_range(stretch, valid, self.pitch, *self.poisson_range,
                                       noise_sd=math.sqrt(2.0) * stretch_sd)  # a trace: two readings
         if bounds is None:
@@ -1487,9 +1519,9 @@ class Reconstructor:
         None where the pattern says nothing, else (answer, mirror or None, its shift on its family, the twist's
         spread function, its χ², its family, the s.d. of its twist's magnitude from the noise
         alone (0 where it is not known))."""
+        fields_read = product_fields if measured_fields is None else measured_fields  # the reading's input
         if reading is None:
-            reading = self._twist_reading(stretch, valid, product_fields if measured_fields is None else measured_fields,
-                                          sigma_f)
+            reading = self._twist_reading(stretch, valid, fields_read, sigma_f)
         if reading is None:
             return None
         c0 = surf.diagnostics.twist_constant
@@ -1521,13 +1553,19 @@ class Reconstructor:
             # The pattern allows no twist too (a sphere): the answer stands, unless the data have
             # not decided between none and the refined reading's twist (:meth:`_twist_left_open`)
             left = self._twist_left_open(reading, m0, sign, sign_open, base_shift, positions_at, stretch, valid,
-                                         product_fields if measured_fields is None else measured_fields, carried, info,
-                                         sigma_f)
+                                         fields_read, carried, info, sigma_f)
             if left is None:
                 return None
             if isinstance(left, list):
+                # the answer stays; where the reading's interval reaches none by less than the
+                # noise reaches, other frames clear it and move to the refined twist
                 ends = left
-                return surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0, positions_at, 0.0
+                refined = float(info["stretch_twist_refined"][0])
+                flips = self._flip_within_noise(reading, fields_read, sigma_f)
+                if flips:
+                    info["stretch_twist_contested"] = True
+                return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)),
+                                    chi0, positions_at, 0.0, (sign * refined - m0,) if flips else ())
             magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:
@@ -1547,6 +1585,7 @@ class Reconstructor:
             decided = magnitude > UNDECIDED_SHARE * reading.high
         shift, chi = base_shift, chi0
         other: tuple[Surface, float, int] | None = None  # the other sign's candidate, its χ² and gauges counted
+        contested: tuple[float, ...] = ()  # shifts to the answer the decision's other branch gives
         # Where the membrane's reading needs a twist, the least-shear prior has no say: an answer
         # off its estimate by more than MOVE_SHARE moves to it (within the interval too; the
         # trace's interval has no estimate, only ends)
@@ -1602,10 +1641,15 @@ class Reconstructor:
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
                 gap = np.linalg.norm(cand._coeffs[..., 0, :] - surf._coeffs[..., 0, :], axis=-1)
-                return surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0, positions_at, 0.0
+                return StretchTwist(surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0, positions_at, 0.0)
             info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
             if len(cands) > 1:
                 other = (cands[1].surface, cands[1].chi2, dof)
+            if membrane and within(0.0, reading.high) and self._flip_within_noise(reading, fields_read, sigma_f):
+                # moved on a reading whose interval cleared none by less than the noise reaches:
+                # on other frames it reaches none, and the answer stays
+                contested = (m0 - sg * magnitude,)
+                info["stretch_twist_contested"] = True
             sign = sg
             surf, chi, shift, m0 = cand, chi_t, 0.0, sg * magnitude
             positions_at = family
@@ -1624,7 +1668,7 @@ class Reconstructor:
             mirror = self._pattern_mirror(surf, other, positions_at, shift, sign, m0, eu, el, sigma_f, chi, tell,
                                           chi2_noise, info)
         noise_sd = reading.noise_sd if membrane and math.isfinite(reading.noise_sd) else 0.0
-        return surf, mirror, shift, _memo(spread), chi, positions_at, noise_sd
+        return StretchTwist(surf, mirror, shift, _memo(spread), chi, positions_at, noise_sd, contested)
 
     def _move_threshold(self, magnitude: float, reading: TwistReading, product_fields, sigma_f: float,
                         carried: bool) -> float:
@@ -1639,6 +1683,14 @@ class Reconstructor:
         if not carried or magnitude <= 0.0:
             return share
         return max(share, CARRIED_MOVE_SIGMAS * self._estimate_sd(magnitude, reading, product_fields, sigma_f))
+
+    def _flip_within_noise(self, reading: TwistReading, fields, sigma_f: float) -> bool:
+        """Whether the noise could move the reading's lower end across none (so that frames of
+        the same sheet take the pattern's twist on some and leave it open on others): its square
+        before clipping within CONTESTED_SIGMAS s.d. of the mean curvature product of ``fields``
+        (the twist's square is read as that product less the pattern's K)."""
+        low_square = reading.low_square
+        return math.isfinite(low_square) and abs(low_square) <= CONTESTED_SIGMAS * self._product_sd(fields, sigma_f)
 
     def _estimate_sd(self, magnitude: float, reading: TwistReading, product_fields, sigma_f: float) -> float:
         """The s.d. (1/mm) of a refined twist estimate ``magnitude`` from the noise: the mean
