@@ -1498,7 +1498,7 @@ class Reconstructor:
     def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
                        positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict,
                        twist_mean: float | None = None, measured_fields=None, reading: TwistReading | None = None,
-                       chi2_noise: float = 1.0, carried: bool = False):
+                       chi2_noise: float = 1.0, carried: bool = False) -> StretchTwist | None:
         """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
         has the Gaussian curvature its stretch pattern says, and with the measured curvatures
         k_u, k_v that fixes the square of the mean twist: mean(k_u k_v − τ²) = K
@@ -1516,9 +1516,7 @@ class Reconstructor:
         input); ``reading``: the reading, where it was taken already; ``chi2_noise``: the χ² per
         gauge the noise alone leaves in the general model's answers (the posterior check's):
         where both signs read the gauges within it, their χ² difference rejects neither.  Returns
-        None where the pattern says nothing, else (answer, mirror or None, its shift on its family, the twist's
-        spread function, its χ², its family, the s.d. of its twist's magnitude from the noise
-        alone (0 where it is not known))."""
+        None where the pattern says nothing, else a :class:`StretchTwist`."""
         fields_read = product_fields if measured_fields is None else measured_fields  # the reading's input
         if reading is None:
             reading = self._twist_reading(stretch, valid, fields_read, sigma_f)
@@ -1785,9 +1783,14 @@ class Reconstructor:
         and 0.00419 /mm): the veto kept the first, 0.83 mm off, on one noisy frame in 20 (the
         other 19, whose defect passes left the first at 1.8, moved, 0.03 mm off).  Quieter data
         than stated keep the veto (their χ² differences mean what they say)."""
-        present = turning_noise_estimate(turning, valid)
-        level = min(present / self._turning_sd(sigma_f), 1.0) if math.isfinite(present) else 1.0
+        level = self._present_noise_level(turning, valid, sigma_f)
         return _within_noise(chi_a, chi_b, dof, chi2_noise * level * level)
+
+    def _present_noise_level(self, turning, valid, sigma_f: float) -> float:
+        """The turning noise the data carry (:func:`.productnoise.turning_noise_estimate`) over
+        the stated strain noise ``sigma_f``'s, at most 1 (1 where it cannot be estimated)."""
+        present = turning_noise_estimate(turning, valid)
+        return min(present / self._turning_sd(sigma_f), 1.0) if math.isfinite(present) else 1.0
 
     def _noise_reach(self, cand: "_SignCandidate", eu, el, turning, valid, sigma_f: float, info: dict) -> float:
         """The χ² (over the gauges counted) up to which strain noise alone reaches in an answer
@@ -1806,8 +1809,7 @@ class Reconstructor:
         # least NOISE_REACH_LEVEL of the stated): quieter data keep the gauges' veto, whose χ²
         # differences then mean what they say (a clean 32×32 sphere cap told the sensor's noise
         # was moved to a trace's twist, 7 mm off, with the veto lifted)
-        present = turning_noise_estimate(turning, valid)
-        level = min(present / self._turning_sd(sigma_f), 1.0) if math.isfinite(present) else 1.0
+        level = self._present_noise_level(turning, valid, sigma_f)
         if level < NOISE_REACH_LEVEL:
             info["noise_reach_chi2_per_gauge"] = (None, round(level, 3))
             return 0.0
