@@ -256,6 +256,28 @@ def noise_draw(plan: ScenePlan, draw: int, sd: float, shape: tuple[int, ...]) ->
     return rng.normal(0.0, sd, shape), rng.normal(0.0, sd, shape)
 
 
+def better_answer(surf: Any, frame_error: Callable[[np.ndarray], np.ndarray]) -> Any:
+    """Of a reconstruction and, where it is flagged ambiguous, its mirror, the one whose nodes
+    ``frame_error`` (nodes → node errors) finds nearer the truth: a frame flagged ambiguous is
+    judged by the better of its two answers (its scatter too: between draws the answer may be
+    either image, and the flag says so)."""
+    answers = [surf] + ([surf.mirror] if getattr(surf, "mirror", None) is not None else [])
+    return min(answers, key=lambda a: float(np.mean(frame_error(a.nodes))))
+
+
+def scatter_over_sigma(nodes: list[np.ndarray], sigmas: list[np.ndarray], origin: np.ndarray | None = None) -> float:
+    """The σ calibration of repeated noisy frames of one sheet: the median over the nodes of
+    their Monte-Carlo scatter (the rms distance of each node from its mean over the frames)
+    divided by the frames' mean σ there.  ``nodes``: per frame (K, 3) positions; ``sigmas``: per
+    frame (K,) σ; ``origin``: (K,) True at the nodes left out, the frame's origin (default:
+    where the mean σ is zero; pass the scatter part's zeros when ``sigmas`` is a σ with a floor)."""
+    runs = np.asarray(nodes, dtype=float)
+    scatter = np.sqrt(((runs - runs.mean(axis=0)) ** 2).sum(axis=2).mean(axis=0))
+    sig = np.mean(np.asarray(sigmas, dtype=float), axis=0)
+    keep = ~np.asarray(origin, dtype=bool) if origin is not None else sig > 0
+    return float(np.median(scatter[keep] / sig[keep]))
+
+
 def element_points(plan: ScenePlan, count: int = ELEMENTS) -> np.ndarray:
     """Random material points (count, 2) over the cells (within half a pitch of the outer ones)."""
     rng = np.random.default_rng(plan.entropy(1))

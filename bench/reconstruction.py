@@ -464,21 +464,17 @@ def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | N
                 for d in range(draws):
                     du, dl = ed.noise_draw(plan, d, NOISE, eu.shape)
                     surf = reconstruct(eu + du, el + dl, PITCH, H, H, graph_fit=graph_fit, **kw)
-                    # one flagged ambiguous is judged by the better of its two answers, as _over
-                    # does (its scatter too: between draws the answer may be either image)
+                    # one flagged ambiguous is judged by the better of its two answers, as _over does
                     answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
-                    better = min(answers, key=lambda a: float(frame_errors(form, a.nodes, n).mean()))
+                    better = ed.better_answer(surf, lambda p: frame_errors(form, p, n))
                     nodes.append(better.nodes.reshape(-1, 3))
                     sigmas.append(surf.node_sigma.reshape(-1))
                     scatters.append(surf.node_scatter_sigma.reshape(-1))
                     bound = 3.0 * sigmas[-1] + 0.05
                     worst[f, 0] = max(worst[f, 0], min(float(np.max(frame_errors(form, a.nodes, n) / bound)) for a in answers))
                     worst[f, 1] = max(worst[f, 1], min(float(np.max(node_errors(a.nodes, truth) / bound)) for a in answers))
-                nodes_a, sig, sig_s = np.array(nodes), np.mean(sigmas, axis=0), np.mean(scatters, axis=0)
-                scatter = np.sqrt(((nodes_a - nodes_a.mean(axis=0)) ** 2).sum(axis=2).mean(axis=0))
-                keep = sig_s > 0
-                cells[f].append(float(np.median(scatter[keep] / sig_s[keep])))
-                whole[f].append(float(np.median(scatter[keep] / sig[keep])))
+                cells[f].append(ed.scatter_over_sigma(nodes, scatters))
+                whole[f].append(ed.scatter_over_sigma(nodes, sigmas, origin=np.mean(scatters, axis=0) == 0))
         for f in (0, 1):
             ratios_all[f].extend(cells[f])
             whole_all[f].extend(whole[f])

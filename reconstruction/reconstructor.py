@@ -74,6 +74,12 @@ MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
 # estimate scatters by 2-3 % from frame to frame with the sensor's noise).
 MOVE_SHARE = 0.05
+# Where both signs are modelled afresh, each is weighed at the twist its own family explains the
+# stretch pattern best, modelled afresh there unless within this share of the twist it was
+# modelled at: a sign weighed at a twist 5 % off its own (MOVE_SHARE) misread the stretch by
+# more than the two signs differ (an 8×8 saddle of R 122 mm, ν 0.3: 4.6 times the wrong sign's
+# misfit, and the wrong sign was taken), at 1 % by a twenty-fifth of that.
+SIGN_OWN_SHARE = 0.01
 # ... and an answer carrying the frame before's twist, by more than this many s.d. of the
 # estimate's noise too (Reconstructor._move_threshold).
 CARRIED_MOVE_SIGMAS = 2.0
@@ -1608,7 +1614,8 @@ class Reconstructor:
         if off or not within(m_lo, m_hi):
             # modelled afresh at the reading's twist (the family above keeps the fields the defect
             # correction fitted to the old twist), both signs where none is given
-            cands, dof = self._afresh_by_sign(signs, magnitude, reading, surf, turning, stretch, valid, sigma_f, eu, el)
+            cands, dof = self._afresh_by_sign(signs, magnitude, reading, surf, turning, stretch, valid, sigma_f, eu, el,
+                                              refined_sign=sign)
             if len(cands) > 1:
                 if membrane:
                     # the sign whose surface explains the stretch pattern better (it was the right
@@ -1746,16 +1753,18 @@ class Reconstructor:
         return mag
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
-                        sigma_f: float, eu, el) -> tuple[list["_SignCandidate"], int]:
+                        sigma_f: float, eu, el, refined_sign: float | None = None) -> tuple[list["_SignCandidate"], int]:
         """The answer modelled afresh at the reading's twist ``magnitude`` with each of ``signs``
         (the family of the answer keeps the fields the defect correction fitted to the old
-        twist): one :class:`_SignCandidate` per sign, and the gauges counted."""
+        twist): one :class:`_SignCandidate` per sign, and the gauges counted.  ``refined_sign``:
+        the sign of the family a membrane reading's ``magnitude`` was refined on; a sign other
+        than it, or either of two, is refined on its own family."""
         membrane = reading.source == "membrane"
         cands: list[_SignCandidate] = []
         dof = 0
         for sg in signs:
             fresh, own = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * magnitude), magnitude
-            if membrane and len(signs) > 1:
+            if membrane and (len(signs) > 1 or sg != refined_sign):
                 # Each sign is weighed at the twist its own family explains best: the refined
                 # magnitude above was read on the answer's family, whose sign may be the wrong
                 # one, and the two signs prefer different magnitudes (a saddle R 74 mm at 32°:
@@ -1763,7 +1772,7 @@ class Reconstructor:
                 # than the right one; at 0.0114, the right sign's, 15 times worse).
                 family_sg = fresh[5]
                 own = self._refine_twist(lambda m: family_sg(sg * (m - magnitude)), reading, stretch, valid)
-                if abs(own - magnitude) > MOVE_SHARE * magnitude:
+                if abs(own - magnitude) > SIGN_OWN_SHARE * magnitude:
                     fresh = self._fresh(turning, stretch, valid, sigma_f, sg, (eu, el), sg * own)
                 else:
                     own = magnitude
