@@ -424,10 +424,11 @@ def test_a_12x12_saddle_whose_twist_decision_the_noise_flips_has_a_scatter_sigma
 def test_each_sign_of_a_saddle_is_weighed_at_its_own_twist_and_the_right_one_is_within_0_05_mm(cache, draw):
     """A film (ν 0.3) on an 8×8 saddle of R 122 mm at 143°, whose general model started with the
     wrong sign on these noisy frames.  Both signs are modelled afresh, each at the twist its own
-    family explains the stretch pattern best; the right sign's refined twist lay 5.0 % under the
-    wrong one's (0.00726 against 0.00764 /mm), within the share that spared it a model of its
+    family explains the stretch pattern best; the right sign's refined twist lay 4.7 % under the
+    wrong one's (0.00728 against 0.00764 /mm), within the share that spared it a model of its
     own, so it was weighed at the other's twist: it explained the stretch 4.6 times worse than
-    the wrong sign, which was taken, and the right image (the mirror) was 0.20-0.22 mm off."""
+    the wrong sign, which was taken, and the right image (the mirror) was 0.20-0.22 mm off.  At
+    its own twist it explains the stretch 4.3 times better than the wrong sign."""
     n = 8
     _, _, eu, el, truth = _dataset_frame("poisson_0.3", 0, n, "saddle:radius=122.3,axis_angle=143.2,poisson=0.3",
                                          draw, cache)
