@@ -13,7 +13,8 @@ Modules, in the order a frame meets them: :mod:`.decouple` (a gauge pair → str
 :mod:`.robust` (the gauge screen), :mod:`.graphfit` and :mod:`.graphsheet` (the height graph),
 :mod:`.engine` with :mod:`.grid`, :mod:`.kernels` and :mod:`.linalg` (the general model),
 :mod:`.forward` (the gauges' exact forward model), :mod:`.membrane`, :mod:`.airy` and
-:mod:`.productnoise` (what the stretch pattern and the noise say of the twist),
+:mod:`.productnoise` (what the stretch pattern and the noise say of the twist), :mod:`.stretchtwist`
+and :mod:`.twistfamily` (an answer held to the stretch pattern's twist, along its twist family),
 :mod:`.positionfit` (the opt-in elastic prior), :mod:`.uncertainty` and :mod:`.leaveout` (σ),
 :mod:`.surface` (the answer); :mod:`.reconstructor` runs them.
 """

@@ -23,7 +23,11 @@ from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
 __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
-           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor"]
+           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor", "DEFAULT_STRAIN_SIGMA"]
+
+#: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
+#: of 1.24 gives 0.0057 % strain.
+DEFAULT_STRAIN_SIGMA = 0.0057e-2
 
 #: The share of :func:`resolution_sigma` that joins the general model's node_sigma where it
 #: answers (the whole term stands for a deferred frame).  Measured on kinematic sheets of 1-3

@@ -213,7 +213,7 @@ def test_a_held_12x12_elastic_saddle_keeps_its_twist_and_sign_from_frame_to_fram
     second noisy frame read the sign afresh, wrongly, and every frame after kept it (2.6 mm off,
     flagged); a 12×12 saddle at 83° went between its twist and none, 0.05 and 1.0 mm off.  Now no
     frame changes the sign.  Nor is the carried twist modelled afresh where this frame's estimate
-    differs from it by no more than the estimate's own noise (Reconstructor._move_threshold):
+    differs from it by no more than the estimate's own noise (StretchPatternTwist._move_threshold):
     before, 5 of these 12 held frames moved on a 5-10 % difference, and their errors reached
     0.17 mm; now none moves after the first, and every frame's answer or its flagged mirror is
     within 0.1 mm (0.04-0.06)."""
