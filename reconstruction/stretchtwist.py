@@ -79,7 +79,6 @@ def _sign_beyond_noise(own: np.ndarray, other: np.ndarray, noise_sd: float) -> b
     return gain > 2.0 * SIGN_SIGMAS * noise_sd * float(np.linalg.norm(own - other))
 
 
-
 class _SignCandidate(NamedTuple):
     """The answer modelled afresh with one twist sign (StretchPatternTwist._afresh_by_sign)."""
 
