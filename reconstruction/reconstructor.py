@@ -1168,6 +1168,14 @@ class Reconstructor(StretchPatternTwist):
             # χ² above one per gauge (32×32: 2.6): there a noisy answer of the right sign that
             # its defect correction did not improve read 7.7 per gauge, its mirror 1.9, and the
             # mirror was taken, 17 mm off, unflagged; it is flagged instead)
+            # (and where the general model's own answer reads the gauges beyond what the noise
+            # leaves, its fit, not its sign, may be what the mirror beats: a noisy 16×16 saddle
+            # of R 342 mm at 72° whose defect pass was not kept read 1.9 per gauge, its
+            # reflection 0.87, while the wrong sign's best reads 0.67 and the right one's 0.71 on
+            # the next draw; the reflection was taken, 8.0 mm off with σ 0.12, unflagged.  The
+            # mirror is still taken, the answer kept beside it)
+            fit_in_doubt = product_fields_general and not _within_noise(chi0, chi0, dof, chi2_noise)
+            swapped = False
             if (chi_m < chi0 - tell and not within_noise and fresh_m is None and chi2_noise <= 1.0
                     and mirror_comparable):
                 # the data prefer the mirror: it is the answer
@@ -1175,7 +1183,8 @@ class Reconstructor(StretchPatternTwist):
                 diag = surf.diagnostics
                 base_shift = -2.0 * c0
                 info["mirror_swapped"] = True
-            if (chi_m - chi0 < tell or within_noise) and _differs(surf, cand):
+                swapped = True
+            if (chi_m - chi0 < tell or within_noise or (swapped and fit_in_doubt)) and _differs(surf, cand):
                 mirror = cand
         pattern = None
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
