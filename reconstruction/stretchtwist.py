@@ -482,7 +482,7 @@ class StretchPatternTwist:
         return mag
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
-                        sigma_f: float, eu, el, refined_sign: float | None = None) -> tuple[list["_SignCandidate"], int]:
+                        sigma_f: float, eu, el, refined_sign: float) -> tuple[list["_SignCandidate"], int]:
         """The answer modelled afresh at the reading's twist ``magnitude`` with each of ``signs``
         (the family of the answer keeps the fields the defect correction fitted to the old
         twist): one :class:`_SignCandidate` per sign, and the gauges counted.  ``refined_sign``:
