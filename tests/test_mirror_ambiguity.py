@@ -125,13 +125,10 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     assert any(within), within
 
 
-def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer_beside_it():
-    """A saddle R 342 mm at 71.8° on 16×16 (an unseen seed's scene in its kinematic form, noise
-    draw 16): its answer, the right sign, whose defect pass was not kept, read the gauges at 1.9
-    per gauge, beyond what the noise leaves; its mirror on the family read 0.87 and was taken,
-    8.0 mm off with σ 0.12 mm, unflagged (34 times 3σ + 0.05 mm).  The mirror is still taken, but
-    an answer that misread the gauges stays beside it: flagged, and one of the two within 3σ +
-    0.05 mm of the truth in the sensor frame."""
+def _unseen_16x16_saddle_frame(**options):
+    """An unseen seed's 16×16 saddle (R 342 mm at 71.8°) in its kinematic form, noise draw 16
+    of the bench's calibration: the surface a Reconstructor with ``options`` gives, and the
+    truth in the sensor frame."""
     from conftest import elastic_dataset
 
     from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
@@ -143,13 +140,36 @@ def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer
     shape = ed.kinematic_shape(plan)
     eu, el = ph.gauge_strains(shape, n, n, PITCH, 0.2, 0.2, 10.0)
     du, dl = ed.noise_draw(plan, 16, 0.0057e-2, eu.shape)
-    rec = Reconstructor(n, n, PITCH)
-    surf = rec(eu + du, el + dl)
+    rec = Reconstructor(n, n, PITCH, **options)
+    return rec(eu + du, el + dl), nodes_in_sensor_frame(rec.grid, shape.position)
+
+
+def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer_beside_it():
+    """That frame without defect correction: its answer, the right sign, read the gauges at 1.9
+    per gauge, beyond what the noise leaves; its mirror on the family read 0.87 and was taken,
+    8.0 mm off with σ 0.12 mm, unflagged (34 times 3σ + 0.05 mm).  (With the correction the same
+    happened while its pass overshot; it now takes half the correction there, the next test.)
+    The mirror is still taken, but an answer that misread the gauges stays beside it: flagged,
+    and one of the two within 3σ + 0.05 mm of the truth in the sensor frame."""
+    surf, truth = _unseen_16x16_saddle_frame(defect_steps=0)
+    assert surf.diagnostics.extra.get("mirror_swapped")
     assert surf.mirror is not None
-    truth = nodes_in_sensor_frame(rec.grid, shape.position)
     bound = 3.0 * surf.node_sigma + 0.05
     within = [bool(np.all(np.linalg.norm(a.nodes - truth, axis=-1) <= bound)) for a in (surf, surf.mirror)]
     assert any(within), within
+
+
+def test_a_defect_pass_that_overshoots_takes_half_the_correction_and_the_answer_reads_the_gauges_within_the_noise():
+    """That frame with its defect correction: the first answer (the right sign) read the gauges
+    at 1.9 per gauge, and a pass of the whole correction overshot to 4.4, so it was not kept and
+    the answer's misfit let its mirror (8.0 mm off) be taken.  A pass that reads the gauges worse
+    than its start is taken at half the correction: 0.60 per gauge, within the noise; the answer
+    is the right sign, within 3σ + 0.05 mm of the truth in the sensor frame."""
+    surf, truth = _unseen_16x16_saddle_frame()
+    extra = surf.diagnostics.extra
+    assert extra.get("defect_steps") == 1 and extra.get("defect_damped") == 1 and extra["chi2_per_gauge"] <= 1.0, extra
+    assert not extra.get("mirror_swapped")
+    assert np.all(np.linalg.norm(surf.nodes - truth, axis=-1) <= 3.0 * surf.node_sigma + 0.05)
 
 
 @pytest.mark.slow
