@@ -18,18 +18,99 @@ On a graph-mapped saddle turned by 30° (R 50 mm) this takes the mean node error
 """
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numpy as np
 
 from .engine import GraphTwist, graph_slopes, quartic_value, slope_twist_quartic
 from .grid import FineGrid
 
-__all__ = ["graph_sheet_fields", "free_part", "RESIDUAL_LIMIT"]
+__all__ = ["graph_sheet_fields", "free_part", "RESIDUAL_LIMIT", "SlopeNoise", "slope_noise"]
 
 # Share of the stretch pattern (Σ (E − 1)² + (G − 1)² over the cell-centre region) the refined
 # graph may leave unexplained.  Measured: quadratic graphs (saddles at any angle, twisted domes,
 # troughs; slopes up to 1) leave 0.0002-0.003, a Gaussian bump near the edge, whose slopes the
 # gauge averages do not resolve, 0.13-0.2.
 RESIDUAL_LIMIT = 0.02
+# Seeded noise draws that measure how unit noise reaches the stretch misfit of the graph's
+# slopes (:func:`slope_noise`): 64 give its mean and spread to about a tenth.
+NOISE_DRAWS, NOISE_SEED = 64, 20261205
+# Of the stretch misfit the best twist leaves, the noise's share is taken as up to its mean and
+# NOISE_FLOOR_SDS s.d. (measured: the misfit's own spread over noise draws is up to about twice
+# what the linear draws give, its tail heavy: the slopes' noise is a random walk from the centre)
+NOISE_FLOOR_SDS = 2.0
+# A twist must remove more misfit than fitting one parameter to the noise alone does, by this
+# factor of that mean reduction (3 s.d. of a χ² with one degree of freedom)
+CHANCE_FACTOR = 9.0
+
+
+class SlopeNoise(NamedTuple):
+    """Unit-noise draws (``NOISE_DRAWS``, the inner region's cells flattened) of the graph's
+    slopes p, q (per unit turning s.d.) and of E − 1, G − 1 (per unit stretch s.d.), through one
+    geometry's all-valid field maps, with the products the misfit's expansion needs: what
+    :func:`graph_sheet_fields` weighs the stretch misfit against."""
+
+    p: np.ndarray
+    q: np.ndarray
+    e1: np.ndarray
+    g1: np.ndarray
+    e1_p: np.ndarray  # e1·p, cell by cell
+    g1_q: np.ndarray
+    p2: np.ndarray    # p²
+    q2: np.ndarray
+    e1_sq: np.ndarray  # Σ e1² over the cells, per draw
+    g1_sq: np.ndarray
+
+    def residual_draws(self, z_u: np.ndarray, z_v: np.ndarray, turning_sd: float,
+                       stretch_sd: float) -> tuple[np.ndarray, np.ndarray]:
+        """The noise's part of the residuals e1 − z_u², g1 − z_v² (draws, cells) at slopes
+        ``z_u``, ``z_v`` (the inner region) for unit noise of these s.d., to first order in the
+        noise."""
+        zu, zv = np.ravel(z_u), np.ravel(z_v)
+        return (stretch_sd * self.e1 - (2.0 * turning_sd) * zu * self.p,
+                stretch_sd * self.g1 - (2.0 * turning_sd) * zv * self.q)
+
+    def misfit_noise(self, z_u: np.ndarray, z_v: np.ndarray, u: np.ndarray, v: np.ndarray, turning_sd: float,
+                     stretch_sd: float) -> tuple[float, float]:
+        """(floor, chance) of the stretch misfit Σ (e1 − z_u²)² + (g1 − z_v²)² over the inner
+        region (the sums of :meth:`residual_draws`' squares, expanded into products with the
+        slopes): the share of the misfit the noise leaves (its mean and NOISE_FLOOR_SDS s.d.
+        over the draws), and the reduction fitting the constant twist to the noise alone
+        achieves (CHANCE_FACTOR times its mean)."""
+        zu, zv, uu, vv = np.ravel(z_u), np.ravel(z_v), np.ravel(u), np.ravel(v)
+        a, b = stretch_sd, 2.0 * turning_sd
+        misfit = (a * a * (self.e1_sq + self.g1_sq) - 2.0 * a * b * (self.e1_p @ zu + self.g1_q @ zv)
+                  + b * b * (self.p2 @ (zu * zu) + self.q2 @ (zv * zv)))
+        floor = float(misfit.mean() + NOISE_FLOOR_SDS * misfit.std())
+        j_e, j_g = zu * vv, zv * uu  # the residuals' derivatives in the twist, over −2
+        norm = float(j_e @ j_e + j_g @ j_g)
+        if not norm > 0.0:
+            return floor, math.inf
+        along = a * (self.e1 @ j_e + self.g1 @ j_g) - b * (self.p @ (zu * j_e) + self.q @ (zv * j_g))
+        return floor, CHANCE_FACTOR * float((along * along).mean()) / norm
+
+
+def slope_noise(grid: FineGrid, maps) -> SlopeNoise:
+    """The :class:`SlopeNoise` of a geometry, from its all-valid field ``maps``
+    (``FineGrid.field_maps``), on seeded draws (the same every time: a log replays bit for bit)."""
+    rng = np.random.default_rng(NOISE_SEED)
+    shape = (2, grid.n, grid.m)
+    inner = grid.inner
+    ones, zeros = np.ones(shape), np.zeros(shape)
+    step = 1e-3  # the stretch fields' response, read on a small step (λ² − 1 is nearly linear)
+    ps, qs, es, gs = [], [], [], []
+    for _ in range(NOISE_DRAWS):
+        k_uu, k_vv, tau_var = maps(rng.normal(0.0, 1.0, shape), ones)[:3]
+        p, q = graph_slopes(grid, k_uu, k_vv, tau_var - tau_var.mean())
+        ps.append(p[inner].ravel())
+        qs.append(q[inner].ravel())
+        lam_u, lam_v = maps(zeros, 1.0 + step * rng.normal(0.0, 1.0, shape))[3:5]
+        es.append(((lam_u * lam_u - 1.0) / step)[inner].ravel())
+        gs.append(((lam_v * lam_v - 1.0) / step)[inner].ravel())
+    p_d, q_d, e_d, g_d = (np.array(x) for x in (ps, qs, es, gs))
+    return SlopeNoise(p_d, q_d, e_d, g_d, e_d * p_d, g_d * q_d, p_d * p_d, q_d * q_d,
+                      (e_d * e_d).sum(axis=1), (g_d * g_d).sum(axis=1))
 
 
 def free_part(f: np.ndarray) -> np.ndarray:
@@ -48,6 +129,8 @@ def graph_sheet_fields(
     graph: GraphTwist,
     stretch_sq: tuple[np.ndarray, np.ndarray],
     passes: int = 1,
+    noise: SlopeNoise | None = None,
+    noise_sd: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Twist field τ (nf, mf) and shear F = z_u z_v (nf, mf) of the graph, its slopes refined
     from the linear-fit slopes in ``graph`` by ``passes`` rescaled fits; None when the refined
@@ -55,7 +138,9 @@ def graph_sheet_fields(
 
     ``maps``: the field maps of this frame's validity mask (``FineGrid.field_maps``);
     ``turning``, ``stretch``: the unit data (2, N, M) as ``engine.unit_data`` gives them;
-    ``stretch_sq``: the fitted E − 1 and G − 1 fields (nf, mf).
+    ``stretch_sq``: the fitted E − 1 and G − 1 fields (nf, mf); ``noise``, ``noise_sd``: the
+    geometry's :class:`SlopeNoise` and the data's turning and stretch noise s.d. per unit, which
+    the twist's trust weighs the stretch misfit against (None: noise-free data).
     """
     v = grid.v[:, None]
     u = grid.u[None, :]
@@ -77,9 +162,23 @@ def graph_sheet_fields(
         c = _local_minimum(k, c)
     # A constant twist is trusted in proportion to the share of the stretch misfit it removes:
     # fully from 80 %, not at all below 50 % (then the slopes' own errors, e.g. a bump the gauges
-    # do not resolve, could be absorbed into a small twist that bends a large sheet's far corners)
+    # do not resolve, could be absorbed into a small twist that bends a large sheet's far corners).
+    # The misfit the noise leaves is no error a twist could absorb: the share is of the misfit
+    # beyond it, where the twist removes more than fitting it to the noise alone would (a noisy
+    # 16×16 saddle of R 293 mm 1° off the rows, twist 1.2·10⁻⁴ /mm: its best twist left 0.003-0.01
+    # of a misfit of 0.012-0.019 with none, the noise's share 0.004 ± 0.0013: trusted 0-0.7 of
+    # it, the sheet 0.08-0.26 mm off; noise-free 1·10⁻⁴, trusted fully, 0.012 mm)
     best, zero = quartic_value(k, c), quartic_value(k, 0.0)
-    c *= min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
+    trust = min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
+    if noise is not None and trust < 1.0 and (noise_sd[0] > 0.0 or noise_sd[1] > 0.0):
+        cols, rows = u[:, inner[1]], v[inner[0]]
+        floor, chance = noise.misfit_noise((p + c * v)[inner], (q + c * u)[inner],
+                                           np.broadcast_to(cols, (rows.shape[0], cols.shape[1])),
+                                           np.broadcast_to(rows, (rows.shape[0], cols.shape[1])), *noise_sd)
+        removed, beyond = zero - best, best - floor
+        if removed > chance:
+            trust = 1.0 if beyond <= 0.0 else max(trust, min(max((removed / beyond - 1.0) / 3.0, 0.0), 1.0))
+    c *= trust
     e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
     if not quartic_value(k, c) < RESIDUAL_LIMIT * float((e1 * e1).sum() + (g1 * g1).sum()):
         return None

@@ -40,7 +40,7 @@ from .grid import FineGrid
 from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, GraphResult, disagreement
-from .graphsheet import free_part, graph_sheet_fields
+from .graphsheet import SlopeNoise, free_part, graph_sheet_fields, slope_noise
 from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
@@ -312,6 +312,7 @@ class Reconstructor(StretchPatternTwist):
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
+        self._slope_noise_draws: SlopeNoise | None = None
         # the general model's scatter over the linear map's, per noise level (measured on first use)
         self._noise_responses: dict[float, tuple[float, float]] = {}
         self._shared_maps: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
@@ -405,7 +406,8 @@ class Reconstructor(StretchPatternTwist):
         at construction), then the caches that a first frame read at this noise level fills, namely
         the all-valid fits, the noise's own curvature product and the general model's measured
         answer to noise (:meth:`_noise_response`, tens of milliseconds at 5×5, about a second at
-        32×32), the uncertainty maps and the membrane's stretch maps (:mod:`.membrane`).  A flat
+        32×32), the uncertainty maps, the membrane's stretch maps (:mod:`.membrane`) and the
+        slopes' noise draws (:func:`.graphsheet.slope_noise`).  A flat
         frame is reconstructed and its uncertainty read here; skinmapd calls this when a scanner's HELLO gives the geometry, so that its first
         published frames are not the slow ones."""
         flat = np.zeros((2, self.n, self.m))
@@ -420,6 +422,8 @@ class Reconstructor(StretchPatternTwist):
         # first elastic frame would otherwise build
         if self.poisson_range is not None and self._membrane is None:
             self._membrane = membrane_maps(self.grid)
+        # the noise draws the graph sheet's twist is weighed against (tens of milliseconds)
+        self._slope_noise()
 
     def _graph_fit(self) -> GraphFit:
         """The graph fit's operators (only called where the graph fit is on)."""
@@ -728,6 +732,13 @@ class Reconstructor(StretchPatternTwist):
             self._noise_responses.pop(next(iter(self._noise_responses)))
         self._noise_responses[key] = hit
         return hit
+
+    def _slope_noise(self) -> SlopeNoise:
+        """The geometry's :class:`.graphsheet.SlopeNoise` (built on first use, or in prepare())."""
+        if self._slope_noise_draws is None:
+            valid = np.ones((2, self.n, self.m), dtype=bool)
+            self._slope_noise_draws = slope_noise(self.grid, self.grid.field_maps(valid))
+        return self._slope_noise_draws
 
     def _product_stats(self, k_u, k_v, tau0, turning_sigma: float) -> tuple[float, float]:
         """(bias, s.d.) of the mean curvature product k_u k_v − τ₀² over the cells' region
@@ -1449,7 +1460,11 @@ class Reconstructor(StretchPatternTwist):
         convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None
         if graph is not None:  # a sheet pushed out of plane: twist and shear from its slopes
-            fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0))
+            # (the noise the data carry: a defect pass's input carries more than the measured
+            # data, its correction adding the residual's noise again)
+            level = present / turning_sigma if turning_sigma > 0.0 else 0.0
+            fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0),
+                                        noise=self._slope_noise(), noise_sd=(present, level * stretch_sigma))
             if fields is not None:
                 (tau, shear_graph), twist_c = fields, graph.constant
                 convex_info["graph_sheet"] = True
