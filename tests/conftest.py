@@ -310,3 +310,18 @@ def drain_notify(sock: socket.socket) -> list[str]:
             out.append(sock.recv(4096).decode())
         except (socket.timeout, BlockingIOError):
             return out
+
+
+def kinematic_bench_frame(key: str, seed: int, index: int, n: int, spec: str, draw: int) -> tuple[Any, Any, Any]:
+    """The kinematic form of the elastic bench's scene ``index`` of class ``key`` (two scenes a
+    class, ``seed``) on an n×n sheet at 12 mm, checked to be ``spec``, and its gauges' strains
+    with the bench's noise draw ``draw``: (shape, eps_upper, eps_lower)."""
+    from skinmap.emulator import physics as ph
+
+    ed = elastic_dataset()
+    plan = ed.class_plans(key, seed, 2, n)[index]
+    assert plan.spec == spec, plan.spec
+    shape = ed.kinematic_shape(plan)
+    eu, el = ph.gauge_strains(shape, n, n, 12.0, 0.2, 0.2, 10.0)
+    du, dl = ed.noise_draw(plan, draw, 0.0057e-2, eu.shape)
+    return shape, eu + du, el + dl

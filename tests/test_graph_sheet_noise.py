@@ -62,20 +62,14 @@ def test_a_noisy_16x16_saddle_near_the_rows_keeps_its_graph_twist_and_is_within_
     of 0.012-0.019, and the share left, 0.003-0.01, is mostly the noise's (0.004 ± 0.0013); judged
     against the whole of it the twist was trusted 0-0.7 and the sheet was 0.18-0.27 mm off on every
     noisy draw.  Judged beyond the noise: within 0.1 mm mean on each of four draws."""
-    from conftest import elastic_dataset
+    from conftest import kinematic_bench_frame
     from skinmap.reconstruction.linalg import aligned_distances
 
-    ed = elastic_dataset()
     n = 16
-    plan = ed.class_plans("saddle", 2024, 2, n)[0]
-    assert plan.spec == "saddle:radius=292.7,axis_angle=1.0"
-    shape = ed.kinematic_shape(plan)
-    eu, el = ph.gauge_strains(shape, n, n, PITCH, 0.2, 0.2, 10.0)
-    truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
     rec = Reconstructor(n, n, PITCH)
     errors = []
     for draw in range(4):
-        du, dl = ed.noise_draw(plan, draw, NOISE, eu.shape)
-        surf = rec(eu + du, el + dl)
-        errors.append(float(aligned_distances(surf.nodes.reshape(-1, 3), truth).mean()))
+        shape, eu, el = kinematic_bench_frame("saddle", 2024, 0, n, "saddle:radius=292.7,axis_angle=1.0", draw)
+        truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
+        errors.append(float(aligned_distances(rec(eu, el).nodes.reshape(-1, 3), truth).mean()))
     assert max(errors) <= 0.1, errors

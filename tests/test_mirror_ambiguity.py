@@ -129,19 +129,13 @@ def _unseen_16x16_saddle_frame(**options):
     """An unseen seed's 16×16 saddle (R 342 mm at 71.8°) in its kinematic form, noise draw 16
     of the bench's calibration: the surface a Reconstructor with ``options`` gives, and the
     truth in the sensor frame."""
-    from conftest import elastic_dataset
+    from conftest import kinematic_bench_frame
 
     from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
 
-    ed = elastic_dataset()
-    n = 16
-    plan = ed.class_plans("saddle", 777, 2, n)[1]
-    assert plan.spec == "saddle:radius=341.8,axis_angle=71.8"
-    shape = ed.kinematic_shape(plan)
-    eu, el = ph.gauge_strains(shape, n, n, PITCH, 0.2, 0.2, 10.0)
-    du, dl = ed.noise_draw(plan, 16, 0.0057e-2, eu.shape)
-    rec = Reconstructor(n, n, PITCH, **options)
-    return rec(eu + du, el + dl), nodes_in_sensor_frame(rec.grid, shape.position)
+    shape, eu, el = kinematic_bench_frame("saddle", 777, 1, 16, "saddle:radius=341.8,axis_angle=71.8", 16)
+    rec = Reconstructor(16, 16, PITCH, **options)
+    return rec(eu, el), nodes_in_sensor_frame(rec.grid, shape.position)
 
 
 def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer_beside_it():
