@@ -72,12 +72,13 @@ class SlopeNoise(NamedTuple):
                 stretch_sd * self.g1 - (2.0 * turning_sd) * zv * self.q)
 
     def misfit_noise(self, z_u: np.ndarray, z_v: np.ndarray, u: np.ndarray, v: np.ndarray, turning_sd: float,
-                     stretch_sd: float) -> tuple[float, float]:
-        """(floor, chance) of the stretch misfit Σ (e1 − z_u²)² + (g1 − z_v²)² over the inner
-        region (the sums of :meth:`residual_draws`' squares, expanded into products with the
-        slopes): the share of the misfit the noise leaves (its mean and NOISE_FLOOR_SDS s.d.
-        over the draws), and the reduction fitting the constant twist to the noise alone
-        achieves (CHANCE_FACTOR times its mean)."""
+                     stretch_sd: float) -> tuple[float, float, float, float]:
+        """(floor, chance, twist s.d., mean) of the stretch misfit Σ (e1 − z_u²)² + (g1 − z_v²)²
+        over the inner region (the sums of :meth:`residual_draws`' squares, expanded into
+        products with the slopes): the share of the misfit the noise leaves (its mean and
+        NOISE_FLOOR_SDS s.d. over the draws), the reduction fitting the constant twist to the
+        noise alone achieves (CHANCE_FACTOR times its mean), the s.d. of the twist so fitted
+        (1/mm, to first order), and the misfit's mean over the draws."""
         zu, zv, uu, vv = np.ravel(z_u), np.ravel(z_v), np.ravel(u), np.ravel(v)
         a, b = stretch_sd, 2.0 * turning_sd
         misfit = (a * a * (self.e1_sq + self.g1_sq) - 2.0 * a * b * (self.e1_p @ zu + self.g1_q @ zv)
@@ -86,9 +87,11 @@ class SlopeNoise(NamedTuple):
         j_e, j_g = zu * vv, zv * uu  # the residuals' derivatives in the twist, over −2
         norm = float(j_e @ j_e + j_g @ j_g)
         if not norm > 0.0:
-            return floor, math.inf
+            return floor, math.inf, math.inf, float(misfit.mean())
         along = a * (self.e1 @ j_e + self.g1 @ j_g) - b * (self.p @ (zu * j_e) + self.q @ (zv * j_g))
-        return floor, CHANCE_FACTOR * float((along * along).mean()) / norm
+        power = float((along * along).mean())
+        # (the twist's step for residuals r: Σ J r / (2 Σ J²), the derivatives being −2 J)
+        return floor, CHANCE_FACTOR * power / norm, math.sqrt(power) / (2.0 * norm), float(misfit.mean())
 
 
 def slope_noise(grid: FineGrid, maps) -> SlopeNoise:
@@ -131,7 +134,7 @@ def graph_sheet_fields(
     passes: int = 1,
     noise: SlopeNoise | None = None,
     noise_sd: tuple[float, float] = (0.0, 0.0),
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Twist field τ (nf, mf) and shear F = z_u z_v (nf, mf) of the graph, its slopes refined
     from the linear-fit slopes in ``graph`` by ``passes`` rescaled fits; None when the refined
     graph does not explain the stretch pattern (left over: ``RESIDUAL_LIMIT`` of it or more).
@@ -140,7 +143,9 @@ def graph_sheet_fields(
     ``turning``, ``stretch``: the unit data (2, N, M) as ``engine.unit_data`` gives them;
     ``stretch_sq``: the fitted E − 1 and G − 1 fields (nf, mf); ``noise``, ``noise_sd``: the
     geometry's :class:`SlopeNoise` and the data's turning and stretch noise s.d. per unit, which
-    the twist's trust weighs the stretch misfit against (None: noise-free data).
+    the twist's trust weighs the stretch misfit against (None: noise-free data); with them, the
+    third item is the constant twist's s.d. from that noise where the twist is trusted whole
+    (1/mm of the slopes' twist), else NaN.
     """
     v = grid.v[:, None]
     u = grid.u[None, :]
@@ -170,14 +175,20 @@ def graph_sheet_fields(
     # it, the sheet 0.08-0.26 mm off; noise-free 1·10⁻⁴, trusted fully, 0.012 mm)
     best, zero = quartic_value(k, c), quartic_value(k, 0.0)
     trust = min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
-    if noise is not None and trust < 1.0 and (noise_sd[0] > 0.0 or noise_sd[1] > 0.0):
+    twist_sd = math.nan
+    if noise is not None and (noise_sd[0] > 0.0 or noise_sd[1] > 0.0):
         cols, rows = u[:, inner[1]], v[inner[0]]
-        floor, chance = noise.misfit_noise((p + c * v)[inner], (q + c * u)[inner],
-                                           np.broadcast_to(cols, (rows.shape[0], cols.shape[1])),
-                                           np.broadcast_to(rows, (rows.shape[0], cols.shape[1])), *noise_sd)
+        floor, chance, sd, mean = noise.misfit_noise((p + c * v)[inner], (q + c * u)[inner],
+                                                     np.broadcast_to(cols, (rows.shape[0], cols.shape[1])),
+                                                     np.broadcast_to(rows, (rows.shape[0], cols.shape[1])), *noise_sd)
         removed, beyond = zero - best, best - floor
         if removed > chance:
             trust = 1.0 if beyond <= 0.0 else max(trust, min(max((removed / beyond - 1.0) / 3.0, 0.0), 1.0))
+        if trust == 1.0 and mean > 0.0:
+            # a twist trusted whole: its own noise (one shrunk is not the data's alone), scaled by
+            # the misfit it leaves over the noise's (a graph that misfits beyond the noise reads
+            # its twist worse than the noise alone would say)
+            twist_sd = sd * math.sqrt(max(best / mean, 1.0))
     c *= trust
     e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
     if not quartic_value(k, c) < RESIDUAL_LIMIT * float((e1 * e1).sum() + (g1 * g1).sum()):
@@ -187,7 +198,7 @@ def graph_sheet_fields(
     e, f, g = 1.0 + z_u * z_u, z_u * z_v, 1.0 + z_v * z_v
     ell, m = -k_uu / w, (tau_var + c) / w
     tau = (m - (f / e) * ell) / np.sqrt(e * g - f * f)
-    return tau, f
+    return tau, f, twist_sd
 
 
 def _local_minimum(k: tuple[float, ...], c: float, steps: int = 8) -> float:

@@ -567,7 +567,8 @@ class Reconstructor(StretchPatternTwist):
                    "model": "graph" if fit is None else "general"},
         )
         for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "undecided_twist", "open_twist",
-                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_damped", "defect_warm"):
+                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_damped", "defect_warm",
+                    "graph_twist_sd"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -755,20 +756,22 @@ class Reconstructor(StretchPatternTwist):
                                          turning_sigma)
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
-                     left: TwistLeftOpen = TwistLeftOpen()):
+                     left: TwistLeftOpen = TwistLeftOpen(), twist_sd: float | None = None):
         """A function giving the fine-grid position s.d. (mm) that the turning noise causes
         through the constant twist, or None where there is none to speak of.  The twist comes
         from the mean curvature product k_u k_v, whose s.d. ``product_sd(strain σ)`` is measured
         through the model's field maps (:mod:`.productnoise`); c = √(product) then has the s.d. of that over
         2|c|, and the sheet's response to c is taken from the model itself (±5 % of c).  What
         the data leave open about the twist (``left``, :class:`TwistLeftOpen`) joins it as
-        reaches on the answer's family (``positions_at``, the answer at ``base_shift``)."""
+        reaches on the answer's family (``positions_at``, the answer at ``base_shift``).
+        ``twist_sd``: the twist's s.d. where it was read otherwise than from the product (the
+        graph sheet's stretch pattern, ``graph_twist_sd``)."""
         if positions_at is None:
             return lambda: None
         twist_sign, sign_open, undecided = left.twist_sign, left.sign_open, left.undecided
         if left.prior_span > 0.0:
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
-                                     dataclasses.replace(left, prior_span=0.0, prior_sign_told=False))
+                                     dataclasses.replace(left, prior_span=0.0, prior_sign_told=False), twist_sd)
             # the squares c0² ± span, of the answer's sign where it is told or its mirror stands
             # beside it, else of either (the prior reads a square, not a sign: a saddle 18° off
             # the columns took 5.9·10⁻⁴ /mm of the default sign, unflagged, for −2.5·10⁻³)
@@ -783,7 +786,7 @@ class Reconstructor(StretchPatternTwist):
         if left.open_twist > 0.0:
             targets = [s * left.open_twist - c0 for s in ((1.0, -1.0) if twist_sign is None else (twist_sign,))]
             rest = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma,
-                                     TwistLeftOpen(undecided, left.undecided_read, sign_open))
+                                     TwistLeftOpen(undecided, left.undecided_read, sign_open), twist_sd)
             return _widened(positions_at, base_shift, targets, rest)
         # (a sign the noise leaves open reaches the mirror image as well: a 5×5 cylinder 5.6° off
         # the columns took the less-sheared twist of the default sign, 1.5 mm off at a corner,
@@ -803,8 +806,11 @@ class Reconstructor(StretchPatternTwist):
             return _memo(lambda: _half_reach(positions_at, base_shift, (reach, *mirrored)))
         if abs(c0) * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM or strain_sigma == 0.0:
             return lambda: None
-        sigma_product = product_sd(strain_sigma)
-        sigma_c = min(sigma_product / (2.0 * abs(c0)), math.sqrt(sigma_product))
+        if twist_sd is not None:
+            sigma_c = twist_sd
+        else:
+            sigma_product = product_sd(strain_sigma)
+            sigma_c = min(sigma_product / (2.0 * abs(c0)), math.sqrt(sigma_product))
 
         def spread() -> np.ndarray:
             step = 0.05 * abs(c0)
@@ -1240,7 +1246,12 @@ class Reconstructor(StretchPatternTwist):
 
         # a twist whose sign the noise leaves open, not tried as a mirror above (within the
         # noise's own product) and not told: the answer's mirror image is as likely
-        sign_open = (twist_sign is None and mirror is None
+        # (where the graph sheet read the twist and its sign from the stretch pattern, that
+        # reading's own noise, not the product's: a noisy 16×16 saddle 1° off the rows, twist
+        # 1.2·10⁻⁴ /mm, was 0.04-0.07 mm off with σ 0.8, its sign left open by the product)
+        graph_sd = (diag.extra.get("graph_twist_sd") if pattern is None and not info.get("mirror_swapped")
+                    and c0 == diag.twist_constant else None)
+        sign_open = (twist_sign is None and mirror is None and graph_sd is None
                      and abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM
                      and abs(c0) <= MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)))
         # The twist is the least-shear prior's of a turned saddle, and the stretch pattern
@@ -1261,7 +1272,7 @@ class Reconstructor(StretchPatternTwist):
             open_twist=diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
             twist_sign=None if twist_sign is None else float(twist_sign),
             prior_span=prior_span,
-            prior_sign_told=mirror is not None))
+            prior_sign_told=mirror is not None), graph_sd)
         # the twist's own scatter: the noise through the curvature product, on the answer's own
         # family (the intervals and reaches above are the same every frame: no scatter, except
         # the way between the ramp's shrunk product twist and the least-shear one weighed
@@ -1269,7 +1280,7 @@ class Reconstructor(StretchPatternTwist):
         # (and the stretch reading's own noise where it holds the twist)
         twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, product_sd, strain_sigma,
                                           TwistLeftOpen(undecided=diag.extra.get("undecided_twist", 0.0)
-                                                        if diag.extra.get("least_shear_contested") else 0.0))
+                                                        if diag.extra.get("least_shear_contested") else 0.0), graph_sd)
         if pattern is not None:
             if pattern.contested:
                 # (where the noise flips the pattern's decision, frames land on either answer: a
@@ -1466,8 +1477,13 @@ class Reconstructor(StretchPatternTwist):
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0),
                                         noise=self._slope_noise(), noise_sd=(present, level * stretch_sigma))
             if fields is not None:
-                (tau, shear_graph), twist_c = fields, graph.constant
+                (tau, shear_graph, twist_sd), twist_c = fields, graph.constant
                 convex_info["graph_sheet"] = True
+                if graph.decisive and math.isfinite(twist_sd) and graph.slope_twist != 0.0:
+                    # the twist and its sign read from the stretch pattern of the graph: its s.d.
+                    # is the noise's through that reading (the frame model's twist per material
+                    # length, as graph.constant), not the curvature product's
+                    convex_info["graph_twist_sd"] = twist_sd * abs(graph.constant / graph.slope_twist)
         shift0 = 0.0
         undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
         curvature_supported = False  # the stretch varies as much as the own twist's curvature needs
