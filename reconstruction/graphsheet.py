@@ -172,7 +172,7 @@ def graph_sheet_fields(
     # beyond it, where the twist removes more than fitting it to the noise alone would (a noisy
     # 16×16 saddle of R 293 mm 1° off the rows, twist 1.2·10⁻⁴ /mm: its best twist left 0.003-0.01
     # of a misfit of 0.012-0.019 with none, the noise's share 0.004 ± 0.0013: trusted 0-0.7 of
-    # it, the sheet 0.08-0.26 mm off; noise-free 1·10⁻⁴, trusted fully, 0.012 mm)
+    # it, the sheet 0.18-0.27 mm off; noise-free 1·10⁻⁴, trusted fully, 0.012 mm)
     best, zero = quartic_value(k, c), quartic_value(k, 0.0)
     trust = min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
     twist_sd = math.nan

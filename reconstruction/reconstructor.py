@@ -874,8 +874,8 @@ class Reconstructor(StretchPatternTwist):
                 # above one per gauge (24×24 and larger) its passes overshoot on the noise: a
                 # moving bump on 32×32 overshot on 26 of 30 frames, 1.7 → 14.6 a gauge, and half
                 # of each, kept on 11, left the error as it was, 0.084 mm, at one more model a frame)
-                noise_chi2 = self._noise_response(strain_sigma)[1]
-                if gained or not chi_t > chi or noise_chi2 > 1.0 or _within_noise(chi, chi, dof, 1.0):
+                if (gained or not chi_t > chi or _within_noise(chi, chi, dof, 1.0)
+                        or self._noise_response(strain_sigma)[1] > 1.0):
                     break
             if not gained:
                 break
@@ -1249,8 +1249,7 @@ class Reconstructor(StretchPatternTwist):
         # (where the graph sheet read the twist and its sign from the stretch pattern, that
         # reading's own noise, not the product's: a noisy 16×16 saddle 1° off the rows, twist
         # 1.2·10⁻⁴ /mm, was 0.04-0.07 mm off with σ 0.8, its sign left open by the product)
-        graph_sd = (diag.extra.get("graph_twist_sd") if pattern is None and not info.get("mirror_swapped")
-                    and c0 == diag.twist_constant else None)
+        graph_sd = diag.extra.get("graph_twist_sd") if pattern is None and not info.get("mirror_swapped") else None
         sign_open = (twist_sign is None and mirror is None and graph_sd is None
                      and abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM
                      and abs(c0) <= MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)))
@@ -1472,7 +1471,8 @@ class Reconstructor(StretchPatternTwist):
         shear_graph = None
         if graph is not None:  # a sheet pushed out of plane: twist and shear from its slopes
             # (the noise the data carry: a defect pass's input carries more than the measured
-            # data, its correction adding the residual's noise again)
+            # data, its correction adding the residual's noise again; the all-valid maps' draws
+            # stand for a frame with units missing too)
             level = present / turning_sigma if turning_sigma > 0.0 else 0.0
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0),
                                         noise=self._slope_noise(), noise_sd=(present, level * stretch_sigma))
