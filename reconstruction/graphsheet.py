@@ -144,8 +144,8 @@ def graph_sheet_fields(
     ``stretch_sq``: the fitted E − 1 and G − 1 fields (nf, mf); ``noise``, ``noise_sd``: the
     geometry's :class:`SlopeNoise` and the data's turning and stretch noise s.d. per unit, which
     the twist's trust weighs the stretch misfit against (None: noise-free data); with them, the
-    third item is the constant twist's s.d. from that noise where the twist is trusted whole
-    (1/mm of the slopes' twist), else NaN.
+    third item is the constant twist's s.d. from that noise where the twist is trusted whole and
+    the refined slopes decide its sign (1/mm of the slopes' twist), else NaN.
     """
     v = grid.v[:, None]
     u = grid.u[None, :]
@@ -184,10 +184,15 @@ def graph_sheet_fields(
         removed, beyond = zero - best, best - floor
         if removed > chance:
             trust = 1.0 if beyond <= 0.0 else max(trust, min(max((removed / beyond - 1.0) / 3.0, 0.0), 1.0))
-        if trust == 1.0 and mean > 0.0:
-            # a twist trusted whole: its own noise (one shrunk is not the data's alone), scaled by
-            # the misfit it leaves over the noise's (a graph that misfits beyond the noise reads
-            # its twist worse than the noise alone would say)
+        e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
+        # (its sign decided by the refined slopes, as engine._graph_twist decides it on the
+        # linear fit's: the mirror twist leaves more than twice the misfit; a 16×16 saddle 0.7°
+        # off the rows left 0.065 and 0.105 on the linear slopes, 0.0056 and 0.044 refined)
+        decisive = quartic_value(k, -c) > 2.0 * best + 1e-3 * float((e1 * e1).sum() + (g1 * g1).sum())
+        if trust == 1.0 and mean > 0.0 and decisive:
+            # a twist trusted whole, its sign the data's: its own noise (one shrunk is not the
+            # data's alone), scaled by the misfit it leaves over the noise's (a graph that
+            # misfits beyond the noise reads its twist worse than the noise alone would say)
             twist_sd = sd * math.sqrt(max(best / mean, 1.0))
     c *= trust
     e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]

@@ -1479,10 +1479,10 @@ class Reconstructor(StretchPatternTwist):
             if fields is not None:
                 (tau, shear_graph, twist_sd), twist_c = fields, graph.constant
                 convex_info["graph_sheet"] = True
-                if graph.decisive and math.isfinite(twist_sd) and graph.slope_twist != 0.0:
-                    # the twist and its sign read from the stretch pattern of the graph: its s.d.
-                    # is the noise's through that reading (the frame model's twist per material
-                    # length, as graph.constant), not the curvature product's
+                if math.isfinite(twist_sd) and graph.slope_twist != 0.0:
+                    # the twist and its sign read from the stretch pattern of the refined graph:
+                    # its s.d. is the noise's through that reading (the frame model's twist per
+                    # material length, as graph.constant), not the curvature product's
                     convex_info["graph_twist_sd"] = twist_sd * abs(graph.constant / graph.slope_twist)
         shift0 = 0.0
         undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
