@@ -62,12 +62,6 @@ __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", 
 LEAST_SHEAR_GAIN, LEAST_SHEAR_TIE = 0.5, 1.2
 # A defect-correction pass is kept only if it lowers the χ² below this share of the last.
 DEFECT_GAIN = 0.99
-# The shares of the correction a pass tries: the whole, and half where the whole overshot (read
-# the gauges worse than its start: the model answers some part of its input by more than twice
-# it, and the fixed-point iteration diverges there; an unseen 16×16 saddle's frame went 1.9 →
-# 4.4 per gauge with the whole, 0.60 with half) from an answer that misreads the gauges beyond
-# what the noise leaves, on sheets where the noise alone leaves the model within one per gauge.
-DEFECT_SHARES = (1.0, 0.5)
 # Posterior check (Reconstructor._posterior): a χ² difference below this many units (times the
 # misfit's Birge ratio) does not tell two answers apart (2 s.d. of one parameter).
 MIRROR_CHI2 = 4.0
@@ -567,7 +561,7 @@ class Reconstructor(StretchPatternTwist):
                    "model": "graph" if fit is None else "general"},
         )
         for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "undecided_twist", "open_twist",
-                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_damped", "defect_warm",
+                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_warm",
                     "graph_twist_sd"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
@@ -840,11 +834,8 @@ class Reconstructor(StretchPatternTwist):
         slopes in the potential, the first-order Gauss and Codazzi terms, chords) are then
         corrected where the data see them; what the data cannot see stays the prior's.  At
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
-        and none once the answer fits within the noise; a pass whose whole correction reads the
-        gauges worse than its start, from an answer that misreads them beyond the noise on a
-        sheet whose model the noise alone leaves within one per gauge, takes half of it
-        (:data:`DEFECT_SHARES`; ``defect_damped`` counts those kept).  The constant twist keeps
-        its sign.  The answer's info carries the correction its input had (2, 2, N, M) and its χ²
+        and none once the answer fits within the noise.  The constant twist keeps its sign.
+        The answer's info carries the correction its input had (2, 2, N, M) and its χ²
         (``defect``: where the next frame's starts, :meth:`_warm_general`)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
@@ -854,41 +845,30 @@ class Reconstructor(StretchPatternTwist):
         sign = twist_sign
         if sign is None and general[1] != 0.0:
             sign = math.copysign(1.0, general[1])
-        steps = damped = 0
+        steps = 0
         for _ in range(self.defect_steps):
             if chi <= dof:
                 break
-            for share in DEFECT_SHARES:
-                tu, tl = du + share * (eu - fu), dl + share * (el - fl)
-                # (np.maximum keeps a missing gauge's NaN)
-                turning, stretch, _ = unit_data(np.maximum(tu, -0.99), np.maximum(tl, -0.99), self.h_upper, self.h_lower,
-                                                self.gauge_length)
-                trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
-                chi_t, _, fu_t, fl_t = misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f)
-                # a pass must gain clearly (1 %): a decision at the rounding level would make the
-                # answer depend on how the arithmetic was ordered (replay needs the same bytes)
-                gained = bool(chi_t < DEFECT_GAIN * chi) and bool(np.isfinite(trial[0]).all())
-                # (only a pass that reads the gauges worse than its start overshot: one that
-                # gains too little is not helped by a shorter step; nor is an answer that misreads
-                # them by no more than the noise leaves.  Where the noise alone leaves the model
-                # above one per gauge (24×24 and larger) its passes overshoot on the noise: a
-                # moving bump on 32×32 overshot on 26 of 30 frames, 1.7 → 14.6 a gauge, and half
-                # of each, kept on 11, left the error as it was, 0.084 mm, at one more model a frame)
-                if (gained or not chi_t > chi or _within_noise(chi, chi, dof, 1.0)
-                        or self._noise_response(strain_sigma)[1] > 1.0):
-                    break
-            if not gained:
+            du, dl = du + (eu - fu), dl + (el - fl)
+            # (np.maximum keeps a missing gauge's NaN)
+            turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
+                                            self.gauge_length)
+            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
+            chi_t, _, fu_t, fl_t = misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f)
+            # a pass must gain clearly (1 %): a decision at the rounding level would make the
+            # answer depend on how the arithmetic was ordered (replay needs the same bytes)
+            # (a pass that overshoots is not taken again at half the correction: on an unseen
+            # 16×16 kinematic saddle that read the gauges within the noise, 1.9 → 0.60 a gauge,
+            # but an unseen elastic 16×16 saddle's least-shear answer, 1.25 → 0.71, then had the
+            # gauges veto the stretch pattern's twist, and was 2.5 mm off for 0.08)
+            if not (chi_t < DEFECT_GAIN * chi) or not np.isfinite(trial[0]).all():
                 break
-            damped += share < 1.0
-            du, dl = tu, tl
             # the fields' misfit stays that of the measured data (the consistency check's input)
             # (the stretch pattern is read with the measured data's fields: the corrected ones
             # carry the answer's own twist back into them)
             measured = general[3].get("measured_fields", general[3].get("product_fields"))
-            info = {**trial[3], "defect_steps": steps + 1, "measured_fields": measured}
-            if damped:
-                info["defect_damped"] = damped
-            general = (trial[0], trial[1], general[2], info, trial[4], trial[5])
+            general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1, "measured_fields": measured},
+                       trial[4], trial[5])
             chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
             kept = (du, dl)
