@@ -1228,8 +1228,12 @@ class Reconstructor(StretchPatternTwist):
         # noise's own product) and not told: the answer's mirror image is as likely
         # (where the graph sheet read the twist and its sign from the stretch pattern, that
         # reading's own noise, not the product's: a noisy 16×16 saddle 1° off the rows, twist
-        # 1.2·10⁻⁴ /mm, was 0.04-0.07 mm off with σ 0.8, its sign left open by the product)
-        graph_sd = diag.extra.get("graph_twist_sd") if pattern is None and not info.get("mirror_swapped") else None
+        # 1.2·10⁻⁴ /mm, was 0.04-0.07 mm off with σ 0.8, its sign left open by the product.  Not
+        # where the noise alone leaves the model above one per gauge (24×24 and larger): its
+        # answers there are not the linear noise's, and a 32×32 twisted quadric's frames stood
+        # beyond 3σ + 0.05 mm in the sensor frame on 2 of 4 noisy draws, σ 2.05 → 0.16 mm)
+        graph_sd = (diag.extra.get("graph_twist_sd") if pattern is None and not info.get("mirror_swapped")
+                    and chi2_noise <= 1.0 else None)
         sign_open = (twist_sign is None and mirror is None and graph_sd is None
                      and abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM
                      and abs(c0) <= MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)))
