@@ -1,6 +1,8 @@
 """The graph sheet's constant twist is trusted by the share of the stretch misfit it removes
 beyond what the noise leaves (reconstruction/graphsheet.py, SlopeNoise): the noise draws describe
-the field maps' own noise, and a noisy 16×16 saddle whose twist the fixed share shrank keeps it."""
+the field maps' own noise, and a noisy 16×16 saddle whose twist the fixed share shrank keeps it.
+Such a twist, its sign decided, carries its own s.d. in σ where the noise alone leaves the model
+within one per gauge (up to 16×16), the curvature product's beyond."""
 from __future__ import annotations
 
 import numpy as np

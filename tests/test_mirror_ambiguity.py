@@ -125,28 +125,23 @@ def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49
     assert any(within), within
 
 
-def _unseen_16x16_saddle_frame(**options):
-    """An unseen seed's 16×16 saddle (R 342 mm at 71.8°) in its kinematic form, noise draw 16
-    of the bench's calibration: the surface a Reconstructor with ``options`` gives, and the
-    truth in the sensor frame."""
+def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer_beside_it():
+    """A saddle R 342 mm at 71.8° on 16×16 (an unseen seed's scene in its kinematic form, noise
+    draw 16): its answer, the right sign, whose defect pass was not kept (it overshot, 1.9 → 4.4
+    per gauge), read the gauges at 1.9 per gauge, beyond what the noise leaves; its mirror on the
+    family read 0.87 and was taken, 8.0 mm off with σ 0.12 mm, unflagged (34 times 3σ + 0.05 mm).
+    The mirror is still taken, but an answer that misread the gauges stays beside it: flagged,
+    and one of the two within 3σ + 0.05 mm of the truth in the sensor frame."""
     from conftest import kinematic_bench_frame
 
     from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
 
     shape, eu, el = kinematic_bench_frame("saddle", 777, 1, 16, "saddle:radius=341.8,axis_angle=71.8", 16)
-    rec = Reconstructor(16, 16, PITCH, **options)
-    return rec(eu, el), nodes_in_sensor_frame(rec.grid, shape.position)
-
-
-def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer_beside_it():
-    """That frame: its answer, the right sign, whose defect pass was not kept (it overshot, 1.9 →
-    4.4 per gauge), read the gauges at 1.9 per gauge, beyond what the noise leaves; its mirror on
-    the family read 0.87 and was taken, 8.0 mm off with σ 0.12 mm, unflagged (34 times 3σ + 0.05
-    mm).  The mirror is still taken, but an answer that misread the gauges stays beside it:
-    flagged, and one of the two within 3σ + 0.05 mm of the truth in the sensor frame."""
-    surf, truth = _unseen_16x16_saddle_frame()
+    rec = Reconstructor(16, 16, PITCH)
+    surf = rec(eu, el)
     assert surf.diagnostics.extra.get("mirror_swapped")
     assert surf.mirror is not None
+    truth = nodes_in_sensor_frame(rec.grid, shape.position)
     bound = 3.0 * surf.node_sigma + 0.05
     within = [bool(np.all(np.linalg.norm(a.nodes - truth, axis=-1) <= bound)) for a in (surf, surf.mirror)]
     assert any(within), within
