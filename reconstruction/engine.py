@@ -291,6 +291,12 @@ def _fit_slope_twist(p, q, e1, g1, u, v) -> tuple[float, float, float, float] | 
     return c, quartic_value(k, c), quartic_value(k, 0.0), quartic_value(k, -c)
 
 
+def sign_decided(best: float, mirror: float, total: float) -> bool:
+    """Whether the stretch pattern decides a graph's twist sign: the mirror twist's misfit
+    ``mirror`` exceeds twice the best's ``best`` (and a thousandth of the pattern ``total``)."""
+    return mirror > 2.0 * best + 1e-3 * total
+
+
 def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_sigma: float) -> GraphTwist | None:
     """Signed constant twist of a sheet pushed out of plane (a graph over the centre's tangent
     plane), from its stretch pattern, or None when that model does not explain the stretch.
@@ -320,7 +326,7 @@ def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_
     total = float((e1 * e1).sum() + (g1 * g1).sum())
     if not best < 0.2 * total:  # the graph leaves more than a fifth of the stretch unexplained
         return None
-    decisive = mirror > 2.0 * best + 1e-3 * total
+    decisive = sign_decided(best, mirror, total)
     slope2 = (p + c * v) ** 2 + (q + c * u) ** 2
     c_eff = c * float((1.0 / np.sqrt((1.0 + slope2) * metric.eg[inner])).mean())
     return GraphTwist(c_eff, decisive, best < 0.5 * zero, c, p_full, q_full)

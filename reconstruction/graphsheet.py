@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .engine import GraphTwist, graph_slopes, quartic_value, slope_twist_quartic
+from .engine import GraphTwist, graph_slopes, quartic_value, sign_decided, slope_twist_quartic
 from .grid import FineGrid
 
 __all__ = ["graph_sheet_fields", "free_part", "RESIDUAL_LIMIT", "SlopeNoise", "slope_noise"]
@@ -134,6 +134,7 @@ def graph_sheet_fields(
     passes: int = 1,
     noise: SlopeNoise | None = None,
     noise_sd: tuple[float, float] = (0.0, 0.0),
+    want_twist_sd: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Twist field τ (nf, mf) and shear F = z_u z_v (nf, mf) of the graph, its slopes refined
     from the linear-fit slopes in ``graph`` by ``passes`` rescaled fits; None when the refined
@@ -145,13 +146,17 @@ def graph_sheet_fields(
     geometry's :class:`SlopeNoise` and the data's turning and stretch noise s.d. per unit, which
     the twist's trust weighs the stretch misfit against (None: noise-free data); with them, the
     third item is the constant twist's s.d. from that noise where the twist is trusted whole and
-    the refined slopes decide its sign (1/mm of the slopes' twist), else NaN.
+    the refined slopes decide its sign (1/mm of the slopes' twist), else NaN; with
+    ``want_twist_sd`` False it is not computed (NaN), nor the noise's share where the fixed
+    share already trusts the twist whole.
     """
     v = grid.v[:, None]
     u = grid.u[None, :]
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {passes!r}")
     inner = grid.inner
+    e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
+    total = float((e1 * e1).sum() + (g1 * g1).sum())
     c = graph.slope_twist
     p, q = graph.p, graph.q
     for _ in range(passes):
@@ -163,7 +168,7 @@ def graph_sheet_fields(
         k_uu, k_vv, tau_var = maps(turning * scale.reshape(turning.shape), stretch)[:3]
         tau_var = tau_var - tau_var.mean()
         p, q = graph_slopes(grid, k_uu, k_vv, tau_var)
-        k = slope_twist_quartic(p[inner], q[inner], stretch_sq[0][inner], stretch_sq[1][inner], u[:, inner[1]], v[inner[0]])
+        k = slope_twist_quartic(p[inner], q[inner], e1, g1, u[:, inner[1]], v[inner[0]])
         c = _local_minimum(k, c)
     # A constant twist is trusted in proportion to the share of the stretch misfit it removes:
     # fully from 80 %, not at all below 50 % (then the slopes' own errors, e.g. a bump the gauges
@@ -176,7 +181,7 @@ def graph_sheet_fields(
     best, zero = quartic_value(k, c), quartic_value(k, 0.0)
     trust = min(max((zero / max(best, 1e-300) - 2.0) / 3.0, 0.0), 1.0)
     twist_sd = math.nan
-    if noise is not None and (noise_sd[0] > 0.0 or noise_sd[1] > 0.0):
+    if noise is not None and (noise_sd[0] > 0.0 or noise_sd[1] > 0.0) and (trust < 1.0 or want_twist_sd):
         cols, rows = u[:, inner[1]], v[inner[0]]
         floor, chance, sd, mean = noise.misfit_noise((p + c * v)[inner], (q + c * u)[inner],
                                                      np.broadcast_to(cols, (rows.shape[0], cols.shape[1])),
@@ -184,19 +189,16 @@ def graph_sheet_fields(
         removed, beyond = zero - best, best - floor
         if removed > chance:
             trust = 1.0 if beyond <= 0.0 else max(trust, min(max((removed / beyond - 1.0) / 3.0, 0.0), 1.0))
-        e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
         # (its sign decided by the refined slopes, as engine._graph_twist decides it on the
-        # linear fit's: the mirror twist leaves more than twice the misfit; a 16×16 saddle 0.7°
-        # off the rows left 0.065 and 0.105 on the linear slopes, 0.0056 and 0.044 refined)
-        decisive = quartic_value(k, -c) > 2.0 * best + 1e-3 * float((e1 * e1).sum() + (g1 * g1).sum())
-        if trust == 1.0 and mean > 0.0 and decisive:
+        # linear fit's: a 16×16 saddle 0.7° off the rows left 0.065 and 0.105 on the linear
+        # slopes, 0.0056 and 0.044 refined)
+        if want_twist_sd and trust == 1.0 and mean > 0.0 and sign_decided(best, quartic_value(k, -c), total):
             # a twist trusted whole, its sign the data's: its own noise (one shrunk is not the
             # data's alone), scaled by the misfit it leaves over the noise's (a graph that
             # misfits beyond the noise reads its twist worse than the noise alone would say)
             twist_sd = sd * math.sqrt(max(best / mean, 1.0))
     c *= trust
-    e1, g1 = stretch_sq[0][inner], stretch_sq[1][inner]
-    if not quartic_value(k, c) < RESIDUAL_LIMIT * float((e1 * e1).sum() + (g1 * g1).sum()):
+    if not quartic_value(k, c) < RESIDUAL_LIMIT * total:
         return None
     z_u, z_v = p + c * v, q + c * u
     w = np.sqrt(1.0 + z_u * z_u + z_v * z_v)

@@ -1458,8 +1458,12 @@ class Reconstructor(StretchPatternTwist):
             # data, its correction adding the residual's noise again; the all-valid maps' draws
             # stand for a frame with units missing too)
             level = present / turning_sigma if turning_sigma > 0.0 else 0.0
+            # (the twist's own s.d. serves σ only where the noise alone leaves the model within
+            # one per gauge, _posterior: not computed where that is known not to hold)
+            known = self._noise_responses.get(float(strain_sigma))
             fields = graph_sheet_fields(grid, maps, turning, stretch, graph, (metric.e - 1.0, metric.g - 1.0),
-                                        noise=self._slope_noise(), noise_sd=(present, level * stretch_sigma))
+                                        noise=self._slope_noise(), noise_sd=(present, level * stretch_sigma),
+                                        want_twist_sd=known is None or known[1] <= 1.0)
             if fields is not None:
                 (tau, shear_graph, twist_sd), twist_c = fields, graph.constant
                 convex_info["graph_sheet"] = True
