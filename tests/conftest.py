@@ -312,16 +312,20 @@ def drain_notify(sock: socket.socket) -> list[str]:
             return out
 
 
-def kinematic_bench_frame(key: str, seed: int, index: int, n: int, spec: str, draw: int) -> tuple[Any, Any, Any]:
-    """The kinematic form of the elastic bench's scene ``index`` of class ``key`` (two scenes a
-    class, ``seed``) on an n×n sheet at 12 mm, checked to be ``spec``, and its gauges' strains
-    with the bench's noise draw ``draw``: (shape, eps_upper, eps_lower)."""
+def bench_frame(key: str, seed: int, index: int, n: int, spec: str, draw: int,
+                elastic_cache: Any = None) -> tuple[Any, Any, Any, Any]:
+    """The elastic bench's scene ``index`` of class ``key`` (``seed``) on an n×n sheet at 12 mm,
+    checked to be ``spec``, and its gauges' strains with the bench's noise draw ``draw``: (plan,
+    shape, eps_upper, eps_lower).  The shape is the scene's kinematic form, or with
+    ``elastic_cache`` (the solver's cache folder) the elastic film itself."""
     from skinmap.emulator import physics as ph
+    from skinmap.emulator.scenes import parse_scene_spec
 
     ed = elastic_dataset()
-    plan = ed.class_plans(key, seed, 2, n)[index]
+    plan = ed.class_plans(key, seed, index + 1, n)[index]
     assert plan.spec == spec, plan.spec
-    shape = ed.kinematic_shape(plan)
+    shape = (ed.kinematic_shape(plan) if elastic_cache is None
+             else parse_scene_spec(plan.spec, "elastic", n, n, 12.0, cache_dir=elastic_cache))
     eu, el = ph.gauge_strains(shape, n, n, 12.0, 0.2, 0.2, 10.0)
     du, dl = ed.noise_draw(plan, draw, 0.0057e-2, eu.shape)
-    return shape, eu + du, el + dl
+    return plan, shape, eu + du, el + dl

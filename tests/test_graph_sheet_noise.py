@@ -64,14 +64,14 @@ def test_a_noisy_16x16_saddle_near_the_rows_keeps_its_graph_twist_and_is_within_
     of 0.012-0.019, and the share left, 0.003-0.01, is mostly the noise's (0.004 ± 0.0013); judged
     against the whole of it the twist was trusted 0-0.7 and the sheet was 0.18-0.27 mm off on every
     noisy draw.  Judged beyond the noise: within 0.1 mm mean on each of four draws."""
-    from conftest import kinematic_bench_frame
+    from conftest import bench_frame
     from skinmap.reconstruction.linalg import aligned_distances
 
     n = 16
     rec = Reconstructor(n, n, PITCH)
     errors = []
     for draw in range(4):
-        shape, eu, el = kinematic_bench_frame("saddle", 2024, 0, n, "saddle:radius=292.7,axis_angle=1.0", draw)
+        _, shape, eu, el = bench_frame("saddle", 2024, 0, n, "saddle:radius=292.7,axis_angle=1.0", draw)
         truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
         errors.append(float(aligned_distances(rec(eu, el).nodes.reshape(-1, 3), truth).mean()))
     assert max(errors) <= 0.1, errors
@@ -89,14 +89,14 @@ def test_a_graph_sheets_twist_carries_its_own_noise_which_describes_its_scatter_
     is decided by the refined ones (0.044 against 0.0056).  Over eight noisy draws the twist's
     scatter is within a factor of two of the s.d. said, and every node lies within 3σ + 0.05 mm
     of the truth after the best rigid alignment."""
-    from conftest import kinematic_bench_frame
+    from conftest import bench_frame
     from skinmap.reconstruction.linalg import aligned_distances
 
     n = 16
     rec = Reconstructor(n, n, PITCH)
     twists, sds = [], []
     for draw in range(8):
-        shape, eu, el = kinematic_bench_frame("saddle", 2024, index, n, spec, draw)
+        _, shape, eu, el = bench_frame("saddle", 2024, index, n, spec, draw)
         surf = rec(eu, el)
         sds.append(surf.diagnostics.extra.get("graph_twist_sd"))
         twists.append(surf.diagnostics.twist_constant)

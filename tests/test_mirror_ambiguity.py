@@ -132,11 +132,11 @@ def test_a_mirror_taken_over_an_answer_that_misreads_the_gauges_keeps_the_answer
     family read 0.87 and was taken, 8.0 mm off with σ 0.12 mm, unflagged (34 times 3σ + 0.05 mm).
     The mirror is still taken, but an answer that misread the gauges stays beside it: flagged,
     and one of the two within 3σ + 0.05 mm of the truth in the sensor frame."""
-    from conftest import kinematic_bench_frame
+    from conftest import bench_frame
 
     from skinmap.reconstruction import Reconstructor, nodes_in_sensor_frame
 
-    shape, eu, el = kinematic_bench_frame("saddle", 777, 1, 16, "saddle:radius=341.8,axis_angle=71.8", 16)
+    _, shape, eu, el = bench_frame("saddle", 777, 1, 16, "saddle:radius=341.8,axis_angle=71.8", 16)
     rec = Reconstructor(16, 16, PITCH)
     surf = rec(eu, el)
     assert surf.diagnostics.extra.get("mirror_swapped")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import aligned_error, elastic_dataset, frame_errors, worst_of_answers
+from conftest import aligned_error, bench_frame, elastic_dataset, frame_errors, worst_of_answers
 
 from skinmap.emulator import physics as ph
 from skinmap.emulator.scenes import parse_scene_spec
@@ -310,16 +310,11 @@ def test_a_saddle_whose_stretch_only_bounds_the_twist_leaves_the_least_shear_pri
 
 
 def _dataset_frame(key: str, index: int, n: int, spec: str, draw: int, cache, seed: int = 2024):
-    """The elastic bench's scene ``index`` of class ``key`` at n×n (its spec checked; ``seed``:
-    the bench's), with its noise draw ``draw``: (plan, shape, upper strains, lower strains, true
+    """The elastic bench's scene ``index`` of class ``key`` at n×n, the film itself
+    (conftest.bench_frame), and its true nodes: (plan, shape, upper strains, lower strains, true
     nodes (K, 3))."""
-    ed = elastic_dataset()
-    plan = ed.class_plans(key, seed, index + 1, n)[index]
-    assert plan.spec == spec
-    shape = parse_scene_spec(plan.spec, "elastic", n, n, PITCH, cache_dir=cache)
-    eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, G)
-    du, dl = ed.noise_draw(plan, draw, NOISE, eu.shape)
-    return plan, shape, eu + du, el + dl, ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
+    plan, shape, eu, el = bench_frame(key, seed, index, n, spec, draw, elastic_cache=cache)
+    return plan, shape, eu, el, ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
 
 
 @pytest.mark.slow
