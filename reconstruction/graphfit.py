@@ -41,6 +41,7 @@ from typing import Callable, NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 from scipy.interpolate import BSpline
 from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
@@ -191,44 +192,57 @@ class GraphFit:
         bu = [_design(ku, nbu, pu, d) for d in range(3)]
         bv = [_design(kv, nbv, pv, d) for d in range(3)]
 
-        def rows(a: int, b: int) -> np.ndarray:  # ∂u^a ∂v^b w at every point, (P, nc)
-            return (bv[b][:, :, None] * bu[a][:, None, :]).reshape(len(pu), nc)
-
         g = 2 * n * m
         half = g // 2
+        # Each gauge touches a few dozen coefficients: keep them as a local dense block, built
+        # gauge by gauge (a dense (points, coefficients) design is 170 MB on 16×16).
         # along (a), across (b), second derivative along (aa): u gauges then v gauges
-        d_a = np.concatenate([rows(1, 0)[: half * q], rows(0, 1)[half * q:]])
-        d_b = np.concatenate([rows(0, 1)[: half * q], rows(1, 0)[half * q:]])
-        d_aa = np.concatenate([rows(2, 0)[: half * q], rows(0, 2)[half * q:]])
-        # Each gauge touches a few dozen coefficients: keep them as a local dense block.
-        touched = [np.flatnonzero(np.abs(np.concatenate([d_a[k * q:(k + 1) * q], d_b[k * q:(k + 1) * q],
-                                                         d_aa[k * q:(k + 1) * q]])).sum(0)) for k in range(g)]
+        touched = []
+        blocks = []
+        for k in range(g):
+            sl = slice(k * q, (k + 1) * q)
+            cu = np.flatnonzero(np.abs(bu[0][sl]).sum(0) + np.abs(bu[1][sl]).sum(0) + np.abs(bu[2][sl]).sum(0))
+            cv = np.flatnonzero(np.abs(bv[0][sl]).sum(0) + np.abs(bv[1][sl]).sum(0) + np.abs(bv[2][sl]).sum(0))
+
+            def local(a: int, b: int) -> np.ndarray:  # ∂u^a ∂v^b w at the gauge's points, (q, |cv|·|cu|)
+                return (bv[b][sl][:, cv, None] * bu[a][sl][:, None, cu]).reshape(q, -1)
+
+            cols = (cv[:, None] * nbu + cu[None, :]).ravel()
+            if k < half:
+                da, db, daa = local(1, 0), local(0, 1), local(2, 0)
+            else:
+                da, db, daa = local(0, 1), local(1, 0), local(0, 2)
+            nz = np.flatnonzero(np.abs(np.concatenate([da, db, daa])).sum(0))
+            order = np.argsort(cols[nz], kind="stable")
+            keep = nz[order]
+            touched.append(cols[keep])
+            blocks.append((da[:, keep], db[:, keep], daa[:, keep]))
         width = max(len(t) for t in touched)
         self.idx = np.zeros((g, width), dtype=np.int64)
         self.da, self.db, self.daa = (np.zeros((g, q, width)) for _ in range(3))
         for k, t in enumerate(touched):
             self.idx[k, : len(t)] = t
             self.idx[k, len(t):] = t[0]  # padding: weight 0 on a real index
-            sl = slice(k * q, (k + 1) * q)
-            self.da[k, :, : len(t)] = d_a[sl][:, t]
-            self.db[k, :, : len(t)] = d_b[sl][:, t]
-            self.daa[k, :, : len(t)] = d_aa[sl][:, t]
+            self.da[k, :, : len(t)], self.db[k, :, : len(t)], self.daa[k, :, : len(t)] = blocks[k]
         self.bandwidth = int(max((t.max() - t.min()) for t in touched))
         # Prior ∫∫|∇³w|² as Kronecker products of 1D Gram matrices, plus a ridge and a pin of
         # the centre coefficient (the height offset is seen by no datum).
         gu = [_gram(ku, nbu, d) for d in range(4)]
         gv = [_gram(kv, nbv, d) for d in range(4)]
-        prior = cast(np.ndarray, _PRIOR_SCALE * sum(wt * np.kron(gv[b], gu[a]) for a, b, wt in _PRIOR_WEIGHTS))
-        prior[np.diag_indices(nc)] += _RIDGE
+        prior = _PRIOR_SCALE * sum((wt * scipy.sparse.kron(gv[b], gu[a]) for a, b, wt in _PRIOR_WEIGHTS),
+                                   scipy.sparse.csr_array((nc, nc)))
         self.pin = (nbv // 2) * nbu + nbu // 2
-        prior[self.pin, self.pin] += 1.0
-        self.prior = prior
-        nz_i, nz_j = np.nonzero(np.abs(prior) > 0)
-        self.bandwidth = int(max(self.bandwidth, np.max(np.abs(nz_i - nz_j))))
+        ridge = np.full(nc, _RIDGE)
+        ridge[self.pin] += 1.0
+        # sparse: a dense prior is 54 MB on 16×16 (2601 unknowns), and its product with the
+        # coefficients cost 5 ms a call there, more than the rest of an evaluation
+        self._prior_sparse = scipy.sparse.csr_array(prior + scipy.sparse.diags_array(ridge))
+        coo = self._prior_sparse.tocoo()
+        self.bandwidth = int(max(self.bandwidth, np.max(np.abs(coo.row - coo.col))))
         bw = self.bandwidth
         self.prior_band = np.zeros((bw + 1, nc))
-        for d in range(bw + 1):
-            self.prior_band[d, : nc - d] = np.diagonal(prior, -d)
+        lower = coo.row >= coo.col
+        self.prior_band[coo.row[lower] - coo.col[lower], coo.col[lower]] = coo.data[lower]
         off, col = np.nonzero(np.ones((bw + 1, nc), dtype=bool))
         self._band_index = (off[col + off < nc], col[col + off < nc])  # the band's entries, for _dense
         # the same entries as flat indices into the band and into a dense (nc, nc) Fortran array's
@@ -254,19 +268,28 @@ class GraphFit:
 
     # ---------------------------------------------------------------- per frame
     def _start(self, turning: np.ndarray, valid: np.ndarray, sigma_t: float) -> np.ndarray:
+        """The linear start: min Σ ((J₀c)_k − Θ_k)²/σ_Θ² + cᵀPc over the valid gauges, J₀ the
+        small-slope turning rows (banded normal equations, factorised once per mask)."""
         key = valid.tobytes()
-        op = self._starts.get(key)
-        if op is None:
-            w = valid.astype(float) / sigma_t
-            j = np.zeros((len(w), self.size))
-            np.add.at(j, (np.repeat(np.arange(len(w)), self.idx.shape[1]), self.idx.ravel()),
-                      (self._j0 * w[:, None]).ravel())
-            a = j.T @ j + self.prior
-            op = scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), j.T * w, check_finite=False)
-            self._starts[key] = op
+        factor = self._starts.get(key)
+        w = valid.astype(float) / sigma_t
+        if factor is None:
+            rows = self._j0 * w[:, None]
+            i = np.broadcast_to(self.idx[:, :, None], rows.shape + (rows.shape[1],))
+            j = np.broadcast_to(self.idx[:, None, :], i.shape)
+            lower = i >= j
+            band = self.prior_band.copy()
+            np.add.at(band, ((i - j)[lower], j[lower]), (rows[:, :, None] * rows[:, None, :])[lower])
+            f, info = _pbtrf(band, lower=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"the graph fit's linear start is not definite (LAPACK info {info})")
+            factor = f
+            self._starts[key] = factor
             if len(self._starts) > 16:
                 self._starts.popitem(last=False)
-        return op @ np.where(valid, turning, 0.0)
+        rhs = np.bincount(self.idx.ravel(), weights=(self._j0 * (w * w * np.where(valid, turning, 0.0))[:, None]).ravel(),
+                          minlength=self.size)
+        return _pbtrs(factor, rhs, lower=1)[0]
 
     def _model(self, c: np.ndarray, want_jacobian: bool):
         """Numpy reference: model turning and stretch per gauge, and their local Jacobian rows."""
@@ -300,13 +323,13 @@ class GraphFit:
         else:
             tm, sm = self._model(c, False)
             rt, rs = (tm - turning) * w_t, (sm - stretch) * w_s
-        return 0.5 * float(rt @ rt + rs @ rs + c @ (self.prior @ c)), rt, rs
+        return 0.5 * float(rt @ rt + rs @ rs + c @ (self._prior_sparse @ c)), rt, rs
 
     def _evaluate(self, c, turning, stretch, w_t, w_s, with_matrix: bool, curvature=(0.0, 0.0)):
         """At c: the objective, its gradient Jᵀr + Pc, the normalised residuals (turning then
         stretch) and, ``with_matrix``, the factorised Gauss-Newton matrix JᵀJ + P (plus the
         stretch curvature, see kernels.graph_normal_equations; None when not positive definite)."""
-        pc = self.prior @ c
+        pc = self._prior_sparse @ c
         rhs = pc.copy()
         factor = None
         g = len(turning)
@@ -343,7 +366,7 @@ class GraphFit:
     def _numpy_matrix(self, c, j, rs, w_s, curvature) -> np.ndarray:
         """Numpy reference: JᵀJ + P plus the stretch residuals' own curvature (see
         kernels.graph_normal_equations), dense."""
-        h = j.T @ j + self.prior
+        h = j.T @ j + self._prior_sparse.toarray()
         a = np.einsum("gql,gl->gq", self.da, c[self.idx])
         cr = np.where(rs > 0.0, curvature[0] * rs, -curvature[1] * rs)
         cw = (cr * w_s)[:, None] * self.wq / (1.0 + a * a) ** 1.5

@@ -76,6 +76,13 @@ HELD_SIGMAS = 2.0
 # a frame); on 12×12 and smaller the test rejected the moving bump's frames, and held films
 # gained (5×5 ×0.5–0.8, 12×12 saddles ×0.9).
 WARM_DEFECT_MAX_CELLS = 144
+#: Sheets above GRAPH_FIT_MAX_CELLS and up to this many cells fit the height graph cold only
+#: where the general model's answer misfits the gauges by more than GRAPH_RESCUE_CHI2 per gauge
+#: (a feature sharper than the cells: 450-2700 on 5 mm / FWHM 15 mm bumps at 12×12 and 16×16,
+#: at most 2.7 on every other kinematic class of the bench), and warm where the frame before was
+#: a graph; the general model's defect correction alone leaves such a bump 0.2-0.3 mm off.
+GRAPH_RESCUE_MAX_CELLS = 256
+GRAPH_RESCUE_CHI2 = 8.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it; none included) has its square uncertain by this share of the answer's mean
 # Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
@@ -152,6 +159,14 @@ class TwistLeftOpen:
     prior_sign_told: bool = False
 
 
+def _deferred(graph: GraphResult | None) -> GraphResult:
+    """The record of a cold graph fit left to the caller (``graph_cold=False``)."""
+    why = "no warm start" if graph is None else graph.how
+    base = graph if graph is not None else GraphResult(False, np.zeros(0), math.inf, math.inf, 0, 0.0, math.inf, "",
+                                                       math.inf)
+    return base._replace(how=f"deferred: {why}")
+
+
 class Reconstructor(StretchPatternTwist):
     """Reconstruction for one sensor geometry; holds the fine grid, its operators and their
     factorisations, so that each call only does per-frame work.  Not thread-safe: it fills its
@@ -179,7 +194,9 @@ class Reconstructor(StretchPatternTwist):
         model's surface within their combined uncertainty, else the general model's).  It
         resolves bumps sharper than a gauge (5 mm / FWHM 15 mm: 0.19 → 0.02 mm mean error) and
         twisted sheets pressed out of plane.  None (default): on for sheets of up to 64 cells
-        (:data:`GRAPH_FIT_MAX_CELLS`; its unknowns grow as (3N + 3)(3M + 3)), off above; True
+        (:data:`GRAPH_FIT_MAX_CELLS`; its unknowns grow as (3N + 3)(3M + 3)); above, up to
+        :data:`GRAPH_RESCUE_MAX_CELLS`, tried only where the general model's answer misfits the
+        gauges (:data:`GRAPH_RESCUE_CHI2`) or warm from a previous graph answer; True
         asks for it (an error above 64 cells), False for the general model alone.
     convex_solver : "factorized" (default: the least-squares field fit by its cached
         factorisation, the exact optimum) or "clarabel" (the same convex fit with a Huber loss
@@ -279,6 +296,7 @@ class Reconstructor(StretchPatternTwist):
                 compiled.warm_up(grid.spacing, a0, b0, self._band, self.shear_passes, self.frame_corrections)
                 self._compiled = compiled
         self.kernels = "compiled" if self._compiled is not None else "numpy"
+        graph_default = graph_fit is None
         if graph_fit is None:
             graph_fit = self.n * self.m <= GRAPH_FIT_MAX_CELLS
         if not isinstance(graph_fit, (bool, np.bool_)):
@@ -287,7 +305,9 @@ class Reconstructor(StretchPatternTwist):
             raise ValueError(f"graph_fit is for sheets of up to {GRAPH_FIT_MAX_CELLS} cells "
                              f"(its unknowns grow as (3N + 3)(3M + 3)), got {self.n}x{self.m}")
         self._graph = None
-        if graph_fit:
+        # by default, larger sheets keep the graph for the frames the general model misfits
+        self._graph_rescue = bool(graph_default and not graph_fit and self.n * self.m <= GRAPH_RESCUE_MAX_CELLS)
+        if graph_fit or self._graph_rescue:
             self._graph = GraphFit(self.n, self.m, self.pitch, self.gauge_length, self.grid.u, self.grid.v,
                                    self.grid.inner, compiled=self._compiled)
         self.graph_fit = bool(graph_fit)
@@ -462,6 +482,7 @@ class Reconstructor(StretchPatternTwist):
         general = None
         warm = None
         deferred = False
+        rescue = False  # a cold graph fit only if the general model's answer misfits (larger sheets)
         measured: list = []
 
         def data_fields() -> tuple:
@@ -483,13 +504,18 @@ class Reconstructor(StretchPatternTwist):
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
-            linear = self._graph.cold_starts(data) if graph is None or not graph.accepted else None
+            if self._graph_rescue and (graph is None or not graph.accepted):
+                # a larger sheet: the general model answers first, and the graph is fitted cold
+                # only where that answer misfits the gauges (below)
+                rescue = True
+            linear = (self._graph.cold_starts(data) if (graph is None or not graph.accepted) and not rescue
+                      else None)
             ruled_out = self._graph.ruled_out(linear) if linear is not None else None
             if ruled_out is not None:
                 # no graph can answer (the screen needs no start but the linear one): the general
                 # model answers, as it would after the cold fit's own screen
                 graph = ruled_out
-            elif graph is None or not graph.accepted:
+            elif (graph is None or not graph.accepted) and not rescue:
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
@@ -497,14 +523,45 @@ class Reconstructor(StretchPatternTwist):
                 starts = self._graph.cold_starts(data, general[0], linear)
                 if not graph_cold and not all(starts[1]):
                     # a cold fit to do, left to the caller: this frame is the general model's
-                    why = "no warm start" if graph is None else graph.how
-                    graph = (graph if graph is not None else
-                             GraphResult(False, np.zeros(0), math.inf, math.inf, 0, 0.0, math.inf, "", math.inf))
-                    graph = graph._replace(how=f"deferred: {why}")
+                    graph = _deferred(graph)
                     deferred = True
                 else:
                     agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
                     graph = self._graph.fit_cold(data, general[0], twist_sign, agree, starts)
+
+        def general_answer(first, correct: bool) -> tuple:
+            """The general model's answer: from the previous frame's correction where that holds,
+            else from ``first`` (or a fresh pass) through the defect correction."""
+            warm_general = None
+            if first is None and correct and graph_warm:
+                warm_general = self._warm_general(previous, eu, el, data_fields, valid, n_valid, strain_sigma,
+                                                  twist_sign, carried)
+            if warm_general is not None:
+                return warm_general
+            if first is None:
+                first = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
+                                      carried)
+            if correct:
+                first = self._defect_correction(first, eu, el, valid, n_valid, strain_sigma, previous, twist_sign,
+                                                carried)
+            return first
+
+        answered = None  # the general model's answer, where a rescue tried the graph after it
+        if rescue:
+            answered = general_answer(None, bool(n_valid and self.defect_steps))
+            chi_read = answered[3].get("forward_chi2")
+            if chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * max(chi_read[2], 1):
+                linear = self._graph_fit().cold_starts(data)
+                ruled_out = self._graph_fit().ruled_out(linear)
+                if ruled_out is not None:
+                    graph = ruled_out
+                elif not graph_cold:
+                    graph = _deferred(graph)
+                    deferred = True
+                else:
+                    starts = self._graph_fit().cold_starts(data, answered[0], linear)
+                    agree, graph_sigma = self._agreement(answered, turning, valid, data, fit_sigma)
+                    graph = self._graph_fit().fit_cold(data, answered[0], twist_sign, agree, starts)
         left_out = True
         if graph is not None and graph.accepted:
             pos = to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
@@ -520,19 +577,7 @@ class Reconstructor(StretchPatternTwist):
             # as much as the cold fit it stands in for, and the posterior check widens its
             # uncertainty by the misfit left)
             correct = bool(n_valid and self.defect_steps and not deferred)
-            warm_general = None
-            if general is None and correct and graph_warm:
-                warm_general = self._warm_general(previous, eu, el, data_fields, valid, n_valid, strain_sigma,
-                                                  twist_sign, carried)
-            if warm_general is not None:
-                general = warm_general
-            else:
-                if general is None:
-                    general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign,
-                                            (eu, el), carried)
-                if correct:
-                    general = self._defect_correction(general, eu, el, valid, n_valid, strain_sigma, previous,
-                                                      twist_sign, carried)
+            general = answered if answered is not None else general_answer(general, correct)
             pos, twist_c, fit, convex_info, left_out, positions_at = general
             iterations = self.shear_passes + self.frame_corrections + convex_info["iterations"]
         if not np.isfinite(pos).all():
