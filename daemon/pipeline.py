@@ -390,11 +390,12 @@ class FramePipeline:
         self._reconstructor = value
 
     def _new_reconstructor(self) -> Any:
-        from skinmap.reconstruction import GRAPH_FIT_MAX_CELLS, Reconstructor
+        from skinmap.reconstruction import Reconstructor
 
         g = self.geometry
-        # the graph fit is offered for small sheets only; larger ones keep the general model
-        graph_fit = self.graph_fit and g.n * g.m <= GRAPH_FIT_MAX_CELLS
+        # on: the reconstructor's own choice by size (the graph first up to 64 cells, where the
+        # general model misfits up to 256, the general model alone above)
+        graph_fit = None if self.graph_fit else False
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
                              poisson_range=self.poisson_range)
@@ -550,7 +551,8 @@ class FramePipeline:
 
     def _chained(self) -> bool:
         """Whether this pipeline runs the graph fit's chains (warm starts of a graph fit)."""
-        return self.warm_start and getattr(self.reconstructor, "graph_fit", False)
+        rec = self.reconstructor
+        return self.warm_start and bool(getattr(rec, "graph_fit", False) or getattr(rec, "graph_rescue", False))
 
     def _submit(self, chain: _Chain, fn: Callable[[], None]) -> None:
         self._chain_tail = chain.submit(self.background, fn, self._chain_tail)

@@ -311,6 +311,8 @@ class Reconstructor(StretchPatternTwist):
             self._graph = GraphFit(self.n, self.m, self.pitch, self.gauge_length, self.grid.u, self.grid.v,
                                    self.grid.inner, compiled=self._compiled)
         self.graph_fit = bool(graph_fit)
+        #: the graph fit is kept for the frames the general model misfits (65 to 256 cells, default)
+        self.graph_rescue = self._graph_rescue
         if elastic_prior is not None and not isinstance(elastic_prior, PositionFitSettings):
             raise ValueError(f"elastic_prior must be a PositionFitSettings or None, got {type(elastic_prior).__name__}")
         if elastic_prior is not None and self.n * self.m > ELASTIC_PRIOR_MAX_CELLS:
