@@ -77,10 +77,12 @@ HELD_SIGMAS = 2.0
 # gained (5×5 ×0.5–0.8, 12×12 saddles ×0.9).
 WARM_DEFECT_MAX_CELLS = 144
 #: Sheets above GRAPH_FIT_MAX_CELLS and up to this many cells fit the height graph cold only
-#: where the general model's answer misfits the gauges by more than GRAPH_RESCUE_CHI2 per gauge
-#: (a feature sharper than the cells: 450-2700 on 5 mm / FWHM 15 mm bumps at 12×12 and 16×16,
-#: at most 2.7 on every other kinematic class of the bench), and warm where the frame before was
-#: a graph; the general model's defect correction alone leaves such a bump 0.2-0.3 mm off.
+#: where the general model's answer misfits the gauges by more than GRAPH_RESCUE_CHI2 times the
+#: χ² per gauge the noise alone leaves in its answers (`_noise_response`, at least one), and warm
+#: where the frame before was a graph.  Measured on the bench's kinematic classes at 12×12 and
+#: 16×16 (noisy frames): a bump sharper than the cells 18-2700 per gauge, the general model then
+#: 0.2-0.3 mm off; twisted quadrics 0.5-2.9 (0.17-0.34 mm off above 1.5); the classes the
+#: general model answers right 0.4-1.2, but three frames of 124 at 1.99-2.93.
 GRAPH_RESCUE_MAX_CELLS = 256
 GRAPH_RESCUE_CHI2 = 8.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
@@ -552,7 +554,8 @@ class Reconstructor(StretchPatternTwist):
         if rescue:
             answered = general_answer(None, bool(n_valid and self.defect_steps))
             chi_read = answered[3].get("forward_chi2")
-            if chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * max(chi_read[2], 1):
+            chi2_noise = self._noise_response(strain_sigma)[1]
+            if chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * chi2_noise * max(chi_read[2], 1):
                 linear = self._graph_fit().cold_starts(data)
                 ruled_out = self._graph_fit().ruled_out(linear)
                 if ruled_out is not None:
@@ -565,8 +568,9 @@ class Reconstructor(StretchPatternTwist):
                     agree, graph_sigma = self._agreement(answered, turning, valid, data, fit_sigma)
                     graph = self._graph_fit().fit_cold(data, answered[0], twist_sign, agree, starts)
         left_out = True
+        derivatives = None  # the answer's own ∂u, ∂v, ∂u∂v at the fine nodes (a graph's)
         if graph is not None and graph.accepted:
-            pos = to_sensor_frame(grid, self._graph_fit().fine_positions(graph.coeffs))
+            pos, derivatives = self._graph_surface(graph.coeffs)
             twist_c = graph.twist
             convex_info = {"status": "not needed (graph fit)", "iterations": 0}
             iterations = graph.iterations
@@ -658,19 +662,22 @@ class Reconstructor(StretchPatternTwist):
             surface_sigma = SigmaField(deferred_sigma)
         else:
             surface_sigma = SigmaField(general_sigma)
-        surf = self._surface(pos, surface_sigma, diag)
+        surf = self._surface(pos, surface_sigma, diag, derivatives)
         if deferred:
             surf._scatter_sigma_fn = SigmaField(general_sigma)
         if n_valid:
-            def graph_mirror(sign: float) -> tuple[np.ndarray, bool]:
+            def graph_mirror(sign: float) -> tuple[np.ndarray, bool, np.ndarray | None]:
                 """The graph fitted again with the opposite twist sign, from the general model's
                 answer with that sign (no agreement test: it is only weighed against the data),
-                and whether it is a graph (else the general model's answer with that sign)."""
+                whether it is a graph (else the general model's answer with that sign), and the
+                graph's own derivatives (read as the answer's are: both signs of a saddle at 45°
+                read the same strains, and only the same reading shows it)."""
                 general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
                 fit_m = self._graph_fit().fit_cold(data, general_m[0], sign)
                 if fit_m.accepted:
-                    return to_sensor_frame(grid, self._graph_fit().fine_positions(fit_m.coeffs)), True
-                return general_m[0], False
+                    pos_g, derivatives_g = self._graph_surface(fit_m.coeffs)
+                    return pos_g, True, derivatives_g
+                return general_m[0], False, None
 
             product_fields = convex_info.get("product_fields") if fit is not None else None
             twist_mean = cast("float | None", convex_info.get("twist_mean")) if fit is not None else None
@@ -1112,12 +1119,21 @@ class Reconstructor(StretchPatternTwist):
         signs = (1.0, -1.0) if twist_sign is None else (float(twist_sign),)
         return [self._surface(positions_at(-tm + sg * math.sqrt(disc) - twist_c), None, None) for sg in signs]
 
-    def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics | None) -> Surface:
+    def _graph_surface(self, coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A graph's fine positions in the sensor frame and its own derivatives there (∂u, ∂v,
+        ∂u∂v: (3, nf, mf, 3)), for the surface's patches."""
+        fit = self._graph_fit()
+        base = fit.fine_positions(coeffs)
+        rot, shift = sensor_frame(self.grid, base)
+        return base @ rot.T - shift, fit.fine_derivatives(coeffs) @ rot.T
+
+    def _surface(self, pos: np.ndarray, sigma, diag: Diagnostics | None,
+                 derivatives: np.ndarray | None = None) -> Surface:
         # (diag None: a candidate weighed only against the gauges, never returned)
         grid = self.grid
         return Surface(pitch=self.pitch, fine_u=grid.u, fine_v=grid.v, fine_positions=pos,
                        node_index=(grid.node_rows, grid.node_cols), fine_sigma=sigma, diagnostics=cast(Diagnostics, diag),
-                       compiled=self._compiled)
+                       compiled=self._compiled, fine_derivatives=derivatives)
 
     def _candidate(self, pos: np.ndarray) -> Surface | Patches:
         """Fine positions as the forward model reads them, for a candidate that is only weighed
@@ -1188,6 +1204,7 @@ class Reconstructor(StretchPatternTwist):
         if (abs(c0) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM and twist_sign is None
                 and (abs(c0) > MIRROR_SIGMAS * math.sqrt(product_sd(sigma_f)) or agreed)):
             mirror_comparable = True  # the mirror is the same model's: its χ² may swap them
+            derivatives_m = None
             if positions_at is not None:
                 pos_m = positions_at(-2.0 * c0)
             else:  # a graph answered: its mirror is the graph refitted with the opposite sign
@@ -1195,9 +1212,9 @@ class Reconstructor(StretchPatternTwist):
                 # its misfit is another model's, no evidence against the graph; an oblique trough
                 # on 8×8 read 0.04 per gauge so against the graph's 0.11 and was taken, 1.0 mm
                 # off with σ 0.016, where the graph of the other sign had 12 times its objective)
-                pos_m, mirror_comparable = graph_mirror(-math.copysign(1.0, c0))
+                pos_m, mirror_comparable, derivatives_m = graph_mirror(-math.copysign(1.0, c0))
             diag_m = _with_twist(diag, -c0)
-            cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m)
+            cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m, derivatives_m)
             chi_m, _, _ = misfit(cand, layout, eu, el, sigma_f)
             fresh_m = None
             if positions_at is not None and product_fields_general and chi_m - chi0 >= tell:
@@ -1705,8 +1722,18 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     the best rigid alignment 0.03-0.05).  A sheet wrapped so far that its plane is ill defined
     (:data:`FRAME_PLANE_OPEN`) takes the centre's tangent plane instead, blended continuously.
     Returns (nf, mf, 3), a view of a components-first array."""
-    a0, b0 = grid.centre
     flat = pos.transpose(2, 0, 1).reshape(3, -1)  # a view where pos is one of components first
+    rot, shift = sensor_frame(grid, pos)
+    out = rot @ flat
+    out -= shift[:, None]
+    return out.reshape(3, grid.nf, grid.mf).transpose(1, 2, 0)
+
+
+def sensor_frame(grid: FineGrid, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid motion :func:`to_sensor_frame` applies to ``pos``: (rot (3, 3), shift (3,)),
+    x ↦ rot·x − shift (a vector, a derivative of the positions, turns by rot alone)."""
+    a0, b0 = grid.centre
+    flat = pos.transpose(2, 0, 1).reshape(3, -1)
     mean = flat.mean(axis=1)
     var, axes = np.linalg.eigh(flat @ flat.T - flat.shape[1] * np.outer(mean, mean))  # ascending
     nz = axes[:, 0]
@@ -1727,9 +1754,7 @@ def to_sensor_frame(grid: FineGrid, pos: np.ndarray) -> np.ndarray:
     ex = chord - nz * (nz @ chord)
     ex /= math.sqrt(ex @ ex)
     rot = np.array([ex, _cross3(nz.tolist(), ex.tolist()), nz])  # rows: new axes in the old frame
-    out = rot @ flat
-    out -= (rot @ pos[a0, b0])[:, None]
-    return out.reshape(3, grid.nf, grid.mf).transpose(1, 2, 0)
+    return rot, rot @ pos[a0, b0]
 
 
 def _cross3(a, b) -> list[float]:
