@@ -161,8 +161,9 @@ def _projection(design: np.ndarray, gram3: np.ndarray) -> np.ndarray:
     (nodes, B-splines)).  Where the nodes are fewer than the B-splines (above 8×8 the fine grid
     is coarser than the knots: 25 nodes for 39 B-splines a side on 12×12) the pseudo-inverse
     leaves the B-splines between the nodes free, and a smooth sheet came out rippled between
-    them (a general model's answer as the graph fit's start read 3 times the stretch it
-    implied); there a small penalty on the third derivative (``gram3``) fills them smoothly."""
+    them (a twisted quadric's own heights implied three times the stretch its gauges read, and
+    the general model's answer as a start was screened out); there a small penalty on the third
+    derivative (``gram3``) fills them smoothly."""
     if design.shape[0] >= design.shape[1]:
         return np.linalg.pinv(design)
     normal = design.T @ design

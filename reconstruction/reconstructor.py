@@ -81,8 +81,9 @@ WARM_DEFECT_MAX_CELLS = 144
 #: χ² per gauge the noise alone leaves in its answers (`_noise_response`, at least one), and warm
 #: where the frame before was a graph.  Measured on the bench's kinematic classes at 12×12 and
 #: 16×16 (noisy frames): a bump sharper than the cells 18-2700 per gauge, the general model then
-#: 0.2-0.3 mm off; twisted quadrics 0.5-2.9 (0.17-0.34 mm off above 1.5); the classes the
-#: general model answers right 0.4-1.2, but three frames of 124 at 1.99-2.93.
+#: 0.2-0.3 mm off; every other class at most 2.9.  (Twisted quadrics read 0.5-2.9, 0.17-0.34 mm
+#: off from 1.5 up, and a threshold of 1.5 rescued them, but the timing table's broad bump on
+#: 16×16 crossed it once and stayed on warm graph frames of 12-30 ms: docs/reconstruction.md.)
 GRAPH_RESCUE_MAX_CELLS = 256
 GRAPH_RESCUE_CHI2 = 8.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
