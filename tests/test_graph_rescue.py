@@ -1,6 +1,9 @@
 """Sheets above 64 cells keep the height graph for the frames the general model misfits
 (docs/reconstruction.md, "Larger sheets: the graph where the general model misfits"): a bump
-sharper than the cells on 12×12 and 16×16, and the banded linear start the larger fit needs."""
+sharper than the cells on 12×12 and 16×16, in the library and through skinmapd's pipeline (its
+replay); what the larger fit needs (the banded linear start, the projection onto a basis finer
+than the fine grid); and a graph answer read through its own derivatives, its mirror too (both
+signs of a 45° saddle flagged)."""
 from __future__ import annotations
 
 import math
