@@ -308,14 +308,12 @@ class Reconstructor(StretchPatternTwist):
             raise ValueError(f"graph_fit is for sheets of up to {GRAPH_FIT_MAX_CELLS} cells "
                              f"(its unknowns grow as (3N + 3)(3M + 3)), got {self.n}x{self.m}")
         self._graph = None
-        # by default, larger sheets keep the graph for the frames the general model misfits
-        self._graph_rescue = bool(graph_default and not graph_fit and self.n * self.m <= GRAPH_RESCUE_MAX_CELLS)
-        if graph_fit or self._graph_rescue:
+        #: the graph fit kept for the frames the general model misfits (by default, 65 to 256 cells)
+        self.graph_rescue = bool(graph_default and not graph_fit and self.n * self.m <= GRAPH_RESCUE_MAX_CELLS)
+        if graph_fit or self.graph_rescue:
             self._graph = GraphFit(self.n, self.m, self.pitch, self.gauge_length, self.grid.u, self.grid.v,
                                    self.grid.inner, compiled=self._compiled)
         self.graph_fit = bool(graph_fit)
-        #: the graph fit is kept for the frames the general model misfits (65 to 256 cells, default)
-        self.graph_rescue = self._graph_rescue
         if elastic_prior is not None and not isinstance(elastic_prior, PositionFitSettings):
             raise ValueError(f"elastic_prior must be a PositionFitSettings or None, got {type(elastic_prior).__name__}")
         if elastic_prior is not None and self.n * self.m > ELASTIC_PRIOR_MAX_CELLS:
@@ -509,7 +507,7 @@ class Reconstructor(StretchPatternTwist):
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
-            if self._graph_rescue and (graph is None or not graph.accepted):
+            if self.graph_rescue and (graph is None or not graph.accepted):
                 # a larger sheet: the general model answers first, and the graph is fitted cold
                 # only where that answer misfits the gauges (below)
                 rescue = True
