@@ -74,7 +74,7 @@ class ReconstructionConfig:
     # robust fit of that screen solved by Clarabel ("Robust gauge screen")
     convex_solver: ConvexSolver = "factorized"
     # fit the sheet as a height graph to every gauge's turning and stretch first (sheets of up to
-    # 64 cells; up to 256 where the general model misfits; larger ones keep the general model):
+    # 64 cells; up to 144 where the general model misfits; larger ones keep the general model):
     # sharp bumps, see docs/reconstruction.md
     graph_fit: bool = True
     # the sign of a constant twist the gauges cannot observe (mirror-image shapes such as an

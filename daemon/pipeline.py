@@ -97,6 +97,12 @@ GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 #: whether a frame defers depends on the frames before it, so a replay is in step with it only
 #: where it already was.
 GRAPH_CATCH_UP_SCANS = 4
+#: The largest sheet (cells) skinmapd fits as a height graph at all: on 12×12 a sharp bump's
+#: graph answers keep 10 Hz output (emulated, 50 scans/s: p99 82-176 ms, 0-1 output dropped in
+#: 15-20 s), on 16×16
+#: (13 ms a warm frame and 70 ms its node σ) the output fell to 8-9 Hz with 31 frames dropped in
+#: 20 s, so 16×16 keeps the general model (docs/reconstruction.md, *Larger sheets*).
+PIPELINE_GRAPH_MAX_CELLS = 144
 
 
 def graph_restart(previous_seq: int | None, seq: int) -> bool:
@@ -393,9 +399,9 @@ class FramePipeline:
         from skinmap.reconstruction import Reconstructor
 
         g = self.geometry
-        # on: the reconstructor's own choice by size (the graph first up to 64 cells, where the
-        # general model misfits up to 256, the general model alone above)
-        graph_fit = None if self.graph_fit else False
+        # on: the reconstructor's own choice by size up to PIPELINE_GRAPH_MAX_CELLS (the graph first
+        # up to 64 cells, where the general model misfits above), the general model alone above
+        graph_fit = None if self.graph_fit and g.n * g.m <= PIPELINE_GRAPH_MAX_CELLS else False
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
                              poisson_range=self.poisson_range)

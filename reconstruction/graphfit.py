@@ -107,6 +107,7 @@ _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 8.0)
 _MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
+_BAND_SIGMA_SIZE = 1000  # above this many coefficients (12×12 and up) node σ from the band factor alone
 
 
 class GraphResult(NamedTuple):
@@ -690,12 +691,27 @@ class GraphFit:
         about 50 of 441 nodes).  The matrix is factorised on the first call and kept."""
         system: list = []
 
-        def solver() -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+        def solver() -> tuple[np.ndarray | None, Callable[[np.ndarray], np.ndarray]]:
             if system:
                 return system[0]
             turning, stretch, w_t, w_s = data[:4]
             g = len(turning)
             h = None
+            if self._compiled is not None and self.size > _BAND_SIGMA_SIZE and not any(_SIGMA_CURVATURE):
+                # a large fit (above 8×8): the band factor alone.  With H = JᵀJ + P (no curvature
+                # term) a node's variance sᵀH⁻¹JᵀJH⁻¹s is sᵀy − yᵀPy for y = H⁻¹s: neither J nor
+                # the dense triangle is needed (a 16×16 frame's node σ: 125-280 ms → a few ms)
+                band = self.prior_band.copy()
+                self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
+                                                      stretch, w_t, w_s, band, np.zeros(self.size), True,
+                                                      np.zeros(2), np.empty(2 * g), self._no_jacobian)
+                f, info = _pbtrf(band, lower=1)
+                if info == 0:
+                    def band_solve(rhs: np.ndarray) -> np.ndarray:
+                        return _pbtrs(f, rhs, lower=1)[0]
+
+                    system.append((None, band_solve))
+                    return system[0]
             if self._compiled is not None:
                 band = self.prior_band.copy()
                 j = np.zeros((2 * g, self.size))
@@ -735,7 +751,11 @@ class GraphFit:
         def at(flat: np.ndarray) -> np.ndarray:
             j, solve = solver()
             rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre)
-            r = j @ solve(np.asfortranarray(rows.T))
+            y = solve(np.asfortranarray(rows.T))
+            if j is None:  # (the band route above: sᵀy − yᵀPy)
+                var = np.einsum("kp,kp->p", rows.T, y) - np.einsum("kp,kp->p", y, self._prior_sparse @ y)
+                return noise_ratio * np.sqrt(np.maximum(var, 0.0))
+            r = j @ y
             return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
 
         return at

@@ -125,6 +125,10 @@ def test_skinmapd_on_a_12x12_sheet_fits_a_sharp_bump_as_a_graph_and_replays_it_f
         assert aligned_error(frame.nodes_mm, shape(seq).position(centres)) < 0.03, seq
     block = start + 2
     _, replay = run(range(block, start + count))
+    # 16×16 keeps the general model in skinmapd (its graph answers could not keep 10 Hz)
+    big, big_uv, big_gf, big_r0 = pipeline_sheet(16, 16, PITCH)
+    large = FramePipeline(big, Calibration(big_gf, big_r0), big_uv, np.zeros(len(big_uv)))
+    assert not large.reconstructor.graph_rescue and not large.reconstructor.graph_fit
     for seq in range(block + GRAPH_ADOPT_SCANS, start + count):
         assert np.array_equal(live[seq].element_positions_mm, replay[seq].element_positions_mm), seq
 
@@ -185,3 +189,25 @@ def test_both_signs_of_a_saddle_at_45_degrees_on_8x8_are_read_alike_and_flagged(
         surf = rec(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape))
         assert surf.diagnostics.extra["model"] == "graph"
         assert surf.mirror is not None
+
+
+def test_a_large_graph_answers_node_sigma_from_the_band_factor_equals_the_dense_route(monkeypatch, sheets):
+    """On 12×12 a graph answer's node σ comes from the band factor alone (sᵀy − yᵀPy, y = H⁻¹s):
+    the same values as through the Jacobian and the dense triangle."""
+    import skinmap.reconstruction.graphfit as graphfit
+
+    default, _ = sheets[12]
+    shape = ph.GaussianBumps(height=5.0, fwhm=15.0, centre=(9.0, 4.0))
+    eu, el = ph.gauge_strains(shape, 12, 12, PITCH, H, H, G)
+    rng = np.random.default_rng(7)
+    eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+    uv = np.random.default_rng(1).uniform(-60.0, 60.0, (20, 2))
+    banded = default(eu, el)
+    assert banded.diagnostics.extra["model"] == "graph"
+    # (σ is computed when first read: read it before the route changes)
+    band_nodes, band_points = banded.node_sigma.copy(), banded.locate_sigma(uv)
+    monkeypatch.setattr(graphfit, "_BAND_SIGMA_SIZE", 10 ** 9)
+    dense = default(eu, el)
+    assert np.allclose(band_nodes, dense.node_sigma, rtol=1e-9, atol=1e-12)
+    assert np.allclose(band_points, dense.locate_sigma(uv), rtol=1e-9, atol=1e-12)
+    assert band_nodes.max() > 0.0
