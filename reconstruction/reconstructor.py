@@ -498,6 +498,13 @@ class Reconstructor(StretchPatternTwist):
         carried, reading = self._carried_twist(previous, twist_sign, turning, stretch, valid, strain_sigma,
                                                data_fields)
         graph_sigma: dict = {}
+
+        def cold_fit(answer: tuple, starts: tuple) -> tuple[GraphResult, dict]:
+            # the cold graph fit from ``starts`` (the general model's ``answer`` among them), held
+            # to that answer by the agreement test; with the graph σ the test computed
+            agree, sigma = self._agreement(answer, turning, valid, data, fit_sigma)
+            return self._graph_fit().fit_cold(data, answer[0], twist_sign, agree, starts), sigma
+
         if self._graph is not None and n_valid >= _GRAPH_MIN_UNITS * valid.size:
             fit_sigma = max(strain_sigma, DEFAULT_STRAIN_SIGMA)  # misfits below the sensor's noise mean nothing
             sig_t = self._turning_sd(fit_sigma)
@@ -529,8 +536,7 @@ class Reconstructor(StretchPatternTwist):
                     graph = _deferred(graph)
                     deferred = True
                 else:
-                    agree, graph_sigma = self._agreement(general, turning, valid, data, fit_sigma)
-                    graph = self._graph.fit_cold(data, general[0], twist_sign, agree, starts)
+                    graph, graph_sigma = cold_fit(general, starts)
 
         def general_answer(first, correct: bool) -> tuple:
             """The general model's answer: from the previous frame's correction where that holds,
@@ -563,9 +569,7 @@ class Reconstructor(StretchPatternTwist):
                     graph = _deferred(graph)
                     deferred = True
                 else:
-                    starts = self._graph_fit().cold_starts(data, answered[0], linear)
-                    agree, graph_sigma = self._agreement(answered, turning, valid, data, fit_sigma)
-                    graph = self._graph_fit().fit_cold(data, answered[0], twist_sign, agree, starts)
+                    graph, graph_sigma = cold_fit(answered, self._graph_fit().cold_starts(data, answered[0], linear))
         left_out = True
         derivatives = None  # the answer's own ∂u, ∂v, ∂u∂v at the fine nodes (a graph's)
         if graph is not None and graph.accepted:

@@ -237,26 +237,23 @@ class Surface:
         pos_t = np.ascontiguousarray(np.asarray(fine_positions, dtype=float).transpose(2, 0, 1))
         nf, mf = pos_t.shape[1:]
         self._coeffs = np.empty((nf, mf, 4, 3))
-        if fine_derivatives is not None:
-            # the model's own ∂u, ∂v, ∂u∂v at the nodes (a graph's: what it holds between them)
-            der_t = np.asarray(fine_derivatives, dtype=float).transpose(0, 3, 1, 2)  # (3, 3 components, nf, mf)
-            d_u, d_v = der_t[0], der_t[1]
-            coeffs = self._coeffs.transpose(2, 3, 0, 1)
-            coeffs[0] = pos_t
-            np.multiply(d_u, h, out=coeffs[1])
-            np.multiply(d_v, h, out=coeffs[2])
-            np.multiply(der_t[2], h * h, out=coeffs[3])
-        elif compiled is not None:  # reconstruction.kernels: the same numbers in one compiled call
+        if fine_derivatives is None and compiled is not None:
+            # reconstruction.kernels: the same numbers as the differences below in one compiled call
             d_u, d_v = np.empty((3, nf, mf)), np.empty((3, nf, mf))
             compiled.hermite_coefficients(pos_t, h, self._coeffs, d_u, d_v)
         else:
-            d_u = slopes(pos_t, h, -1)
-            d_v = slopes(pos_t, h, -2)
+            if fine_derivatives is not None:
+                # the model's own ∂u, ∂v, ∂u∂v at the nodes (a graph's: what it holds between them)
+                d_u, d_v, d_uv = np.asarray(fine_derivatives, dtype=float).transpose(0, 3, 1, 2)  # each (3, nf, mf)
+            else:
+                d_u = slopes(pos_t, h, -1)
+                d_v = slopes(pos_t, h, -2)
+                d_uv = slopes(d_u, h, -2)
             coeffs = self._coeffs.transpose(2, 3, 0, 1)  # (4, 3, nf, mf) view: written in place
             coeffs[0] = pos_t
             np.multiply(d_u, h, out=coeffs[1])
             np.multiply(d_v, h, out=coeffs[2])
-            np.multiply(slopes(d_u, h, -2), h * h, out=coeffs[3])
+            np.multiply(d_uv, h * h, out=coeffs[3])
         rows, cols = node_index
         self.shape = (rows.size, cols.size)
         at_nodes = (slice(None), rows[:, None], cols[None, :])
