@@ -215,11 +215,17 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
             blocker.unlink()
             blocker.mkdir()
             resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 30, "logging to resume")
-            receive_elements(client, 10)
+            # The client's queue still holds frames published before the log resumed: wait for
+            # ones scanned after it, so the new file holds some to replay.
+            recording_ns = time.time_ns()
+            received_after = 0
+            while received_after < 10:
+                received_after += client.elements(timeout=30.0).host_time_ns > recording_ns
     print(f"FIGURE storage folder missing at start: logging resumed {resume_s:.2f} s after the folder "
           f"became usable (retry interval 0.5 s here, 5 s in skinmapd)")
     (done,) = sorted(log_dir.glob("*.mcap"))
-    assert inspect(done).end.complete and replay_log(done).identical
+    report = replay_log(done)
+    assert inspect(done).end.complete and report.identical, report.format()
 
 
 def test_failing_reconstruction_is_reported_counted_and_logged_once(emulator, tmp_path, monkeypatch, caplog):
