@@ -84,9 +84,13 @@ _WARM_STEPS = 4  # from the previous frame (or its prediction), on one factorise
 # slower progress from far away, so the warm steps (near the optimum) and the uncertainty take
 # it and the cold fits do not.
 _WARM_CURVATURE = (1.0, 1.0)
-# The uncertainty takes the Fisher information JᵀJ + P alone: the damping above is no
-# information (with it the graph's σ was 0.6 of the Monte-Carlo scatter on turned saddles).
-_SIGMA_CURVATURE = (0.0, 0.0)
+# The uncertainty takes a quarter of that curvature.  At full weight it is damping, no
+# information (the graph's σ was 0.6 of the Monte-Carlo scatter on turned saddles), and at 0.5-1
+# the bumps' scatter stood at 1.3-1.9 of σ; without it, where the sheet is flat, JᵀJ loses the
+# stretch (quadratic in the slope) that the fit itself meets, and the bumps' scatter was 0.58-0.65
+# of σ; a quarter brings 5×5 and 8×8 bumps to 0.94-0.99 (docs/reconstruction.md, "A graph
+# answer's own answer to noise").  At a noise-free answer the residuals, hence the term, vanish.
+_SIGMA_CURVATURE = (0.25, 0.25)
 _COLD_CURVATURE = (0.0, 0.0)
 # Near the optimum (objective within this many times the noise's own, about one per unit) a
 # cold fit's Gauss-Newton steps overshoot: the stretch residuals' own curvature, which JᵀJ
@@ -697,20 +701,21 @@ class GraphFit:
             turning, stretch, w_t, w_s = data[:4]
             g = len(turning)
             h = None
-            if self._compiled is not None and self.size > _BAND_SIGMA_SIZE and not any(_SIGMA_CURVATURE):
-                # a large fit (above 8×8): the band factor alone.  With H = JᵀJ + P (no curvature
-                # term) a node's variance sᵀH⁻¹JᵀJH⁻¹s is sᵀy − yᵀPy for y = H⁻¹s: neither J nor
-                # the dense triangle is needed (a 16×16 frame's node σ: 125-280 ms → 71 ms, 12×12 → 20 ms)
+            if self._compiled is not None and self.size > _BAND_SIGMA_SIZE:
+                # a large fit (above 8×8): the band factor and a sparse Jacobian, σ = |J H⁻¹ s|
+                # (the dense Jacobian and the dense triangle cost a 16×16 frame's node σ
+                # 125-280 ms, this about 70; 12×12 about 20)
                 band = self.prior_band.copy()
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
-                                                      np.zeros(2), np.empty(2 * g), self._no_jacobian)
+                                                      np.asarray(_SIGMA_CURVATURE, dtype=float), np.empty(2 * g),
+                                                      self._no_jacobian)
                 f, info = _pbtrf(band, lower=1)
                 if info == 0:
                     def band_solve(rhs: np.ndarray) -> np.ndarray:
                         return _pbtrs(f, rhs, lower=1)[0]
 
-                    system.append((None, band_solve))
+                    system.append((self._sparse_jacobian(c, w_t, w_s), band_solve))
                     return system[0]
             if self._compiled is not None:
                 band = self.prior_band.copy()
@@ -752,13 +757,20 @@ class GraphFit:
             j, solve = solver()
             rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre)
             y = solve(np.asfortranarray(rows.T))
-            if j is None:  # (the band route above: sᵀy − yᵀPy)
-                var = np.einsum("kp,kp->p", rows.T, y) - np.einsum("kp,kp->p", y, self._prior_sparse @ y)
-                return noise_ratio * np.sqrt(np.maximum(var, 0.0))
             r = j @ y
             return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
 
         return at
+
+    def _sparse_jacobian(self, c: np.ndarray, w_t: np.ndarray, w_s: np.ndarray) -> scipy.sparse.csr_matrix:
+        """The normalised Jacobian (turning rows, then stretch rows) at c, sparse: each gauge
+        touches only its own B-splines (``idx``)."""
+        _, _, jt, js = self._model(c, True)
+        g, k = self.idx.shape
+        rows = np.repeat(np.arange(2 * g), k)
+        cols = np.concatenate([self.idx.ravel(), self.idx.ravel()])
+        vals = np.concatenate([(jt * w_t[:, None]).ravel(), (js * w_s[:, None]).ravel()])
+        return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(2 * g, self.size))
 
     def _frame_height_rows(self, flat: np.ndarray, centre: tuple[int, int]) -> np.ndarray:
         """(P, coefficients): the height of fine nodes ``flat`` in the sensor frame (over the
