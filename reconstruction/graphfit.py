@@ -84,13 +84,17 @@ _WARM_STEPS = 4  # from the previous frame (or its prediction), on one factorise
 # slower progress from far away, so the warm steps (near the optimum) and the uncertainty take
 # it and the cold fits do not.
 _WARM_CURVATURE = (1.0, 1.0)
-# The uncertainty takes a quarter of that curvature.  At full weight it is damping, no
-# information (the graph's σ was 0.6 of the Monte-Carlo scatter on turned saddles), and at 0.5-1
-# the bumps' scatter stood at 1.3-1.9 of σ; without it, where the sheet is flat, JᵀJ loses the
-# stretch (quadratic in the slope) that the fit itself meets, and the bumps' scatter was 0.58-0.65
-# of σ; a quarter brings 5×5 and 8×8 bumps to 0.94-0.99 (docs/reconstruction.md, "A graph
-# answer's own answer to noise").  At a noise-free answer the residuals, hence the term, vanish.
+# The uncertainty takes a quarter of that curvature on sheets of up to _SIGMA_CURVATURE_CELLS
+# cells.  At full weight it is damping, no information (the graph's σ was 0.6 of the Monte-Carlo
+# scatter on turned saddles), and at 0.5-1 the bumps' scatter stood at 1.3-1.9 of σ; without it,
+# where the sheet is flat, JᵀJ loses the stretch (quadratic in the slope) that the fit itself
+# meets, and the 5×5 and 8×8 bumps' scatter was 0.57-0.65 of σ; a quarter brings them to
+# 0.94-1.01.  On larger sheets, flat over more of their extent, the same quarter left σ short
+# (16×16 bumps and ridges 1.32-1.39 of it on unseen scenes, and two frames beyond 3σ + 0.05 mm),
+# so they keep JᵀJ + P (docs/reconstruction.md, "A graph answer's own answer to noise").  At a
+# noise-free answer the residuals, hence the term, vanish.
 _SIGMA_CURVATURE = (0.25, 0.25)
+_SIGMA_CURVATURE_CELLS = 64
 _COLD_CURVATURE = (0.0, 0.0)
 # Near the optimum (objective within this many times the noise's own, about one per unit) a
 # cold fit's Gauss-Newton steps overshoot: the stretch residuals' own curvature, which JᵀJ
@@ -192,6 +196,8 @@ class GraphFit:
                  inner: tuple[slice, slice], compiled=None):
         self.n, self.m = n, m
         self._compiled = compiled
+        #: the share of the stretch residuals' curvature the uncertainty takes (_SIGMA_CURVATURE)
+        self.sigma_curvature = _SIGMA_CURVATURE if n * m <= _SIGMA_CURVATURE_CELLS else (0.0, 0.0)
         ku, self.nbu = _basis_1d(-0.5 * m * pitch, 0.5 * m * pitch, _KNOTS_PER_PITCH * m)
         kv, self.nbv = _basis_1d(-0.5 * n * pitch, 0.5 * n * pitch, _KNOTS_PER_PITCH * n)
         nbu, nbv = self.nbu, self.nbv
@@ -649,7 +655,7 @@ class GraphFit:
             j = np.zeros((2 * g, self.size))
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning, stretch,
                                                   w_t, w_s, band, np.zeros(self.size), True,
-                                                  np.asarray(_SIGMA_CURVATURE, dtype=float), np.empty(2 * g), j)
+                                                  np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j)
             # H = L·Lᵀ factorised in band form (cheap), then the many right-hand sides through
             # the dense triangle as level-3 BLAS (a band solve runs them one at a time, 2x slower)
             f, info = _pbtrf(band, lower=1)
@@ -663,7 +669,7 @@ class GraphFit:
                 h = self._dense(band)
         else:
             j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
-            h = self._numpy_matrix(c, j, res[g:], w_s, _SIGMA_CURVATURE)
+            h = self._numpy_matrix(c, j, res[g:], w_s, self.sigma_curvature)
         if resp is None:
             try:
                 resp = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, lower=True, check_finite=False), j.T,
@@ -708,7 +714,7 @@ class GraphFit:
                 band = self.prior_band.copy()
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
-                                                      np.asarray(_SIGMA_CURVATURE, dtype=float), np.empty(2 * g),
+                                                      np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g),
                                                       self._no_jacobian)
                 f, info = _pbtrf(band, lower=1)
                 if info == 0:
@@ -722,13 +728,13 @@ class GraphFit:
                 j = np.zeros((2 * g, self.size))
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
-                                                      np.asarray(_SIGMA_CURVATURE, dtype=float), np.empty(2 * g), j)
+                                                      np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j)
                 f, info = _pbtrf(band, lower=1)
                 if info != 0:
                     h = self._dense(band)
             else:
                 j, res = self._numpy_jacobian(c, turning, stretch, w_t, w_s)
-                h = self._numpy_matrix(c, j, res[g:], w_s, _SIGMA_CURVATURE)
+                h = self._numpy_matrix(c, j, res[g:], w_s, self.sigma_curvature)
             if h is None:
                 # the factor through the dense triangle (a band solve takes the right-hand
                 # sides one at a time, 2x slower), as fine_height_sigma
