@@ -41,6 +41,7 @@ __all__ = [
     "cell_centres",
     "gauge_layer_strains",
     "quadrature_layer_strains",
+    "creased_layer_strains",
     "gauge_strains",
     "ground_truth",
     "decouple_pair",
@@ -842,6 +843,47 @@ def quadrature_layer_strains(
     dn = np.tensordot(coef, nrm, axes=1)
     speed = np.linalg.norm(dx[None] + offsets[:, None, None, None] * dn[None], axis=-1)  # (L, K, Q)
     return speed @ weights - 1.0
+
+
+#: Segments per millimetre of gauge in :func:`creased_layer_strains`.
+CREASED_SEGMENTS_PER_MM = 40
+
+
+def creased_layer_strains(
+    shape: Shape,
+    centres: np.ndarray,
+    directions: np.ndarray,
+    offsets: np.ndarray,
+    length: float,
+    t: np.ndarray,
+    segments_per_mm: int = CREASED_SEGMENTS_PER_MM,
+) -> np.ndarray:
+    """Layer strains (L, K) of straight gauges on a surface whose slope may jump (a crease: a
+    film the wall holds, meeting the film that spans), where a quadrature's point derivatives
+    read a crease's turning as a spike.  Each gauge is cut into short segments; a segment of
+    chord Δx whose normal turns by Δn lengthens on the layer at offset h to
+    √((|Δx| + h Δn·t̂)² + (h Δn·b̂)²) (t̂ = Δx/|Δx|, b̂ = n × t̂): on a smooth surface the
+    exact |x' + h n'| ds of :func:`quadrature_layer_strains` (within 10⁻⁶ strain at 40 segments
+    a millimetre), across a crease of angle Δθ the offset curve's own ±h Δθ (an arc on the
+    convex side, the cut corner on the concave one)."""
+    t = np.asarray(t, dtype=float)
+    count = max(int(math.ceil(segments_per_mm * length)), 1)
+    s = (np.arange(count + 1) / count - 0.5) * length
+    pts = centres[:, None, :] + s[None, :, None] * directions[:, None, :]  # (K, S + 1, 2)
+    tq = np.broadcast_to(t[..., None] if t.ndim else t, pts.shape[:-1])
+    x, nrm = shape.position_and_normal(pts, tq)
+    dx = np.diff(x, axis=1)  # (K, S, 3)
+    chord = np.linalg.norm(dx, axis=-1)
+    tangent = dx / np.maximum(chord, 1e-300)[..., None]
+    normal = 0.5 * (nrm[:, 1:] + nrm[:, :-1])
+    binormal = np.cross(normal, tangent)
+    binormal /= np.maximum(np.linalg.norm(binormal, axis=-1), 1e-300)[..., None]
+    dn = np.diff(nrm, axis=1)
+    along = np.einsum("ksc,ksc->ks", dn, tangent)
+    across = np.einsum("ksc,ksc->ks", dn, binormal)
+    a = chord[None] + offsets[:, None, None] * along[None]  # (L, K, S)
+    b = offsets[:, None, None] * across[None]
+    return np.copysign(np.hypot(a, b), a).sum(axis=-1) / length - 1.0
 
 
 def _gauge_layout(n: int, m: int, pitch: float) -> tuple[np.ndarray, np.ndarray]:

@@ -24,6 +24,7 @@ from skinmap.emulator.physics import (
     make_shape,
     parse_shape_spec,
 )
+from skinmap.emulator import physics as ph
 
 H = 0.2
 
@@ -387,3 +388,47 @@ def test_a_malformed_bump_is_named_not_a_type_error(bump, message):
     with pytest.raises(ValueError) as err:
         GaussianBumps(bumps=[{"height": 1.0}, bump])
     assert "bump 1" in str(err.value) and message in str(err.value)
+
+
+class _Crease(ph.Shape):
+    """z = k·|u − u0|: a V whose slope jumps from −k to +k along the line u = u0."""
+
+    def __init__(self, k: float, u0: float):
+        self.k, self.u0 = k, u0
+
+    def position(self, uv, t=0.0):
+        uv = ph._as_uv(uv)
+        return np.concatenate([uv, self.k * np.abs(uv[..., :1] - self.u0)], axis=-1)
+
+    def position_and_normal(self, uv, t=0.0):
+        uv = ph._as_uv(uv)
+        g = self.k * np.sign(uv[..., 0] - self.u0)
+        normal = np.stack([-g, np.zeros_like(g), np.ones_like(g)], axis=-1) / np.sqrt(1.0 + g * g)[..., None]
+        return self.position(uv), normal
+
+
+@pytest.mark.parametrize("u0", [0.0, 1.2345, -3.3])
+def test_creased_layer_strains_read_a_crease_as_its_turning_within_2e_4(u0):
+    """Across a crease of turning angle Δθ = 2 atan k the layers at ±h lengthen by ∓h Δθ (first
+    order; the concave side's cut corner and the convex side's arc differ from it at second
+    order, 1e-4 here), on top of the neutral line's √(1 + k²); the quadrature's point
+    derivatives miss a crease between their points (or spike on one inside their stencil)."""
+    k, h, g = 0.2, 0.2, 10.0
+    shape = _Crease(k, u0)
+    centre, direction, offsets = np.array([[0.0, 0.0]]), np.array([[1.0, 0.0]]), np.array([h, -h])
+    creased = ph.creased_layer_strains(shape, centre, direction, offsets, g, np.asarray(0.0)).ravel()
+    neutral, turn = math.sqrt(1.0 + k * k) - 1.0, h * 2.0 * math.atan(k) / g
+    assert creased == pytest.approx([neutral - turn, neutral + turn], abs=2e-4)
+    quadrature = ph.quadrature_layer_strains(shape, centre, direction, offsets, g, np.asarray(0.0), 8, 4).ravel()
+    assert abs(quadrature[1] - quadrature[0]) < 0.5 * turn  # what the crease-safe route is for
+
+
+@pytest.mark.parametrize("spec", ["sphere:radius=40", "gaussian:height=5,fwhm=15,u0=7,v0=-5", "saddle:radius=30",
+                                  "cylinder:radius=25,axis_angle=30"])
+def test_creased_layer_strains_equal_the_quadrature_within_1e_6_on_smooth_surfaces(spec):
+    shape = ph.parse_shape_spec(spec)
+    centres, directions = ph._gauge_layout(5, 5, 12.0)
+    offsets = np.array([0.2, -0.2])
+    quadrature = ph.quadrature_layer_strains(shape, centres, directions, offsets, 10.0, np.asarray(0.0), 8, 4)
+    creased = ph.creased_layer_strains(shape, centres, directions, offsets, 10.0, np.asarray(0.0))
+    assert np.abs(creased - quadrature).max() < 1e-6

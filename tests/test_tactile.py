@@ -442,3 +442,23 @@ def test_a_contacts_rim_is_left_out_of_the_map():
     for kw, name in (({"rim_mm": -1.0}, "rim_mm"), ({"rim_mm": math.nan}, "rim_mm"), ({"quantile": 1.5}, "quantile")):
         with pytest.raises(ValueError, match=name):
             ReliefMap(**kw)  # type: ignore[arg-type]
+
+
+def test_a_pressed_film_whose_slope_jumps_at_the_wall_reads_no_spike_on_its_gauges():
+    """Where the wall takes over from the solved film their slopes differ (a crease finer than
+    the solve's grid): the gauges read its turning, not a spike (one press of the bench's 64 on
+    E read +75 % on both layers of one gauge through the quadrature's point derivatives)."""
+    from skinmap.emulator.walls import Membrane
+
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(-30, 30, 29)
+    shape = BalloonOnWall(LetterRelief("E"), (-7.5, -7.5), float(angles[28]), 2.0,
+                          membrane=Membrane(half=max(50.0, 0.5 * 5 * 12.0 * 2 ** 0.5 + 5.0)))
+    eu, el = ph.gauge_strains(shape, 5, 5, 12.0, 0.2, 0.2, 10.0)
+    # the crease there: the film's normal turns by 0.18 within 5 µm along the gauge (3, 2) along u
+    x, normal = shape.position_and_normal(np.array([[4.4050, 12.0], [4.4100, 12.0]]))
+    assert np.linalg.norm(normal[1] - normal[0]) > 0.1
+    # a 2 mm press on a 4 mm relief stretches and bends the film by a few per cent, no more
+    assert max(np.abs(eu).max(), np.abs(el).max()) < 0.1
+    # the mean of the two layers is the stretch: below what the steepest flank would give
+    assert np.abs(0.5 * (eu + el)).max() < 0.06
