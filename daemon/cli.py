@@ -717,8 +717,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "tactile.CELL_QUANTILE, 2/3: the wall is rigid, a press reads it at most where it touched; "
                          "0.5 for the median)")
     mp.add_argument("--rim-mm", type=float, default=None,
-                    help="each contact's outer ring left out of the map, mm (default tactile.CONTACT_RIM_MM, 2: the "
-                         "sheet leaves the wall there)")
+                    help="each contact's outer ring left out of the map, mm (default tactile.CONTACT_RIM_MM, 0: the "
+                         "whole contact)")
     mp.add_argument("--png", help="write the height and confidence maps to this PNG")
     mp.add_argument("--ply", help="write the relief's touched cells to this PLY point cloud")
     mp.set_defaults(func=cmd_map)

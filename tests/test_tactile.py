@@ -431,11 +431,12 @@ def test_a_cell_is_the_upper_third_of_its_readings_since_no_press_lies_beyond_th
 
 
 def test_a_contacts_rim_is_left_out_of_the_map():
-    """The contact's outer 2 mm (one sample ring at a 2 mm step), where the sheet leaves the wall,
-    reaches no map cell; what remains lies inside what the whole contact reaches."""
+    """With ``rim_mm`` 2 the contact's outer 2 mm (one sample ring at a 2 mm step), where the
+    sheet leaves the wall, reaches no map cell; what remains lies inside what the whole contact
+    reaches (the default, CONTACT_RIM_MM 0)."""
     pose = ProbePose(-30.0, 30.0, 10.0, 3.0)
     c = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
-    whole, inner = ReliefMap(rim_mm=0.0), ReliefMap()
+    whole, inner = ReliefMap(), ReliefMap(rim_mm=2.0)
     n_whole, n_inner = whole.add(c, pose, GRID), inner.add(c, pose, GRID)
     assert 0 < n_inner < n_whole
     assert not np.any(np.isfinite(inner.height()) & ~np.isfinite(whole.height()))

@@ -184,11 +184,12 @@ def test_map_refuses_a_pose_file_that_does_not_match_the_presses(press_log, caps
 
 
 def test_map_takes_the_cell_quantile_and_rim_and_refuses_a_quantile_outside_0_1_by_name(press_log, capsys):
-    """``--cell-quantile 0.5 --rim-mm 0`` stitches the median of whole contacts: more cells (the
-    rims) than the default; a quantile outside [0, 1] is refused, naming it."""
+    """``--cell-quantile 0.5 --rim-mm 2`` stitches the median of contacts without their outer
+    2 mm: fewer cells (the rims) than the default, whole contacts; a quantile outside [0, 1] is
+    refused, naming it."""
     tmp, log, poses, _ = press_log
     counts = []
-    for extra in ([], ["--cell-quantile", "0.5", "--rim-mm", "0"]):
+    for extra in (["--cell-quantile", "0.5", "--rim-mm", "2"], []):
         ply = tmp / f"relief{len(extra)}.ply"
         assert skinmap_main(["map", str(log), "--poses", str(poses), "--ply", str(ply), *extra]) == 0
         capsys.readouterr()
