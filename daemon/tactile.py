@@ -292,7 +292,8 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
 CELL_READINGS = 32
 #: The quantile of a cell's readings that is its height: the upper third, not the median
 #: (measured on the bench's letters, each press levelled on the floor: E 0.351 → 0.311 mm, D
-#: 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median).  It
+#: 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median; since the
+#: emulator's gauges read the creases, E 0.986 → 0.884 mm with the rim left out).  It
 #: answers this pipeline's bias, not the wall's physics: the film never lies beyond the wall, so
 #: an exact surface reads a cell at the wall's height where it touched and above it where it
 #: spanned (the lowest reading would be the wall's), but the reconstructed, levelled contacts
