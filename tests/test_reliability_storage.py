@@ -113,6 +113,16 @@ def elements_after(client: SkinmapClient, t_ns: int, timeout: float):
             return msg
 
 
+def elements_through(client: SkinmapClient, t_ns: int, timeout: float) -> list:
+    """Every elements message received up to and including the first stamped after host time
+    `t_ns` (those queued before it are kept: the publish gaps stay measurable across them)."""
+    deadline = time.monotonic() + timeout
+    out = []
+    while not out or out[-1].host_time_ns <= t_ns:
+        out.append(client.elements(timeout=max(0.1, deadline - time.monotonic())))
+    return out
+
+
 def has_status(client: SkinmapClient) -> bool:
     try:
         client.latest("status", timeout=0.5)
@@ -167,7 +177,8 @@ def test_storage_failure_while_running_publishing_goes_on_and_logging_resumes(em
 
             storage.fail = None
             resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 30, "logging to resume")
-            after = receive_elements(client, 20)  # enough scans for the resumed file to hold some
+            # (the client's queue may still hold frames from before: read on to ones scanned after)
+            after = elements_through(client, time.time_ns(), 30.0) + receive_elements(client, 20)
             assert gw.status()["healthy"] is True or all("logging" not in w for w in gw.status()["warnings"])
             gap_s = longest_gap_s(during + after)
     lg = loggers[0]
@@ -217,10 +228,8 @@ def test_log_folder_unusable_at_start_then_fixed(emulator, tmp_path):
             resume_s = wait_for(lambda: gw.status()["log_state"] == "recording", 30, "logging to resume")
             # The client's queue still holds frames published before the log resumed: wait for
             # ones scanned after it, so the new file holds some to replay.
-            recording_ns = time.time_ns()
-            received_after = 0
-            while received_after < 10:
-                received_after += client.elements(timeout=30.0).host_time_ns > recording_ns
+            elements_after(client, time.time_ns(), 30.0)
+            receive_elements(client, 10)
     print(f"FIGURE storage folder missing at start: logging resumed {resume_s:.2f} s after the folder "
           f"became usable (retry interval 0.5 s here, 5 s in skinmapd)")
     (done,) = sorted(log_dir.glob("*.mcap"))
