@@ -99,9 +99,9 @@ GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 GRAPH_CATCH_UP_SCANS = 4
 #: The largest sheet (cells) skinmapd fits as a height graph at all: on 12×12 a sharp bump's
 #: graph answers keep 10 Hz output (emulated, 50 scans/s: p99 82-176 ms, 0-1 output dropped in
-#: 15-20 s), on 16×16
-#: (13 ms a warm frame and 70 ms its node σ) the output fell to 8-9 Hz with 31 frames dropped in
-#: 20 s, so 16×16 keeps the general model (docs/reconstruction.md, *Larger sheets*).
+#: 15-20 s); on 16×16 (13 ms a warm frame and 70 ms its node σ) the output fell to 8-9 Hz with
+#: 31 frames dropped in 20 s, so 16×16 keeps the general model (docs/reconstruction.md, *Larger
+#: sheets*).
 PIPELINE_GRAPH_MAX_CELLS = 144
 
 

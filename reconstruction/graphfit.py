@@ -115,7 +115,7 @@ _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 8.0)
 _MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
-_BAND_SIGMA_SIZE = 1000  # above this many coefficients (12×12 and up) node σ from the band factor alone
+_BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ from the band factor, J sparse
 
 
 class GraphResult(NamedTuple):
@@ -701,7 +701,7 @@ class GraphFit:
         about 50 of 441 nodes).  The matrix is factorised on the first call and kept."""
         system: list = []
 
-        def solver() -> tuple[np.ndarray | None, Callable[[np.ndarray], np.ndarray]]:
+        def solver() -> tuple[np.ndarray | scipy.sparse.csr_matrix, Callable[[np.ndarray], np.ndarray]]:
             if system:
                 return system[0]
             turning, stretch, w_t, w_s = data[:4]
@@ -762,8 +762,7 @@ class GraphFit:
         def at(flat: np.ndarray) -> np.ndarray:
             j, solve = solver()
             rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre)
-            y = solve(np.asfortranarray(rows.T))
-            r = j @ y
+            r = j @ solve(np.asfortranarray(rows.T))
             return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
 
         return at
