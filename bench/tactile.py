@@ -49,18 +49,20 @@ from dataclasses import replace  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, ProbePose, ReliefMap,  # noqa: E402
-                                    SampleGrid, capture_baseline, detect_contact, level_on_floor, stitch_estimated)
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, PROBE_LENGTH_MM, Contact, ProbePose,  # noqa: E402
+                                    ReliefMap, SampleGrid, capture_baseline, detect_contact,
+                                    fit_probe_length, level_by_bending, level_on_floor, stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
-from skinmap.emulator.walls import BalloonOnWall, LetterRelief, Membrane  # noqa: E402
+from skinmap.emulator.walls import BalloonOnWall, FlatPlate, LetterRelief, Membrane  # noqa: E402
 from skinmap.reconstruction import reconstruct  # noqa: E402
+from skinmap.strains import cell_bending  # noqa: E402
 
 NOISE = 0.0057e-2
 TOUCH_MM = 0.05  # clearance below which the sheet counts as touching the wall
 
 
-def _scene_shape(name: str, wall: LetterRelief, p: ProbePose, reach: float) -> BalloonOnWall:
+def _scene_shape(name: str, wall: LetterRelief | FlatPlate, p: ProbePose, reach: float) -> BalloonOnWall:
     if name == "membrane":
         # the film solved out to 5 mm beyond the sheet's corners (at least 50 mm)
         return BalloonOnWall(wall, (p.x_mm, p.y_mm), p.angle_deg, p.depth_mm, membrane=Membrane(half=max(50.0, reach + 5.0)))
@@ -97,6 +99,36 @@ def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (p - pc) @ rot + qc
 
 
+def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Shape) -> float:
+    """The probe's stiffness length fitted on reconstructed presses of a flat plate (1, 2, 3 mm
+    deep, four presses each, turned at random), printed with its residual and time."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(args.seed + 1)
+    n, pitch, uv = args.size, args.pitch, grid.uv
+    plate = FlatPlate()
+
+    def rec(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray]:
+        eu, el = gauges(shape, rng)
+        return reconstruct(eu, el, pitch, 0.2, 0.2).locate(uv)[0], cell_bending(eu, el, 0.2, 0.2)
+
+    rest = [rec(free) for _ in range(5)]
+    base = capture_baseline([(r[0], free.normal(uv)) for r in rest], bending=[r[1] for r in rest])
+    poses = [ProbePose(float(rng.uniform(-20, 20)), float(rng.uniform(-20, 20)), float(rng.uniform(-30, 30)), d)
+             for d in (1.0, 2.0, 3.0) for _ in range(4)]
+    contacts, kept = [], []
+    for p in poses:
+        shape = _scene_shape("membrane", plate, p, 0.5 * n * pitch * 2 ** 0.5)
+        pos, bend = rec(shape)
+        c = detect_contact(pos, base, grid, min_depth_mm=args.min_depth, bending=bend)
+        if c is not None:
+            contacts.append(c)
+            kept.append(p)
+    fit = fit_probe_length(contacts, kept, base, grid, pitch)
+    print(f"(probe stiffness length fitted on {fit.contacts} reconstructed presses of a flat plate at 1, 2, 3 mm: "
+          f"{fit.length_mm:.2f} mm, residual {fit.residual_mm:.3f} mm rms; {time.perf_counter() - t0:.1f} s)")
+    return fit.length_mm
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--letters", default="DUKE", help="the letters to map (one wall each with --wall letter)")
@@ -111,9 +143,15 @@ def main() -> None:
     ap.add_argument("--scenes", default="membrane", help="comma-separated: membrane, follows, bridges40")
     ap.add_argument("--quick", action="store_true", help="given poses only (no registration)")
     ap.add_argument("--png", help="write the maps (with the truth) to PNG files named after this one")
-    ap.add_argument("--reference", choices=("floor", "rim"), default="floor",
-                    help="given poses: each contact levelled on the wall's base plane where it touched it, as skinmap "
-                         "map does (floor), or left registered by its rim (rim)")
+    ap.add_argument("--reference", choices=("bending", "floor", "rim"), default="bending",
+                    help="given poses: each contact placed by its free cells' bending, as skinmap map does (bending), "
+                         "levelled on the wall's base plane where it touched it (floor), or left registered by its "
+                         "rim (rim)")
+    ap.add_argument("--probe-length", type=float, default=PROBE_LENGTH_MM,
+                    help="the probe's stiffness length for --reference bending, mm (default %(default)g)")
+    ap.add_argument("--fit-probe-length", action="store_true",
+                    help="fit the probe's stiffness length first on reconstructed presses of a flat plate at 1, 2 "
+                         "and 3 mm (as skinmap map --fit-probe-length does) and use it")
     ap.add_argument("--weights", choices=("none", "sigma"), default="none",
                     help="stitch the reconstructed contacts unweighted, as skinmap map does (none), or weighted by "
                          "1/sigma^2 of the reconstruction (sigma)")
@@ -137,6 +175,17 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     free = ph.SphereCap(80.0)
+
+    def gauges(shape: ph.Shape, rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
+        eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
+        if rng is not None:
+            eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+        return eu, el
+
+    length = args.probe_length
+    if args.fit_probe_length:
+        with threadpool_limits(1):
+            length = _fit_length(args, grid, gauges, free)
     with threadpool_limits(1):
         for wall_name, wall in walls:
             rng = np.random.default_rng(args.seed)
@@ -152,19 +201,18 @@ def main() -> None:
                       f"base plane, {sum(f >= 30 for f in floor)} with at least 30 of the sheet's {len(uv)} samples)")
                 sheet_map = None  # the sheet's own true surface, stitched with the true poses
 
-                def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
-                    return shape.position(uv), None
+                def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                    return shape.position(uv), None, cell_bending(*gauges(shape, None), 0.2, 0.2)
 
                 def true_frame(contact: Contact | None, shape: ph.Shape) -> Contact | None:
                     # the contact found as ever, its samples left in the probe's true frame
                     # (no registration onto the baseline by the rim)
                     return None if contact is None else replace(contact, positions=shape.position(uv))
 
-                def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None]:
-                    eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
-                    surf = reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape),
-                                       pitch, 0.2, 0.2)
-                    return surf.locate(uv)[0], surf.locate_sigma(uv)
+                def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                    eu, el = gauges(shape, rng)
+                    surf = reconstruct(eu, el, pitch, 0.2, 0.2)
+                    return surf.locate(uv)[0], surf.locate_sigma(uv), cell_bending(eu, el, 0.2, 0.2)
 
                 rec_contacts: list[Contact | None] = []
                 for name, surface in (("true frame", scene), ("scene", scene), ("reconstructed", reconstructed),
@@ -177,12 +225,13 @@ def main() -> None:
                         contacts = [None if c is None else replace(c, positions=_fitted(c.positions, shape.position(uv)))
                                     for c, shape in zip(rec_contacts, shapes)]
                     else:
-                        base = capture_baseline([(surface(free)[0], free.normal(uv)) for _ in range(5)])
+                        rest = [surface(free) for _ in range(5)]
+                        base = capture_baseline([(r[0], free.normal(uv)) for r in rest], bending=[r[2] for r in rest])
                         contacts = []
                         for shape in shapes:
-                            pos, sig = surface(shape)
+                            pos, sig, bend = surface(shape)
                             c = detect_contact(pos, base, grid, min_depth_mm=args.min_depth,
-                                               sigma=sig if args.weights == "sigma" else None)
+                                               sigma=sig if args.weights == "sigma" else None, bending=bend)
                             contacts.append(true_frame(c, shape) if name == "true frame" else c)
                         if name == "reconstructed":
                             rec_contacts = contacts
@@ -197,6 +246,9 @@ def main() -> None:
                                 if args.reference == "floor" and name in ("scene", "reconstructed"):
                                     lv = level_on_floor(c, p, grid)
                                     c, levelled = lv.contact, levelled + (not lv.reason)
+                                elif args.reference == "bending" and name in ("scene", "reconstructed"):
+                                    bl = level_by_bending(c, base, grid, pitch, length_mm=length)
+                                    c, levelled = bl.contact, levelled + (not bl.reason)
                                 relief.add(c, p, grid)
                             placed = len(kept)
                         else:
@@ -229,7 +281,8 @@ def main() -> None:
                               f"{np.percentile(vs_sheet, 90):5.2f} {100 * relief.coverage():7.1f}% "
                               f"{100 * on.sum() / max(1, mapped.sum()):6.1f}% "
                               f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}"
-                              + (f"  ({levelled} levelled on the floor)" if levelled else "")
+                              + (f"  ({levelled} {'placed by their bending' if args.reference == 'bending' else 'levelled on the floor'})"
+                                 if levelled else "")
                               + (f"  (refused: {refused})" if refused else "") + placement, flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)

@@ -566,7 +566,8 @@ def cmd_map(args: argparse.Namespace) -> int:
 
     report = map_log(args.log, args.poses, estimate=args.estimate, baseline_frames=args.baseline_frames,
                      step_mm=args.step, k=args.k, min_depth_mm=args.min_depth, wall_size_mm=args.wall_size, cell_mm=args.cell,
-                     floor=not args.rim,
+                     reference="rim" if args.rim else args.reference, probe_length_mm=args.probe_length,
+                     fit_length=args.fit_probe_length,
                      cell_quantile=CELL_QUANTILE if args.cell_quantile is None else args.cell_quantile,
                      rim_mm=CONTACT_RIM_MM if args.rim_mm is None else args.rim_mm)
     print(report.format())
@@ -703,9 +704,17 @@ def build_parser() -> argparse.ArgumentParser:
                     help="estimate the poses by registering each contact against the map so far (a known first "
                          "pose anchors the map; contacts whose overlap cannot decide are left out and named). "
                          "Unverified: a pressurised probe's contacts hardly fix their place (docs/tactile.md)")
-    mp.add_argument("--rim", action="store_true",
-                    help="given poses: keep each contact registered by its rim (default: levelled on the wall's base "
-                         "plane where the press touched it)")
+    mp.add_argument("--reference", choices=("bending", "floor", "rim"), default="bending",
+                    help="given poses: place each contact by its free cells' bending (default: the rim's push read "
+                         "from the bending round the contact, with the probe's stiffness length), level it on the "
+                         "wall's base plane where the press touched it (floor), or keep it registered by its rim")
+    mp.add_argument("--rim", action="store_true", help="the same as --reference rim")
+    mp.add_argument("--probe-length", type=float, default=None,
+                    help="the probe's stiffness length, mm (default: the log's [tactile] probe_length_mm, else "
+                         "tactile.PROBE_LENGTH_MM, 14.6, the paper's balloon)")
+    mp.add_argument("--fit-probe-length", action="store_true",
+                    help="the log's presses are of a flat plate at the poses' depths: fit the probe's stiffness "
+                         "length on them, print it (for [tactile] probe_length_mm) and map with it")
     mp.add_argument("--baseline-frames", type=int, default=10, help="surfaces before the first press (default 10)")
     mp.add_argument("--k", type=float, default=3.0, help="contact: pressed in by more than k·σ of the baseline")
     mp.add_argument("--min-depth", type=float, default=0.5, help="contact: and by more than this, mm")
@@ -714,8 +723,8 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--cell", type=float, default=1.0, help="the relief map's cell, mm")
     mp.add_argument("--cell-quantile", type=float, default=None,
                     help="the quantile of a cell's readings (one a contact) that is its height (default "
-                         "tactile.CELL_QUANTILE, 2/3: the wall is rigid, a press reads it at most where it touched; "
-                         "0.5 for the median)")
+                         "tactile.CELL_QUANTILE, 0.5, the median; 2/3, the upper third, takes back the low reading of "
+                         "contacts levelled on the floor or registered by their rim)")
     mp.add_argument("--rim-mm", type=float, default=None,
                     help="each contact's outer ring left out of the map, mm (default tactile.CONTACT_RIM_MM, 0: the "
                          "whole contact)")

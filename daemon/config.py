@@ -178,6 +178,10 @@ class TactileConfig:
     k: float = 3.0  # contact: pressed in beyond k·σ of the baseline
     min_depth_mm: float = 0.5  # … and beyond this (what a free probe's reconstruction wanders stays below)
     step_mm: float = 2.0  # material sampling of the sheet
+    # the probe's stiffness length ℓ, mm: how `skinmap map` reads a contact's place from its free
+    # cells' bending (tactile.level_by_bending; 14.6 the paper's balloon; `skinmap map
+    # --fit-probe-length` fits a probe's own on presses of a flat plate)
+    probe_length_mm: float = 14.6
     # known probe poses, one a press in order: (x_mm, y_mm, angle_deg, depth_mm) (docs/tactile.md)
     poses: tuple[tuple[float, float, float, float], ...] = ()
 
@@ -383,6 +387,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "k": _number(0.5, 100),
         "min_depth_mm": _number(0, 50),
         "step_mm": _number(0.25, 50),
+        "probe_length_mm": _number(0.5, 1000),
         "poses": lambda key, value: _pose_rows(key, value),
     },
 }

@@ -21,8 +21,8 @@ import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
-from skinmap.strains import (Calibration, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
-                             turning_noise_rad)
+from skinmap.strains import (Calibration, cell_bending, reject_implausible_units, resistances_to_strains,
+                             to_nominal_offsets, turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
            "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "graph_restart",
@@ -73,6 +73,9 @@ class FrameResult:
     # by (Surface.node_scatter_sigma); None: not known, the whole σ stands for it
     node_scatter_mm: np.ndarray | None = None  # (N, M)
     element_scatter_mm: np.ndarray | None = None  # (K,)
+    # (N, M) 1/mm: each cell's bending κ_u + κ_v from its gauges (strains.cell_bending, at the
+    # nominal offsets); what tactile mapping reads to place a contact (tactile.level_by_bending)
+    bending: np.ndarray | None = None
 
 
 #: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
@@ -551,6 +554,7 @@ class FramePipeline:
             stage_s=stages,
             node_scatter_mm=np.where(np.isfinite(node_scatter), node_scatter, UNKNOWN_SIGMA_MM),
             element_scatter_mm=np.where(np.isfinite(scatter), scatter, UNKNOWN_SIGMA_MM),
+            bending=cell_bending(eps_u, eps_l, g.h_upper_mm, g.h_lower_mm),
         )
         self._last_good = result
         return result

@@ -51,12 +51,13 @@ def poses_from_config(rows: tuple[tuple[float, float, float, float], ...] | list
 class LoggedPoses:
     """What a log holds about poses: the `/pose` messages (with the ones refused, named), the
     poses the `/contact` messages carry (each contact frame's time and the pose in force when
-    its contact began) and the `[tactile] poses` of its first config."""
+    its contact began) and the `[tactile] poses` (and probe length) of its first config."""
 
     topic: list[TimedPose] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
     config: list[ProbePose] = field(default_factory=list)
     contact: list[TimedPose] = field(default_factory=list)
+    probe_length_mm: float | None = None  # the config's [tactile] probe_length_mm
 
 
 def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
@@ -91,7 +92,9 @@ def poses_in_log(path: str | os.PathLike[str]) -> LoggedPoses:
             config_seen = True
             try:
                 text = json.loads(m.data)["config_text"]
-                out.config = poses_from_config(parse_config(tomllib.loads(text)).tactile.poses)
+                tactile = parse_config(tomllib.loads(text)).tactile
+                out.config = poses_from_config(tactile.poses)
+                out.probe_length_mm = tactile.probe_length_mm
             except (KeyError, ValueError, TypeError, ConfigError, tomllib.TOMLDecodeError) as exc:
                 out.refused.append(f"/config: its [tactile] poses cannot be read: {exc}")
     return out

@@ -38,7 +38,8 @@ from scipy import ndimage
 
 __all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
-           "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor"]
+           "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor", "PROBE_LENGTH_MM",
+           "BendingLevel", "level_by_bending", "ProbeLengthFit", "fit_probe_length"]
 
 
 @dataclass(frozen=True)
@@ -70,16 +71,24 @@ class Baseline:
     positions: np.ndarray  # (K, 3) mm
     normals: np.ndarray  # (K, 3)
     sigma: np.ndarray  # (K,) mm, the scatter of the displacement between baseline frames
+    bending: np.ndarray | None = None  # (N, M) 1/mm, the cells' mean bending (strains.cell_bending), if read
 
 
-def capture_baseline(frames: list[tuple[np.ndarray, np.ndarray]], sigma_floor_mm: float = 0.01) -> Baseline:
-    """Baseline from pre-contact frames [(positions (K, 3), normals (K, 3)), ...]; ValueError if
-    there are none or they differ in size."""
+def capture_baseline(frames: list[tuple[np.ndarray, np.ndarray]], sigma_floor_mm: float = 0.01,
+                     bending: list[np.ndarray] | None = None) -> Baseline:
+    """Baseline from pre-contact frames [(positions (K, 3), normals (K, 3)), ...] and, if given,
+    each frame's cell bending (:func:`skinmap.strains.cell_bending`, (N, M)); ValueError if there are none or
+    they differ in size."""
     if not frames:
         raise ValueError("a baseline needs at least one pre-contact frame")
     k = frames[0][0].shape
     if any(p.shape != k or n.shape != k for p, n in frames):
         raise ValueError("baseline frames differ in their number of samples")
+    mean_bending = None
+    if bending is not None:
+        if len(bending) != len(frames) or any(np.shape(b) != np.shape(bending[0]) or np.ndim(b) != 2 for b in bending):
+            raise ValueError(f"{len(bending)} cell bending maps for {len(frames)} baseline frames (one (N, M) map a frame)")
+        mean_bending = np.mean(np.asarray(bending, dtype=float), axis=0)
     ref = frames[0][0]
     aligned = [_align(p, ref, np.ones(len(ref), bool))[0] for p, _ in frames]
     pos = np.mean(aligned, axis=0)
@@ -90,7 +99,7 @@ def capture_baseline(frames: list[tuple[np.ndarray, np.ndarray]], sigma_floor_mm
         sigma = np.maximum(d.std(axis=0, ddof=1), sigma_floor_mm)
     else:
         sigma = np.full(len(pos), float(sigma_floor_mm))
-    return Baseline(pos, nrm, sigma)
+    return Baseline(pos, nrm, sigma, mean_bending)
 
 
 def _align(p: np.ndarray, q: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -148,6 +157,8 @@ class Contact:
     feature_size_mm: float  # L_r
     positions: np.ndarray  # (K, 3) the frame aligned onto the baseline
     sigma: np.ndarray | None = None  # (K,) mm, the frame's per-sample position uncertainty, if known
+    # (N, M) 1/mm: the cells' bending (strains.cell_bending) less the baseline's, when both were read
+    bending_change: np.ndarray | None = None
 
     def summary(self) -> dict:
         return {"area_mm2": round(self.area_mm2, 3), "peak_depth_mm": round(self.peak_depth_mm, 4),
@@ -155,17 +166,25 @@ class Contact:
 
 
 def detect_contact(positions: np.ndarray, baseline: Baseline, grid: SampleGrid, k: float = 3.0,
-                   min_depth_mm: float = 0.5, sigma: np.ndarray | None = None) -> Contact | None:
+                   min_depth_mm: float = 0.5, sigma: np.ndarray | None = None,
+                   bending: np.ndarray | None = None) -> Contact | None:
     """The contact in one frame, or None if nothing is pressed in beyond k·σ.  ``sigma`` (K,)
     mm: the frame's own per-sample uncertainty (e.g. ``Surface.locate_sigma``), kept as the
-    stitching weight."""
+    stitching weight.  ``bending`` (N, M): the frame's cell bending (:func:`skinmap.strains.cell_bending`); with
+    the baseline's, the contact keeps the change, which :func:`level_by_bending` reads."""
     d, moved, contact = displacement(positions, baseline, k, min_depth_mm)
     if not contact.any():
         return None
+    change = None
+    if bending is not None and baseline.bending is not None:
+        if np.shape(bending) != baseline.bending.shape:
+            raise ValueError(f"a cell bending map of shape {np.shape(bending)} against the baseline's "
+                             f"{baseline.bending.shape}")
+        change = np.asarray(bending, dtype=float) - baseline.bending
     depth = np.where(contact, -d, 0.0).reshape(grid.shape)
     mask = contact.reshape(grid.shape)
     return Contact(mask, depth, float(mask.sum() * grid.step ** 2), float(depth.max()),
-                   feature_size(depth, grid.step), moved, None if sigma is None else np.asarray(sigma, float))
+                   feature_size(depth, grid.step), moved, None if sigma is None else np.asarray(sigma, float), change)
 
 
 @dataclass(frozen=True)
@@ -287,19 +306,165 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
     return FloorLevel(replace(contact, positions=moved), -level, area)
 
 
+#: The probe's stiffness length ℓ (mm).  Outside a contact the balloon's wall, pushed off its
+#: sphere by w (along its normal), carries the push by its tension T against the stiffness k of
+#: its curved wall, T∇²w = k·w, so that w = ℓ²∇²w with ℓ = √(T/k): the push of the sheet's
+#: rim, which the rim cannot see against the baseline, is written in its bending, which the
+#: gauges read.  The paper's balloon (docs/physics.md): T 0.1 N/mm, k = E·t/R² = 3/80² N/mm³,
+#: ℓ = 14.6 mm.  A probe's own is fitted by pressing a flat plate at known depths
+#: (:func:`fit_probe_length`, ``skinmap map --fit-probe-length``).
+PROBE_LENGTH_MM = 14.6
+
+#: A cell is read as out of contact when its centre lies this far from every contact sample:
+#: its gauges (10 mm) then end 1 mm short of the contact, whose crease they must not read.
+FREE_CELL_MARGIN_MM = 6.0
+
+
+@dataclass(frozen=True)
+class BendingLevel:
+    """A contact placed by its free cells' bending (:func:`level_by_bending`), or why not."""
+
+    contact: Contact  # moved, or as given (then ``reason`` says why)
+    offset_mm: float  # the move along z at the contact's samples, mean (negative: towards the wall's side, −z)
+    cells: int  # the cells out of contact it read
+    residual_mm: float  # rms, over those cells, of their deflection less ℓ²∇²w after the move
+    reason: str = ""  # why it stays registered by its rim ("" when moved)
+
+
+def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float,
+                    margin_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """At the contact's free cells: the rigid motion's effect on the normal deflection (C, 3 or
+    1 columns: z offset, rotations about x and y), −Δ(κ_u + κ_v), and the deflection d as
+    registered; or why the cells cannot decide."""
+    if contact.bending_change is None:
+        return "no cell bending was read with it (the frame's or the baseline's layer strains)"
+    change = np.asarray(contact.bending_change, dtype=float)
+    n, m = change.shape
+    centres_uv = np.stack(np.meshgrid((np.arange(m) - (m - 1) / 2) * pitch_mm,
+                                      (np.arange(n) - (n - 1) / 2) * pitch_mm), axis=-1).reshape(-1, 2)
+    rows, cols = grid.shape
+    # fractional sample indices of the cell centres (clamped onto the grid's outer samples)
+    ij = np.stack([centres_uv[:, 1] / grid.step + (rows - 1) / 2, centres_uv[:, 0] / grid.step + (cols - 1) / 2])
+    mask = np.asarray(contact.mask, bool).reshape(grid.shape)
+    far = ndimage.distance_transform_edt(~mask) * grid.step
+    free = (ndimage.map_coordinates(far, ij, order=1, mode="nearest") > margin_mm) & np.isfinite(change.ravel())
+    cells = int(free.sum())
+    if cells < 2:
+        return (f"{cells} cell(s) lie {margin_mm:g} mm or more clear of the contact with usable gauges "
+                "(2 needed): its rim's push cannot be read")
+
+    def at_cells(field: np.ndarray) -> np.ndarray:
+        return ndimage.map_coordinates(field.reshape(grid.shape), ij[:, free], order=1, mode="nearest")
+
+    p = np.stack([at_cells(contact.positions[:, a]) for a in range(3)], axis=1)
+    nrm = np.stack([at_cells(baseline.normals[:, a]) for a in range(3)], axis=1)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    d = at_cells(((contact.positions - baseline.positions) * baseline.normals).sum(axis=1))
+    # a move by a ẑ + ω × p changes the normal deflection by a·n_z + ω·(p × n)
+    cols3 = np.column_stack([nrm[:, 2], p[:, 1] * nrm[:, 2] - p[:, 2] * nrm[:, 1], p[:, 2] * nrm[:, 0] - p[:, 0] * nrm[:, 2]])
+    # a tilt wants cells spread round the contact; a few cells fix only the offset
+    basis = cols3 if cells >= 6 else cols3[:, :1]
+    return basis, -change.ravel()[free], d
+
+
+def _moved(positions: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """positions moved by a ẑ + the rotation ω = (ω_x, ω_y, 0) about the probe frame's origin."""
+    a, wx, wy = (list(motion) + [0.0, 0.0])[:3]
+    w = np.array([wx, wy, 0.0])
+    theta = float(np.linalg.norm(w))
+    rot = np.eye(3)
+    if theta > 0:
+        kx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / theta
+        rot = np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * kx @ kx
+    return positions @ rot.T + np.array([0.0, 0.0, a])
+
+
+def level_by_bending(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float, *,
+                     length_mm: float = PROBE_LENGTH_MM, margin_mm: float = FREE_CELL_MARGIN_MM) -> BendingLevel:
+    """Move a contact registered by its rim (:func:`displacement`) by the rigid motion (an offset
+    along z and a tilt) that makes its free cells' deflection from the baseline w = ℓ²∇²w.
+
+    Why: a press pushes the whole balloon in, the sheet's rim too (1.3–1.6 mm on the emulator's
+    letters), so a contact registered by its rim sits nearer the wall than it is.  The rim's
+    push is not seen against the baseline, but its bending is: outside the contact the wall
+    obeys T∇²w = k·w (:data:`PROBE_LENGTH_MM`), and ∇²w is the change of the cell's bending
+    κ_u + κ_v, read by its gauges (−Δκ: a push in flattens the contact and curls the ring round
+    it).  Cells whose gauges end clear of the contact (``margin_mm``) are read; six or more fix
+    the offset and the tilt, two to five the offset alone; fewer leave the contact as given,
+    with the reason.  ``length_mm``: ℓ, the probe's stiffness length."""
+    if not (math.isfinite(length_mm) and length_mm > 0):
+        raise ValueError(f"the probe's stiffness length must be > 0 mm, got {length_mm!r}")
+    if not (math.isfinite(margin_mm) and margin_mm >= 0):
+        raise ValueError(f"margin_mm must be >= 0, got {margin_mm!r}")
+    system = _bending_system(contact, baseline, grid, pitch_mm, margin_mm)
+    if isinstance(system, str):
+        return BendingLevel(contact, 0.0, 0, math.nan, system + "; registered by its rim")
+    basis, lap, d = system
+    target = length_mm ** 2 * lap - d
+    motion, *_ = np.linalg.lstsq(basis, target, rcond=None)
+    moved = _moved(contact.positions, motion)
+    mask = np.asarray(contact.mask, bool).ravel()
+    offset = float((moved[mask, 2] - contact.positions[mask, 2]).mean()) if mask.any() else float(motion[0])
+    residual = float(np.sqrt(np.mean((target - basis @ motion) ** 2)))
+    return BendingLevel(replace(contact, positions=moved), offset, len(d), residual)
+
+
+@dataclass(frozen=True)
+class ProbeLengthFit:
+    """The probe's stiffness length fitted on presses of a flat plate (:func:`fit_probe_length`)."""
+
+    length_mm: float
+    residual_mm: float  # rms, over the contacts' samples, of their height off the plate after levelling
+    contacts: int  # the presses used
+    skipped: list[str]  # the presses left out, each with why
+
+
+def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: Baseline, grid: SampleGrid,
+                     pitch_mm: float, *, margin_mm: float = FREE_CELL_MARGIN_MM) -> ProbeLengthFit:
+    """ℓ from presses of a flat plate at known depths: the ℓ² with which :func:`level_by_bending`
+    puts the contacts' samples on the plate, z = −depth, in the least-squares sense (it is
+    linear in ℓ²).  The plate is the reference that does not move with the press; the depth is
+    each pose's.  ValueError when the counts differ or no press has cells out of contact."""
+    if len(contacts) != len(poses):
+        raise ValueError(f"{len(contacts)} contacts but {len(poses)} poses (one pose a press)")
+    g_all, r_all, skipped, used = [], [], [], 0
+    for i, (c, pose) in enumerate(zip(contacts, poses)):
+        system = _bending_system(c, baseline, grid, pitch_mm, margin_mm)
+        if isinstance(system, str):
+            skipped.append(f"press {i + 1}: {system}")
+            continue
+        basis, lap, d = system
+        mask = np.asarray(c.mask, bool).ravel()
+        # the motion is linear in ℓ²: motion = ℓ²·P lap − P d, P the least-squares solve
+        pinv = np.linalg.pinv(basis)
+        m_lap, m_d = pinv @ lap, pinv @ d
+        z = c.positions[mask, 2]
+        g = _moved(c.positions[mask], m_lap)[:, 2] - z  # linear in the motion for small moves
+        h = _moved(c.positions[mask], -m_d)[:, 2] - z
+        g_all.append(g)
+        r_all.append(-pose.depth_mm - z - h)
+        used += 1
+    if not used:
+        raise ValueError("no press had cells out of contact to read: " + "; ".join(skipped[:3]))
+    g, r = np.concatenate(g_all), np.concatenate(r_all)
+    l2 = float((g * r).sum() / (g * g).sum())
+    if not l2 > 0:
+        raise ValueError(f"the presses fit a stiffness length squared of {l2:.3g} mm², not > 0: the plate's presses "
+                         "do not read as a balloon pushed in (was the plate flat, and were the depths right?)")
+    return ProbeLengthFit(math.sqrt(l2), float(np.sqrt(np.mean((r - l2 * g) ** 2))), used, skipped)
+
+
 #: Readings (one a contact) a relief-map cell keeps for its height: beyond this many the
 #: oldest give way, so that a long log's map stays bounded (5 MB at the default 140² cells).
 CELL_READINGS = 32
-#: The quantile of a cell's readings that is its height: the upper third, not the median
-#: (measured on the bench's letters, each press levelled on the floor: E 0.351 → 0.311 mm, D
-#: 0.324 → 0.287 mm; 0.6-0.7 within 0.01 mm of each other, 0.8 worse than the median; since the
-#: emulator's gauges read the creases, E 0.986 → 0.884 mm with the rim left out).  It
-#: answers this pipeline's bias, not the wall's physics: the film never lies beyond the wall, so
-#: an exact surface reads a cell at the wall's height where it touched and above it where it
-#: spanned (the lowest reading would be the wall's), but the reconstructed, levelled contacts
-#: read low on the touched cells (docs/tactile.md).  With four readings it is the third lowest:
-#: one reading of four off either way moves nothing.
-CELL_QUANTILE = 2.0 / 3.0
+#: The quantile of a cell's readings that is its height: the median.  The upper third (2/3)
+#: took back the low reading of contacts levelled on the floor or registered by their rim
+#: (levelled: E 0.351 → 0.311 mm, D 0.324 → 0.287 before the emulator's gauges read the
+#: creases); contacts placed by their bending (level_by_bending) read the touched cells without
+#: that bias, and the upper third then costs (the bench's reconstructed letters, ℓ fitted on a
+#: plate: E 0.302 mm with the median against 0.385, D 0.290 against 0.361; docs/tactile.md).
+#: One reading of four off either way moves nothing (the middle two agree).
+CELL_QUANTILE = 0.5
 #: A contact's outer ring of this width (mm) is left out of the map (0: none).  2 mm helped while
 #: the emulator's gauges missed the creases where the wall takes over from the film (E 0.388 →
 #: 0.351 mm, D 0.353 → 0.324 with the median); with the creases read it costs the map (levelled

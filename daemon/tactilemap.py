@@ -11,9 +11,13 @@ when the contact began), else from the log's ``/pose`` topic (the latest pose re
 the event began), else from the ``[tactile] poses`` of the config it was recorded with; with
 ``estimate=True`` the poses are found by registering each contact against the map so far
 (skinmap.daemon.tactile.stitch_estimated; a known first pose anchors the map, else the first
-press's frame is the map's).  With given poses each contact, registered by its rim, is levelled
-on the wall's base plane where the press touched it (skinmap.daemon.tactile.level_on_floor;
-``floor=False``: the rim alone); the summary says which.  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
+press's frame is the map's).  With given poses each contact, registered by its rim, is placed by
+its free cells' bending (skinmap.daemon.tactile.level_by_bending, with the probe's stiffness
+length: ``probe_length_mm``, else the log's ``[tactile] probe_length_mm``; ``reference="floor"``:
+levelled on the wall's base plane where the press touched it, tactile.level_on_floor; ``"rim"``:
+the rim alone); the summary says which.  ``fit_length=True``: the log's presses are of a flat
+plate at the poses' depths, and the probe's stiffness length is fitted on them
+(tactile.fit_probe_length) and used.  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
 its confidence, a PLY point cloud of the touched cells.
 """
 from __future__ import annotations
@@ -25,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, Contact, FloorLevel, PoseEstimate, ProbePose,
-                                    ReliefMap, SampleGrid, capture_baseline, detect_contact, level_on_floor,
-                                    read_poses_csv, stitch_estimated)
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, PROBE_LENGTH_MM, BendingLevel, Contact,
+                                    FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose, ReliefMap, SampleGrid,
+                                    capture_baseline, detect_contact, fit_probe_length, level_by_bending,
+                                    level_on_floor, read_poses_csv, stitch_estimated)
 
 __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 
@@ -53,11 +58,20 @@ class MapReport:
     problems: list[str] = field(default_factory=list)
     pose_source: str = ""
     estimates: list[PoseEstimate] = field(default_factory=list)
-    levels: list[FloorLevel] = field(default_factory=list)
+    levels: list[FloorLevel | BendingLevel] = field(default_factory=list)
+    probe_length_mm: float | None = None  # the stiffness length the contacts were placed with
+    length_fit: ProbeLengthFit | None = None  # with fit_length: the fit on the plate's presses
 
     def format(self) -> str:
         lines = [f"{self.frames} surfaces, baseline of {self.baseline_frames}, {len(self.events)} contact events"
                  + (f", poses {self.pose_source}" if self.pose_source else "")]
+        if self.length_fit is not None:
+            f = self.length_fit
+            lines.append(f"probe stiffness length fitted on {f.contacts} plate presses: {f.length_mm:.2f} mm "
+                         f"(residual {f.residual_mm:.3f} mm rms; set [tactile] probe_length_mm = {f.length_mm:.2f})"
+                         + "".join(f"\n  left out: {s}" for s in f.skipped))
+        elif self.probe_length_mm is not None:
+            lines.append(f"contacts placed by their bending with the probe stiffness length {self.probe_length_mm:g} mm")
         for i, c in enumerate(self.events):
             s = c.summary()
             line = (f"  contact {i + 1}: area {s['area_mm2']:.0f} mm², peak depth {s['peak_depth_mm']:.2f} mm, "
@@ -70,8 +84,14 @@ class MapReport:
                          if e.pose is not None else f"; not placed: {e.reason}")
             if i < len(self.levels):
                 lv = self.levels[i]
-                line += (f"; levelled on the floor (moved {lv.offset_mm:.2f} mm off the wall, floor "
-                         f"{lv.floor_area_mm2:.0f} mm²)" if not lv.reason else f"; {lv.reason}")
+                if lv.reason:
+                    line += f"; {lv.reason}"
+                elif isinstance(lv, BendingLevel):
+                    line += (f"; placed by its bending (moved {lv.offset_mm:+.2f} mm along z, {lv.cells} free cells, "
+                             f"misfit {lv.residual_mm:.2f} mm rms)")
+                else:
+                    line += (f"; levelled on the floor (moved {lv.offset_mm:.2f} mm off the wall, floor "
+                             f"{lv.floor_area_mm2:.0f} mm²)")
             lines.append(line)
         if self.relief is not None:
             h = self.relief.height()
@@ -83,14 +103,22 @@ class MapReport:
 
 def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleGrid, k: float = 3.0,
                    min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None,
-                   starts: list[int] | None = None, ends: list[int] | None = None) -> tuple[list[Contact], int]:
+                   starts: list[int] | None = None, ends: list[int] | None = None,
+                   bending: list[np.ndarray] | None = None,
+                   baseline_out: list | None = None) -> tuple[list[Contact], int]:
     """(contact events, the number of baseline frames used) from sampled surfaces (K, 3);
     ``starts`` and ``ends``, if given, receive each event's first and last frame in contact
-    (indices into ``frames``)."""
+    (indices into ``frames``); ``bending``, if given, each frame's cell bending (the contacts
+    keep its change from the baseline's); ``baseline_out``, if given, receives the baseline."""
     if len(frames) <= baseline_frames:
         raise ValueError(f"{len(frames)} surfaces: not more than the {baseline_frames} baseline frames asked for")
+    if bending is not None and len(bending) != len(frames):
+        raise ValueError(f"{len(bending)} cell bending maps for {len(frames)} surfaces")
     nrm = normals or [np.tile([0.0, 0.0, 1.0], (len(frames[0]), 1))] * len(frames)
-    base = capture_baseline(list(zip(frames[:baseline_frames], nrm[:baseline_frames])))
+    base = capture_baseline(list(zip(frames[:baseline_frames], nrm[:baseline_frames])),
+                            bending=None if bending is None else bending[:baseline_frames])
+    if baseline_out is not None:
+        baseline_out[:] = [base]
     # An event is at least `min_frames` frames in contact and ends after `min_frames` free
     # ones: a frame whose scan straddles the press's start or end (each unit is read at its
     # own TDM instant) neither splits a press nor makes one.
@@ -102,7 +130,7 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
     run = free = 0
     began = latest = 0
     for i, pos in enumerate(frames[baseline_frames:], start=baseline_frames):
-        c = detect_contact(pos, base, grid, k, min_depth_mm)
+        c = detect_contact(pos, base, grid, k, min_depth_mm, bending=None if bending is None else bending[i])
         if c is None:
             free += 1
             if current is not None and free >= min_frames:
@@ -133,18 +161,23 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
 def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | None = None, *,
             estimate: bool = False, baseline_frames: int = 10, step_mm: float = 2.0, k: float = 3.0,
             min_depth_mm: float = 0.5, wall_size_mm: float = 120.0, cell_mm: float = 1.0,
-            floor: bool = True, cell_quantile: float = CELL_QUANTILE, rim_mm: float = CONTACT_RIM_MM) -> MapReport:
+            reference: str = "bending", probe_length_mm: float | None = None, fit_length: bool = False,
+            cell_quantile: float = CELL_QUANTILE, rim_mm: float = CONTACT_RIM_MM) -> MapReport:
     """Replay the log and stitch its contact events with their poses (see the module); ValueError
     names what is wrong (no surfaces, too few baseline frames, no poses from any source, event
     and pose counts that differ, an event without a pose on the topic, a malformed pose)."""
     from skinmap.daemon.poses import assign_poses, contact_poses, poses_in_log
     from skinmap.daemon.replay import replay_log
 
+    if reference not in ("bending", "floor", "rim"):
+        raise ValueError(f"reference must be 'bending', 'floor' or 'rim', got {reference!r}")
     csv_poses = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8")) if poses_csv is not None else None
     frames: list[np.ndarray] = []
     normals: list[np.ndarray] = []
+    bending: list[np.ndarray] = []
     times: list[int] = []
     grid_box: list[SampleGrid] = []
+    grid_box_pitch: list[float] = []
 
     def on_result(result) -> None:
         if result.surface is None:
@@ -152,9 +185,12 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         if not grid_box:
             n, m = result.nodes_mm.shape[:2]
             grid_box.append(SampleGrid.for_array(n, m, float(result.surface.pitch), step_mm))
+            grid_box_pitch.append(float(result.surface.pitch))
         pos, nrm = result.surface.locate(grid_box[0].uv)
         frames.append(np.asarray(pos, dtype=float))
         normals.append(np.asarray(nrm, dtype=float))
+        bending.append(np.asarray(result.bending, dtype=float) if result.bending is not None
+                       else np.full(result.nodes_mm.shape[:2], np.nan))
         times.append(int(result.host_time_ns))
 
     replay = replay_log(log, on_result=on_result)
@@ -164,8 +200,10 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     grid = grid_box[0]
     starts: list[int] = []
     ends: list[int] = []
+    based: list = []
     report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals,
-                                                           starts, ends)
+                                                           starts, ends, bending, based)
+    baseline = based[0]
     logged = poses_in_log(log)
     if logged.refused:
         raise ValueError(f"{log}: " + "; ".join(logged.refused[:3]))
@@ -201,9 +239,18 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     if len(report.events) != len(poses):
         raise ValueError(f"{log}: {len(report.events)} contact events, but {len(poses)} poses "
                          f"{report.pose_source} (one pose a press, in order)")
+    pitch = float(grid_box_pitch[0])
+    length = probe_length_mm if probe_length_mm is not None else logged.probe_length_mm or PROBE_LENGTH_MM
+    if fit_length:
+        report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch)
+        length = report.length_fit.length_mm
     for c, pose in zip(report.events, poses):
-        if floor:
+        if reference == "bending":
+            report.levels.append(level_by_bending(c, baseline, grid, pitch, length_mm=length))
+            report.probe_length_mm = length
+        elif reference == "floor":
             report.levels.append(level_on_floor(c, pose, grid))
+        if report.levels:
             c = report.levels[-1].contact
         relief.add(c, pose, grid)
     report.relief = relief

@@ -26,7 +26,7 @@ import numpy as np
 
 from skinmap.emulator import physics as ph
 
-__all__ = ["LetterRelief", "BalloonOnWall", "PressSequence", "LETTER_STROKES", "Membrane", "solve_membrane"]
+__all__ = ["LetterRelief", "FlatPlate", "BalloonOnWall", "PressSequence", "LETTER_STROKES", "Membrane", "solve_membrane"]
 
 
 def _arc(cx: float, cy: float, r: float, a0: float, a1: float, pieces: int = 8) -> list[tuple[float, float, float, float]]:
@@ -103,6 +103,22 @@ class LetterRelief:
         h = h.reshape(xy.shape[:-1])
         inside = np.all(np.abs(xy) <= 0.5 * self.size, axis=-1)
         return np.where(inside, h, 0.0)
+
+
+class FlatPlate:
+    """A flat wall (no relief), ``size`` mm square: the plate a probe is pressed on at known
+    depths to fit its stiffness length (skinmap.daemon.tactile.fit_probe_length)."""
+
+    relief = 0.0
+
+    def __init__(self, size: float = 120.0) -> None:
+        if not (math.isfinite(size) and size > 0):
+            raise ValueError(f"plate size must be > 0 mm, got {size!r}")
+        self.size = float(size)
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """0 mm everywhere (the plate's base plane)."""
+        return np.zeros(np.shape(xy)[:-1])
 
 
 @dataclass(frozen=True)
@@ -189,7 +205,7 @@ class BalloonOnWall(ph.Shape):
     ``membrane`` (:class:`Membrane`) it is solved as the pressed film (see ``_membrane``);
     without either, it takes the wall's shape exactly (a balloon infinitely soft)."""
 
-    def __init__(self, wall: LetterRelief, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
+    def __init__(self, wall: LetterRelief | FlatPlate, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
                  depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3,
                  membrane_radius: float | None = None, membrane: Membrane | None = None):
         self.wall = wall

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
+__all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets", "cell_bending",
            "reject_implausible_units", "turning_noise_rad", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
 
 
@@ -94,6 +94,18 @@ def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np
     stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
     turning = (eps_upper - eps_lower) / total
     return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
+
+
+def cell_bending(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper_mm: float, h_lower_mm: float) -> np.ndarray:
+    """(N, M) 1/mm: each cell's bending κ_u + κ_v, twice its mean curvature (positive where the
+    upper layer lies on the convex side), from its two gauge pairs' layer strains (2, N, M):
+    κ = (ε_upper − ε_lower)/(h_upper + h_lower).  NaN where a gauge is unusable."""
+    eu, el = np.asarray(eps_upper, dtype=float), np.asarray(eps_lower, dtype=float)
+    if eu.shape != el.shape or eu.ndim != 3 or eu.shape[0] != 2:
+        raise ValueError(f"layer strains must both be (2, N, M), got {eu.shape} and {el.shape}")
+    if not (h_upper_mm + h_lower_mm > 0):
+        raise ValueError(f"the layers' offsets must add up to > 0 mm, got {h_upper_mm!r} + {h_lower_mm!r}")
+    return ((eu - el) / (h_upper_mm + h_lower_mm)).sum(axis=0)
 
 
 def resistances_to_strains(

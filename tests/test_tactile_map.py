@@ -160,11 +160,16 @@ def test_map_finds_every_press_and_writes_png_and_ply(press_log, capsys):
     assert skinmap_main(["map", str(log), "--poses", str(poses), "--png", str(png), "--ply", str(ply)]) == 0
     out = capsys.readouterr().out
     assert "3 contact events" in out and "coverage" in out
-    # each contact says whether it was levelled on the wall's base plane, or why it stays on its rim
+    # each contact says whether it was placed by its free cells' bending, or why it stays on its rim
     lines = [line for line in out.splitlines() if line.lstrip().startswith("contact ")]
+    assert len(lines) == 3 and all("placed by its bending" in line or "registered by its rim" in line for line in lines)
+    assert "probe stiffness length 14.6 mm" in out
+    assert skinmap_main(["map", str(log), "--poses", str(poses), "--reference", "floor"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.lstrip().startswith("contact ")]
     assert len(lines) == 3 and all("levelled on the floor" in line or "registered by its rim" in line for line in lines)
     assert skinmap_main(["map", str(log), "--poses", str(poses), "--rim"]) == 0
-    assert "levelled" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "levelled" not in out and "placed by" not in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = ply.read_text().splitlines()
     count = int(next(line for line in text if line.startswith("element vertex")).split()[-1])
