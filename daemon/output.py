@@ -154,9 +154,11 @@ class ResultOutput:
         g = pipeline.geometry
         grid = SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm)
         if self._contact is None or self._contact.grid != grid:
-            self._contact = ContactTracker(grid, tc.baseline_frames, tc.k, tc.min_depth_mm)
+            self._contact = ContactTracker(grid, tc.baseline_frames, tc.k, tc.min_depth_mm, g.pitch_mm,
+                                           tc.probe_length_mm)
         pos, nrm = r.surface.locate(self._contact.grid.uv)
-        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns), **self._contact.update(pos, nrm, self._pose)}
+        doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns),
+               **self._contact.update(pos, nrm, self._pose, r.bending)}
         if self.publisher is not None:
             try:
                 self.publisher.publish_contact(doc)

@@ -379,6 +379,29 @@ def _moved(positions: np.ndarray, motion: np.ndarray) -> np.ndarray:
     return positions @ rot.T + np.array([0.0, 0.0, a])
 
 
+#: A free cell whose misfit exceeds this many robust s.d.s of the others' is left out of the fit
+#: (its gauges read what the wall's equation does not hold for: a crease at the contact's edge,
+#: a stroke's shoulder), down to the robust s.d.'s floor, ``_ROBUST_FLOOR_MM``.
+_ROBUST_K, _ROBUST_FLOOR_MM = 3.0, 0.05
+
+
+def _robust_motion(basis: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid motion fitted to the free cells, cells far off the rest left out (at most
+    three rounds, keeping two cells; six for a tilt); (motion, the cells kept)."""
+    keep = np.ones(len(target), bool)
+    motion = np.zeros(3)
+    for _ in range(4):
+        cols = basis.shape[1] if keep.sum() >= 6 else 1
+        motion, *_ = np.linalg.lstsq(basis[keep][:, :cols], target[keep], rcond=None)
+        r = target - basis[:, :cols] @ motion
+        scale = max(1.4826 * float(np.median(np.abs(r[keep]))), _ROBUST_FLOOR_MM)
+        new = np.abs(r) <= _ROBUST_K * scale
+        if new.sum() < 2 or np.array_equal(new, keep):
+            break
+        keep = new
+    return motion, keep
+
+
 def level_by_bending(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float, *,
                      length_mm: float = PROBE_LENGTH_MM, margin_mm: float = FREE_CELL_MARGIN_MM) -> BendingLevel:
     """Move a contact registered by its rim (:func:`displacement`) by the rigid motion (an offset
@@ -401,12 +424,12 @@ def level_by_bending(contact: Contact, baseline: Baseline, grid: SampleGrid, pit
         return BendingLevel(contact, 0.0, 0, math.nan, system + "; registered by its rim")
     basis, lap, d = system
     target = length_mm ** 2 * lap - d
-    motion, *_ = np.linalg.lstsq(basis, target, rcond=None)
+    motion, keep = _robust_motion(basis, target)
     moved = _moved(contact.positions, motion)
     mask = np.asarray(contact.mask, bool).ravel()
     offset = float((moved[mask, 2] - contact.positions[mask, 2]).mean()) if mask.any() else float(motion[0])
-    residual = float(np.sqrt(np.mean((target - basis @ motion) ** 2)))
-    return BendingLevel(replace(contact, positions=moved), offset, len(d), residual)
+    residual = float(np.sqrt(np.mean((target[keep] - basis[keep][:, :len(motion)] @ motion) ** 2)))
+    return BendingLevel(replace(contact, positions=moved), offset, int(keep.sum()), residual)
 
 
 @dataclass(frozen=True)
@@ -462,7 +485,8 @@ CELL_READINGS = 32
 #: (levelled: E 0.351 → 0.311 mm, D 0.324 → 0.287 before the emulator's gauges read the
 #: creases); contacts placed by their bending (level_by_bending) read the touched cells without
 #: that bias, and the upper third then costs (the bench's reconstructed letters, ℓ fitted on a
-#: plate: E 0.302 mm with the median against 0.385, D 0.290 against 0.361; docs/tactile.md).
+#: plate, before cells far off the rest were left out: E 0.302 mm with the median against 0.385,
+#: D 0.290 against 0.361; docs/tactile.md).
 #: One reading of four off either way moves nothing (the middle two agree).
 CELL_QUANTILE = 0.5
 #: A contact's outer ring of this width (mm) is left out of the map (0: none).  2 mm helped while
@@ -604,13 +628,24 @@ class ContactTracker:
     ``state`` 'baseline' (still collecting), 'free' or 'contact'; with a contact its area, peak
     depth, feature size L_r, the depth map on the sample grid (row-major, mm, 0 off contact) and,
     when a probe pose had been received (``pose``: the latest one, fields
-    ``skinmap.wire.messages.POSE_FIELDS``), ``pose``: the one in force when the contact began."""
+    ``skinmap.wire.messages.POSE_FIELDS``), ``pose``: the one in force when the contact began.
+    With ``pitch_mm`` and each frame's cell bending (``update(..., bending=)``), a contact also
+    carries ``push_mm``: how far the press pushed the sheet in at the contact beyond what the
+    rim shows (:func:`level_by_bending` with ``probe_length_mm``; the indentation from the free
+    probe is about ``depth + push``) and ``push_misfit_mm``, the free cells' rms misfit to the
+    balloon wall's equation (of the order of the push itself: not to be trusted), or
+    ``push_unread`` saying why it could not be read."""
 
-    def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5) -> None:
+    def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5,
+                 pitch_mm: float | None = None, probe_length_mm: float = PROBE_LENGTH_MM) -> None:
         if baseline_frames < 1:
             raise ValueError(f"baseline_frames must be >= 1, got {baseline_frames}")
+        if not (math.isfinite(probe_length_mm) and probe_length_mm > 0):
+            raise ValueError(f"the probe's stiffness length must be > 0 mm, got {probe_length_mm!r}")
         self.grid, self.baseline_frames, self.k, self.min_depth_mm = grid, int(baseline_frames), float(k), float(min_depth_mm)
+        self.pitch_mm, self.probe_length_mm = pitch_mm, float(probe_length_mm)
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
+        self._bending: list[np.ndarray | None] = []
         self.baseline: Baseline | None = None
         self.events = 0
         self._in_contact = False
@@ -618,19 +653,23 @@ class ContactTracker:
 
     def reset(self) -> None:
         """Take a new baseline from the next frames (e.g. after the probe was re-inflated)."""
-        self._frames, self.baseline, self._in_contact = [], None, False
+        self._frames, self._bending, self.baseline, self._in_contact = [], [], None, False
 
-    def update(self, positions: np.ndarray, normals: np.ndarray, pose: Mapping[str, float] | None = None) -> dict:
+    def update(self, positions: np.ndarray, normals: np.ndarray, pose: Mapping[str, float] | None = None,
+               bending: np.ndarray | None = None) -> dict:
         g = self.grid
         doc: dict = {"grid": {"rows": g.shape[0], "cols": g.shape[1], "step_mm": g.step}, "events": self.events}
         if self.baseline is None:
             self._frames.append((np.asarray(positions, float), np.asarray(normals, float)))
+            self._bending.append(None if bending is None else np.asarray(bending, float))
             if len(self._frames) >= self.baseline_frames:
-                self.baseline = capture_baseline(self._frames)
-                self._frames = []
+                read = [b for b in self._bending if b is not None]
+                self.baseline = capture_baseline(self._frames, bending=read if len(read) == len(self._frames) else None)
+                self._frames, self._bending = [], []
             return {**doc, "state": "baseline", "baseline_frames": len(self._frames) if self.baseline is None
                     else self.baseline_frames}
-        c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm)
+        c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm,
+                           bending=bending if self.baseline.bending is not None else None)
         if c is None:
             self._in_contact = False
             return {**doc, "state": "free"}
@@ -643,6 +682,13 @@ class ContactTracker:
                "depth_mm": np.round(c.depth, 4).ravel().tolist()}
         if self._event_pose is not None:
             out["pose"] = dict(self._event_pose)
+        if self.pitch_mm is not None:
+            placed = level_by_bending(c, self.baseline, g, self.pitch_mm, length_mm=self.probe_length_mm)
+            if placed.reason:
+                out["push_unread"] = placed.reason
+            else:
+                out["push_mm"] = round(-placed.offset_mm, 4)
+                out["push_misfit_mm"] = round(placed.residual_mm, 4)
         return out
 
 

@@ -581,3 +581,51 @@ def test_the_configs_probe_length_is_the_mappings_default_and_a_bad_one_is_named
     assert parse_config({"tactile": {"probe_length_mm": 12.5}}).tactile.probe_length_mm == 12.5
     with pytest.raises(ConfigError, match="probe_length_mm"):
         parse_config({"tactile": {"probe_length_mm": 0}})
+
+
+def test_the_gateways_contact_carries_the_push_read_from_the_bending_within_0p05mm():
+    """ContactTracker with the sheet's pitch and each frame's cell bending: a contact carries
+    ``push_mm``, how far the press pushed the sheet in beyond what its rim shows (the closed-form
+    press of _helmholtz_press: its true value is known); without bending it says why not."""
+    from skinmap.daemon.tactile import ContactTracker, displacement
+
+    grid, base, truth, reported, bend = _helmholtz_press((4.0, 3.0), 14.6)
+    tracker = ContactTracker(grid, baseline_frames=2, pitch_mm=12.0)
+    for _ in range(2):
+        assert tracker.update(base.positions, base.normals, bending=base.bending)["state"] == "baseline"
+    doc = tracker.update(reported, base.normals, bending=bend)
+    assert doc["state"] == "contact"
+    _, moved, mask = displacement(reported, tracker.baseline)
+    true_push = float((moved[mask, 2] - truth[mask, 2]).mean())
+    assert true_push > 0.5 and abs(doc["push_mm"] - true_push) < 0.05 and doc["push_misfit_mm"] < 0.05
+    plain = ContactTracker(grid, baseline_frames=1, pitch_mm=12.0)
+    plain.update(base.positions, base.normals)
+    doc = plain.update(reported, base.normals)
+    assert "push_mm" not in doc and "no cell bending" in doc["push_unread"]
+    with pytest.raises(ValueError, match="stiffness length"):
+        ContactTracker(grid, probe_length_mm=-1.0)
+
+
+def test_cells_whose_gauges_read_a_contacts_crease_are_left_out_and_an_unpushed_rim_reads_no_push():
+    """The emulator's kinematic press (the sheet pushed onto the wall, a 0.3 mm rounded crease,
+    the balloon elsewhere untouched): no push beyond the rim, but the cells next to the contact
+    read the crease (Δκ up to 0.03 /mm, ℓ²Δκ ≈ 7 mm); left out as far off the rest, the push
+    read is the true one within 0.05 mm."""
+    from skinmap.daemon.tactile import level_by_bending
+    from skinmap.strains import cell_bending
+
+    n = 8
+    grid = SampleGrid.for_array(n, n, 12.0, 2.0)
+    free = ph.SphereCap(80.0)
+
+    def bending(shape: ph.Shape) -> np.ndarray:
+        return cell_bending(*ph.gauge_strains(shape, n, n, 12.0, 0.2, 0.2, 10.0), 0.2, 0.2)
+
+    base = capture_baseline([(free.position(grid.uv), free.normal(grid.uv))], bending=[bending(free)])
+    shape = BalloonOnWall(WALL, (-30.0, 30.0), 10.0, 2.0)
+    c = detect_contact(shape.position(grid.uv), base, grid, bending=bending(shape))
+    assert c is not None and c.bending_change is not None and np.nanmax(c.bending_change) > 0.02
+    lv = level_by_bending(c, base, grid, 12.0)
+    m = c.mask.ravel()
+    true_shift = float((shape.position(grid.uv)[m, 2] - c.positions[m, 2]).mean())
+    assert lv.reason == "" and abs(lv.offset_mm - true_shift) < 0.05 and lv.residual_mm < 0.05

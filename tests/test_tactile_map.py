@@ -3,6 +3,7 @@ gateway, replayed and stitched with the poses from a CSV."""
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 
 import numpy as np
@@ -149,6 +150,10 @@ def test_gateway_publishes_and_logs_contact_events(press_log):
     pressed = [d for d in docs if d["state"] == "contact"]
     assert all(d["area_mm2"] > 0 and d["peak_depth_mm"] > 0.05 and d["feature_size_mm"] > 0 for d in pressed)
     assert len(pressed[0]["depth_mm"]) == pressed[0]["grid"]["rows"] * pressed[0]["grid"]["cols"]
+    # the push beyond the rim, read from the bending round the contact, with its misfit (or why not)
+    assert all(("push_mm" in d) != ("push_unread" in d) for d in pressed)
+    read = [d for d in pressed if "push_mm" in d]
+    assert read and all(math.isfinite(d["push_mm"]) and d["push_misfit_mm"] >= 0 for d in read)
     # each contact carries the pose in force when it began: the one put before its press
     carried = {d["events"]: d["pose"] for d in pressed}
     assert [tuple(carried[e][k] for k in ("x_mm", "y_mm", "angle_deg", "depth_mm")) for e in (1, 2, 3)] == PRESSES
