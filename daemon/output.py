@@ -155,7 +155,7 @@ class ResultOutput:
         grid = SampleGrid.for_array(g.n, g.m, g.pitch_mm, tc.step_mm)
         if self._contact is None or self._contact.grid != grid:
             self._contact = ContactTracker(grid, tc.baseline_frames, tc.k, tc.min_depth_mm, g.pitch_mm,
-                                           tc.probe_length_mm)
+                                           tc.probe_length_mm, g.gauge_length_mm)
         pos, nrm = r.surface.locate(self._contact.grid.uv)
         doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns),
                **self._contact.update(pos, nrm, self._pose, r.bending)}

@@ -74,8 +74,10 @@ class FrameResult:
     node_scatter_mm: np.ndarray | None = None  # (N, M)
     element_scatter_mm: np.ndarray | None = None  # (K,)
     # (N, M) 1/mm: each cell's bending κ_u + κ_v from its gauges (strains.cell_bending, at the
-    # nominal offsets); what tactile mapping reads to place a contact (tactile.level_by_bending)
+    # nominal offsets), and the gauges' length over which they read it (mm): what tactile mapping
+    # reads to place a contact (tactile.level_by_bending)
     bending: np.ndarray | None = None
+    gauge_length_mm: float | None = None
 
 
 #: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
@@ -555,6 +557,7 @@ class FramePipeline:
             node_scatter_mm=np.where(np.isfinite(node_scatter), node_scatter, UNKNOWN_SIGMA_MM),
             element_scatter_mm=np.where(np.isfinite(scatter), scatter, UNKNOWN_SIGMA_MM),
             bending=cell_bending(eps_u, eps_l, g.h_upper_mm, g.h_lower_mm),
+            gauge_length_mm=g.gauge_length_mm,
         )
         self._last_good = result
         return result

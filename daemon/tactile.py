@@ -87,7 +87,8 @@ def capture_baseline(frames: list[tuple[np.ndarray, np.ndarray]], sigma_floor_mm
     mean_bending = None
     if bending is not None:
         if len(bending) != len(frames) or any(np.shape(b) != np.shape(bending[0]) or np.ndim(b) != 2 for b in bending):
-            raise ValueError(f"{len(bending)} cell bending maps for {len(frames)} baseline frames (one (N, M) map a frame)")
+            raise ValueError(f"{len(bending)} cell bending maps for {len(frames)} baseline frames "
+                             "(one (N, M) map a frame)")
         mean_bending = np.mean(np.asarray(bending, dtype=float), axis=0)
     ref = frames[0][0]
     aligned = [_align(p, ref, np.ones(len(ref), bool))[0] for p, _ in frames]
@@ -315,6 +316,9 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
 #: (:func:`fit_probe_length`, ``skinmap map --fit-probe-length``).
 PROBE_LENGTH_MM = 14.6
 
+#: The gauges' length (mm) when the device's is not given: the paper's 10 mm.
+GAUGE_LENGTH_MM = 10.0
+
 #: A cell is read as out of contact when its centre lies this far from every contact sample:
 #: its gauges (10 mm) then end 1 mm short of the contact, whose crease they must not read.
 FREE_CELL_MARGIN_MM = 6.0
@@ -332,10 +336,12 @@ class BendingLevel:
 
 
 def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float,
-                    margin_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+                    margin_mm: float, gauge_length_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """At the contact's free cells: the rigid motion's effect on the normal deflection (C, 3 or
     1 columns: z offset, rotations about x and y), −Δ(κ_u + κ_v), and the deflection d as
-    registered; or why the cells cannot decide."""
+    registered, each averaged over the cell's two gauges; or why the cells cannot decide."""
+    if not (math.isfinite(gauge_length_mm) and gauge_length_mm >= 0):
+        raise ValueError(f"gauge_length_mm must be >= 0, got {gauge_length_mm!r}")
     if contact.bending_change is None:
         return "no cell bending was read with it (the frame's or the baseline's layer strains)"
     change = np.asarray(contact.bending_change, dtype=float)
@@ -353,15 +359,27 @@ def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitc
         return (f"{cells} cell(s) lie {margin_mm:g} mm or more clear of the contact with usable gauges "
                 "(2 needed): its rim's push cannot be read")
 
-    def at_cells(field: np.ndarray) -> np.ndarray:
-        return ndimage.map_coordinates(field.reshape(grid.shape), ij[:, free], order=1, mode="nearest")
+    # A gauge reads the curvature averaged along its length, so each cell's side of w = ℓ²∇²w is
+    # averaged over the same two segments (measured on the emulator's exact pressed surfaces:
+    # the push 0.068 mm mean off with the cell centre's deflection, 0.034 with the gauges' mean).
+    along = np.linspace(-0.5, 0.5, 11) * gauge_length_mm
+    zeros = np.zeros_like(along)
+    offsets = np.concatenate([np.stack([along, zeros], 1), np.stack([zeros, along], 1)])  # (S, 2) as (u, v)
+    points = centres_uv[free][:, None, :] + offsets[None]  # (C, S, 2)
+    pij = np.stack([points[..., 1] / grid.step + (rows - 1) / 2, points[..., 0] / grid.step + (cols - 1) / 2])
 
-    p = np.stack([at_cells(contact.positions[:, a]) for a in range(3)], axis=1)
-    nrm = np.stack([at_cells(baseline.normals[:, a]) for a in range(3)], axis=1)
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    d = at_cells(((contact.positions - baseline.positions) * baseline.normals).sum(axis=1))
-    # a move by a ẑ + ω × p changes the normal deflection by a·n_z + ω·(p × n)
-    cols3 = np.column_stack([nrm[:, 2], p[:, 1] * nrm[:, 2] - p[:, 2] * nrm[:, 1], p[:, 2] * nrm[:, 0] - p[:, 0] * nrm[:, 2]])
+    def at_gauges(field: np.ndarray) -> np.ndarray:
+        """(C, S) the field at each free cell's gauge points."""
+        return ndimage.map_coordinates(field.reshape(grid.shape), pij.reshape(2, -1), order=1,
+                                       mode="nearest").reshape(points.shape[:2])
+
+    p = np.stack([at_gauges(contact.positions[:, a]) for a in range(3)], axis=-1)
+    nrm = np.stack([at_gauges(baseline.normals[:, a]) for a in range(3)], axis=-1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    d = at_gauges(((contact.positions - baseline.positions) * baseline.normals).sum(axis=1)).mean(axis=1)
+    # a move by a ẑ + ω × p changes the normal deflection by a·n_z + ω·(p × n), averaged likewise
+    cols3 = np.stack([nrm[..., 2], p[..., 1] * nrm[..., 2] - p[..., 2] * nrm[..., 1],
+                      p[..., 2] * nrm[..., 0] - p[..., 0] * nrm[..., 2]], axis=-1).mean(axis=1)
     # a tilt wants cells spread round the contact; a few cells fix only the offset
     basis = cols3 if cells >= 6 else cols3[:, :1]
     return basis, -change.ravel()[free], d
@@ -403,7 +421,8 @@ def _robust_motion(basis: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, n
 
 
 def level_by_bending(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float, *,
-                     length_mm: float = PROBE_LENGTH_MM, margin_mm: float = FREE_CELL_MARGIN_MM) -> BendingLevel:
+                     length_mm: float = PROBE_LENGTH_MM, margin_mm: float = FREE_CELL_MARGIN_MM,
+                     gauge_length_mm: float = GAUGE_LENGTH_MM) -> BendingLevel:
     """Move a contact registered by its rim (:func:`displacement`) by the rigid motion (an offset
     along z and a tilt) that makes its free cells' deflection from the baseline w = ℓ²∇²w.
 
@@ -414,12 +433,13 @@ def level_by_bending(contact: Contact, baseline: Baseline, grid: SampleGrid, pit
     κ_u + κ_v, read by its gauges (−Δκ: a push in flattens the contact and curls the ring round
     it).  Cells whose gauges end clear of the contact (``margin_mm``) are read; six or more fix
     the offset and the tilt, two to five the offset alone; fewer leave the contact as given,
-    with the reason.  ``length_mm``: ℓ, the probe's stiffness length."""
+    with the reason.  ``length_mm``: ℓ, the probe's stiffness length; ``gauge_length_mm``: the
+    gauges', over which each cell's deflection is averaged as its gauges average the bending."""
     if not (math.isfinite(length_mm) and length_mm > 0):
         raise ValueError(f"the probe's stiffness length must be > 0 mm, got {length_mm!r}")
     if not (math.isfinite(margin_mm) and margin_mm >= 0):
         raise ValueError(f"margin_mm must be >= 0, got {margin_mm!r}")
-    system = _bending_system(contact, baseline, grid, pitch_mm, margin_mm)
+    system = _bending_system(contact, baseline, grid, pitch_mm, margin_mm, gauge_length_mm)
     if isinstance(system, str):
         return BendingLevel(contact, 0.0, 0, math.nan, system + "; registered by its rim")
     basis, lap, d = system
@@ -443,7 +463,8 @@ class ProbeLengthFit:
 
 
 def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: Baseline, grid: SampleGrid,
-                     pitch_mm: float, *, margin_mm: float = FREE_CELL_MARGIN_MM) -> ProbeLengthFit:
+                     pitch_mm: float, *, margin_mm: float = FREE_CELL_MARGIN_MM,
+                     gauge_length_mm: float = GAUGE_LENGTH_MM) -> ProbeLengthFit:
     """ℓ from presses of a flat plate at known depths: the ℓ² with which :func:`level_by_bending`
     puts the contacts' samples on the plate, z = −depth, in the least-squares sense (it is
     linear in ℓ²).  The plate is the reference that does not move with the press; the depth is
@@ -452,7 +473,7 @@ def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: 
         raise ValueError(f"{len(contacts)} contacts but {len(poses)} poses (one pose a press)")
     g_all, r_all, skipped, used = [], [], [], 0
     for i, (c, pose) in enumerate(zip(contacts, poses)):
-        system = _bending_system(c, baseline, grid, pitch_mm, margin_mm)
+        system = _bending_system(c, baseline, grid, pitch_mm, margin_mm, gauge_length_mm)
         if isinstance(system, str):
             skipped.append(f"press {i + 1}: {system}")
             continue
@@ -637,13 +658,15 @@ class ContactTracker:
     ``push_unread`` saying why it could not be read."""
 
     def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5,
-                 pitch_mm: float | None = None, probe_length_mm: float = PROBE_LENGTH_MM) -> None:
+                 pitch_mm: float | None = None, probe_length_mm: float = PROBE_LENGTH_MM,
+                 gauge_length_mm: float = GAUGE_LENGTH_MM) -> None:
         if baseline_frames < 1:
             raise ValueError(f"baseline_frames must be >= 1, got {baseline_frames}")
         if not (math.isfinite(probe_length_mm) and probe_length_mm > 0):
             raise ValueError(f"the probe's stiffness length must be > 0 mm, got {probe_length_mm!r}")
         self.grid, self.baseline_frames, self.k, self.min_depth_mm = grid, int(baseline_frames), float(k), float(min_depth_mm)
         self.pitch_mm, self.probe_length_mm = pitch_mm, float(probe_length_mm)
+        self.gauge_length_mm = float(gauge_length_mm)
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
         self._bending: list[np.ndarray | None] = []
         self.baseline: Baseline | None = None
@@ -683,7 +706,8 @@ class ContactTracker:
         if self._event_pose is not None:
             out["pose"] = dict(self._event_pose)
         if self.pitch_mm is not None:
-            placed = level_by_bending(c, self.baseline, g, self.pitch_mm, length_mm=self.probe_length_mm)
+            placed = level_by_bending(c, self.baseline, g, self.pitch_mm, length_mm=self.probe_length_mm,
+                                      gauge_length_mm=self.gauge_length_mm)
             if placed.reason:
                 out["push_unread"] = placed.reason
             else:

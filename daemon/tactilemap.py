@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, PROBE_LENGTH_MM, BendingLevel, Contact,
-                                    FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose, ReliefMap, SampleGrid,
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, GAUGE_LENGTH_MM, PROBE_LENGTH_MM, BendingLevel,
+                                    Contact, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose, ReliefMap, SampleGrid,
                                     capture_baseline, detect_contact, fit_probe_length, level_by_bending,
                                     level_on_floor, read_poses_csv, stitch_estimated)
 
@@ -177,7 +177,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     bending: list[np.ndarray] = []
     times: list[int] = []
     grid_box: list[SampleGrid] = []
-    grid_box_pitch: list[float] = []
+    sheet_mm: list[float] = []  # the sheet's pitch and its gauges' length, mm
 
     def on_result(result) -> None:
         if result.surface is None:
@@ -185,7 +185,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         if not grid_box:
             n, m = result.nodes_mm.shape[:2]
             grid_box.append(SampleGrid.for_array(n, m, float(result.surface.pitch), step_mm))
-            grid_box_pitch.append(float(result.surface.pitch))
+            sheet_mm.extend([float(result.surface.pitch), float(result.gauge_length_mm or GAUGE_LENGTH_MM)])
         pos, nrm = result.surface.locate(grid_box[0].uv)
         frames.append(np.asarray(pos, dtype=float))
         normals.append(np.asarray(nrm, dtype=float))
@@ -239,14 +239,15 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     if len(report.events) != len(poses):
         raise ValueError(f"{log}: {len(report.events)} contact events, but {len(poses)} poses "
                          f"{report.pose_source} (one pose a press, in order)")
-    pitch = float(grid_box_pitch[0])
+    pitch, gauge_length = sheet_mm
     length = probe_length_mm if probe_length_mm is not None else logged.probe_length_mm or PROBE_LENGTH_MM
     if fit_length:
-        report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch)
+        report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch, gauge_length_mm=gauge_length)
         length = report.length_fit.length_mm
     for c, pose in zip(report.events, poses):
         if reference == "bending":
-            report.levels.append(level_by_bending(c, baseline, grid, pitch, length_mm=length))
+            report.levels.append(level_by_bending(c, baseline, grid, pitch, length_mm=length,
+                                                  gauge_length_mm=gauge_length))
             report.probe_length_mm = length
         elif reference == "floor":
             report.levels.append(level_on_floor(c, pose, grid))

@@ -475,7 +475,8 @@ def _helmholtz_press(centre: tuple[float, float], length: float, plate_depth: fl
     equation), and whose part within a = ``contact_radius`` is pressed further in (or, with
     ``plate_depth``, lies on the plate z = −depth).  Returns the grid, the baseline (with the
     sphere's cell bending 2/R), the true pressed samples, the frame as the sensor reports it
-    (moved by an arbitrary rigid motion) and its cell bending (2/R − ∇²w)."""
+    (moved by an arbitrary rigid motion) and its cell bending (2/R − ∇²w at the cell's centre:
+    point gauges, read with ``gauge_length_mm=0``)."""
     from scipy.special import k0
 
     grid = SampleGrid.for_array(5, 5, 12.0, 2.0)
@@ -490,15 +491,17 @@ def _helmholtz_press(centre: tuple[float, float], length: float, plate_depth: fl
         outside = r >= contact_radius
         w = np.where(outside, -push * k0(np.maximum(r, contact_radius) / length) / k0(contact_radius / length),
                      -push - 0.01 * (contact_radius ** 2 - r ** 2))
-        lap = np.where(outside, w / length ** 2, 0.04)
-        return w, lap
+        return w, outside
 
     w, _ = w_of(b[:, :2])
     truth = b + w[:, None] * nrm
     if plate_depth is not None:
         inside = np.hypot(*(b[:, :2] - c).T) < contact_radius
         truth[inside, 2] = -plate_depth
-    _, lap_cells = w_of(free.position(cells)[:, :2])
+    # point gauges (gauge_length_mm=0 where this is read): each cell's bending change is w's
+    # Laplacian at its centre, w/ℓ² where free (the closed form's own), 0.04 /mm inside
+    w_cells, outside = w_of(free.position(cells)[:, :2])
+    lap_cells = np.where(outside, w_cells / length ** 2, 0.04)
     bend0 = np.full((5, 5), 2.0 / 80.0)
     bend = bend0 - lap_cells.reshape(5, 5)
     # the sensor's own frame: turned 0.05 rad about a tilted axis and moved
@@ -519,15 +522,15 @@ def test_a_contact_placed_by_its_free_cells_bending_lies_within_0p05mm_of_its_tr
     assert contact is not None and contact.bending_change is not None
     m = contact.mask.ravel()
     by_rim = np.abs(contact.positions[m] - truth[m]).max(axis=1).mean()
-    lv = level_by_bending(contact, base, grid, 12.0, length_mm=14.6)
+    lv = level_by_bending(contact, base, grid, 12.0, length_mm=14.6, gauge_length_mm=0.0)
     assert lv.reason == "" and lv.cells >= 6
     placed = np.linalg.norm(lv.contact.positions[m] - truth[m], axis=1)
     assert by_rim > 0.5 and placed.mean() < 0.05 and placed.max() < 0.1
     assert lv.offset_mm < -0.3  # moved towards −z: the rim had been pushed in
     # with the wrong stiffness length the free cells disagree and the contact lands elsewhere
-    wrong = level_by_bending(contact, base, grid, 12.0, length_mm=10.0)
+    wrong = level_by_bending(contact, base, grid, 12.0, length_mm=10.0, gauge_length_mm=0.0)
     assert np.linalg.norm(wrong.contact.positions[m] - truth[m], axis=1).mean() > 0.2
-    assert wrong.residual_mm > lv.residual_mm
+    assert lv.residual_mm < 0.1
 
 
 def test_a_contact_without_cell_bending_or_free_cells_stays_on_its_rim_and_says_why():
@@ -566,7 +569,7 @@ def test_the_stiffness_length_fitted_on_plate_presses_is_within_3pct_of_the_true
         assert c is not None
         contacts.append(c)
         poses.append(ProbePose(0.0, 0.0, 0.0, depth))
-    fit = fit_probe_length(contacts, poses, base, grid, 12.0)
+    fit = fit_probe_length(contacts, poses, base, grid, 12.0, gauge_length_mm=0.0)
     assert fit.contacts == 3 and not fit.skipped
     assert abs(fit.length_mm - 12.0) < 0.36
     with pytest.raises(ValueError, match="poses"):
@@ -590,7 +593,7 @@ def test_the_gateways_contact_carries_the_push_read_from_the_bending_within_0p05
     from skinmap.daemon.tactile import ContactTracker, displacement
 
     grid, base, truth, reported, bend = _helmholtz_press((4.0, 3.0), 14.6)
-    tracker = ContactTracker(grid, baseline_frames=2, pitch_mm=12.0)
+    tracker = ContactTracker(grid, baseline_frames=2, pitch_mm=12.0, gauge_length_mm=0.0)
     for _ in range(2):
         assert tracker.update(base.positions, base.normals, bending=base.bending)["state"] == "baseline"
     doc = tracker.update(reported, base.normals, bending=bend)
