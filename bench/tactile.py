@@ -2,7 +2,8 @@
 
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
-     [--weights none|sigma] [--reference floor|rim] [--cell-quantile Q] [--rim-mm MM]
+     [--weights none|sigma] [--reference bending|floor|rim] [--fit-probe-length | --probe-length MM]
+     [--cell-quantile Q] [--rim-mm MM]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -17,9 +18,12 @@ bending stiffness 0.083 N·mm, the balloon wall's stretch E·t 3 N/mm; walls.Mem
 *follows* (the sheet takes the wall's shape exactly), *bridges40* (the wall opened by a 40 mm
 ball).  Surfaces: "true frame" stitches the scene's own sheet positions in the probe's true
 frame (what the sheet's surface says of the wall at best); "scene" the same positions through
-the mapping (registered onto the baseline by the rim, then, given poses, levelled on the wall's
-base plane where the press touched it, tactile.level_on_floor; ``--reference rim``: the rim
-alone): the mapping alone); "reconstructed" runs
+the mapping (registered onto the baseline by the rim, then, given poses, placed by the bending
+round the contact, tactile.level_by_bending, read from the scene's noise-free gauges;
+``--reference floor``: levelled on the wall's base plane where the press touched it,
+tactile.level_on_floor; ``--reference rim``: the rim alone): the mapping alone; with
+``--fit-probe-length`` the probe's stiffness length is fitted first on reconstructed presses of a
+flat plate, as ``skinmap map --fit-probe-length`` does; "reconstructed" runs
 the whole chain: gauge strains with strain noise s.d. 0.0057 % → reconstruction → mapping,
 stitched unweighted as ``skinmap map`` does (``--weights sigma``: each sample weighted by 1/σ² of
 the reconstruction); "rec true fit" the same reconstructed contacts, each placed by its best
@@ -267,6 +271,7 @@ def main() -> None:
                                 placement = (f"  (placed off their true places by {np.median(xy_off):.1f} mm median, "
                                              f"{xy_off.max():.1f} mm max, {np.median(ang_off):.1f}° median)")
                         per_press = t_scene + t_detect + (time.perf_counter() - t0) / len(poses)
+                        how = "placed by their bending" if args.reference == "bending" else "levelled on the floor"
                         h = relief.height()
                         truth = wall.height(relief.centres)
                         mapped = np.isfinite(h) & relief.wall_region()
@@ -281,8 +286,7 @@ def main() -> None:
                               f"{np.percentile(vs_sheet, 90):5.2f} {100 * relief.coverage():7.1f}% "
                               f"{100 * on.sum() / max(1, mapped.sum()):6.1f}% "
                               f"{np.mean([c.area_mm2 for c, _ in kept]):8.0f} {per_press:7.3f}"
-                              + (f"  ({levelled} {'placed by their bending' if args.reference == 'bending' else 'levelled on the floor'})"
-                                 if levelled else "")
+                              + (f"  ({levelled} {how})" if levelled else "")
                               + (f"  (refused: {refused})" if refused else "") + placement, flush=True)
                         if args.png:
                             root, ext = os.path.splitext(args.png)

@@ -23,6 +23,10 @@ Surfaces here are samples on a regular material grid of the sheet (``SampleGrid`
   frame, and the press depth: the wall's base plane at z = −depth in the probe frame) each
   contact sample gives the wall height H = −depth − z at its wall point; the map keeps per cell
   the mean, the count and the scatter, hence coverage and a per-cell confidence.
+- **Bending** (:func:`level_by_bending`): a contact registered by its rim is moved by the rigid
+  motion that makes its free cells' deflection ℓ² times their change of bending, the rim's push
+  the rim cannot show (:data:`PROBE_LENGTH_MM`, :func:`fit_probe_length`): what ``skinmap map``
+  does with given poses.
 - **Floor** (:func:`level_on_floor`): with a given pose, a contact registered by its rim is
   moved so that its lowest samples lie on the wall's base plane, where the data allows that the
   press touched it (a press pushes the rim in too; the base plane does not move with it).
@@ -77,8 +81,8 @@ class Baseline:
 def capture_baseline(frames: list[tuple[np.ndarray, np.ndarray]], sigma_floor_mm: float = 0.01,
                      bending: list[np.ndarray] | None = None) -> Baseline:
     """Baseline from pre-contact frames [(positions (K, 3), normals (K, 3)), ...] and, if given,
-    each frame's cell bending (:func:`skinmap.strains.cell_bending`, (N, M)); ValueError if there are none or
-    they differ in size."""
+    each frame's cell bending (:func:`skinmap.strains.cell_bending`, (N, M)); ValueError if
+    there are none or they differ in size."""
     if not frames:
         raise ValueError("a baseline needs at least one pre-contact frame")
     k = frames[0][0].shape
@@ -171,8 +175,9 @@ def detect_contact(positions: np.ndarray, baseline: Baseline, grid: SampleGrid, 
                    bending: np.ndarray | None = None) -> Contact | None:
     """The contact in one frame, or None if nothing is pressed in beyond k·σ.  ``sigma`` (K,)
     mm: the frame's own per-sample uncertainty (e.g. ``Surface.locate_sigma``), kept as the
-    stitching weight.  ``bending`` (N, M): the frame's cell bending (:func:`skinmap.strains.cell_bending`); with
-    the baseline's, the contact keeps the change, which :func:`level_by_bending` reads."""
+    stitching weight.  ``bending`` (N, M): the frame's cell bending
+    (:func:`skinmap.strains.cell_bending`); with the baseline's, the contact keeps the change,
+    which :func:`level_by_bending` reads."""
     d, moved, contact = displacement(positions, baseline, k, min_depth_mm)
     if not contact.any():
         return None
@@ -329,7 +334,7 @@ class BendingLevel:
     """A contact placed by its free cells' bending (:func:`level_by_bending`), or why not."""
 
     contact: Contact  # moved, or as given (then ``reason`` says why)
-    offset_mm: float  # the move along z at the contact's samples, mean (negative: towards the wall's side, −z)
+    offset_mm: float  # the move along z at the contact's samples, mean (negative: −z, into the balloon)
     cells: int  # the cells out of contact it read
     residual_mm: float  # rms, over those cells, of their deflection less ℓ²∇²w after the move
     reason: str = ""  # why it stays registered by its rim ("" when moved)
@@ -404,8 +409,9 @@ _ROBUST_K, _ROBUST_FLOOR_MM = 3.0, 0.05
 
 
 def _robust_motion(basis: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rigid motion fitted to the free cells, cells far off the rest left out (at most
-    three rounds, keeping two cells; six for a tilt); (motion, the cells kept)."""
+    """The rigid motion fitted to the free cells, cells far off the rest left out and the fit
+    taken again (at most three times; at least two cells kept, six for a tilt); (motion, the
+    cells kept)."""
     keep = np.ones(len(target), bool)
     motion = np.zeros(3)
     for _ in range(4):
@@ -691,8 +697,7 @@ class ContactTracker:
                 self._frames, self._bending = [], []
             return {**doc, "state": "baseline", "baseline_frames": len(self._frames) if self.baseline is None
                     else self.baseline_frames}
-        c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm,
-                           bending=bending if self.baseline.bending is not None else None)
+        c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm, bending=bending)
         if c is None:
             self._in_contact = False
             return {**doc, "state": "free"}

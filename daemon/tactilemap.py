@@ -17,8 +17,8 @@ length: ``probe_length_mm``, else the log's ``[tactile] probe_length_mm``; ``ref
 levelled on the wall's base plane where the press touched it, tactile.level_on_floor; ``"rim"``:
 the rim alone); the summary says which.  ``fit_length=True``: the log's presses are of a flat
 plate at the poses' depths, and the probe's stiffness length is fitted on them
-(tactile.fit_probe_length) and used.  Outputs: a summary per contact, the relief map's coverage, a PNG of the height map and
-its confidence, a PLY point cloud of the touched cells.
+(tactile.fit_probe_length) and used.  Outputs: a summary per contact, the relief map's
+coverage, a PNG of the height map and its confidence, a PLY point cloud of the touched cells.
 """
 from __future__ import annotations
 
@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, GAUGE_LENGTH_MM, PROBE_LENGTH_MM, BendingLevel,
-                                    Contact, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose, ReliefMap, SampleGrid,
+from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, GAUGE_LENGTH_MM, PROBE_LENGTH_MM, Baseline,
+                                    BendingLevel, Contact, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose,
+                                    ReliefMap, SampleGrid,
                                     capture_baseline, detect_contact, fit_probe_length, level_by_bending,
                                     level_on_floor, read_poses_csv, stitch_estimated)
 
@@ -71,7 +72,8 @@ class MapReport:
                          f"(residual {f.residual_mm:.3f} mm rms; set [tactile] probe_length_mm = {f.length_mm:.2f})"
                          + "".join(f"\n  left out: {s}" for s in f.skipped))
         elif self.probe_length_mm is not None:
-            lines.append(f"contacts placed by their bending with the probe stiffness length {self.probe_length_mm:g} mm")
+            lines.append("contacts placed by their bending with the probe stiffness length "
+                         f"{self.probe_length_mm:g} mm")
         for i, c in enumerate(self.events):
             s = c.summary()
             line = (f"  contact {i + 1}: area {s['area_mm2']:.0f} mm², peak depth {s['peak_depth_mm']:.2f} mm, "
@@ -105,7 +107,7 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
                    min_depth_mm: float = 0.5, normals: list[np.ndarray] | None = None,
                    starts: list[int] | None = None, ends: list[int] | None = None,
                    bending: list[np.ndarray] | None = None,
-                   baseline_out: list | None = None) -> tuple[list[Contact], int]:
+                   baseline_out: list[Baseline] | None = None) -> tuple[list[Contact], int]:
     """(contact events, the number of baseline frames used) from sampled surfaces (K, 3);
     ``starts`` and ``ends``, if given, receive each event's first and last frame in contact
     (indices into ``frames``); ``bending``, if given, each frame's cell bending (the contacts
@@ -200,7 +202,7 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     grid = grid_box[0]
     starts: list[int] = []
     ends: list[int] = []
-    based: list = []
+    based: list[Baseline] = []
     report.events, report.baseline_frames = contact_events(frames, baseline_frames, grid, k, min_depth_mm, normals,
                                                            starts, ends, bending, based)
     baseline = based[0]

@@ -26,7 +26,8 @@ import numpy as np
 
 from skinmap.emulator import physics as ph
 
-__all__ = ["LetterRelief", "FlatPlate", "BalloonOnWall", "PressSequence", "LETTER_STROKES", "Membrane", "solve_membrane"]
+__all__ = ["LetterRelief", "FlatPlate", "BalloonOnWall", "PressSequence", "LETTER_STROKES", "Membrane",
+           "solve_membrane"]
 
 
 def _arc(cx: float, cy: float, r: float, a0: float, a1: float, pieces: int = 8) -> list[tuple[float, float, float, float]]:
@@ -205,8 +206,8 @@ class BalloonOnWall(ph.Shape):
     ``membrane`` (:class:`Membrane`) it is solved as the pressed film (see ``_membrane``);
     without either, it takes the wall's shape exactly (a balloon infinitely soft)."""
 
-    def __init__(self, wall: LetterRelief | FlatPlate, centre: tuple[float, float] = (0.0, 0.0), angle_deg: float = 0.0,
-                 depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3,
+    def __init__(self, wall: LetterRelief | FlatPlate, centre: tuple[float, float] = (0.0, 0.0),
+                 angle_deg: float = 0.0, depth: float = 3.0, balloon_radius: float = 80.0, smoothing: float = 0.3,
                  membrane_radius: float | None = None, membrane: Membrane | None = None):
         self.wall = wall
         self.centre = (float(centre[0]), float(centre[1]))

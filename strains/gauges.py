@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets", "cell_bending",
-           "reject_implausible_units", "turning_noise_rad", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
+__all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
+           "cell_bending", "reject_implausible_units", "turning_noise_rad", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
