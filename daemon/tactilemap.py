@@ -173,6 +173,11 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
 
     if reference not in ("bending", "floor", "rim"):
         raise ValueError(f"reference must be 'bending', 'floor' or 'rim', got {reference!r}")
+    if fit_length and estimate:
+        raise ValueError("fitting the probe's stiffness length needs the plate presses' given poses (their depths), "
+                         "not estimated ones")
+    if probe_length_mm is not None and not (math.isfinite(probe_length_mm) and probe_length_mm > 0):
+        raise ValueError(f"the probe's stiffness length must be > 0 mm, got {probe_length_mm!r}")
     csv_poses = read_poses_csv(Path(poses_csv).read_text(encoding="utf-8")) if poses_csv is not None else None
     frames: list[np.ndarray] = []
     normals: list[np.ndarray] = []

@@ -632,3 +632,15 @@ def test_cells_whose_gauges_read_a_contacts_crease_are_left_out_and_an_unpushed_
     m = c.mask.ravel()
     true_shift = float((shape.position(grid.uv)[m, 2] - c.positions[m, 2]).mean())
     assert lv.reason == "" and abs(lv.offset_mm - true_shift) < 0.05 and lv.residual_mm < 0.05
+
+
+def test_map_refuses_a_stiffness_fit_on_estimated_poses_and_a_bad_length_before_reading_the_log(tmp_path):
+    from skinmap.daemon.tactilemap import map_log
+
+    missing = tmp_path / "never-read.mcap"
+    with pytest.raises(ValueError, match="given poses"):
+        map_log(missing, estimate=True, fit_length=True)
+    with pytest.raises(ValueError, match="stiffness length must be > 0"):
+        map_log(missing, probe_length_mm=-3.0)
+    with pytest.raises(ValueError, match="reference must be"):
+        map_log(missing, reference="shaft")
