@@ -321,6 +321,12 @@ def level_on_floor(contact: Contact, pose: ProbePose, grid: SampleGrid, *, quant
 #: (:func:`fit_probe_length`, ``skinmap map --fit-probe-length``).
 PROBE_LENGTH_MM = 14.6
 
+#: A contact's move is doubtful (:attr:`BendingLevel.doubtful`) when its free cells' misfit
+#: reaches this share of it.  On the bench's letters the misfit is 0.12–0.19 mm median against
+#: pushes of 1–2 mm; where a reconstruction is off round the contact (the emulator's kinematic
+#: press) it is 1.6–2.1 mm against a wrongly read 1.9–2.1 mm (docs/tactile.md).
+PUSH_DOUBT_RATIO = 0.5
+
 #: The gauges' length (mm) when the device's is not given: the paper's 10 mm.
 GAUGE_LENGTH_MM = 10.0
 
@@ -338,6 +344,12 @@ class BendingLevel:
     cells: int  # the cells out of contact it read
     residual_mm: float  # rms, over those cells, of their deflection less ℓ²∇²w after the move
     reason: str = ""  # why it stays registered by its rim ("" when moved)
+
+    @property
+    def doubtful(self) -> bool:
+        """Moved, but its free cells' misfit reaches :data:`PUSH_DOUBT_RATIO` of the move: the
+        cells do not read as a balloon's wall pushed in, and the move is not to be trusted."""
+        return not self.reason and self.residual_mm >= PUSH_DOUBT_RATIO * abs(self.offset_mm)
 
 
 def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float,
@@ -659,9 +671,10 @@ class ContactTracker:
     With ``pitch_mm`` and each frame's cell bending (``update(..., bending=)``), a contact also
     carries ``push_mm``: how far the press pushed the sheet in at the contact beyond what the
     rim shows (:func:`level_by_bending` with ``probe_length_mm``; the indentation from the free
-    probe is about ``depth + push``) and ``push_misfit_mm``, the free cells' rms misfit to the
-    balloon wall's equation (of the order of the push itself: not to be trusted), or
-    ``push_unread`` saying why it could not be read."""
+    probe is about ``depth + push``), ``push_misfit_mm``, the free cells' rms misfit to the
+    balloon wall's equation, and ``push_doubtful`` (:attr:`BendingLevel.doubtful`: the misfit of
+    the order of the push, which is then not to be trusted), or ``push_unread`` saying why it
+    could not be read."""
 
     def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5,
                  pitch_mm: float | None = None, probe_length_mm: float = PROBE_LENGTH_MM,
@@ -718,6 +731,7 @@ class ContactTracker:
             else:
                 out["push_mm"] = round(-placed.offset_mm, 4)
                 out["push_misfit_mm"] = round(placed.residual_mm, 4)
+                out["push_doubtful"] = placed.doubtful
         return out
 
 

@@ -91,10 +91,17 @@ class MapReport:
                 elif isinstance(lv, BendingLevel):
                     line += (f"; placed by its bending (moved {lv.offset_mm:+.2f} mm along z, {lv.cells} free cells, "
                              f"misfit {lv.residual_mm:.2f} mm rms)")
+                    if lv.doubtful:
+                        line += "; caution: the misfit is of the order of the move, which is not to be trusted"
                 else:
                     line += (f"; levelled on the floor (moved {lv.offset_mm:.2f} mm off the wall, floor "
                              f"{lv.floor_area_mm2:.0f} mm²)")
             lines.append(line)
+        doubtful = sum(isinstance(lv, BendingLevel) and lv.doubtful for lv in self.levels)
+        if doubtful:
+            lines.append(f"caution: {doubtful} of {len(self.levels)} contacts were moved by their bending with a misfit "
+                         "of the order of the move (the cells round them do not read as a balloon pushed in); their "
+                         "heights are not to be trusted")
         if self.relief is not None:
             h = self.relief.height()
             lines.append(f"relief map: coverage {100 * self.relief.coverage():.1f} % of the wall, heights "

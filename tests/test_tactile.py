@@ -644,3 +644,23 @@ def test_map_refuses_a_stiffness_fit_on_estimated_poses_and_a_bad_length_before_
         map_log(missing, probe_length_mm=-3.0)
     with pytest.raises(ValueError, match="reference must be"):
         map_log(missing, reference="shaft")
+
+
+def test_a_move_whose_misfit_reaches_half_of_it_is_doubtful_and_the_map_summary_says_so():
+    """BendingLevel.doubtful: moved, with the free cells' misfit at least PUSH_DOUBT_RATIO of the
+    move; skinmap map's summary cautions on each such contact and counts them."""
+    from skinmap.daemon.tactile import PUSH_DOUBT_RATIO, BendingLevel, level_by_bending
+    from skinmap.daemon.tactilemap import MapReport
+
+    grid, base, _, reported, bend = _helmholtz_press((0.0, 0.0), 14.6)
+    c = detect_contact(reported, base, grid, bending=bend)
+    assert c is not None
+    good = level_by_bending(c, base, grid, 12.0, length_mm=14.6, gauge_length_mm=0.0)
+    assert not good.doubtful and good.residual_mm < PUSH_DOUBT_RATIO * abs(good.offset_mm)
+    bad = BendingLevel(c, -1.0, 8, 0.6)
+    unread = BendingLevel(c, 0.0, 0, math.nan, "no cell bending was read with it")
+    assert bad.doubtful and not unread.doubtful
+    out = MapReport(frames=20, baseline_frames=10, events=[c, c, c], levels=[good, bad, unread]).format()
+    lines = out.splitlines()
+    assert "caution" not in lines[1] and "not to be trusted" in lines[2] and "no cell bending" in lines[3]
+    assert "caution: 1 of 3 contacts" in out
