@@ -324,8 +324,10 @@ PROBE_LENGTH_MM = 14.6
 #: A contact's move is doubtful (:attr:`BendingLevel.doubtful`) when its free cells' misfit
 #: reaches this share of it.  On the bench's letters the misfit is 0.12–0.19 mm median against
 #: pushes of 1–2 mm; where a reconstruction is off round the contact (the emulator's kinematic
-#: press) it is 1.6–2.1 mm against a wrongly read 1.9–2.1 mm (docs/tactile.md).
-PUSH_DOUBT_RATIO = 0.5
+#: press) it is 1.6–2.1 mm against a wrongly read 1.9–2.1 mm (docs/tactile.md).  A misfit
+#: below PUSH_DOUBT_FLOOR_MM is not doubtful whatever the move: the gauges' noise alone gives
+#: about ℓ²·σ(Δκ), 0.06–0.08 mm a cell, so a light press's small move would otherwise be marked.
+PUSH_DOUBT_RATIO, PUSH_DOUBT_FLOOR_MM = 0.5, 0.1
 
 #: The gauges' length (mm) when the device's is not given: the paper's 10 mm.
 GAUGE_LENGTH_MM = 10.0
@@ -347,9 +349,10 @@ class BendingLevel:
 
     @property
     def doubtful(self) -> bool:
-        """Moved, but its free cells' misfit reaches :data:`PUSH_DOUBT_RATIO` of the move: the
-        cells do not read as a balloon's wall pushed in, and the move is not to be trusted."""
-        return not self.reason and self.residual_mm >= PUSH_DOUBT_RATIO * abs(self.offset_mm)
+        """Moved, but its free cells' misfit reaches :data:`PUSH_DOUBT_RATIO` of the move (and
+        :data:`PUSH_DOUBT_FLOOR_MM`): the cells do not read as a balloon's wall pushed in, and the
+        move is not to be trusted."""
+        return not self.reason and self.residual_mm >= max(PUSH_DOUBT_RATIO * abs(self.offset_mm), PUSH_DOUBT_FLOOR_MM)
 
 
 def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitch_mm: float,

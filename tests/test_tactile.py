@@ -648,7 +648,8 @@ def test_map_refuses_a_stiffness_fit_on_estimated_poses_and_a_bad_length_before_
 
 def test_a_move_whose_misfit_reaches_half_of_it_is_doubtful_and_the_map_summary_says_so():
     """BendingLevel.doubtful: moved, with the free cells' misfit at least PUSH_DOUBT_RATIO of the
-    move; skinmap map's summary cautions on each such contact and counts them."""
+    move and PUSH_DOUBT_FLOOR_MM; skinmap map's summary cautions on each such contact and counts
+    them."""
     from skinmap.daemon.tactile import PUSH_DOUBT_RATIO, BendingLevel, level_by_bending
     from skinmap.daemon.tactilemap import MapReport
 
@@ -659,7 +660,8 @@ def test_a_move_whose_misfit_reaches_half_of_it_is_doubtful_and_the_map_summary_
     assert not good.doubtful and good.residual_mm < PUSH_DOUBT_RATIO * abs(good.offset_mm)
     bad = BendingLevel(c, -1.0, 8, 0.6)
     unread = BendingLevel(c, 0.0, 0, math.nan, "no cell bending was read with it")
-    assert bad.doubtful and not unread.doubtful
+    light = BendingLevel(c, -0.05, 8, 0.06)  # a light press: a noise-sized misfit is no doubt
+    assert bad.doubtful and not unread.doubtful and not light.doubtful
     out = MapReport(frames=20, baseline_frames=10, events=[c, c, c], levels=[good, bad, unread]).format()
     lines = out.splitlines()
     assert "caution" not in lines[1] and "not to be trusted" in lines[2] and "no cell bending" in lines[3]
