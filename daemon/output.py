@@ -158,7 +158,7 @@ class ResultOutput:
                                            tc.probe_length_mm, g.gauge_length_mm)
         pos, nrm = r.surface.locate(self._contact.grid.uv)
         doc = {"seq": int(r.seq), "host_time_ns": int(r.host_time_ns),
-               **self._contact.update(pos, nrm, self._pose, r.bending)}
+               **self._contact.update(pos, nrm, self._pose, r.cell_bending())}
         if self.publisher is not None:
             try:
                 self.publisher.publish_contact(doc)

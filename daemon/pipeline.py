@@ -73,11 +73,16 @@ class FrameResult:
     # by (Surface.node_scatter_sigma); None: not known, the whole σ stands for it
     node_scatter_mm: np.ndarray | None = None  # (N, M)
     element_scatter_mm: np.ndarray | None = None  # (K,)
-    # (N, M) 1/mm: each cell's bending κ_u + κ_v from its gauges (strains.cell_bending, at the
-    # nominal offsets), and the gauges' length over which they read it (mm): what tactile mapping
-    # reads to place a contact (tactile.level_by_bending)
-    bending: np.ndarray | None = None
-    gauge_length_mm: float | None = None
+    # the array the strains were read on (their nominal offsets, the gauges' length), with a
+    # reconstructed surface; None on a held frame
+    geometry: ArrayGeometry | None = None
+
+    def cell_bending(self) -> np.ndarray | None:
+        """(N, M) 1/mm: each cell's bending κ_u + κ_v from its gauges (strains.cell_bending, at
+        the nominal offsets), what tactile mapping reads to place a contact; None without the
+        geometry.  Computed when asked, so frames nobody maps cost nothing."""
+        g = self.geometry
+        return None if g is None else cell_bending(self.eps_upper, self.eps_lower, g.h_upper_mm, g.h_lower_mm)
 
 
 #: The graph fit's warm start depends on the frames before it.  So that a log replays bit for
@@ -556,8 +561,7 @@ class FramePipeline:
             stage_s=stages,
             node_scatter_mm=np.where(np.isfinite(node_scatter), node_scatter, UNKNOWN_SIGMA_MM),
             element_scatter_mm=np.where(np.isfinite(scatter), scatter, UNKNOWN_SIGMA_MM),
-            bending=cell_bending(eps_u, eps_l, g.h_upper_mm, g.h_lower_mm),
-            gauge_length_mm=g.gauge_length_mm,
+            geometry=g,
         )
         self._last_good = result
         return result

@@ -40,6 +40,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from skinmap.reconstruction.linalg import exp_so3
+
 __all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
            "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor", "PROBE_LENGTH_MM",
@@ -408,13 +410,7 @@ def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitc
 def _moved(positions: np.ndarray, motion: np.ndarray) -> np.ndarray:
     """positions moved by a ẑ + the rotation ω = (ω_x, ω_y, 0) about the probe frame's origin."""
     a, wx, wy = (list(motion) + [0.0, 0.0])[:3]
-    w = np.array([wx, wy, 0.0])
-    theta = float(np.linalg.norm(w))
-    rot = np.eye(3)
-    if theta > 0:
-        kx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / theta
-        rot = np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * kx @ kx
-    return positions @ rot.T + np.array([0.0, 0.0, a])
+    return positions @ exp_so3(np.array([wx, wy, 0.0])).T + np.array([0.0, 0.0, a])
 
 
 #: A free cell whose misfit exceeds this many robust s.d.s of the others' is left out of the fit

@@ -99,9 +99,9 @@ class MapReport:
             lines.append(line)
         doubtful = sum(isinstance(lv, BendingLevel) and lv.doubtful for lv in self.levels)
         if doubtful:
-            lines.append(f"caution: {doubtful} of {len(self.levels)} contacts were moved by their bending with a misfit "
-                         "of the order of the move (the cells round them do not read as a balloon pushed in); their "
-                         "heights are not to be trusted")
+            lines.append(f"caution: {doubtful} of {len(self.levels)} contacts were moved by their bending with a "
+                         "misfit of the order of the move (the cells round them do not read as a balloon pushed "
+                         "in); their heights are not to be trusted")
         if self.relief is not None:
             h = self.relief.height()
             lines.append(f"relief map: coverage {100 * self.relief.coverage():.1f} % of the wall, heights "
@@ -199,12 +199,13 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
         if not grid_box:
             n, m = result.nodes_mm.shape[:2]
             grid_box.append(SampleGrid.for_array(n, m, float(result.surface.pitch), step_mm))
-            sheet_mm.extend([float(result.surface.pitch), float(result.gauge_length_mm or GAUGE_LENGTH_MM)])
+            g = result.geometry
+            sheet_mm.extend([float(result.surface.pitch), GAUGE_LENGTH_MM if g is None else float(g.gauge_length_mm)])
         pos, nrm = result.surface.locate(grid_box[0].uv)
         frames.append(np.asarray(pos, dtype=float))
         normals.append(np.asarray(nrm, dtype=float))
-        bending.append(np.asarray(result.bending, dtype=float) if result.bending is not None
-                       else np.full(result.nodes_mm.shape[:2], np.nan))
+        cells = result.cell_bending()
+        bending.append(np.full(result.nodes_mm.shape[:2], np.nan) if cells is None else cells)
         times.append(int(result.host_time_ns))
 
     replay = replay_log(log, on_result=on_result)
@@ -256,7 +257,8 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     pitch, gauge_length = sheet_mm
     length = probe_length_mm if probe_length_mm is not None else logged.probe_length_mm or PROBE_LENGTH_MM
     if fit_length:
-        report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch, gauge_length_mm=gauge_length)
+        report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch,
+                                             gauge_length_mm=gauge_length)
         length = report.length_fit.length_mm
     for c, pose in zip(report.events, poses):
         if reference == "bending":
