@@ -351,18 +351,22 @@ class BalloonOnWall(ph.Shape):
 class PressSequence(ph.Shape):
     """Presses one after the other: the free balloon for ``rest_s``, then press i (centre,
     angle, depth) held for ``hold_s``, the balloon free for ``gap_s`` between presses (moved and
-    turned meanwhile), then free again.  ``presses``: [(x_mm, y_mm, angle_deg, depth_mm), ...]."""
+    turned meanwhile), then free again.  ``presses``: [(x_mm, y_mm, angle_deg, depth_mm), ...].
+    With ``membrane`` each press is the solved film (:class:`BalloonOnWall`'s ``membrane``: the
+    rim pushed in too, as a real balloon's is), solved once here; without it the sheet takes the
+    wall's shape exactly."""
 
     time_varying = True
 
-    def __init__(self, wall: LetterRelief, presses: list[tuple[float, float, float, float]], rest_s: float = 1.0,
-                 hold_s: float = 1.0, gap_s: float = 0.5, balloon_radius: float = 80.0, smoothing: float = 0.3,
-                 start_s: float = 0.0):
+    def __init__(self, wall: LetterRelief | FlatPlate, presses: list[tuple[float, float, float, float]],
+                 rest_s: float = 1.0, hold_s: float = 1.0, gap_s: float = 0.5, balloon_radius: float = 80.0,
+                 smoothing: float = 0.3, start_s: float = 0.0, membrane: Membrane | None = None):
         if not presses:
             raise ValueError("a press sequence needs at least one press")
         self.wall, self.rest_s, self.hold_s, self.gap_s = wall, float(rest_s), float(hold_s), float(gap_s)
         self.start_s = float(start_s)  # the shape clock's time at which the sequence begins
-        self.presses = [BalloonOnWall(wall, (p[0], p[1]), p[2], p[3], balloon_radius, smoothing) for p in presses]
+        self.presses = [BalloonOnWall(wall, (p[0], p[1]), p[2], p[3], balloon_radius, smoothing, membrane=membrane)
+                        for p in presses]
         self._free = ph.SphereCap(balloon_radius)
 
     def press_at(self, t: np.ndarray) -> np.ndarray:
@@ -384,4 +388,17 @@ class PressSequence(ph.Shape):
         for j in np.unique(which[which >= 0]):
             sel = which == j
             out[sel] = self.presses[int(j)].position(uv[sel])
+        return out
+
+    def layer_strains(self, centres, directions, offsets, gauge_length, t, samples, panels) -> np.ndarray:
+        # each gauge read on the shape held at its own time, by that shape's own route (a solved
+        # press reads its creases: BalloonOnWall.layer_strains)
+        t = np.broadcast_to(np.asarray(t, dtype=float), (len(centres),))
+        which = self.press_at(t)
+        out = np.empty((len(offsets), len(centres)))
+        for j in np.unique(which):
+            sel = which == j
+            shape: ph.Shape = self._free if j < 0 else self.presses[int(j)]
+            out[:, sel] = shape.layer_strains(centres[sel], directions[sel], offsets, gauge_length, t[sel], samples,
+                                              panels)
         return out

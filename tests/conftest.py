@@ -23,6 +23,33 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def tactile_gateway_config(folder: Path, device_url: str, name: str, zenoh_port: int) -> Any:
+    """A loaded gateway config for a tactile run in ``folder``: the emulated device at
+    ``device_url`` scanned at 20 Hz, output at 10 Hz, Zenoh listening on loopback
+    ``zenoh_port``, contacts tracked (a baseline of 8 frames), logs and state in ``folder``."""
+    from skinmap.daemon.config import load_config
+
+    path = folder / "skinmapd.toml"
+    path.write_text(f"""
+[device]
+port = "{device_url}"
+name = "{name}"
+scan_rate_hz = 20
+[output]
+rate_hz = 10
+[zenoh]
+listen = ["tcp/127.0.0.1:{zenoh_port}"]
+[tactile]
+enabled = true
+baseline_frames = 8
+[log]
+directory = "logs"
+[state]
+directory = "state"
+""")
+    return load_config(path)
+
+
 def wait_until(predicate: Callable[[], Any], timeout: float = WAIT_S, poll: float = 0.02) -> bool:
     """True as soon as `predicate()` is truthy; False if it is not after `timeout` seconds."""
     deadline = time.monotonic() + timeout

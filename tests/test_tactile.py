@@ -666,3 +666,26 @@ def test_a_move_whose_misfit_reaches_half_of_it_is_doubtful_and_the_map_summary_
     lines = out.splitlines()
     assert "caution" not in lines[1] and "not to be trusted" in lines[2] and "no cell bending" in lines[3]
     assert "caution: 1 of 3 contacts" in out
+
+
+def test_a_press_sequence_reads_each_gauge_on_the_shape_held_at_its_own_instant():
+    """A scan that straddles a press's start reads some gauges on the free balloon and the rest
+    on the solved press, each exactly as that shape alone reads it (a solved press by its own
+    creased route)."""
+    from skinmap.emulator.walls import FlatPlate, Membrane, PressSequence
+
+    seq = PressSequence(FlatPlate(), [(3.0, -2.0, 10.0, 2.0)], rest_s=1.0, hold_s=1.0, membrane=Membrane(half=50.0))
+    press, free = seq.presses[0], ph.SphereCap(80.0)
+    assert press.membrane is not None
+    centres = np.array([[0.0, 0.0], [12.0, 0.0], [-12.0, 12.0], [0.0, -12.0]])
+    directions = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0]])
+    offsets = np.array([0.2, -0.2])
+    t = np.array([0.5, 1.5, 0.99, 1.01])  # free, pressed, free, pressed
+    got = seq.layer_strains(centres, directions, offsets, 10.0, t, 8, 4)
+    on_press = press.layer_strains(centres, directions, offsets, 10.0, t, 8, 4)
+    on_free = free.layer_strains(centres, directions, offsets, 10.0, t, 8, 4)
+    pressed = seq.press_at(t) == 0
+    assert pressed.tolist() == [False, True, False, True]
+    np.testing.assert_allclose(got[:, pressed], on_press[:, pressed], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got[:, ~pressed], on_free[:, ~pressed], rtol=0, atol=1e-12)
+    assert np.abs(on_press - on_free)[:, pressed].max() > 1e-4  # the press reads otherwise

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import free_port, running_gateway
+from conftest import free_port, running_gateway, tactile_gateway_config
 
 from skinmap.daemon.cli import main as skinmap_main
 from skinmap.emulator.device import ScannerSpec
@@ -30,28 +30,8 @@ def press_log(tmp_path_factory):
                    SphereCap(80.0), TcpTransport(0))
     emu.start()
     zport = free_port()
-    cfg_text = f"""
-[device]
-port = "{emu.transport.url}"
-name = "map"
-scan_rate_hz = 20
-[output]
-rate_hz = 10
-[zenoh]
-listen = ["tcp/127.0.0.1:{zport}"]
-[tactile]
-enabled = true
-baseline_frames = 8
-[log]
-directory = "logs"
-[state]
-directory = "state"
-"""
-    (tmp / "skinmapd.toml").write_text(cfg_text)
     _write_calibration(tmp / "state", emu)
-    from skinmap.daemon.config import load_config
-
-    cfg = load_config(tmp / "skinmapd.toml")
+    cfg = tactile_gateway_config(tmp, emu.transport.url, "map", zport)
     try:
         with running_gateway(cfg) as gw:
             deadline = time.monotonic() + 60
