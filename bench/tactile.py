@@ -205,21 +205,25 @@ def main() -> None:
                       f"base plane, {sum(f >= 30 for f in floor)} with at least 30 of the sheet's {len(uv)} samples)")
                 sheet_map = None  # the sheet's own true surface, stitched with the true poses
 
-                def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                def scene(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
                     return shape.position(uv), None, cell_bending(*gauges(shape, None), 0.2, 0.2)
+
+                def positions_only(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+                    return shape.position(uv), None, None  # the true frame's row places by the truth: no gauges
+
 
                 def true_frame(contact: Contact | None, shape: ph.Shape) -> Contact | None:
                     # the contact found as ever, its samples left in the probe's true frame
                     # (no registration onto the baseline by the rim)
                     return None if contact is None else replace(contact, positions=shape.position(uv))
 
-                def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                def reconstructed(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
                     eu, el = gauges(shape, rng)
                     surf = reconstruct(eu, el, pitch, 0.2, 0.2)
                     return surf.locate(uv)[0], surf.locate_sigma(uv), cell_bending(eu, el, 0.2, 0.2)
 
                 rec_contacts: list[Contact | None] = []
-                for name, surface in (("true frame", scene), ("scene", scene), ("reconstructed", reconstructed),
+                for name, surface in (("true frame", positions_only), ("scene", scene), ("reconstructed", reconstructed),
                                       ("rec true fit", reconstructed)):
                     t0 = time.perf_counter()
                     if name == "rec true fit":
@@ -230,7 +234,9 @@ def main() -> None:
                                     for c, shape in zip(rec_contacts, shapes)]
                     else:
                         rest = [surface(free) for _ in range(5)]
-                        base = capture_baseline([(r[0], free.normal(uv)) for r in rest], bending=[r[2] for r in rest])
+                        read = [r[2] for r in rest if r[2] is not None]
+                        base = capture_baseline([(r[0], free.normal(uv)) for r in rest],
+                                                bending=read if len(read) == len(rest) else None)
                         contacts = []
                         for shape in shapes:
                             pos, sig, bend = surface(shape)

@@ -21,7 +21,7 @@ import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
-from skinmap.strains import (Calibration, cell_bending, reject_implausible_units, resistances_to_strains,
+from skinmap.strains import (Calibration, cell_bending, cell_centres, reject_implausible_units, resistances_to_strains,
                              to_nominal_offsets, turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
@@ -42,10 +42,7 @@ class ArrayGeometry:
 
     def cell_uv(self) -> np.ndarray:
         """(N, M, 2) material coordinates of the cell centres (docs/architecture.md)."""
-        u = (np.arange(self.m) - (self.m - 1) / 2) * self.pitch_mm
-        v = (np.arange(self.n) - (self.n - 1) / 2) * self.pitch_mm
-        uu, vv = np.meshgrid(u, v)
-        return np.stack([uu, vv], axis=-1)
+        return cell_centres(self.n, self.m, self.pitch_mm)
 
 
 @dataclass

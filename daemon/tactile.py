@@ -41,6 +41,7 @@ import numpy as np
 from scipy import ndimage
 
 from skinmap.reconstruction.linalg import exp_so3
+from skinmap.strains import cell_centres
 
 __all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
@@ -368,8 +369,7 @@ def _bending_system(contact: Contact, baseline: Baseline, grid: SampleGrid, pitc
         return "no cell bending was read with it (the frame's or the baseline's layer strains)"
     change = np.asarray(contact.bending_change, dtype=float)
     n, m = change.shape
-    centres_uv = np.stack(np.meshgrid((np.arange(m) - (m - 1) / 2) * pitch_mm,
-                                      (np.arange(n) - (n - 1) / 2) * pitch_mm), axis=-1).reshape(-1, 2)
+    centres_uv = cell_centres(n, m, pitch_mm).reshape(-1, 2)
     rows, cols = grid.shape
     # fractional sample indices of the cell centres (clamped onto the grid's outer samples)
     ij = np.stack([centres_uv[:, 1] / grid.step + (rows - 1) / 2, centres_uv[:, 0] / grid.step + (cols - 1) / 2])

@@ -190,18 +190,20 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     normals: list[np.ndarray] = []
     bending: list[np.ndarray] = []
     times: list[int] = []
-    grid_box: list[SampleGrid] = []
-    sheet_mm: list[float] = []  # the sheet's pitch and its gauges' length, mm
+    grid: SampleGrid | None = None  # from the first surface, with the sheet's pitch and gauge length (mm)
+    pitch = gauge_length = math.nan
 
     def on_result(result) -> None:
+        nonlocal grid, pitch, gauge_length
         if result.surface is None:
             return
-        if not grid_box:
+        if grid is None:
             n, m = result.nodes_mm.shape[:2]
-            grid_box.append(SampleGrid.for_array(n, m, float(result.surface.pitch), step_mm))
+            pitch = float(result.surface.pitch)
             g = result.geometry
-            sheet_mm.extend([float(result.surface.pitch), GAUGE_LENGTH_MM if g is None else float(g.gauge_length_mm)])
-        pos, nrm = result.surface.locate(grid_box[0].uv)
+            gauge_length = GAUGE_LENGTH_MM if g is None else float(g.gauge_length_mm)
+            grid = SampleGrid.for_array(n, m, pitch, step_mm)
+        pos, nrm = result.surface.locate(grid.uv)
         frames.append(np.asarray(pos, dtype=float))
         normals.append(np.asarray(nrm, dtype=float))
         cells = result.cell_bending()
@@ -210,9 +212,8 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
 
     replay = replay_log(log, on_result=on_result)
     report = MapReport(frames=len(frames), problems=list(getattr(replay, "problems", []))[:5])
-    if not frames:
+    if grid is None:
         raise ValueError(f"{log}: no surfaces could be replayed from its raw frames")
-    grid = grid_box[0]
     starts: list[int] = []
     ends: list[int] = []
     based: list[Baseline] = []
@@ -254,7 +255,6 @@ def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | Non
     if len(report.events) != len(poses):
         raise ValueError(f"{log}: {len(report.events)} contact events, but {len(poses)} poses "
                          f"{report.pose_source} (one pose a press, in order)")
-    pitch, gauge_length = sheet_mm
     length = probe_length_mm if probe_length_mm is not None else logged.probe_length_mm or PROBE_LENGTH_MM
     if fit_length:
         report.length_fit = fit_probe_length(report.events, poses, baseline, grid, pitch,

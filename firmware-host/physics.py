@@ -21,6 +21,8 @@ from typing import Callable, Mapping, Sequence, TypedDict, cast
 
 import numpy as np
 
+from skinmap.strains import cell_centres
+
 __all__ = [
     "Shape",
     "Flat",
@@ -746,16 +748,6 @@ def parse_shape_spec(spec: str) -> Shape:
         raise ValueError(
             f"shape spec {spec!r}: only graph shapes (saddle, gaussian, membrane) can be summed with '+'"
         ) from None
-
-
-def cell_centres(n: int, m: int, pitch: float) -> np.ndarray:
-    """Material coordinates of the cell centres, (N, M, 2) as (u_j, v_i)."""
-    n, m = _grid_size(n, m)
-    pitch = _finite_positive("pitch", pitch)
-    u = (np.arange(m) - (m - 1) / 2.0) * pitch
-    v = (np.arange(n) - (n - 1) / 2.0) * pitch
-    uu, vv = np.meshgrid(u, v)  # (N, M): rows follow v, columns follow u
-    return np.stack([uu, vv], axis=-1)
 
 
 def _grid_size(n: int, m: int) -> tuple[int, int]:

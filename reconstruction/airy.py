@@ -26,6 +26,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skinmap.strains import cell_axes
+
 __all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "airy_curvature_range", "MIN_UNITS"]
 
 _TERMS = 7
@@ -80,8 +82,7 @@ def _design(n: int, m: int, pitch_mm: float, mask: bytes) -> tuple[np.ndarray, n
     pinv(AᵀA), the coefficient's variance per unit residual variance.  Cached: the mask changes
     rarely, the data every frame."""
     ok = np.frombuffer(mask, dtype=bool).reshape(n, m)
-    vc = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
-    uc = (np.arange(m) - (m - 1) / 2.0) * pitch_mm
+    uc, vc = cell_axes(n, m, pitch_mm)
     vv, uu = np.meshgrid(vc, uc, indexing="ij")
     columns = [np.ones_like(uu), uu ** 2 + vv ** 2, uu, vv, uu ** 2 - vv ** 2, uu * vv,
                uu ** 4 - 6 * uu ** 2 * vv ** 2 + vv ** 4]

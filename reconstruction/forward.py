@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from skinmap.strains import cell_axes
+
 from .surface import hermite_weights
 
 __all__ = ["GaugeLayout", "Patches", "surface_strains", "misfit", "misfit_and_strains"]
@@ -46,8 +48,7 @@ class GaugeLayout:
     @classmethod
     def build(cls, n: int, m: int, pitch: float, gauge_length: float, h_upper: float, h_lower: float,
               compiled: Any = None) -> "GaugeLayout":
-        u_c = (np.arange(m) - (m - 1) / 2.0) * pitch
-        v_c = (np.arange(n) - (n - 1) / 2.0) * pitch
+        u_c, v_c = cell_axes(n, m, pitch)
         t = np.linspace(-0.5, 0.5, 2 * _SEGMENTS + 1) * gauge_length
         vv, uu, tt = np.meshgrid(v_c, u_c, t, indexing="ij")  # (N, M, points)
         along_u = np.stack([uu + tt, vv], axis=-1)

@@ -47,6 +47,8 @@ from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
 from scipy.linalg.lapack import dtrtrs as _trtrs
 
+from skinmap.strains import cell_axes
+
 from .linalg import aligned_distances
 from .uncertainty import plane_slopes
 
@@ -202,8 +204,7 @@ class GraphFit:
         kv, self.nbv = _basis_1d(-0.5 * n * pitch, 0.5 * n * pitch, _KNOTS_PER_PITCH * n)
         nbu, nbv = self.nbu, self.nbv
         self.size = nc = nbu * nbv
-        uc = (np.arange(m) - (m - 1) / 2.0) * pitch
-        vc = (np.arange(n) - (n - 1) / 2.0) * pitch
+        uc, vc = cell_axes(n, m, pitch)
         xq, wq = np.polynomial.legendre.leggauss(_QUADRATURE[0])
         panels = _QUADRATURE[1]
         s = np.concatenate([((p + (xq + 1.0) / 2.0) / panels - 0.5) * gauge_length for p in range(panels)])

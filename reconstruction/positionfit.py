@@ -37,6 +37,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from skinmap.reconstruction.graphfit import _basis_1d, _design, _gram
+from skinmap.strains import cell_axes
 
 # Derivatives of the position the residuals use, (order along u, order along v).
 _DERIVATIVES = ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
@@ -184,8 +185,7 @@ class PositionFit:
         self.ku, self.nbu = _basis_1d(-hu, hu, settings.knots_per_pitch * m)
         self.kv, self.nbv = _basis_1d(-hv, hv, settings.knots_per_pitch * n)
         self.nb = nb = self.nbu * self.nbv
-        self.uc = (np.arange(m) - (m - 1) / 2) * pitch
-        self.vc = (np.arange(n) - (n - 1) / 2) * pitch
+        self.uc, self.vc = cell_axes(n, m, pitch)
         xg, wg = np.polynomial.legendre.leggauss(quadrature)
         s = 0.5 * gauge_length * xg
         self.q = quadrature

@@ -22,13 +22,15 @@ h_u and h_l.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
-           "cell_bending", "reject_implausible_units", "turning_noise_rad", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
+           "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
+           "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
@@ -94,6 +96,28 @@ def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np
     stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
     turning = (eps_upper - eps_lower) / total
     return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
+
+
+def cell_axes(n: int, m: int, pitch_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cells' material coordinates along each axis, (u (M,), v (N,)) mm: cell (i, j) is
+    centred at u_j = (j − (M−1)/2)·pitch, v_i = (i − (N−1)/2)·pitch, the sheet's material centre
+    at the origin (the sensor frame, docs/reconstruction.md).  The one definition of the layout
+    that the emulator, the reconstruction and the gateway share."""
+    for name, val in (("rows n", n), ("cols m", m)):
+        if int(val) != val or int(val) < 1:
+            raise ValueError(f"{name} must be a positive integer, got {val!r}")
+    pitch = float(pitch_mm)
+    if not (math.isfinite(pitch) and pitch > 0):
+        raise ValueError(f"pitch must be a finite positive number, got {pitch_mm!r}")
+    n, m = int(n), int(m)
+    return (np.arange(m) - (m - 1) / 2.0) * pitch, (np.arange(n) - (n - 1) / 2.0) * pitch
+
+
+def cell_centres(n: int, m: int, pitch_mm: float) -> np.ndarray:
+    """Material coordinates of the cell centres, (N, M, 2) as (u_j, v_i) (:func:`cell_axes`)."""
+    u, v = cell_axes(n, m, pitch_mm)
+    uu, vv = np.meshgrid(u, v)  # (N, M): rows follow v, columns follow u
+    return np.stack([uu, vv], axis=-1)
 
 
 def cell_bending(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper_mm: float, h_lower_mm: float) -> np.ndarray:

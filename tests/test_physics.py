@@ -432,3 +432,19 @@ def test_creased_layer_strains_equal_the_quadrature_within_1e_6_on_smooth_surfac
     quadrature = ph.quadrature_layer_strains(shape, centres, directions, offsets, 10.0, np.asarray(0.0), 8, 4)
     creased = ph.creased_layer_strains(shape, centres, directions, offsets, 10.0, np.asarray(0.0))
     assert np.abs(creased - quadrature).max() < 1e-6
+
+
+def test_the_emulator_reconstruction_and_gateway_share_one_cell_layout():
+    """The emulator's cells, the reconstruction's nodes and the gateway's cell coordinates are one
+    layout (skinmap.strains.cell_centres): a rectangular sheet's nodes sit where its cells are."""
+    from skinmap.daemon.pipeline import ArrayGeometry
+    from skinmap.reconstruction import reconstruct
+    from skinmap.strains import cell_axes
+
+    u, v = cell_axes(3, 4, 12.0)
+    np.testing.assert_allclose(u, [-18.0, -6.0, 6.0, 18.0])
+    np.testing.assert_allclose(v, [-12.0, 0.0, 12.0])
+    eu, el = gauge_strains(Flat(), 3, 4, 12.0)
+    surf = reconstruct(eu, el, 12.0, 0.2, 0.2)
+    np.testing.assert_allclose(surf.nodes[..., :2], cell_centres(3, 4, 12.0), atol=1e-9)
+    np.testing.assert_allclose(ArrayGeometry(3, 4, 12.0, 0.2, 0.2).cell_uv(), cell_centres(3, 4, 12.0))
