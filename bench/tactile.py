@@ -211,7 +211,6 @@ def main() -> None:
                 def positions_only(shape: ph.Shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
                     return shape.position(uv), None, None  # the true frame's row places by the truth: no gauges
 
-
                 def true_frame(contact: Contact | None, shape: ph.Shape) -> Contact | None:
                     # the contact found as ever, its samples left in the probe's true frame
                     # (no registration onto the baseline by the rim)
@@ -223,8 +222,8 @@ def main() -> None:
                     return surf.locate(uv)[0], surf.locate_sigma(uv), cell_bending(eu, el, 0.2, 0.2)
 
                 rec_contacts: list[Contact | None] = []
-                for name, surface in (("true frame", positions_only), ("scene", scene), ("reconstructed", reconstructed),
-                                      ("rec true fit", reconstructed)):
+                for name, surface in (("true frame", positions_only), ("scene", scene),
+                                      ("reconstructed", reconstructed), ("rec true fit", reconstructed)):
                     t0 = time.perf_counter()
                     if name == "rec true fit":
                         # the reconstructed contacts again, each placed by its best rigid fit to the

@@ -2,7 +2,7 @@
 known depths, each press the solved film (its rim pushed in, as a real balloon's is), logged by a
 running gateway, replayed, and the probe's stiffness length fitted from the log.
 
-Run twice: with the sensor's gauges (hysteresis about 4 % of the strain excursion, docs/physics.md)
+Run twice: with the sensor's gauges (hysteresis about 4 % of the strain excursion, docs/calibration.md)
 and with that hysteresis off.  The gauges' hysteresis is a play (dead band) about the rest
 state, so the small change of bending round a press reads low and the fit reads a longer ℓ
 than the film's own (measured: 16.6-17.1 mm against 14.6; without the hysteresis 15.2-15.5): the fitted ℓ
@@ -71,8 +71,8 @@ def test_probe_length_fitted_from_a_logged_plate_run_within_10_percent_of_the_fi
     log, poses, true_length, gauges = plate_log
     assert skinmap_main(["map", str(log), "--poses", str(poses), "--fit-probe-length"]) == 0
     out = capsys.readouterr().out
-    fitted = re.search(r"probe stiffness length fitted on (\d+) plate presses: ([0-9.]+) mm \(residual ([0-9.]+) mm rms",
-                       out)
+    fitted = re.search(r"probe stiffness length fitted on (\d+) plate presses: ([0-9.]+) mm "
+                       r"\(residual ([0-9.]+) mm rms", out)
     assert fitted is not None, out
     contacts, length, residual = int(fitted.group(1)), float(fitted.group(2)), float(fitted.group(3))
     print(f"{gauges}: fitted {length:.2f} mm on {contacts} presses (the film's {true_length:.2f} mm), "
