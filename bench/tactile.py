@@ -3,7 +3,7 @@
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
      [--weights none|sigma] [--reference bending|floor|rim] [--fit-probe-length | --probe-length MM]
-     [--cell-quantile Q] [--rim-mm MM]
+     [--cell-quantile Q] [--rim-mm MM] [--hysteresis H]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -11,7 +11,10 @@ Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells,
 each letter its own run) or all four in its quadrants (``--wall quad``), raised 4 mm, strokes
 15 mm wide (the smallest feature), flanks a 6 mm smooth step; presses on a square lattice
 --spacing mm apart over the wall in a serpentine sweep, each turned by a random angle in ±30°.
-Baseline: 5 noisy frames of the free balloon.
+Baseline: 5 noisy frames of the free balloon.  ``--hysteresis H`` (the sensor's is about 0.04):
+every gauge reading goes through the emulator's play operator
+(skinmap.emulator.electrical.hysteresis_step, loop H of the strain excursion) along one history
+of the whole run, each press released to the free balloon before the next, the plate's included.
 
 Scenes: *membrane* (the film solved on the pressed balloon: tension 0.1 N/mm, p = 2T/R,
 bending stiffness 0.083 N·mm, the balloon wall's stretch E·t 3 N/mm; walls.Membrane),
@@ -58,6 +61,7 @@ from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, PROBE_LENGTH_
                                     fit_probe_length, level_by_bending, level_on_floor, stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
+from skinmap.emulator.electrical import hysteresis_step  # noqa: E402
 from skinmap.emulator.walls import BalloonOnWall, FlatPlate, LetterRelief, Membrane  # noqa: E402
 from skinmap.reconstruction import reconstruct  # noqa: E402
 from skinmap.strains import cell_bending  # noqa: E402
@@ -156,6 +160,9 @@ def main() -> None:
     ap.add_argument("--fit-probe-length", action="store_true",
                     help="fit the probe's stiffness length first on reconstructed presses of a flat plate at 1, 2 "
                          "and 3 mm (as skinmap map --fit-probe-length does) and use it")
+    ap.add_argument("--hysteresis", type=float, default=0.0,
+                    help="the gauges' hysteresis, loop height as a share of the strain excursion (the sensor's: "
+                         "about 0.04; default %(default)g, none)")
     ap.add_argument("--weights", choices=("none", "sigma"), default="none",
                     help="stitch the reconstructed contacts unweighted, as skinmap map does (none), or weighted by "
                          "1/sigma^2 of the reconstruction (sigma)")
@@ -179,9 +186,16 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     free = ph.SphereCap(80.0)
+    released = ph.gauge_strains(free, n, n, pitch, 0.2, 0.2, 10.0)
+    memory = [np.zeros_like(released[0]), np.zeros_like(released[1])]  # the play's output, from the flat sheet
 
     def gauges(shape: ph.Shape, rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
         eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
+        if args.hysteresis > 0:
+            eu, el = (hysteresis_step(memory[k], e, args.hysteresis) for k, e in enumerate((eu, el)))
+            # the reading, then the press released to the free balloon before the next
+            memory[:] = [hysteresis_step(e, r, args.hysteresis) for e, r in zip((eu, el), released)] \
+                if shape is not free else [eu, el]
         if rng is not None:
             eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
         return eu, el
