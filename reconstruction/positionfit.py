@@ -23,18 +23,25 @@ sparsity pattern, and JᵀJ of the equilibrium rows is a sum of 48×48 blocks.  
 through `ElasticFit`: half the knots first (a turned saddle converges there in ~20 steps where the
 full basis crawls along the twist valley for 60+), then the full basis.
 
+With ``film_margin`` (pitches of film beyond the outer cells) and ``edge_weight`` the basis covers
+the whole film and the free edges' traction (S^uu = S^uv = 0 on a u edge, S^vv = S^uv = 0 on a v
+edge) joins the equilibrium rows; `PositionFit.slide` then solves the film's in-plane sliding
+(U, V) from its height alone (docs/reconstruction.md, "What an elastic film's error is made of").
+
 Pure: `PositionFit` holds the operators of one geometry (built once); `fit` takes the frame's
 data and a start and returns a `PositionResult`.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+import scipy.sparse.linalg as spl
 
 from skinmap.reconstruction.graphfit import _basis_1d, _design, _gram
 from skinmap.strains import cell_axes
@@ -135,6 +142,21 @@ def _tangential_divergence(xu, xv, xuu, xuv, xvv, nu: complex, full: bool = Fals
     return np.stack([(div * xu).sum(-1), (div * xv).sum(-1)], axis=-2)
 
 
+def _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu: complex, kind: np.ndarray) -> np.ndarray:
+    """(2, P): the tangential divergence at interior points (kind 0); on a free edge the traction's
+    two components, S^uu and S^uv on a u edge (kind 1), S^vv and S^uv on a v edge (kind 2)."""
+    t = _tangential_divergence(xu, xv, xuu, xuv, xvv, nu)
+    if not np.any(kind):
+        return t
+    lam = 2.0 * nu / (1.0 - nu)
+    e_uu, e_vv, e_uv = 0.5 * ((xu * xu).sum(-1) - 1), 0.5 * ((xv * xv).sum(-1) - 1), 0.5 * (xu * xv).sum(-1)
+    tr = e_uu + e_vv
+    s_uu, s_vv, s_uv = lam * tr + 2 * e_uu, lam * tr + 2 * e_vv, 2 * e_uv
+    first = np.where(kind == 1, s_uu, np.where(kind == 2, s_vv, t[..., 0, :]))
+    second = np.where(kind == 0, t[..., 1, :], s_uv)
+    return np.stack([first, second], axis=-2)
+
+
 def _local_jacobian(fun, args: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     """fun(*args) (R, P) and its derivative by each component of each (P, 3) argument:
     a list over arguments of (R, P, 3), by the complex step (exact to rounding).  All 3·len(args)
@@ -169,6 +191,12 @@ class PositionFitSettings:
     max_chi2: float = 4.0           # gauges' χ² per datum beyond this: the answer misfits
     poisson_sd: float = 0.02        # how well ν is known; its effect is added to σ
     mirror_cost_ratio: float = 1.5  # the mirror image stays an answer within this ratio of costs
+    # The film beyond the outer cells, in pitches, covered by the basis (the emulator's films:
+    # half a pitch), and the weight of its free edges' traction rows (0: none).  Both off by
+    # default: the sheet's in-plane sliding (PositionFit.slide) needs them, the prior as the
+    # default answer's refinement does not use them (docs/reconstruction.md, "Elastic films").
+    film_margin: float = 0.0
+    edge_weight: float = 0.0
 
 
 class PositionFit:
@@ -178,12 +206,19 @@ class PositionFit:
                  settings: PositionFitSettings = PositionFitSettings(), quadrature: int = 8):
         if not 0.0 <= settings.poisson < 0.5:
             raise ValueError(f"poisson ratio must be in [0, 0.5), got {settings.poisson}")
+        for name in ("film_margin", "edge_weight"):
+            value = getattr(settings, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if settings.step_solver not in ("clarabel", "cholesky"):
             raise ValueError(f"step_solver must be 'clarabel' or 'cholesky', got {settings.step_solver!r}")
         self.n, self.m, self.pitch, self.settings = n, m, pitch, settings
-        hu, hv = 0.5 * m * pitch, 0.5 * n * pitch
-        self.ku, self.nbu = _basis_1d(-hu, hu, settings.knots_per_pitch * m)
-        self.kv, self.nbv = _basis_1d(-hv, hv, settings.knots_per_pitch * n)
+        margin = settings.film_margin * pitch
+        hu, hv = 0.5 * m * pitch + margin, 0.5 * n * pitch + margin
+        spans_u = int(round(settings.knots_per_pitch * (m + 2 * settings.film_margin)))
+        spans_v = int(round(settings.knots_per_pitch * (n + 2 * settings.film_margin)))
+        self.ku, self.nbu = _basis_1d(-hu, hu, spans_u)
+        self.kv, self.nbv = _basis_1d(-hv, hv, spans_v)
         self.nb = nb = self.nbu * self.nbv
         self.uc, self.vc = cell_axes(n, m, pitch)
         xg, wg = np.polynomial.legendre.leggauss(quadrature)
@@ -196,11 +231,24 @@ class PositionFit:
             self._design((uu[..., None] + s).ravel(), np.repeat(vv.ravel(), s.size), _DERIVATIVES),
             self._design(np.repeat(uu.ravel(), s.size), (vv[..., None] + s).ravel(), _DERIVATIVES),
         ]
-        ne, me = settings.equilibrium_per_pitch * n, settings.equilibrium_per_pitch * m
-        ev, eu = np.meshgrid((np.arange(ne) + 0.5) / ne * 2 * hv - hv, (np.arange(me) + 0.5) / me * 2 * hu - hu,
-                             indexing="ij")
-        self._points = self._design(eu.ravel(), ev.ravel(), _DERIVATIVES)
-        self._eq_scale = settings.equilibrium_weight * np.sqrt(4 * hu * hv / eu.size)
+        ne = int(round(settings.equilibrium_per_pitch * 2 * hv / pitch))
+        me = int(round(settings.equilibrium_per_pitch * 2 * hu / pitch))
+        ev_grid, eu_grid = np.meshgrid((np.arange(ne) + 0.5) / ne * 2 * hv - hv,
+                                       (np.arange(me) + 0.5) / me * 2 * hu - hu, indexing="ij")
+        eu, ev = eu_grid.ravel(), ev_grid.ravel()
+        # free edges: kind 1 on the u edges (S^uu = S^uv = 0), kind 2 on the v edges
+        kind = np.zeros(eu.size)
+        self._eq_scale = np.full(eu.size, settings.equilibrium_weight * np.sqrt(4 * hu * hv / eu.size))
+        if settings.edge_weight > 0:
+            tu = (np.arange(ne) + 0.5) / ne * 2 * hv - hv
+            tv = (np.arange(me) + 0.5) / me * 2 * hu - hu
+            eu = np.concatenate([eu, np.full(ne, -hu), np.full(ne, hu), tv, tv])
+            ev = np.concatenate([ev, tu, tu, np.full(me, -hv), np.full(me, hv)])
+            kind = np.concatenate([kind, np.ones(2 * ne), np.full(2 * me, 2.0)])
+            edge = settings.edge_weight * np.sqrt(2 * hv / ne)
+            self._eq_scale = np.concatenate([self._eq_scale, np.full(2 * ne + 2 * me, edge)])
+        self._kind = kind
+        self._points = self._design(eu, ev, _DERIVATIVES)
         # ∫|∇³f|² as an exact quadratic form (per component).
         gram_u = [_gram(self.ku, self.nbu, d) for d in range(4)]
         gram_v = [_gram(self.kv, self.nbv, d) for d in range(4)]
@@ -299,7 +347,8 @@ class PositionFit:
                 turning.append(_turning(xu, xv, xaa, xa).reshape(nm, q) @ self.wq)
                 continue
             # turning depends on x_u, x_v, x_aa (x_a is x_u or x_v)
-            val, (g_u, g_v, g_aa) = _local_jacobian(lambda p, r, t: _turning(p, r, t, p if a == 0 else r), [xu, xv, xaa])
+            val, (g_u, g_v, g_aa) = _local_jacobian(lambda p, r, t: _turning(p, r, t, p if a == 0 else r),
+                                                    [xu, xv, xaa])
             turning.append(val.reshape(nm, q) @ self.wq)
             vals = design.vals
             t_vals.append(wq * (g_u[:, :, None] * vals[(1, 0)][:, None, :] + g_v[:, :, None] * vals[(0, 1)][:, None, :]
@@ -324,12 +373,14 @@ class PositionFit:
         args = [x[d] for d in _DERIVATIVES]
         nu = self.settings.poisson if poisson is None else poisson
         if not jacobian:
-            return self._eq_scale * _tangential_divergence(args[0], args[1], args[2], args[3], args[4], nu).ravel(), None
-        val, grads = _local_jacobian(lambda xu, xv, xuu, xuv, xvv: _tangential_divergence(xu, xv, xuu, xuv, xvv, nu), args)
+            xu, xv, xuu, xuv, xvv = args
+            return (self._eq_scale * _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind)).ravel(), None
+        val, grads = _local_jacobian(
+            lambda xu, xv, xuu, xuv, xvv: _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind), args)
         # entries (2, P, 3, 16) = Σ_d ∂r/∂x_d · B_d: one batched product over the derivatives
         by_der = np.stack(grads, axis=-1)  # (2, P, 3, D)
-        entries = self._eq_scale * np.matmul(by_der, self._points.stack[None])
-        return self._eq_scale * val.ravel(), _Linear(self._eq_rows.matrix(entries), entries)
+        entries = self._eq_scale[:, None, None] * np.matmul(by_der, self._points.stack[None])
+        return (self._eq_scale * val).ravel(), _Linear(self._eq_rows.matrix(entries), entries)
 
     def _equilibrium_normal(self, entries: np.ndarray) -> np.ndarray:
         """J_eᵀJ_e (3·nb)² dense, from the (2, P, 3, 16) entries: each point's rows touch only its
@@ -346,7 +397,7 @@ class PositionFit:
         args = [x[d] for d in _DERIVATIVES]
         nu = complex(self.settings.poisson, _STEP_CS)
         xu, xv, xuu, xuv, xvv = args
-        return self._eq_scale * np.imag(_tangential_divergence(xu, xv, xuu, xuv, xvv, nu)).ravel() / _STEP_CS
+        return (self._eq_scale * np.imag(_equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind))).ravel() / _STEP_CS
 
     def tangential_fraction(self, c: np.ndarray) -> float:
         """How far the answer is from a normally loaded film: ∫|t|² / ∫|∂_a(S^{ab} x_b)|², the share
@@ -355,8 +406,9 @@ class PositionFit:
         x = self._x(np.asarray(c).reshape(3, -1), self._points)
         args = [x[d] for d in _DERIVATIVES]
         xu, xv, xuu, xuv, xvv = args
-        t = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson)
-        div = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson, full=True)
+        inner = self._kind == 0  # (the free edges' rows are tractions, not divergences)
+        t = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson)[:, inner]
+        div = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson, full=True)[inner]
         total = float((div * div).sum())
         return float((t * t).sum()) / total if total > 0 else 0.0
 
@@ -410,7 +462,35 @@ class PositionFit:
         design = _rows(_design(self.ku, self.nbu, u, 0), _design(self.kv, self.nbv, v, 0))
         target = np.stack([pos[:, 0] - u, pos[:, 1] - v, pos[:, 2]], axis=-1)
         gram = design.T @ design + 1e-9 * np.eye(self.nb)
+        if self.settings.film_margin > 0:
+            # the film beyond the points: continued smoothly (its third derivatives least)
+            raw = self._smooth / max(self.settings.smooth_weight ** 2, 1e-300)
+            gram = gram + 1e-3 * np.trace(gram) / np.trace(raw) * raw
         return sla.solve(gram, design.T @ target, assume_a="pos").T
+
+    def slide(self, c: np.ndarray, max_steps: int = 20, tolerance_mm: float = 1e-7) -> np.ndarray:
+        """The in-plane displacement (U, V) of a film whose height w (c[2]) is held: the one that
+        puts its membrane stress in tangential equilibrium and its free edges out of traction
+        (needs ``film_margin`` and ``edge_weight``), by Gauss-Newton on the equilibrium rows from
+        c's own (U, V); returns the coefficients (3, nb) with w unchanged.  A film laminated on a
+        frictionless mold slides so: given its true height this recovers its true in-plane
+        displacement (measured, docs/reconstruction.md "Elastic films"), which a height graph
+        (U = V = 0) leaves out."""
+        if not self.settings.edge_weight > 0:
+            raise ValueError("the sliding needs the free edges' rows (PositionFitSettings.edge_weight > 0)")
+        c = np.array(c, dtype=float).reshape(3, -1)
+        nb = self.nb
+        frame = sp.csr_matrix(self._frame[:2 * nb, :2 * nb])
+        smooth = sp.csr_matrix(sla.block_diag(self._smooth, self._smooth)) + 1e-8 * sp.eye(2 * nb)
+        for _ in range(max_steps):
+            r, lin = self._equilibrium(c, True)
+            j = lin.matrix.tocsc()[:, :2 * nb]
+            normal = (j.T @ j + frame + smooth).tocsc()
+            step = -spl.splu(normal).solve(j.T @ r + (frame + smooth) @ c[:2].ravel())
+            c[:2] += step.reshape(2, nb)
+            if float(np.abs(step).max()) <= tolerance_mm:
+                break
+        return c
 
     def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
             start: np.ndarray, max_steps: int | None = None) -> PositionResult:
