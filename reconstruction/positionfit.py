@@ -192,9 +192,9 @@ class PositionFitSettings:
     poisson_sd: float = 0.02        # how well ν is known; its effect is added to σ
     mirror_cost_ratio: float = 1.5  # the mirror image stays an answer within this ratio of costs
     # The film beyond the outer cells, in pitches, covered by the basis (the emulator's films:
-    # half a pitch), and the weight of its free edges' traction rows (0: none).  Both off by
-    # default: the sheet's in-plane sliding (PositionFit.slide) needs them, the prior as the
-    # default answer's refinement does not use them (docs/reconstruction.md, "Elastic films").
+    # half a pitch), and the weight of its free edges' traction rows (0: none).  Off by default:
+    # the film's in-plane sliding (PositionFit.slide) needs them; the elastic prior
+    # (Reconstructor(elastic_prior=...)) leaves them off (docs/reconstruction.md, "Elastic films").
     film_margin: float = 0.0
     edge_weight: float = 0.0
 
@@ -240,13 +240,15 @@ class PositionFit:
         kind = np.zeros(eu.size)
         self._eq_scale = np.full(eu.size, settings.equilibrium_weight * np.sqrt(4 * hu * hv / eu.size))
         if settings.edge_weight > 0:
-            tu = (np.arange(ne) + 0.5) / ne * 2 * hv - hv
-            tv = (np.arange(me) + 0.5) / me * 2 * hu - hu
-            eu = np.concatenate([eu, np.full(ne, -hu), np.full(ne, hu), tv, tv])
-            ev = np.concatenate([ev, tu, tu, np.full(me, -hv), np.full(me, hv)])
+            along_v = (np.arange(ne) + 0.5) / ne * 2 * hv - hv  # points on the u edges (u = ±hu)
+            along_u = (np.arange(me) + 0.5) / me * 2 * hu - hu  # on the v edges
+            eu = np.concatenate([eu, np.full(ne, -hu), np.full(ne, hu), along_u, along_u])
+            ev = np.concatenate([ev, along_v, along_v, np.full(me, -hv), np.full(me, hv)])
             kind = np.concatenate([kind, np.ones(2 * ne), np.full(2 * me, 2.0)])
-            edge = settings.edge_weight * np.sqrt(2 * hv / ne)
-            self._eq_scale = np.concatenate([self._eq_scale, np.full(2 * ne + 2 * me, edge)])
+            # each row weighted by the square root of the edge length it stands for
+            self._eq_scale = np.concatenate([self._eq_scale,
+                                             np.full(2 * ne, settings.edge_weight * np.sqrt(2 * hv / ne)),
+                                             np.full(2 * me, settings.edge_weight * np.sqrt(2 * hu / me))])
         self._kind = kind
         self._points = self._design(eu, ev, _DERIVATIVES)
         # ∫|∇³f|² as an exact quadratic form (per component).
