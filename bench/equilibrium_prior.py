@@ -4,7 +4,7 @@ elastic scenes of bench/elastic_dataset.py (docs/reconstruction.md, "Elastic fil
 
 Run: .venv/bin/python bench/equilibrium_prior.py [--cases saddle:0,poisson_0.3:1] [--nu true,0.4]
      [--solver cholesky|clarabel] [--max-steps 40] [--bias 0.3] [--reconstructor [--noise S --draws K]]
-     [--airy]
+     [--airy] [--sliding [--seed S]]
 
 Each case is ``class:index`` of bench/elastic_dataset.py (5×5 cells, 12 mm pitch, seed 2024),
 noise-free unless ``--noise`` is given.  The fit starts from the default reconstruction's surface.
@@ -18,6 +18,13 @@ its CPU time (one BLAS thread).
 user runs it (from the answer and its mirror image; the prior's answer only where it holds),
 with the default's and its errors, whether the prior was used, the mean node_sigma and whether
 the error is within 3σ + 0.05 mm.
+
+``--sliding``: what an elastic film's error is made of (noise-free; ``--seed`` picks the dataset's
+scenes): the default answer; the film's true height without its in-plane sliding (a height
+graph over the material coordinates); that height slid by the membrane's equilibrium with free
+edges (``PositionFit.slide``, 3 and 5 knots a pitch, with the CPU time of the latter); the height
+fitted to every gauge with the film's true sliding held (docs/reconstruction.md, "What an
+elastic film's error is made of").
 """
 from __future__ import annotations
 
@@ -143,7 +150,7 @@ def run_sliding(key: str, index: int, seed: int) -> None:
     default = reconstruct(eu, el, PITCH, H, H, **kw)
     nu = float(plan.elastic.get("poisson", 0.48))
     uv, pos = shape.grid.uv().reshape(-1, 2), shape.positions.reshape(-1, 3)
-    graph_error = held_error = math.nan
+    graph_error = math.nan
     slid_errors, seconds = [], 0.0
     for knots in (3, 5):
         settings = PositionFitSettings(poisson=nu, knots_per_pitch=knots, equilibrium_per_pitch=2 * knots,
