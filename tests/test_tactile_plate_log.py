@@ -58,7 +58,7 @@ def plate_log(request, tmp_path_factory):
             emu.set_shape(scene)
             while time.monotonic() < deadline and emu.device.shape_time(time.monotonic()) < scene.duration_s + 0.5:
                 time.sleep(0.05)
-            assert gw.stats.results > 40
+            assert gw.stats.results > 12  # scans processed after the baseline's (a count, not a rate)
     finally:
         emu.stop()
     poses = tmp / "plate.csv"
