@@ -41,7 +41,7 @@ import numpy as np
 from scipy import ndimage
 
 from skinmap.reconstruction.linalg import exp_so3
-from skinmap.strains import cell_centres
+from skinmap.strains import GAUGE_LENGTH_MM, cell_centres
 
 __all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
@@ -331,9 +331,6 @@ PROBE_LENGTH_MM = 14.6
 #: below PUSH_DOUBT_FLOOR_MM is not doubtful whatever the move: the gauges' noise alone gives
 #: about ℓ²·σ(Δκ), 0.06–0.08 mm a cell, so a light press's small move would otherwise be marked.
 PUSH_DOUBT_RATIO, PUSH_DOUBT_FLOOR_MM = 0.5, 0.1
-
-#: The gauges' length (mm) when the device's is not given: the paper's 10 mm.
-GAUGE_LENGTH_MM = 10.0
 
 #: A cell is read as out of contact when its centre lies this far from every contact sample:
 #: its gauges (10 mm) then end 1 mm short of the contact, whose crease they must not read.

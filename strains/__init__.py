@@ -12,13 +12,13 @@ from __future__ import annotations
 from skinmap.strains.calfiles import (CALIBRATION_FORMAT, MAX_TARE_BYTES, calibration_path, compute_tare,
                                       load_calibration_file, load_tare, parse_calibration, parse_tare,
                                       save_calibration, save_tare, tare_path)
-from skinmap.strains.gauges import (MAX_PLAUSIBLE_STRAIN, MAX_UNIT_TURNING_RAD, Calibration, cell_axes,
-                                    cell_bending, cell_centres, gauge_resistance, gauge_strain,
+from skinmap.strains.gauges import (GAUGE_LENGTH_MM, MAX_PLAUSIBLE_STRAIN, MAX_UNIT_TURNING_RAD, Calibration,
+                                    cell_axes, cell_bending, cell_centres, gauge_resistance, gauge_strain,
                                     reject_implausible_units, resistances_to_strains, to_nominal_offsets,
                                     turning_noise_rad)
 
 __all__ = ["CALIBRATION_FORMAT", "MAX_TARE_BYTES", "calibration_path", "compute_tare", "load_calibration_file",
            "load_tare", "parse_calibration", "parse_tare", "save_calibration", "save_tare", "tare_path",
-           "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "Calibration", "cell_axes", "cell_bending", "cell_centres",
-           "gauge_resistance", "gauge_strain", "reject_implausible_units", "resistances_to_strains", "to_nominal_offsets",
-           "turning_noise_rad"]
+           "GAUGE_LENGTH_MM", "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "Calibration", "cell_axes",
+           "cell_bending", "cell_centres", "gauge_resistance", "gauge_strain", "reject_implausible_units",
+           "resistances_to_strains", "to_nominal_offsets", "turning_noise_rad"]

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
-           "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
+           "GAUGE_LENGTH_MM", "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
            "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
 
 
@@ -96,6 +96,10 @@ def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np
     stretch = (eps_upper * h_lower + eps_lower * h_upper) / total
     turning = (eps_upper - eps_lower) / total
     return stretch + h_upper_nominal * turning, stretch - h_lower_nominal * turning
+
+
+#: The gauges' length (mm) where a device's is not given: the paper's 10 mm.
+GAUGE_LENGTH_MM = 10.0
 
 
 def cell_axes(n: int, m: int, pitch_mm: float) -> tuple[np.ndarray, np.ndarray]:
