@@ -43,7 +43,7 @@ from scipy import ndimage
 from skinmap.reconstruction.linalg import exp_so3
 from skinmap.strains import GAUGE_LENGTH_MM, cell_centres
 
-__all__ = ["SampleGrid", "Baseline", "Contact", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
+__all__ = ["SampleGrid", "Baseline", "Contact", "ContactEvent", "ContactSegmenter", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
            "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor", "PROBE_LENGTH_MM",
            "BendingLevel", "level_by_bending", "ProbeLengthFit", "fit_probe_length"]
@@ -194,6 +194,75 @@ def detect_contact(positions: np.ndarray, baseline: Baseline, grid: SampleGrid, 
     mask = contact.reshape(grid.shape)
     return Contact(mask, depth, float(mask.sum() * grid.step ** 2), float(depth.max()),
                    feature_size(depth, grid.step), moved, None if sigma is None else np.asarray(sigma, float), change)
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    """One press: its deepest frame's contact and its first and last frames in contact."""
+
+    contact: Contact
+    first: int
+    last: int
+
+
+class ContactSegmenter:
+    """The one rule for where a contact event begins and ends, live (:class:`ContactTracker`,
+    the `contact` topic's ``events``) and offline (``skinmap map``), so that the two count the
+    same presses: an event is at least ``min_frames`` frames in contact and ends after
+    ``min_frames`` free ones.  A frame whose scan straddles a press's start or end (each unit is
+    read at its own TDM instant) thus neither splits a press nor makes one.  Explicit state: feed
+    every frame's detection in order to :meth:`step`."""
+
+    def __init__(self, min_frames: int = 2) -> None:
+        if int(min_frames) < 1:
+            raise ValueError(f"min_frames must be >= 1, got {min_frames!r}")
+        self.min_frames = int(min_frames)
+        self.events = 0  # events that have lasted min_frames frames in contact so far
+        self._deepest: Contact | None = None  # the open event's deepest contact
+        self._first = self._last = 0
+        self._run = self._free = 0
+
+    @property
+    def open_since(self) -> int | None:
+        """The first frame of the event in progress (not yet ended), or None."""
+        return None if self._deepest is None else self._first
+
+    @property
+    def open_number(self) -> int | None:
+        """The number (from 1) the event in progress has, or will have once it lasts
+        ``min_frames`` frames; None when no event is in progress."""
+        if self._deepest is None:
+            return None
+        return self.events if self._run >= self.min_frames else self.events + 1
+
+    def step(self, index: int, contact: Contact | None) -> ContactEvent | None:
+        """Frame ``index``'s detection (None: free); returns the event this frame ended, if any."""
+        if contact is None:
+            self._free += 1
+            if self._deepest is not None and self._free >= self.min_frames:
+                return self._close()
+            return None
+        self._free = 0
+        if self._deepest is None:
+            self._first = index
+        self._last = index
+        self._run += 1
+        if self._run == self.min_frames:
+            self.events += 1
+        if self._deepest is None or contact.peak_depth_mm > self._deepest.peak_depth_mm:
+            self._deepest = contact
+        return None
+
+    def finish(self) -> ContactEvent | None:
+        """The event still open at the end of the frames, if it lasted long enough."""
+        return None if self._deepest is None else self._close()
+
+    def _close(self) -> ContactEvent | None:
+        deepest, run = self._deepest, self._run
+        self._deepest, self._run = None, 0
+        if deepest is None or run < self.min_frames:
+            return None
+        return ContactEvent(deepest, self._first, self._last)
 
 
 @dataclass(frozen=True)
@@ -660,7 +729,10 @@ class ContactTracker:
     ``baseline_frames`` surfaces become the baseline, every later one is compared with it.
 
     ``update(positions, normals, pose)`` returns the `contact` message (a JSON-able dict):
-    ``state`` 'baseline' (still collecting), 'free' or 'contact'; with a contact its area, peak
+    ``state`` 'baseline' (still collecting), 'free' or 'contact' (this frame's detection);
+    ``events``, the presses so far by :class:`ContactSegmenter`'s rule (the map's: a press counts
+    once it has lasted two frames, and one free frame does not end it); with a contact ``press``,
+    the number of the press it belongs to (``events + 1`` on a press's first frame), its area, peak
     depth, feature size L_r, the depth map on the sample grid (row-major, mm, 0 off contact) and,
     when a probe pose had been received (``pose``: the latest one, fields
     ``skinmap.wire.messages.POSE_FIELDS``), ``pose``: the one in force when the contact began.
@@ -670,7 +742,7 @@ class ContactTracker:
     probe is about ``depth + push``), ``push_misfit_mm``, the free cells' rms misfit to the
     balloon wall's equation, and ``push_doubtful`` (:attr:`BendingLevel.doubtful`: the misfit of
     the order of the push, which is then not to be trusted), or ``push_unread`` saying why it
-    could not be read."""
+    could not be read.  ``pose`` is the one in force at the press's first frame in contact."""
 
     def __init__(self, grid: SampleGrid, baseline_frames: int = 10, k: float = 3.0, min_depth_mm: float = 0.5,
                  pitch_mm: float | None = None, probe_length_mm: float = PROBE_LENGTH_MM,
@@ -685,13 +757,21 @@ class ContactTracker:
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
         self._bending: list[np.ndarray | None] = []
         self.baseline: Baseline | None = None
-        self.events = 0
-        self._in_contact = False
+        self._presses = ContactSegmenter()
+        self._frame = 0  # frames compared with the baseline
         self._event_pose: dict[str, float] | None = None
+
+    @property
+    def events(self) -> int:
+        """Presses so far (:class:`ContactSegmenter`'s rule), counted across baselines."""
+        return self._presses.events
 
     def reset(self) -> None:
         """Take a new baseline from the next frames (e.g. after the probe was re-inflated)."""
-        self._frames, self._bending, self.baseline, self._in_contact = [], [], None, False
+        self._frames, self._bending, self.baseline = [], [], None
+        count = self._presses.events
+        self._presses = ContactSegmenter()
+        self._presses.events = count
 
     def update(self, positions: np.ndarray, normals: np.ndarray, pose: Mapping[str, float] | None = None,
                bending: np.ndarray | None = None) -> dict:
@@ -707,15 +787,15 @@ class ContactTracker:
             return {**doc, "state": "baseline", "baseline_frames": len(self._frames) if self.baseline is None
                     else self.baseline_frames}
         c = detect_contact(positions, self.baseline, g, self.k, self.min_depth_mm, bending=bending)
+        opened = self._presses.open_since
+        self._presses.step(self._frame, c)
+        self._frame += 1
         if c is None:
-            self._in_contact = False
-            return {**doc, "state": "free"}
-        if not self._in_contact:
-            self.events += 1
-            self._in_contact = True
-            # a pose received during the contact belongs to the next press, not this one
+            return {**doc, "events": self.events, "state": "free"}
+        if opened is None:
+            # a pose received during the press belongs to the next press, not this one
             self._event_pose = None if pose is None else {k: float(v) for k, v in pose.items()}
-        out = {**doc, "events": self.events, "state": "contact", **c.summary(),
+        out = {**doc, "events": self.events, "press": self._presses.open_number, "state": "contact", **c.summary(),
                "depth_mm": np.round(c.depth, 4).ravel().tolist()}
         if self._event_pose is not None:
             out["pose"] = dict(self._event_pose)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, GAUGE_LENGTH_MM, PROBE_LENGTH_MM, Baseline,
-                                    BendingLevel, Contact, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose,
+                                    BendingLevel, Contact, ContactEvent, ContactSegmenter, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose,
                                     ReliefMap, SampleGrid,
                                     capture_baseline, detect_contact, fit_probe_length, level_by_bending,
                                     level_on_floor, read_poses_csv, stitch_estimated)
@@ -128,43 +128,21 @@ def contact_events(frames: list[np.ndarray], baseline_frames: int, grid: SampleG
                             bending=None if bending is None else bending[:baseline_frames])
     if baseline_out is not None:
         baseline_out[:] = [base]
-    # An event is at least `min_frames` frames in contact and ends after `min_frames` free
-    # ones: a frame whose scan straddles the press's start or end (each unit is read at its
-    # own TDM instant) neither splits a press nor makes one.
-    min_frames = 2
-    events: list[Contact] = []
-    first: list[int] = []
-    last: list[int] = []
-    current: Contact | None = None
-    run = free = 0
-    began = latest = 0
+    segmenter = ContactSegmenter()
+    ended: list[ContactEvent] = []
     for i, pos in enumerate(frames[baseline_frames:], start=baseline_frames):
-        c = detect_contact(pos, base, grid, k, min_depth_mm, bending=None if bending is None else bending[i])
-        if c is None:
-            free += 1
-            if current is not None and free >= min_frames:
-                if run >= min_frames:
-                    events.append(current)
-                    first.append(began)
-                    last.append(latest)
-                current, run = None, 0
-            continue
-        free = 0
-        if current is None:
-            began = i
-        latest = i
-        run += 1
-        if current is None or c.peak_depth_mm > current.peak_depth_mm:
-            current = c
-    if current is not None and run >= min_frames:
-        events.append(current)
-        first.append(began)
-        last.append(latest)
+        event = segmenter.step(i, detect_contact(pos, base, grid, k, min_depth_mm,
+                                                 bending=None if bending is None else bending[i]))
+        if event is not None:
+            ended.append(event)
+    last_event = segmenter.finish()
+    if last_event is not None:
+        ended.append(last_event)
     if starts is not None:
-        starts[:] = first
+        starts[:] = [e.first for e in ended]
     if ends is not None:
-        ends[:] = last
-    return events, baseline_frames
+        ends[:] = [e.last for e in ended]
+    return [e.contact for e in ended], baseline_frames
 
 
 def map_log(log: str | os.PathLike[str], poses_csv: str | os.PathLike[str] | None = None, *,

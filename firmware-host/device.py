@@ -63,6 +63,7 @@ from skinmap.protocol import (
     tdm_steps,
 )
 from skinmap.protocol.framing import HEADER, decode_body, encode_body
+from skinmap.strains import GAUGE_LENGTH_MM
 
 __all__ = ["ScannerSpec", "Device", "HostileModes", "ScanRecord"]
 
@@ -84,7 +85,7 @@ class ScannerSpec:
     n: int = 5
     m: int = 5
     pitch_mm: float = 12.0
-    gauge_length_mm: float = 10.0
+    gauge_length_mm: float = GAUGE_LENGTH_MM
     h_upper_mm: float = 0.2
     h_lower_mm: float = 0.2
     scan_rate_hz: float = 10.0

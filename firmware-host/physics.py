@@ -21,7 +21,7 @@ from typing import Callable, Mapping, Sequence, TypedDict, cast
 
 import numpy as np
 
-from skinmap.strains import cell_centres
+from skinmap.strains import GAUGE_LENGTH_MM, cell_centres
 
 __all__ = [
     "Shape",
@@ -775,7 +775,7 @@ def gauge_layer_strains(
     centres: ArrayLike,
     directions: ArrayLike,
     offsets: ArrayLike,
-    gauge_length: float = 10.0,
+    gauge_length: float = GAUGE_LENGTH_MM,
     t: ArrayLike = 0.0,
     samples: int = 8,
     panels: int = 4,
@@ -894,7 +894,7 @@ def gauge_strains(
     pitch: float = 12.0,
     h_upper: float = 0.2,
     h_lower: float = 0.2,
-    gauge_length: float = 10.0,
+    gauge_length: float = GAUGE_LENGTH_MM,
     t: ArrayLike = 0.0,
     samples: int = 8,
     panels: int = 4,

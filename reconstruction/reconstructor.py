@@ -21,6 +21,8 @@ from typing import Any, Callable, cast
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from skinmap.strains import GAUGE_LENGTH_MM
+
 from .decouple import decouple
 from .engine import (
     Metric,
@@ -232,7 +234,7 @@ class Reconstructor(StretchPatternTwist):
         pitch: float = 12.0,
         h_upper: float = 0.2,
         h_lower: float = 0.2,
-        gauge_length: float = 10.0,
+        gauge_length: float = GAUGE_LENGTH_MM,
         subdivision: int | None = None,
         shear_passes: int = 2,
         frame_corrections: int = 1,
@@ -1780,7 +1782,7 @@ def reconstruct(
     h_upper: float = 0.2,
     h_lower: float = 0.2,
     *,
-    gauge_length: float = 10.0,
+    gauge_length: float = GAUGE_LENGTH_MM,
     strain_sigma: float = DEFAULT_STRAIN_SIGMA,
     previous: Surface | None = None,
     twist_sign: float | None = None,

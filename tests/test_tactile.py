@@ -192,14 +192,49 @@ def test_a_contact_carries_the_pose_in_force_when_it_began():
     assert "pose" not in tracker.update(*free, a)  # free: no contact to place
     first = tracker.update(*pressed, a)
     assert first["state"] == "contact" and first["pose"] == a
+    # one frame in contact is no press yet (it may straddle one's start); it would be the first
+    assert first["events"] == 0 and first["press"] == 1
     # a pose received while pressed is for the next press
-    assert tracker.update(*pressed, b)["pose"] == a
+    second = tracker.update(*pressed, b)
+    assert second["pose"] == a and second["events"] == 1
+    # one free frame does not end the press: the next contact frame is still the first press
     assert tracker.update(*free, b)["state"] == "free"
-    assert tracker.update(*pressed, b)["pose"] == b and tracker.events == 2
+    assert tracker.update(*pressed, b)["pose"] == a and tracker.events == 1
+    # two free frames do
+    tracker.update(*free, b)
+    tracker.update(*free, b)
+    third = tracker.update(*pressed, b)
+    assert third["pose"] == b and third["press"] == 2 and tracker.events == 1
+    assert tracker.update(*pressed, b)["events"] == 2
     # no pose ever received: the contact says nothing of one
     bare = ContactTracker(GRID, baseline_frames=1)
     bare.update(*free)
     assert bare.update(*pressed)["state"] == "contact" and "pose" not in bare.update(*pressed)
+
+
+def test_the_live_tracker_and_the_map_count_the_same_presses():
+    """One segmentation rule: over a run of frames with single-frame blips in and out of contact
+    (scans straddling a press's start or end), the `contact` topic's count and ``skinmap map``'s
+    events agree, and a blip neither makes nor splits a press."""
+    from skinmap.daemon.tactile import ContactSegmenter, ContactTracker
+    from skinmap.daemon.tactilemap import contact_events
+
+    free = _surface(ph.SphereCap(80.0))
+    pressed = _surface(BalloonOnWall(WALL, (-30.0, 30.0), 10.0, 2.0))
+    # F free, P pressed: a blip, a press with a one-frame gap, a press to the end
+    pattern = "FF" + "P" + "FFF" + "PPP" + "F" + "PP" + "FFFF" + "PPPP"
+    frames = [free] + [pressed if ch == "P" else free for ch in pattern]
+    tracker = ContactTracker(GRID, baseline_frames=1)
+    counts = [tracker.update(*f)["events"] for f in frames]
+    starts: list[int] = []
+    ends: list[int] = []
+    events, _ = contact_events([f[0] for f in frames], 1, GRID, normals=[f[1] for f in frames], starts=starts,
+                               ends=ends)
+    assert len(events) == counts[-1] == tracker.events == 2
+    assert starts == [1 + pattern.index("PPP"), 1 + pattern.index("PPPP")]
+    assert ends == [1 + pattern.index("PPPP") - 5, len(frames) - 1]
+    with pytest.raises(ValueError, match="min_frames must be >= 1"):
+        ContactSegmenter(0)
 
 
 def test_contact_poses_take_the_first_pose_within_each_event_and_name_an_event_without():

@@ -136,7 +136,7 @@ def test_gateway_publishes_and_logs_contact_events(press_log):
     assert read and all(math.isfinite(d["push_mm"]) and d["push_misfit_mm"] >= 0 for d in read)
     assert all(d["push_doubtful"] == (d["push_misfit_mm"] >= max(0.5 * abs(d["push_mm"]), 0.1)) for d in read)
     # each contact carries the pose in force when it began: the one put before its press
-    carried = {d["events"]: d["pose"] for d in pressed}
+    carried = {d["press"]: d["pose"] for d in pressed}
     assert [tuple(carried[e][k] for k in ("x_mm", "y_mm", "angle_deg", "depth_mm")) for e in (1, 2, 3)] == PRESSES
 
 
