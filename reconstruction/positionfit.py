@@ -23,10 +23,13 @@ sparsity pattern, and JᵀJ of the equilibrium rows is a sum of 48×48 blocks.  
 through `ElasticFit`: half the knots first (a turned saddle converges there in ~20 steps where the
 full basis crawls along the twist valley for 60+), then the full basis.
 
-With ``film_margin`` (pitches of film beyond the outer cells) and ``edge_weight`` the basis covers
-the whole film and the free edges' traction (S^uu = S^uv = 0 on a u edge, S^vv = S^uv = 0 on a v
-edge) joins the equilibrium rows; `PositionFit.slide` then solves the film's in-plane sliding
-(U, V) from its height alone (docs/reconstruction.md, "What an elastic film's error is made of").
+With ``film_margin`` (pitches of film beyond the outer cells) the basis covers the whole film, and
+with ``edge_weight`` the free edges' traction (S^uu = S^uv = 0 on a u edge, S^vv = S^uv = 0 on a v
+edge) joins the equilibrium rows.  `PositionFit.slide` solves the film's in-plane sliding (U, V)
+from its height alone in the equilibrium's weak form (the membrane's virtual work on every
+displacement tangent to the film: free edges are its natural condition), which converges on
+coarser knots than the collocated rows (docs/reconstruction.md, "What an elastic film's error is
+made of").
 
 Pure: `PositionFit` holds the operators of one geometry (built once); `fit` takes the frame's
 data and a start and returns a `PositionResult`.
@@ -157,6 +160,33 @@ def _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu: complex, kind: np.ndarray) -> n
     return np.stack([first, second], axis=-2)
 
 
+def _virtual_work_terms(xu, xv, xuu, xuv, xvv, nu: complex) -> np.ndarray:
+    """(6, P): for c = u, v the integrand's parts of the membrane's virtual work on a tangential
+    virtual displacement α x_c, ∫ S^{ab} x_b · ∂_a(α x_c) = ∫ (T^u·x_c) α_u + (T^v·x_c) α_v +
+    (T^a·x_ca) α, with T^a = S^{ab} x_b (St Venant-Kirchhoff, plane stress, shear modulus 1):
+    rows (T^u·x_u, T^v·x_u, T^a·x_ua, T^u·x_v, T^v·x_v, T^a·x_va)."""
+    lam = 2.0 * nu / (1.0 - nu)
+    e_uu, e_vv, e_uv = 0.5 * ((xu * xu).sum(-1) - 1), 0.5 * ((xv * xv).sum(-1) - 1), 0.5 * (xu * xv).sum(-1)
+    tr = e_uu + e_vv
+    s_uu, s_vv, s_uv = lam * tr + 2 * e_uu, lam * tr + 2 * e_vv, 2 * e_uv
+    t_u = s_uu[..., None] * xu + s_uv[..., None] * xv
+    t_v = s_uv[..., None] * xu + s_vv[..., None] * xv
+    rows = []
+    for xc, xcu, xcv in ((xu, xuu, xuv), (xv, xuv, xvv)):
+        rows += [(t_u * xc).sum(-1), (t_v * xc).sum(-1), (t_u * xcu).sum(-1) + (t_v * xcv).sum(-1)]
+    return np.stack(rows, axis=-2)
+
+
+class _Galerkin(NamedTuple):
+    """The sliding's weak form on one basis: Gauss points (4 a knot span each way), their
+    weights, the test functions' (α_u, α_v, α) there, and the Jacobian's fixed pattern."""
+    design: _PointDesign
+    weights: np.ndarray  # (P,)
+    test: np.ndarray  # (P, 3, 16)
+    rows: np.ndarray  # (P, 32): the residual index of each point's (component, test function)
+    jacobian: "_SparseRows"
+
+
 def _local_jacobian(fun, args: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     """fun(*args) (R, P) and its derivative by each component of each (P, 3) argument:
     a list over arguments of (R, P, 3), by the complex step (exact to rounding).  All 3·len(args)
@@ -193,8 +223,9 @@ class PositionFitSettings:
     mirror_cost_ratio: float = 1.5  # the mirror image stays an answer within this ratio of costs
     # The film beyond the outer cells, in pitches, covered by the basis (the emulator's films:
     # half a pitch), and the weight of its free edges' traction rows (0: none).  Off by default:
-    # the film's in-plane sliding (PositionFit.slide) needs them; the elastic prior
-    # (Reconstructor(elastic_prior=...)) leaves them off (docs/reconstruction.md, "Elastic films").
+    # the film's in-plane sliding (PositionFit.slide) takes the basis's edges for the film's; the
+    # elastic prior (Reconstructor(elastic_prior=...)) leaves them off (docs/reconstruction.md,
+    # "Elastic films").
     film_margin: float = 0.0
     edge_weight: float = 0.0
 
@@ -289,6 +320,7 @@ class PositionFit:
         self._eq_rows = _SparseRows(self._eq_rows_pattern.rows, self._eq_rows_pattern.cols, (2 * p_eq, 3 * nb))
         local_cols = (np.arange(3)[None, :, None] * nb + self._points.idx[:, None, :]).reshape(p_eq, 48)
         self._eq_pairs = (local_cols[:, :, None] * (3 * nb) + local_cols[:, None, :]).ravel()
+        self._galerkin: _Galerkin | None = None  # the sliding's weak form (slide), built on first use
 
     def _design(self, pu: np.ndarray, pv: np.ndarray, ders) -> _PointDesign:
         pu, pv = np.asarray(pu, float), np.asarray(pv, float)
@@ -471,28 +503,83 @@ class PositionFit:
         return sla.solve(gram, design.T @ target, assume_a="pos").T
 
     def slide(self, c: np.ndarray, max_steps: int = 20, tolerance_mm: float = 1e-7) -> np.ndarray:
-        """The in-plane displacement (U, V) of a film whose height w (c[2]) is held: the one that
-        puts its membrane stress in tangential equilibrium and its free edges out of traction
-        (needs ``film_margin`` and ``edge_weight``), by Gauss-Newton on the equilibrium rows from
-        c's own (U, V); returns the coefficients (3, nb) with w unchanged.  A film laminated on a
-        frictionless mold slides so: given its true height this recovers its true in-plane
-        displacement (measured, docs/reconstruction.md "Elastic films"), which a height graph
-        (U = V = 0) leaves out."""
-        if not self.settings.edge_weight > 0:
-            raise ValueError("the sliding needs the free edges' rows (PositionFitSettings.edge_weight > 0)")
+        """The in-plane displacement (U, V) of a film whose height w (c[2]) is held: the one whose
+        membrane stress does no virtual work on any displacement tangent to the film, the film
+        being the basis's whole domain (``film_margin``: the film beyond the outer cells) with its
+        edges free; returns the coefficients (3, nb) with w unchanged.  A film laminated on a
+        frictionless mold slides so (the mold's reaction is normal: it does no such work).  The
+        weak form (:meth:`virtual_work`) converges on coarser knots than the collocated
+        equilibrium rows (measured, docs/reconstruction.md "What an elastic film's error is made
+        of"): given its true height it recovers the film's true in-plane displacement, which a
+        height graph (U = V = 0) leaves out.  Gauss-Newton from c's own (U, V), each step halved
+        until the residual's norm does not grow; the sensor frame's rows fix the rigid motion."""
         c = np.array(c, dtype=float).reshape(3, -1)
         nb = self.nb
-        frame = sp.csr_matrix(self._frame[:2 * nb, :2 * nb])
-        smooth = sp.csr_matrix(sla.block_diag(self._smooth, self._smooth)) + 1e-8 * sp.eye(2 * nb)
+        frame = self._frame[:2 * nb, :2 * nb] / 1e6  # the frame's rows, unweighted
+        r, jac = self.virtual_work(c)
+        norm = float(r @ r)
         for _ in range(max_steps):
-            r, lin = self._equilibrium(c, True)
-            j = lin.matrix.tocsc()[:, :2 * nb]
-            normal = (j.T @ j + frame + smooth).tocsc()
-            step = -spl.splu(normal).solve(j.T @ r + (frame + smooth) @ c[:2].ravel())
-            c[:2] += step.reshape(2, nb)
-            if float(np.abs(step).max()) <= tolerance_mm:
+            j = jac.tocsc()[:, :2 * nb]
+            jtj = (j.T @ j).tocsc()
+            # the frame's rows weighted well above the film's stiffness (its mean diagonal)
+            weight = 1e3 * float(jtj.diagonal().mean())
+            normal = (jtj + weight * sp.csc_matrix(frame)).tocsc()
+            step = -spl.splu(normal).solve(j.T @ r + weight * (frame @ c[:2].ravel())).reshape(2, nb)
+            t = 1.0
+            for _ in range(12):
+                trial = c.copy()
+                trial[:2] += t * step
+                r_new, jac_new = self.virtual_work(trial)
+                if np.all(np.isfinite(r_new)) and float(r_new @ r_new) <= norm * (1.0 + 1e-12):
+                    break
+                t *= 0.5
+            else:
+                break  # no step lowers the residual: as far as it goes
+            c, r, jac, norm = trial, r_new, jac_new, float(r_new @ r_new)
+            if t * float(np.abs(step).max()) <= tolerance_mm:
                 break
         return c
+
+    def virtual_work(self, c: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        """The membrane's virtual work on each tangential test displacement α x_c (α a basis
+        function, c = u, v), (2·nb,), and its Jacobian by the in-plane coefficients (U, V),
+        (2·nb, 2·nb); zero at the film's sliding equilibrium (:meth:`slide`)."""
+        g = self._galerkin_operators()
+        x = self._x(np.asarray(c, float).reshape(3, -1), g.design)
+        args = [x[d] for d in _DERIVATIVES]
+        nu = self.settings.poisson
+        val, grads = _local_jacobian(lambda xu, xv, xuu, xuv, xvv: _virtual_work_terms(xu, xv, xuu, xuv, xvv, nu), args)
+        # residual (c, i): Σ_points w (parts_c · (α_u, α_v, α)_i)
+        parts = val.reshape(2, 3, -1)
+        local = np.einsum("ctp,pti->pci", parts, g.test) * g.weights[:, None, None]
+        residual = np.bincount(g.rows.ravel(), weights=local.ravel(), minlength=2 * self.nb)
+        # d parts / d (U, V coefficient j): through each derivative of x at the point
+        by_coeff = sum(np.einsum("kpd,pj->kpdj", grad[:, :, :2], g.design.vals[d]) for grad, d in zip(grads, _DERIVATIVES))
+        by_coeff = by_coeff.reshape(2, 3, *by_coeff.shape[1:])
+        entries = np.einsum("pti,ctpdj->pcidj", g.test, by_coeff) * g.weights[:, None, None, None, None]
+        return residual, g.jacobian.matrix(entries)
+
+    def _galerkin_operators(self) -> _Galerkin:
+        """The weak form's points and patterns, built on first use (:meth:`slide`)."""
+        if self._galerkin is None:
+            gauss, gw = np.polynomial.legendre.leggauss(4)
+
+            def points(knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                lo, hi = np.unique(knots)[:-1, None], np.unique(knots)[1:, None]
+                return (0.5 * (lo + hi) + 0.5 * (hi - lo) * gauss).ravel(), (0.5 * (hi - lo) * gw).ravel()
+
+            pu, wu = points(self.ku)
+            pv, wv = points(self.kv)
+            uu, vv = np.meshgrid(pu, pv)
+            design = self._design(uu.ravel(), vv.ravel(), ((0, 0),) + _DERIVATIVES)
+            test = np.stack([design.vals[(1, 0)], design.vals[(0, 1)], design.vals[(0, 0)]], axis=1)
+            p, nb = uu.size, self.nb
+            rows = np.arange(2)[None, :, None] * nb + design.idx[:, None, :]  # (P, 2, 16)
+            pattern = _SparseRows(np.broadcast_to(rows[:, :, :, None, None], (p, 2, 16, 2, 16)).ravel(),
+                                  np.broadcast_to(rows[:, None, None, :, :], (p, 2, 16, 2, 16)).ravel(),
+                                  (2 * nb, 2 * nb))
+            self._galerkin = _Galerkin(design, np.outer(wv, wu).ravel(), test, rows.reshape(p, 32), pattern)
+        return self._galerkin
 
     def fit(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float, sigma_s: float,
             start: np.ndarray, max_steps: int | None = None) -> PositionResult:

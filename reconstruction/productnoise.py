@@ -11,14 +11,16 @@ sheet with the sensor's noise, mean(k_u k_v − τ₀²) ≈ 7e-7 /mm², a const
 and millimetres of spurious deflection, while the estimate "(σ_t κ_rms + σ_t²)/√units" that
 assumes independent nodes puts its s.d. at 5e-8.
 
-:class:`ProductNoise` measures both parts once per geometry from the model itself: seeded draws
-of unit-variance turning noise through the field maps give the noise-only product's mean
-(the bias, also node by node: the Gaussian curvature the shear is solved for is debiased with
-it) and s.d., and the draws' fields give, per frame, the s.d. of the cross term between the
-measured fields and the noise (linear in the noise).  The noise parts scale with σ_t².  The
-bias is removed at the noise the data actually carry (:func:`turning_noise_estimate`, no more
-than twice the stated one): removing the bias of noise that is not there would bend a clean
-sheet as much as the noise would have.
+:class:`ProductNoise` measures both parts once per geometry from the model itself: the field
+maps' response to every unit's turning alone (sheets of up to :data:`EXACT_MAX_UNITS` units) gives
+the noise-only product's mean (the bias, also node by node: the Gaussian curvature the shear is
+solved for is debiased with it) and s.d. exactly, as a quadratic form of the noise, and, per
+frame, the s.d. of the cross term between the measured fields and the noise (linear in the
+noise).  On larger sheets seeded draws of unit-variance noise estimate the same (each s.d. to
+about ±9 % with 64 draws: an 8×8 oblique cylinder's product s.d. came out 15 % low that way, and
+its corners beyond 3σ on one noisy frame in 40).  The noise parts scale with σ_t².  The bias is removed at the noise the data actually
+carry (:func:`turning_noise_estimate`, no more than twice the stated one): removing the bias of
+noise that is not there would bend a clean sheet as much as the noise would have.
 """
 from __future__ import annotations
 
@@ -27,11 +29,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ProductNoise", "measure_product_noise", "turning_noise_estimate"]
+__all__ = ["ProductNoise", "measure_product_noise", "turning_noise_estimate", "EXACT_MAX_UNITS"]
 
-#: Noise draws per geometry: the bias is known to ~1/√draws of its s.d. (12 %), enough for a
-#: 3 s.d. test; the fields kept cost draws · 3 · (inner nodes) doubles (6 MB at 32×32).
+#: Noise draws per geometry above EXACT_MAX_UNITS: the bias is known to ~1/√draws of its s.d.
+#: (12 %), enough for a 3 s.d. test; the fields kept cost draws · 3 · (inner nodes) doubles
+#: (6 MB at 32×32).
 DRAWS = 64
+#: Up to this many valid units (12×12) the statistics are exact: one response per unit, 2.6 MB of
+#: fields at 12×12.  Not yet at 16×16: there the exact s.d. is lower than the sampled one on the
+#: bench's cylinders and saddles (scatter / σ 1.23 → 1.30), and what it exposes, the noise's
+#: nonlinear path on large curved sheets (a saddle's edge scatters 1.2–1.7 times its σ), has no
+#: term of σ yet (docs/reconstruction.md, "Exact product statistics").
+EXACT_MAX_UNITS = 288
 _SEED = 20240917  # fixed: the same geometry gives the same statistics (replay is bit for bit)
 
 
@@ -42,7 +51,9 @@ class ProductNoise:
 
     bias: float  # E[K̄] from the noise alone
     spread: float  # s.d. of K̄ from the noise alone
-    fields: np.ndarray  # (draws, 3, inner nodes): k_u, k_v, τ₀ of each noise draw, read-only
+    # (draws, 3 · inner nodes): k_u, k_v, τ₀ of each draw, read-only; their second moments are
+    # the noise's (the exact path's unit responses scaled by √units)
+    fields: np.ndarray
     bias_field: np.ndarray  # (nf, mf): E[k_u k_v − τ₀²] at every fine node from the noise alone
 
     def stats(self, k_u: np.ndarray, k_v: np.ndarray, tau0: np.ndarray, inner, sigma_t: float) -> tuple[float, float]:
@@ -53,7 +64,7 @@ class ProductNoise:
         ku, kv, tt = (np.ascontiguousarray(f[inner]).ravel() for f in (k_u, k_v, tau0))
         count = ku.size
         # cross term of draw d: mean(ku·kv_d + kv·ku_d − 2 τ·τ_d) (zero-mean, linear in the noise)
-        cross = (self.fields[:, 1] @ ku + self.fields[:, 0] @ kv - 2.0 * (self.fields[:, 2] @ tt)) / count
+        cross = self.fields @ np.concatenate([kv, ku, -2.0 * tt]) / count
         cross_sd = math.sqrt(float(cross @ cross) / cross.size)
         s2 = sigma_t * sigma_t
         return self.bias * s2, math.hypot(self.spread * s2, cross_sd * sigma_t)
@@ -61,28 +72,51 @@ class ProductNoise:
 
 def measure_product_noise(maps, valid: np.ndarray, inner, draws: int = DRAWS) -> ProductNoise:
     """:class:`ProductNoise` of the field maps ``maps`` (``grid.field_maps(valid)``: turning,
-    stretch → k_u, k_v, τ₀, λ_u, λ_v, fit), from ``draws`` seeded draws of unit-variance noise
-    on the valid units' turning."""
-    rng = np.random.default_rng(_SEED)
+    stretch → k_u, k_v, τ₀, λ_u, λ_v, fit): exact from each valid unit's response where there are
+    at most :data:`EXACT_MAX_UNITS`, else from ``draws`` seeded draws of unit-variance noise on
+    the valid units' turning."""
     valid = np.asarray(valid, dtype=bool)
+    units = np.flatnonzero(valid)
+    exact = 0 < units.size <= EXACT_MAX_UNITS
     stretch = np.ones(valid.shape)
-    kept = []
-    products = np.empty(draws)
-    total = np.zeros(np.shape(maps(np.zeros(valid.shape), stretch)[0]))
-    for d in range(draws):
-        turning = np.where(valid, rng.standard_normal(valid.shape), 0.0)
+    rng = np.random.default_rng(_SEED)
+    count = units.size if exact else draws
+    kept = np.empty((count, 3, 0))
+    total: np.ndarray | None = None
+    products = np.empty(count)
+    for d in range(count):
+        if exact:
+            turning = np.zeros(valid.shape)
+            turning.flat[units[d]] = 1.0
+        else:
+            turning = np.where(valid, rng.standard_normal(valid.shape), 0.0)
         k_u, k_v, tau0 = (np.asarray(f, dtype=float) for f in maps(turning, stretch)[:3])
         tau0 = tau0 - tau0.sum() / tau0.size
         here = k_u * k_v - tau0 * tau0
-        total = total + here
+        total = here if total is None else total + here
         ku, kv, tt = (np.ascontiguousarray(f[inner]).ravel() for f in (k_u, k_v, tau0))
         products[d] = float(ku @ kv - tt @ tt) / ku.size
-        kept.append(np.stack([ku, kv, tt]))
-    fields = np.stack(kept)
+        if kept.shape[2] == 0:
+            kept = np.empty((count, 3, ku.size))
+        kept[d] = (ku, kv, tt)
+    assert total is not None
+    if exact:
+        # K̄(z) = zᵀQz for unit noise z: E = tr Q (the responses' own products summed),
+        # Var = 2 ||Q||²_F; the cross term's second moment Σ_u (wᵀ f_u)² is the mean over the
+        # responses scaled by √units
+        nodes = kept.shape[2]
+        q = (kept[:, 0] @ kept[:, 1].T) / nodes
+        q = 0.5 * (q + q.T) - (kept[:, 2] @ kept[:, 2].T) / nodes
+        bias, spread = float(products.sum()), math.sqrt(2.0 * float((q * q).sum()))
+        bias_field = total
+        kept *= math.sqrt(count)
+    else:
+        bias, spread = float(products.mean()), float(products.std(ddof=1))
+        bias_field = total / count
+    fields = np.ascontiguousarray(kept.reshape(count, -1))
     fields.flags.writeable = False
-    bias_field = total / draws
     bias_field.flags.writeable = False
-    return ProductNoise(float(products.mean()), float(products.std(ddof=1)), fields, bias_field)
+    return ProductNoise(bias, spread, fields, bias_field)
 
 
 def turning_noise_estimate(turning: np.ndarray, valid: np.ndarray) -> float:

@@ -47,12 +47,9 @@ def test_settings_out_of_range_are_refused_by_name():
         PositionFit(5, 5, PITCH, G, PositionFitSettings(film_margin=-0.5))
     with pytest.raises(ValueError, match="edge_weight"):
         PositionFit(5, 5, PITCH, G, PositionFitSettings(edge_weight=float("nan")))
-    fit = PositionFit(3, 3, PITCH, G)
-    with pytest.raises(ValueError, match="edge_weight"):
-        fit.slide(np.zeros((3, fit.nb)))
 
 
-SLIDING = PositionFitSettings(knots_per_pitch=3, equilibrium_per_pitch=6, film_margin=0.5, edge_weight=1000.0)
+SLIDING = PositionFitSettings(knots_per_pitch=3, film_margin=0.5)  # the basis covers the whole film
 
 
 def _film_grid(half: float, step: float = 1.5) -> np.ndarray:
@@ -83,11 +80,12 @@ def test_a_film_wrapped_isometrically_on_a_cylinder_slides_back_to_its_wrap_from
     assert off < 1e-3
 
 
-def test_a_film_laminated_on_a_bump_slides_as_its_height_says_within_0p02mm_where_a_height_graph_is_0p1mm_off(cache):
+def test_a_film_laminated_on_a_bump_slides_as_its_height_says_within_0p005mm_where_a_height_graph_is_0p1mm_off(cache):
     """The emulator's film (finite elements with bending, sliding on a 4.4 mm / FWHM 15 mm bump):
     its true height, with no sliding (a height graph over the material coordinates), puts the
-    cell centres 0.16 mm off; the membrane's equilibrium with free edges recovers the sliding
-    from the height alone (measured 0.010 mm mean)."""
+    cell centres 0.16 mm off; the membrane's virtual work on tangential displacements, free
+    edges, recovers the sliding from the height alone (measured 0.0015 mm mean at 3 knots a
+    pitch; the collocated equilibrium rows reached 0.010 there)."""
     shape = parse_scene_spec("gaussian:height=4.44,fwhm=15.06,u0=-13.28,v0=1.16", "elastic", N, M, PITCH,
                              cache_dir=cache)
     truth = ph.ground_truth(shape, N, M, PITCH).nodes
@@ -96,10 +94,35 @@ def test_a_film_laminated_on_a_bump_slides_as_its_height_says_within_0p02mm_wher
     c = fit.coeffs_from_positions(uv[:, 0], uv[:, 1], shape.positions.reshape(-1, 3))
     c[:2] = 0.0
     graph = aligned_error(fit.nodes(c), truth)
-    slid = aligned_error(fit.nodes(fit.slide(c)), truth)
+    slid_c = fit.slide(c)
+    slid = aligned_error(fit.nodes(slid_c), truth)
     print(f"bump: height graph {graph:.4f} mm, slid by the membrane {slid:.4f} mm (mean node error, aligned)")
     assert graph > 0.1
-    assert slid < 0.02
+    assert slid < 0.005
+    # the answer is the weak form's root: its residual a tiny share of the unslid film's
+    before, _ = fit.virtual_work(c)
+    after, _ = fit.virtual_work(slid_c)
+    assert np.linalg.norm(after) < 1e-3 * np.linalg.norm(before)
+
+
+def test_the_virtual_work_s_jacobian_is_its_finite_difference():
+    """The sliding's Gauss-Newton steps use the weak form's Jacobian by (U, V), assembled from
+    complex-step derivatives at each Gauss point: checked against central differences on a
+    sheet wrapped, stretched and slid at random."""
+    fit = PositionFit(3, 3, PITCH, G, PositionFitSettings(knots_per_pitch=2, film_margin=0.5))
+    rng = np.random.default_rng(5)
+    c = np.zeros((3, fit.nb))
+    c[:2] = rng.normal(0.0, 0.3, (2, fit.nb))
+    c[2] = rng.normal(0.0, 2.0, fit.nb)
+    r0, jac = fit.virtual_work(c)
+    dense = jac.toarray()
+    for col in rng.choice(2 * fit.nb, 6, replace=False):
+        h = 1e-6
+        plus, minus = c.copy(), c.copy()
+        plus.reshape(-1)[col] += h
+        minus.reshape(-1)[col] -= h
+        fd = (fit.virtual_work(plus)[0] - fit.virtual_work(minus)[0]) / (2 * h)
+        assert np.allclose(dense[:, col], fd, rtol=1e-5, atol=1e-8 * np.abs(r0).max())
 
 
 def test_a_flat_sheet_stays_flat_and_its_coefficients_round_trip_through_positions():
