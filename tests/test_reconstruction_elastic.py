@@ -333,19 +333,21 @@ def test_a_noisy_12x12_cylinder_10_degrees_off_the_rows_takes_the_twist_two_read
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("draw", [0, 1, 2])
+@pytest.mark.parametrize("draw", [0, 1, 2, 3])
 def test_a_cylinder_whose_less_sheared_twist_has_no_sign_told_has_an_answer_within_3_sigma(cache, draw):
     """A noisy 5×5 cylinder of R 72 mm 5.6° off the columns, no sign told: on draw 1 the
     least-shear twist the product agreed with was taken with the default sign, 1.5 mm off at a
     corner, with σ reaching back only to the product's shrunk twist (1.2 times the bound).  Its
-    magnitude is read twice and its sign not at all: the mirror is tried, and stands beside it."""
+    magnitude is read twice and its sign not at all: the mirror is tried, and stands beside it.
+    (With the product's exact noise statistics draw 1 reads its twist within three s.d. and takes
+    none, 0.51 of the bound; draw 3 is the one whose least-shear twist is contested.)"""
     _, _, eu, el, truth = _dataset_frame("cylinder", 0, N, "cylinder:radius=-72.2,axis_angle=-84.4", draw, cache)
     surf = Reconstructor(N, M, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
     extra = surf.diagnostics.extra
     agreed = bool(extra.get("least_shear_contested")) and "least_shear_shift" in extra
     if agreed:
         assert surf.mirror is not None
-    assert draw != 1 or agreed
+    assert draw != 3 or agreed
     worst = worst_of_answers(surf, truth)
     assert min(worst) <= 1.0, worst
 
