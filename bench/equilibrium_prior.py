@@ -212,8 +212,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2024, help="seed of the dataset's scenes (--sliding)")
     args = ap.parse_args()
     if args.sliding:
-        print("| scene | default mm | height, no sliding | slid, 2 knots/pitch | slid, 3 | height fitted, true sliding held "
-              "| CPU s (3) |")
+        print("| scene | default mm | height, no sliding | slid, 2 knots/pitch | slid, 3 "
+              "| height fitted, true sliding held | CPU s (3) |")
         print("|---|---|---|---|---|---|---|")
         with threadpool_limits(1):
             for case in args.cases.split(","):

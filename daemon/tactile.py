@@ -43,7 +43,8 @@ from scipy import ndimage
 from skinmap.reconstruction.linalg import exp_so3
 from skinmap.strains import GAUGE_LENGTH_MM, cell_centres
 
-__all__ = ["SampleGrid", "Baseline", "Contact", "ContactEvent", "ContactSegmenter", "ContactTracker", "ProbePose", "ReliefMap", "PoseEstimate",
+__all__ = ["SampleGrid", "Baseline", "Contact", "ContactEvent", "ContactSegmenter", "ContactTracker", "ProbePose",
+           "ReliefMap", "PoseEstimate",
            "capture_baseline", "displacement", "detect_contact", "feature_size", "read_poses_csv", "contact_points",
            "estimate_pose", "anchor_pose", "stitch_estimated", "FloorLevel", "level_on_floor", "PROBE_LENGTH_MM",
            "BendingLevel", "level_by_bending", "ProbeLengthFit", "fit_probe_length"]
@@ -256,6 +257,11 @@ class ContactSegmenter:
     def finish(self) -> ContactEvent | None:
         """The event still open at the end of the frames, if it lasted long enough."""
         return None if self._deepest is None else self._close()
+
+    def abandon(self) -> None:
+        """Drop the event in progress without ending it (a new baseline is being taken: what
+        follows is compared with another surface); the presses counted so far stay counted."""
+        self._deepest, self._run, self._free = None, 0, 0
 
     def _close(self) -> ContactEvent | None:
         deepest, run = self._deepest, self._run
@@ -769,9 +775,7 @@ class ContactTracker:
     def reset(self) -> None:
         """Take a new baseline from the next frames (e.g. after the probe was re-inflated)."""
         self._frames, self._bending, self.baseline = [], [], None
-        count = self._presses.events
-        self._presses = ContactSegmenter()
-        self._presses.events = count
+        self._presses.abandon()
 
     def update(self, positions: np.ndarray, normals: np.ndarray, pose: Mapping[str, float] | None = None,
                bending: np.ndarray | None = None) -> dict:
@@ -795,8 +799,8 @@ class ContactTracker:
         if opened is None:
             # a pose received during the press belongs to the next press, not this one
             self._event_pose = None if pose is None else {k: float(v) for k, v in pose.items()}
-        out = {**doc, "events": self.events, "press": self._presses.open_number, "state": "contact", **c.summary(),
-               "depth_mm": np.round(c.depth, 4).ravel().tolist()}
+        out = {**doc, "events": self.events, "press": self._presses.open_number, "state": "contact",
+               **c.summary(), "depth_mm": np.round(c.depth, 4).ravel().tolist()}
         if self._event_pose is not None:
             out["pose"] = dict(self._event_pose)
         if self.pitch_mm is not None:

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, GAUGE_LENGTH_MM, PROBE_LENGTH_MM, Baseline,
-                                    BendingLevel, Contact, ContactEvent, ContactSegmenter, FloorLevel, PoseEstimate, ProbeLengthFit, ProbePose,
-                                    ReliefMap, SampleGrid,
+                                    BendingLevel, Contact, ContactEvent, ContactSegmenter, FloorLevel, PoseEstimate,
+                                    ProbeLengthFit, ProbePose, ReliefMap, SampleGrid,
                                     capture_baseline, detect_contact, fit_probe_length, level_by_bending,
                                     level_on_floor, read_poses_csv, stitch_estimated)
 

@@ -513,7 +513,7 @@ class PositionFit:
         of"): given its true height it recovers the film's true in-plane displacement, which a
         height graph (U = V = 0) leaves out.  Gauss-Newton from c's own (U, V), each step halved
         until the residual's norm does not grow; the sensor frame's rows fix the rigid motion."""
-        c = np.array(c, dtype=float).reshape(3, -1)
+        c = self._coefficients(c)
         nb = self.nb
         frame = self._frame[:2 * nb, :2 * nb] / 1e6  # the frame's rows, unweighted
         r, jac = self.virtual_work(c)
@@ -545,19 +545,28 @@ class PositionFit:
         function, c = u, v), (2·nb,), and its Jacobian by the in-plane coefficients (U, V),
         (2·nb, 2·nb); zero at the film's sliding equilibrium (:meth:`slide`)."""
         g = self._galerkin_operators()
-        x = self._x(np.asarray(c, float).reshape(3, -1), g.design)
+        x = self._x(self._coefficients(c), g.design)
         args = [x[d] for d in _DERIVATIVES]
         nu = self.settings.poisson
-        val, grads = _local_jacobian(lambda xu, xv, xuu, xuv, xvv: _virtual_work_terms(xu, xv, xuu, xuv, xvv, nu), args)
+        val, grads = _local_jacobian(
+            lambda xu, xv, xuu, xuv, xvv: _virtual_work_terms(xu, xv, xuu, xuv, xvv, nu), args)
         # residual (c, i): Σ_points w (parts_c · (α_u, α_v, α)_i)
         parts = val.reshape(2, 3, -1)
         local = np.einsum("ctp,pti->pci", parts, g.test) * g.weights[:, None, None]
         residual = np.bincount(g.rows.ravel(), weights=local.ravel(), minlength=2 * self.nb)
         # d parts / d (U, V coefficient j): through each derivative of x at the point
-        by_coeff = sum(np.einsum("kpd,pj->kpdj", grad[:, :, :2], g.design.vals[d]) for grad, d in zip(grads, _DERIVATIVES))
+        by_coeff = sum(np.einsum("kpd,pj->kpdj", grad[:, :, :2], g.design.vals[d])
+                       for grad, d in zip(grads, _DERIVATIVES))
         by_coeff = by_coeff.reshape(2, 3, *by_coeff.shape[1:])
         entries = np.einsum("pti,ctpdj->pcidj", g.test, by_coeff) * g.weights[:, None, None, None, None]
         return residual, g.jacobian.matrix(entries)
+
+    def _coefficients(self, c: np.ndarray) -> np.ndarray:
+        """A copy of coefficients ``c`` as (3, nb) floats, or a ValueError naming the shape."""
+        c = np.array(c, dtype=float)
+        if c.size != 3 * self.nb:
+            raise ValueError(f"coefficients of shape {c.shape}: this basis has (3, {self.nb})")
+        return c.reshape(3, self.nb)
 
     def _galerkin_operators(self) -> _Galerkin:
         """The weak form's points and patterns, built on first use (:meth:`slide`)."""

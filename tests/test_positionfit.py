@@ -47,6 +47,9 @@ def test_settings_out_of_range_are_refused_by_name():
         PositionFit(5, 5, PITCH, G, PositionFitSettings(film_margin=-0.5))
     with pytest.raises(ValueError, match="edge_weight"):
         PositionFit(5, 5, PITCH, G, PositionFitSettings(edge_weight=float("nan")))
+    fit = PositionFit(3, 3, PITCH, G)
+    with pytest.raises(ValueError, match=rf"coefficients of shape \(2, {fit.nb}\): this basis has \(3, {fit.nb}\)"):
+        fit.slide(np.zeros((2, fit.nb)))
 
 
 SLIDING = PositionFitSettings(knots_per_pitch=3, film_margin=0.5)  # the basis covers the whole film

@@ -235,6 +235,15 @@ def test_the_live_tracker_and_the_map_count_the_same_presses():
     assert ends == [1 + pattern.index("PPPP") - 5, len(frames) - 1]
     with pytest.raises(ValueError, match="min_frames must be >= 1"):
         ContactSegmenter(0)
+    # a new baseline drops a press in progress, not the presses counted
+    tracker.reset()
+    tracker.update(*free)  # the new baseline
+    assert [tracker.update(*f)["events"] for f in (pressed, pressed)] == [2, 3]
+    segmenter = ContactSegmenter()
+    segmenter.step(0, events[0])
+    segmenter.step(1, events[0])
+    segmenter.abandon()
+    assert segmenter.finish() is None and segmenter.events == 1 and segmenter.open_number is None
 
 
 def test_contact_poses_take_the_first_pose_within_each_event_and_name_an_event_without():
