@@ -18,9 +18,10 @@ solved for is debiased with it) and s.d. exactly, as a quadratic form of the noi
 frame, the s.d. of the cross term between the measured fields and the noise (linear in the
 noise).  On larger sheets seeded draws of unit-variance noise estimate the same (each s.d. to
 about ±9 % with 64 draws: an 8×8 oblique cylinder's product s.d. came out 15 % low that way, and
-its corners beyond 3σ on one noisy frame in 40).  The noise parts scale with σ_t².  The bias is removed at the noise the data actually
-carry (:func:`turning_noise_estimate`, no more than twice the stated one): removing the bias of
-noise that is not there would bend a clean sheet as much as the noise would have.
+its corners beyond 3σ on one noisy frame in 40).  The noise parts scale with σ_t².  The bias is
+removed at the noise the data actually carry (:func:`turning_noise_estimate`, no more than twice
+the stated one): removing the bias of noise that is not there would bend a clean sheet as much
+as the noise would have.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ __all__ = ["ProductNoise", "measure_product_noise", "turning_noise_estimate", "E
 #: (12 %), enough for a 3 s.d. test; the fields kept cost draws · 3 · (inner nodes) doubles
 #: (6 MB at 32×32).
 DRAWS = 64
-#: Up to this many valid units (12×12) the statistics are exact: one response per unit, 2.6 MB of
+#: Up to this many valid units (12×12) the statistics are exact: one response per unit, 3.7 MB of
 #: fields at 12×12.  Not yet at 16×16: there the exact s.d. is lower than the sampled one on the
 #: bench's cylinders and saddles (scatter / σ 1.23 → 1.30), and what it exposes, the noise's
 #: nonlinear path on large curved sheets (a saddle's edge scatters 1.2–1.7 times its σ), has no
