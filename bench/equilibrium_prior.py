@@ -23,9 +23,8 @@ the error is within 3σ + 0.05 mm.
 scenes): the default answer; the film's true height without its in-plane sliding (a height
 graph over the material coordinates); that height slid by the membrane's equilibrium with free
 edges (``PositionFit.slide``, its weak form, 2 and 3 knots a pitch, with the CPU time of the
-latter); the height
-fitted to every gauge with the film's true sliding held (docs/reconstruction.md, "What an
-elastic film's error is made of").
+latter); the height fitted to every gauge with the film's true sliding held
+(docs/reconstruction.md, "What an elastic film's error is made of").
 """
 from __future__ import annotations
 
