@@ -64,7 +64,7 @@ from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator.electrical import hysteresis_step  # noqa: E402
 from skinmap.emulator.walls import BalloonOnWall, FlatPlate, LetterRelief, Membrane  # noqa: E402
 from skinmap.reconstruction import reconstruct  # noqa: E402
-from skinmap.strains import cell_bending  # noqa: E402
+from skinmap.strains import GAUGE_LENGTH_MM, cell_bending  # noqa: E402
 
 NOISE = 0.0057e-2
 TOUCH_MM = 0.05  # clearance below which the sheet counts as touching the wall
@@ -186,11 +186,11 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     free = ph.SphereCap(80.0)
-    released = ph.gauge_strains(free, n, n, pitch, 0.2, 0.2, 10.0)
+    released = ph.gauge_strains(free, n, n, pitch, 0.2, 0.2, GAUGE_LENGTH_MM)
     memory = [np.zeros_like(released[0]), np.zeros_like(released[1])]  # the play's output, from the flat sheet
 
     def gauges(shape: ph.Shape, rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
-        eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, 10.0)
+        eu, el = ph.gauge_strains(shape, n, n, pitch, 0.2, 0.2, GAUGE_LENGTH_MM)
         if args.hysteresis > 0:
             eu, el = (hysteresis_step(memory[k], e, args.hysteresis) for k, e in enumerate((eu, el)))
             # the reading, then the press released to the free balloon before the next
