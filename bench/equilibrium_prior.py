@@ -4,7 +4,7 @@ elastic scenes of bench/elastic_dataset.py (docs/reconstruction.md, "Elastic fil
 
 Run: .venv/bin/python bench/equilibrium_prior.py [--cases saddle:0,poisson_0.3:1] [--nu true,0.4]
      [--solver cholesky|clarabel] [--max-steps 40] [--bias 0.3] [--reconstructor [--noise S --draws K]]
-     [--airy] [--sliding [--seed S]]
+     [--airy] [--sliding [--seed S]] [--turn [--sizes 8,16]]
 
 Each case is ``class:index`` of bench/elastic_dataset.py (5×5 cells, 12 mm pitch, seed 2024),
 noise-free unless ``--noise`` is given.  The fit starts from the default reconstruction's surface.
@@ -25,6 +25,16 @@ graph over the material coordinates); that height slid by the membrane's equilib
 edges (``PositionFit.slide``, its weak form, 2 and 3 knots a pitch, with the CPU time of the
 latter); the height fitted to every gauge with the film's true sliding held
 (docs/reconstruction.md, "What an elastic film's error is made of").
+
+``--turn``: what the gauges tell of a saddle's turn near the grid lines (noise-free; an N×N film
+on a saddle of R 18.75·N mm, the dataset's radius scale): for each turn φ, the χ² between every
+gauge of the film turned by φ and of the same saddle along the grid lines (0°: the same Gaussian
+curvature, curvatures along the rows and columns 1/cos 2φ times the turned film's), and of its
+twin (a saddle of R / cos 2φ along the grid lines: the same curvatures along the rows and
+columns, no twist, |K| lower by cos² 2φ), against the sensor's noise; the
+default answer's error, its mean node_sigma and its worst node in units of 3σ + 0.05 mm; and
+its error once moved along its twist mode (z += c·u·v) by the c that fits the truth best, with
+the true twist sin 2φ / R beside it (docs/reconstruction.md, "Limits").
 """
 from __future__ import annotations
 
@@ -194,6 +204,37 @@ def run_airy(key: str, index: int, noise: float) -> None:
     print(f"| {plan.spec[:52]:52s} | {true_k:10.3e} | {k:10.3e} | {sd:8.1e} | {k / true_k if true_k else float('nan'):6.3f} |")
 
 
+def run_turn(n: int, angles: list[float]) -> None:
+    """The turn table's rows for one sheet size (``--turn``)."""
+    radius = 18.75 * n
+
+    def film(r: float, angle: float):
+        return ed.scenes.parse_scene_spec(f"saddle:radius={r:.6g},axis_angle={angle:g}", "elastic", n, n, PITCH)
+
+    def chi2(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+        return float(sum(np.sum((x - y) ** 2) for x, y in zip(a, b)) / NOISE ** 2)
+
+    untwisted = ph.gauge_strains(film(radius, 0.0), n, n, PITCH, H, H, GAUGE)
+    for a in angles:
+        turned = film(radius, a)
+        # the twin: the same curvatures along the grid lines (cos 2φ / R), no twist, so |K| lower
+        twin = ph.gauge_strains(film(radius / math.cos(math.radians(2.0 * a)), 0.0), n, n, PITCH, H, H, GAUGE)
+        eu, el = ph.gauge_strains(turned, n, n, PITCH, H, H, GAUGE)
+        truth = ph.ground_truth(turned, n, n, PITCH).nodes.reshape(-1, 3)
+        surf = reconstruct(eu, el, PITCH, H, H, strain_sigma=NOISE)
+        nodes = surf.nodes.reshape(-1, 3)
+        errors = node_errors(nodes, truth)
+        worst = float(np.max(errors / (3.0 * surf.node_sigma.reshape(-1) + 0.05)))
+        twist = math.sin(math.radians(2.0 * a)) / radius
+        mode = np.outer(nodes[:, 0] * nodes[:, 1], [0.0, 0.0, 1.0])
+        shifts = np.linspace(-2.0 * abs(twist) - 1e-5, 2.0 * abs(twist) + 1e-5, 201)
+        moved = [node_errors(nodes + c * mode, truth).mean() for c in shifts]
+        best = int(np.argmin(moved))
+        print(f"| {n}×{n}, R {radius:g} mm | {a:g}° | {chi2((eu, el), untwisted):.3g} | {chi2((eu, el), twin):.3g} | "
+              f"{errors.mean():.4f} | "
+              f"{surf.node_sigma.mean():.3f} | {worst:.2f} | {moved[best]:.4f} | {shifts[best]:.3g} | {twist:.3g} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default=DEFAULT_CASES, help="class:index of bench/elastic_dataset.py, comma-separated")
@@ -209,7 +250,18 @@ def main() -> None:
                     help="what the error is made of: the film's height without its in-plane sliding, slid by the "
                          "membrane's equilibrium, and fitted to the gauges with its true sliding held (noise-free)")
     ap.add_argument("--seed", type=int, default=2024, help="seed of the dataset's scenes (--sliding)")
+    ap.add_argument("--turn", action="store_true",
+                    help="what the gauges tell of a saddle's turn near the grid lines (noise-free)")
+    ap.add_argument("--sizes", default="8,16", help="sheet sizes N of --turn, comma-separated")
     args = ap.parse_args()
+    if args.turn:
+        print("| film | turn | χ² against 0° | χ² against the twin | default mm | mean σ | worst / (3σ + 0.05) "
+              "| moved along the twist mode mm | by c /mm | true twist /mm |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        with threadpool_limits(1):
+            for size in args.sizes.split(","):
+                run_turn(int(size), [1.0, 2.0, 5.0])
+        return
     if args.sliding:
         print("| scene | default mm | height, no sliding | slid, 2 knots/pitch | slid, 3 "
               "| height fitted, true sliding held | CPU s (3) |")
