@@ -161,7 +161,11 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
-    return TwistResult(tau0 + c, c, graph, opened, from_shear, prod)
+    # the significance ramp's gain on the product's noise: d(c²)/d(product) is
+    # weight · (significance + product/read) inside the ramp, twice the product's own slope at its
+    # middle, where c = √product alone would say one (the weight not counted: it only lowers it)
+    ramp = significance + prod / read if 0.0 < significance < 1.0 and c2 > 0.0 else 1.0
+    return TwistResult(tau0 + c, c, graph, opened, from_shear, prod, ramp)
 
 
 def _integrate_from(f: np.ndarray, start: int, h: float) -> np.ndarray:
@@ -203,6 +207,9 @@ class TwistResult(NamedTuple):
     # the mean curvature product k_u k_v − τ₀² read (the noise's own part removed); less the
     # constant's square, the answer's mean Gaussian curvature
     product: float = 0.0
+    # how much more the constant's square moves with the product than the product itself: the
+    # significance ramp's slope where the constant was shrunk by it (1 elsewhere)
+    ramp: float = 1.0
 
 
 def graph_slopes(grid: FineGrid, k_u, k_v, tau0) -> tuple[np.ndarray, np.ndarray]:

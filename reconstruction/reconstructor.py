@@ -62,6 +62,10 @@ __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", 
 # The least-shear twist replaces the model's own when it needs less than this share of the
 # latter's shear; mirror-image minima within this factor of each other are one choice.
 LEAST_SHEAR_GAIN, LEAST_SHEAR_TIE = 0.5, 1.2
+# A least-shear twist taken with its square this many s.d. of the curvature product's noise or
+# fewer from the untaken one's (the bar is 3) is taken by the noise: repeated frames may not
+# take it, and the way back is part of the scatter σ.
+MARGINAL_SIGMAS = 5.0
 # A defect-correction pass is kept only if it lowers the χ² below this share of the last.
 DEFECT_GAIN = 0.99
 # Posterior check (Reconstructor._posterior): a χ² difference below this many units (times the
@@ -616,9 +620,10 @@ class Reconstructor(StretchPatternTwist):
             extra={"convex_solver": self.convex_solver, "convex_status": convex_info["status"], "kernels": self.kernels,
                    "model": "graph" if fit is None else "general"},
         )
-        for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "undecided_twist", "open_twist",
+        for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "least_shear_marginal",
+                    "undecided_twist", "open_twist",
                     "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_warm",
-                    "graph_twist_sd"):
+                    "graph_twist_sd", "product_ramp"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -1317,7 +1322,15 @@ class Reconstructor(StretchPatternTwist):
         # and was 1.0 mm off with σ 0.03)
         prior_only = "shear_prior_twist" in diag.extra and pattern is None
         prior_span = SHEAR_PRIOR_SHARE * abs(float(diag.extra.get("shear_prior_curvature", 0.0))) if prior_only else 0.0
-        twist = self._twist_noise(positions_at, base_shift, c0, product_sd, strain_sigma, TwistLeftOpen(
+        # (the constant's square moves with the product times the significance ramp's slope
+        # where the ramp shrank it: a 5×5 cylinder 5.6° off the columns took its twist 0.74-0.9
+        # of the way up the ramp on some noisy frames, where its slope is 2.5-2.8)
+        ramp = float(diag.extra.get("product_ramp", 1.0))
+
+        def square_sd(sigma_strain: float) -> float:
+            return ramp * product_sd(sigma_strain)
+
+        twist = self._twist_noise(positions_at, base_shift, c0, square_sd, strain_sigma, TwistLeftOpen(
             undecided=diag.extra.get("undecided_twist", 0.0),
             undecided_read="least_shear_shift" not in diag.extra,
             sign_open=sign_open,
@@ -1330,9 +1343,10 @@ class Reconstructor(StretchPatternTwist):
         # the way between the ramp's shrunk product twist and the least-shear one weighed
         # against it: the noise takes one on some frames, the other on others)
         # (and the stretch reading's own noise where it holds the twist)
-        twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, product_sd, strain_sigma,
+        twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, square_sd, strain_sigma,
                                           TwistLeftOpen(undecided=diag.extra.get("undecided_twist", 0.0)
-                                                        if diag.extra.get("least_shear_contested") else 0.0), graph_sd)
+                                                        if diag.extra.get("least_shear_contested")
+                                                        or diag.extra.get("least_shear_marginal") else 0.0), graph_sd)
         if pattern is not None:
             if pattern.contested:
                 # (where the noise flips the pattern's decision, frames land on either answer: a
@@ -1516,7 +1530,7 @@ class Reconstructor(StretchPatternTwist):
             metric_stack[6] -= debias
             metric_stack[8] -= debias
             metric = Metric(*metric_stack)
-        tau, twist_c, graph, open_twist, from_shear, product = solve_twist(
+        tau, twist_c, graph, open_twist, from_shear, product, ramp = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=product_noise, quiet=quiet if quiet < QUIET_SHARE else 1.0,
         )
@@ -1545,6 +1559,7 @@ class Reconstructor(StretchPatternTwist):
         undecided = 0.0  # a twist shift the data can neither confirm nor rule out (1/mm)
         curvature_supported = False  # the stretch varies as much as the own twist's curvature needs
         contested = False  # the least-shear twist weighed against the ramp's shrunk product twist
+        marginal = False  # the least-shear twist taken by less than the noise could undo
         if twist_mean is not None:
             shift0 = twist_mean - float(tau[grid.inner].mean())
         elif shear_graph is None and self.least_shear:
@@ -1591,6 +1606,9 @@ class Reconstructor(StretchPatternTwist):
                 options = same_sign if (same_sign or sign_known) else options
             if options:
                 shift0 = options[0][0] - tau_mean
+                # taken with its square within MARGINAL_SIGMAS s.d. of the product's noise from
+                # the untaken twist's, two beyond the bar: another frame's noise leaves it
+                marginal = abs(options[0][0] ** 2 - tau_mean**2) <= noise * MARGINAL_SIGMAS / 3.0
 
         family: dict[float, np.ndarray] = {}  # shifts asked for again (the answer, its mirror) are not recomputed
 
@@ -1664,8 +1682,15 @@ class Reconstructor(StretchPatternTwist):
         if contested and "undecided_twist" in convex_info:
             # taken on some noise draws and not on others: the way between is scatter too
             convex_info["least_shear_contested"] = True
+        if marginal and shift0 != 0.0 and not contested:
+            # (the same from the side that took it: a 5×5 cylinder of R 72 mm 5.6° off the columns
+            # took a twist on 16 noisy draws of 30 and none on 14, 0.3 mm apart; the frames that
+            # took it by this margin said a scatter of 0.04-0.05 mm)
+            convex_info["least_shear_marginal"] = True
         if open_twist > 0.0 and shift0 == 0.0 and twist_mean is None and shear_graph is None:
             convex_info["open_twist"] = open_twist
+        if ramp > 1.0 and shift0 == 0.0 and twist_mean is None and shear_graph is None:
+            convex_info["product_ramp"] = ramp
         if from_shear and shift0 == 0.0 and twist_mean is None and shear_graph is None:
             convex_info["shear_prior_twist"] = twist_c
             # (the answer's mean Gaussian curvature, which scales how far the prior may be off)
