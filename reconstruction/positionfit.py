@@ -23,9 +23,8 @@ sparsity pattern, and JᵀJ of the equilibrium rows is a sum of 48×48 blocks.  
 through `ElasticFit`: half the knots first (a turned saddle converges there in ~20 steps where the
 full basis crawls along the twist valley for 60+), then the full basis.
 
-With ``film_margin`` (pitches of film beyond the outer cells) the basis covers the whole film, and
-with ``edge_weight`` the free edges' traction (S^uu = S^uv = 0 on a u edge, S^vv = S^uv = 0 on a v
-edge) joins the equilibrium rows.  `PositionFit.slide` solves the film's in-plane sliding (U, V)
+With ``film_margin`` (pitches of film beyond the outer cells) the basis covers the whole film.
+`PositionFit.slide` solves the film's in-plane sliding (U, V)
 from its height alone in the equilibrium's weak form (the membrane's virtual work on every
 displacement tangent to the film: free edges are its natural condition), which converges on
 coarser knots than the collocated rows (docs/reconstruction.md, "What an elastic film's error is
@@ -145,21 +144,6 @@ def _tangential_divergence(xu, xv, xuu, xuv, xvv, nu: complex, full: bool = Fals
     return np.stack([(div * xu).sum(-1), (div * xv).sum(-1)], axis=-2)
 
 
-def _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu: complex, kind: np.ndarray) -> np.ndarray:
-    """(2, P): the tangential divergence at interior points (kind 0); on a free edge the traction's
-    two components, S^uu and S^uv on a u edge (kind 1), S^vv and S^uv on a v edge (kind 2)."""
-    t = _tangential_divergence(xu, xv, xuu, xuv, xvv, nu)
-    if not np.any(kind):
-        return t
-    lam = 2.0 * nu / (1.0 - nu)
-    e_uu, e_vv, e_uv = 0.5 * ((xu * xu).sum(-1) - 1), 0.5 * ((xv * xv).sum(-1) - 1), 0.5 * (xu * xv).sum(-1)
-    tr = e_uu + e_vv
-    s_uu, s_vv, s_uv = lam * tr + 2 * e_uu, lam * tr + 2 * e_vv, 2 * e_uv
-    first = np.where(kind == 1, s_uu, np.where(kind == 2, s_vv, t[..., 0, :]))
-    second = np.where(kind == 0, t[..., 1, :], s_uv)
-    return np.stack([first, second], axis=-2)
-
-
 def _virtual_work_terms(xu, xv, xuu, xuv, xvv, nu: complex) -> np.ndarray:
     """(6, P): for c = u, v the integrand's parts of the membrane's virtual work on a tangential
     virtual displacement α x_c, ∫ S^{ab} x_b · ∂_a(α x_c) = ∫ (T^u·x_c) α_u + (T^v·x_c) α_v +
@@ -222,12 +206,10 @@ class PositionFitSettings:
     poisson_sd: float = 0.02        # how well ν is known; its effect is added to σ
     mirror_cost_ratio: float = 1.5  # the mirror image stays an answer within this ratio of costs
     # The film beyond the outer cells, in pitches, covered by the basis (the emulator's films:
-    # half a pitch), and the weight of its free edges' traction rows (0: none).  Off by default:
-    # the film's in-plane sliding (PositionFit.slide) takes the basis's edges for the film's; the
-    # elastic prior (Reconstructor(elastic_prior=...)) leaves them off (docs/reconstruction.md,
-    # "Elastic films").
+    # half a pitch).  Off by default: the film's in-plane sliding (PositionFit.slide) takes the
+    # basis's edges for the film's; the elastic prior (Reconstructor(elastic_prior=...)) leaves
+    # it off (docs/reconstruction.md, "Elastic films").
     film_margin: float = 0.0
-    edge_weight: float = 0.0
 
 
 class PositionFit:
@@ -237,10 +219,8 @@ class PositionFit:
                  settings: PositionFitSettings = PositionFitSettings(), quadrature: int = 8):
         if not 0.0 <= settings.poisson < 0.5:
             raise ValueError(f"poisson ratio must be in [0, 0.5), got {settings.poisson}")
-        for name in ("film_margin", "edge_weight"):
-            value = getattr(settings, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (math.isfinite(settings.film_margin) and settings.film_margin >= 0):
+            raise ValueError(f"film_margin must be a finite number >= 0, got {settings.film_margin!r}")
         if settings.step_solver not in ("clarabel", "cholesky"):
             raise ValueError(f"step_solver must be 'clarabel' or 'cholesky', got {settings.step_solver!r}")
         self.n, self.m, self.pitch, self.settings = n, m, pitch, settings
@@ -267,20 +247,7 @@ class PositionFit:
         ev_grid, eu_grid = np.meshgrid((np.arange(ne) + 0.5) / ne * 2 * hv - hv,
                                        (np.arange(me) + 0.5) / me * 2 * hu - hu, indexing="ij")
         eu, ev = eu_grid.ravel(), ev_grid.ravel()
-        # free edges: kind 1 on the u edges (S^uu = S^uv = 0), kind 2 on the v edges
-        kind = np.zeros(eu.size)
         self._eq_scale = np.full(eu.size, settings.equilibrium_weight * np.sqrt(4 * hu * hv / eu.size))
-        if settings.edge_weight > 0:
-            along_v = (np.arange(ne) + 0.5) / ne * 2 * hv - hv  # points on the u edges (u = ±hu)
-            along_u = (np.arange(me) + 0.5) / me * 2 * hu - hu  # on the v edges
-            eu = np.concatenate([eu, np.full(ne, -hu), np.full(ne, hu), along_u, along_u])
-            ev = np.concatenate([ev, along_v, along_v, np.full(me, -hv), np.full(me, hv)])
-            kind = np.concatenate([kind, np.ones(2 * ne), np.full(2 * me, 2.0)])
-            # each row weighted by the square root of the edge length it stands for
-            self._eq_scale = np.concatenate([self._eq_scale,
-                                             np.full(2 * ne, settings.edge_weight * np.sqrt(2 * hv / ne)),
-                                             np.full(2 * me, settings.edge_weight * np.sqrt(2 * hu / me))])
-        self._kind = kind
         self._points = self._design(eu, ev, _DERIVATIVES)
         # ∫|∇³f|² as an exact quadratic form (per component).
         gram_u = [_gram(self.ku, self.nbu, d) for d in range(4)]
@@ -408,9 +375,9 @@ class PositionFit:
         nu = self.settings.poisson if poisson is None else poisson
         if not jacobian:
             xu, xv, xuu, xuv, xvv = args
-            return (self._eq_scale * _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind)).ravel(), None
+            return (self._eq_scale * _tangential_divergence(xu, xv, xuu, xuv, xvv, nu)).ravel(), None
         val, grads = _local_jacobian(
-            lambda xu, xv, xuu, xuv, xvv: _equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind), args)
+            lambda xu, xv, xuu, xuv, xvv: _tangential_divergence(xu, xv, xuu, xuv, xvv, nu), args)
         # entries (2, P, 3, 16) = Σ_d ∂r/∂x_d · B_d: one batched product over the derivatives
         by_der = np.stack(grads, axis=-1)  # (2, P, 3, D)
         entries = self._eq_scale[:, None, None] * np.matmul(by_der, self._points.stack[None])
@@ -431,7 +398,7 @@ class PositionFit:
         args = [x[d] for d in _DERIVATIVES]
         nu = complex(self.settings.poisson, _STEP_CS)
         xu, xv, xuu, xuv, xvv = args
-        return (self._eq_scale * np.imag(_equilibrium_rows(xu, xv, xuu, xuv, xvv, nu, self._kind))).ravel() / _STEP_CS
+        return (self._eq_scale * np.imag(_tangential_divergence(xu, xv, xuu, xuv, xvv, nu))).ravel() / _STEP_CS
 
     def tangential_fraction(self, c: np.ndarray) -> float:
         """How far the answer is from a normally loaded film: ∫|t|² / ∫|∂_a(S^{ab} x_b)|², the share
@@ -440,9 +407,8 @@ class PositionFit:
         x = self._x(np.asarray(c).reshape(3, -1), self._points)
         args = [x[d] for d in _DERIVATIVES]
         xu, xv, xuu, xuv, xvv = args
-        inner = self._kind == 0  # (the free edges' rows are tractions, not divergences)
-        t = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson)[:, inner]
-        div = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson, full=True)[inner]
+        t = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson)
+        div = _tangential_divergence(xu, xv, xuu, xuv, xvv, self.settings.poisson, full=True)
         total = float((div * div).sum())
         return float((t * t).sum()) / total if total > 0 else 0.0
 

@@ -21,9 +21,8 @@ SIG_T, SIG_S = np.sqrt(2.0) * NOISE / (2 * H), NOISE * np.sqrt(2 * H * H) / (2 *
 
 @pytest.mark.parametrize("knots,margin", [(1, 0.0), (2, 0.0), (2, 0.5)])
 def test_jacobians_of_the_gauges_and_of_the_equilibrium_prior_match_finite_differences_to_1e_5(knots, margin):
-    # (with a margin, the free edges' traction rows too)
-    fit = PositionFit(3, 4, PITCH, G, PositionFitSettings(knots_per_pitch=knots, film_margin=margin,
-                                                          edge_weight=10.0 if margin else 0.0))
+    # (with a margin, the basis covers film beyond the outer cells)
+    fit = PositionFit(3, 4, PITCH, G, PositionFitSettings(knots_per_pitch=knots, film_margin=margin))
     rng = np.random.default_rng(knots)
     c = rng.normal(0.0, 0.3, (3, fit.nb))
     t, s, jt, js = fit.gauge_model(c, jacobian=True)
@@ -45,8 +44,8 @@ def test_settings_out_of_range_are_refused_by_name():
         PositionFit(5, 5, PITCH, G, PositionFitSettings(step_solver="newton"))
     with pytest.raises(ValueError, match="film_margin"):
         PositionFit(5, 5, PITCH, G, PositionFitSettings(film_margin=-0.5))
-    with pytest.raises(ValueError, match="edge_weight"):
-        PositionFit(5, 5, PITCH, G, PositionFitSettings(edge_weight=float("nan")))
+    with pytest.raises(ValueError, match="film_margin"):
+        PositionFit(5, 5, PITCH, G, PositionFitSettings(film_margin=float("nan")))
     fit = PositionFit(3, 3, PITCH, G)
     with pytest.raises(ValueError, match=rf"coefficients of shape \(2, {fit.nb}\): this basis has \(3, {fit.nb}\)"):
         fit.slide(np.zeros((2, fit.nb)))
