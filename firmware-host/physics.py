@@ -21,7 +21,7 @@ from typing import Callable, Mapping, Sequence, TypedDict, cast
 
 import numpy as np
 
-from skinmap.strains import GAUGE_LENGTH_MM, cell_centres
+from skinmap.strains import GAUGE_LENGTH_MM, cell_centres, grid_size
 
 __all__ = [
     "Shape",
@@ -750,13 +750,6 @@ def parse_shape_spec(spec: str) -> Shape:
         ) from None
 
 
-def _grid_size(n: int, m: int) -> tuple[int, int]:
-    for name, val in (("rows n", n), ("cols m", m)):
-        if int(val) != val or int(val) < 1:
-            raise ValueError(f"{name} must be a positive integer, got {val!r}")
-    return int(n), int(m)
-
-
 def _gauss_legendre_panels(samples: int, panels: int) -> tuple[np.ndarray, np.ndarray]:
     """Nodes in [-1/2, 1/2] and weights (sum 1) of composite Gauss–Legendre quadrature."""
     if samples < 1 or panels < 1:
@@ -903,7 +896,7 @@ def gauge_strains(
 
     ``t`` is a scalar or an array of shape (2, N, M) giving each gauge's sampling instant.
     """
-    n, m = _grid_size(n, m)
+    n, m = grid_size(n, m)
     h_upper = _finite("h_upper", h_upper)
     h_lower = _finite("h_lower", h_lower)
     if h_upper < 0 or h_lower < 0:

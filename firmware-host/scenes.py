@@ -37,6 +37,7 @@ from scipy.interpolate import PchipInterpolator, RectBivariateSpline
 
 from skinmap.emulator import mechanics as mc
 from skinmap.emulator import physics as ph
+from skinmap.strains import grid_size
 
 __all__ = [
     "Mechanics",
@@ -550,7 +551,7 @@ def make_scene(kind: str, n: int, m: int, pitch: float = 12.0, *, cache: bool = 
     to the scene (:data:`APPLICABLE`).  Graph shapes summed with ``+`` come as
     ``kind="sum", shape=<GraphSum>``.  Raises ValueError naming a bad parameter, and
     :class:`~skinmap.emulator.mechanics.MechanicsError` when the film finds no equilibrium."""
-    n, m = ph._grid_size(n, m)
+    n, m = grid_size(n, m)
     pitch = ph._finite_positive("pitch", pitch)
     if kind not in ph.SHAPE_KINDS and kind != "sum":
         raise ValueError(f"unknown shape kind {kind!r}; known kinds: {', '.join(ph.SHAPE_KINDS)}")

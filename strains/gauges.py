@@ -102,18 +102,23 @@ def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np
 GAUGE_LENGTH_MM = 10.0
 
 
+def grid_size(n: int, m: int) -> tuple[int, int]:
+    """The sheet's rows and columns as ints, each refused by name unless a positive integer."""
+    for name, val in (("rows n", n), ("cols m", m)):
+        if int(val) != val or int(val) < 1:
+            raise ValueError(f"{name} must be a positive integer, got {val!r}")
+    return int(n), int(m)
+
+
 def cell_axes(n: int, m: int, pitch_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The cells' material coordinates along each axis, (u (M,), v (N,)) mm: cell (i, j) is
     centred at u_j = (j − (M−1)/2)·pitch, v_i = (i − (N−1)/2)·pitch, the sheet's material centre
     at the origin (the sensor frame, docs/reconstruction.md).  The one definition of the layout
     that the emulator, the reconstruction and the gateway share."""
-    for name, val in (("rows n", n), ("cols m", m)):
-        if int(val) != val or int(val) < 1:
-            raise ValueError(f"{name} must be a positive integer, got {val!r}")
+    n, m = grid_size(n, m)
     pitch = float(pitch_mm)
     if not (math.isfinite(pitch) and pitch > 0):
         raise ValueError(f"pitch must be a finite positive number, got {pitch_mm!r}")
-    n, m = int(n), int(m)
     return (np.arange(m) - (m - 1) / 2.0) * pitch, (np.arange(n) - (n - 1) / 2.0) * pitch
 
 
