@@ -231,8 +231,8 @@ def run_turn(n: int, angles: list[float]) -> None:
         moved = [node_errors(nodes + c * mode, truth).mean() for c in shifts]
         best = int(np.argmin(moved))
         print(f"| {n}×{n}, R {radius:g} mm | {a:g}° | {chi2((eu, el), untwisted):.3g} | {chi2((eu, el), twin):.3g} | "
-              f"{errors.mean():.4f} | "
-              f"{surf.node_sigma.mean():.3f} | {worst:.2f} | {moved[best]:.4f} | {shifts[best]:.3g} | {twist:.3g} |")
+              f"{errors.mean():.4f} | {surf.node_sigma.mean():.3f} | {worst:.2f} | {moved[best]:.4f} | "
+              f"{shifts[best]:.3g} | {twist:.3g} |")
 
 
 def main() -> None:

@@ -161,9 +161,9 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
-    # the significance ramp's gain on the product's noise: d(c²)/d(product) is
-    # weight · (significance + product/read) inside the ramp, twice the product's own slope at its
-    # middle, where c = √product alone would say one (the weight not counted: it only lowers it)
+    # the significance ramp's gain on the product's noise: inside the ramp d(c²)/d(product) is
+    # weight · (significance + product/read), 2 at its middle, where the s.d. through c = √product
+    # takes 1 (the weight left out: it only lowers it)
     ramp = significance + prod / read if 0.0 < significance < 1.0 and c2 > 0.0 else 1.0
     return TwistResult(tau0 + c, c, graph, opened, from_shear, prod, ramp)
 
