@@ -352,7 +352,13 @@ def _over(e: np.ndarray, surf, truth: np.ndarray | None = None) -> bool:
     return bool(np.any(node_errors(mirror.nodes, truth) > 3.0 * sigma + 0.05))
 
 
-def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None) -> None:
+def elastic_classes(only: list[str] | None) -> list[tuple]:
+    """The dataset's classes (bench/elastic_dataset.py), or those of ``only`` (keys) in its order."""
+    return [c for c in ed.CLASSES if only is None or c[0] in only]
+
+
+def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool | None = None,
+                  only: list[str] | None = None) -> None:
     """Node errors on elastic scenes (films laminated on molds, bench/elastic_dataset.py) and on
     the same shapes' kinematic form, and the count of overconfident reconstructions."""
     print(f"\nElastic scenes (film on a mold, skinmap.emulator.scenes), {n}x{n} cells, pitch {PITCH:g} mm, "
@@ -363,7 +369,7 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
     print(head)
     print("-" * len(head))
     solved, cached = [], []
-    for key, title, _, _ in ed.CLASSES:
+    for key, title, _, _ in elastic_classes(only):
         plans = ed.class_plans(key, seed, k, n)
         rows = [(title, False)]
         if key == "cylinder":  # the mirror-ambiguity cases: the sign told, and left to the default
@@ -429,7 +435,8 @@ def elastic_table(n: int, k: int, noisy_draws: int, seed: int, graph_fit: bool |
           f"in {sum(cached):.1f} s)")
 
 
-def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | None = None) -> None:
+def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | None = None,
+                      only: list[str] | None = None) -> None:
     """σ calibration on the elastic scenes and their kinematic form: the Monte-Carlo scatter of
     every node over ``draws`` noisy frames (sensor frame, as node_sigma is) divided by the mean
     node_scatter_sigma of those frames (the part of σ that repeated frames scatter by), its
@@ -450,7 +457,7 @@ def calibration_table(n: int, k: int, draws: int, seed: int, graph_fit: bool | N
     print("-" * len(head))
     ratios_all: dict[int, list[float]] = {0: [], 1: []}
     whole_all: dict[int, list[float]] = {0: [], 1: []}
-    for key, title, _, _ in ed.CLASSES:
+    for key, title, _, _ in elastic_classes(only):
         cells: dict[int, list[float]] = {0: [], 1: []}
         whole: dict[int, list[float]] = {0: [], 1: []}
         worst = np.zeros((2, 2))  # [form, (frame, aligned)]
@@ -744,6 +751,10 @@ def main() -> None:
                     help="sheet sizes N of the elastic tables, comma-separated (default 5; a 16x16 scene takes about "
                          "5-20 s to solve once, then comes from the disk cache)")
     ap.add_argument("--elastic-shapes", type=int, default=None, help="random scenes per elastic class (default 2, quick 1)")
+    ap.add_argument("--elastic-classes", default=None,
+                    help="the elastic tables' classes, comma-separated keys of bench/elastic_dataset.py (default: all)")
+    ap.add_argument("--calibration-draws", type=int, default=None,
+                    help="noisy frames a scene of the uncertainty calibration (default 20, quick 8)")
     ap.add_argument("--general", action="store_true",
                     help="the general model alone (graph_fit=False), without the height-graph fit of step 0")
     ap.add_argument("--kernels", choices=("compiled", "numpy"), default="compiled",
@@ -760,6 +771,14 @@ def main() -> None:
         return out
 
     elastic_sizes = sizes("--elastic-sizes", args.elastic_sizes)
+    known = [c[0] for c in ed.CLASSES]
+    classes = None if args.elastic_classes is None else [c.strip() for c in args.elastic_classes.split(",") if c.strip()]
+    if classes is not None and (not classes or any(c not in known for c in classes)):
+        ap.error(f"--elastic-classes takes keys of bench/elastic_dataset.py ({', '.join(known)}), got "
+                 f"{args.elastic_classes!r}")
+    draws = args.calibration_draws or (8 if args.quick else 20)
+    if draws < 2:
+        ap.error(f"--calibration-draws takes at least 2 frames, got {args.calibration_draws}")
     kinematic_sizes = sizes("--sizes", args.sizes)
     threadpool_limits(1)
     if args.only in (None, "accuracy"):
@@ -769,9 +788,9 @@ def main() -> None:
     if args.only in (None, "elastic"):
         k_el = args.elastic_shapes or (1 if args.quick else 2)
         for n in elastic_sizes:
-            elastic_table(n, k_el, 1 if args.quick else 3, args.seed, False if args.general else None)
+            elastic_table(n, k_el, 1 if args.quick else 3, args.seed, False if args.general else None, classes)
         for n in elastic_sizes:
-            calibration_table(n, k_el, 8 if args.quick else 20, args.seed, False if args.general else None)
+            calibration_table(n, k_el, draws, args.seed, False if args.general else None, classes)
     if args.only in ("accuracy", "elastic"):
         return
     frames = {5: 60, 8: 40, 16: 20, 32: 10} if args.quick else {5: 300, 8: 200, 16: 100, 32: 40}
