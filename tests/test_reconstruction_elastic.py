@@ -336,10 +336,10 @@ def test_a_noisy_12x12_cylinder_10_degrees_off_the_rows_takes_the_twist_two_read
 @pytest.mark.parametrize("draw", [40, 142])
 def test_a_12x12_cylinder_whose_least_shear_twist_overshoots_is_within_3_sigma_in_the_frame(cache, draw):
     """The same 12×12 cylinder, R 225 mm 9.7° off the rows (twist 7.4·10⁻⁴ /mm), its sign
-    told: on these two noisy frames of the bench's 150 the least-shear twist taken was 9.0-9.1·10⁻⁴,
-    0.86-0.91 mm off at a corner, with σ reaching only back to the product's shrunk twist (1.37
-    and 1.14 times the bound).  The least-shear twist's own noise, which the same turning data
-    give it through the curvature product, joins σ."""
+    told: on these two of the bench's noisy frames (of 150, `--calibration-draws 150`) the
+    least-shear twist taken was 9.0-9.1·10⁻⁴, 0.86-0.91 mm off at a corner, with σ reaching only
+    back to the product's shrunk twist (1.37 and 1.14 times the bound).  The least-shear twist's
+    own noise, which the same turning data give it through the curvature product, joins σ."""
     n = 12
     plan, shape, eu, el, _ = _dataset_frame("cylinder", 1, n, "cylinder:radius=-224.9,axis_angle=9.7", draw, cache)
     rec = Reconstructor(n, n, PITCH, H, H, G)
