@@ -1339,7 +1339,8 @@ class Reconstructor(StretchPatternTwist):
             undecided=diag.extra.get("undecided_twist", 0.0),
             undecided_read="least_shear_shift" not in diag.extra,
             sign_open=sign_open,
-            open_twist=diag.extra.get("open_twist", 0.0) if mirror is None else 0.0,
+            open_twist=max(diag.extra.get("open_twist", 0.0), diag.extra.get("trace_open_twist", 0.0))
+            if mirror is None else 0.0,
             twist_sign=None if twist_sign is None else float(twist_sign),
             prior_span=prior_span,
             prior_sign_told=mirror is not None), graph_sd)

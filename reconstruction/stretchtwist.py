@@ -64,6 +64,9 @@ SIGN_SIGMAS = 2.0
 # 12×12 saddle of StretchTwist.contested: over 10 noisy frames that end scattered by 1.6 times the
 # product's s.d. about none, and 4 of them cleared it)
 CONTESTED_SIGMAS = 3.0
+#: Where the trace's interval reads the twist, the twist the curvature product alone would be
+#: is left open when the product lies beyond this many of its noise s.d. (below, it is the noise's).
+PRODUCT_OPEN_SIGMAS = 3.0
 #: The share of the stated noise that a frame's own turning noise (productnoise.
 #: turning_noise_estimate) must reach before the gauges' veto of a twist the stretch pattern
 #: moves to is weighed against the noise's reach (StretchPatternTwist._noise_reach, large sheets).
@@ -447,8 +450,23 @@ class StretchPatternTwist:
         interval's top is the interval's own noise (a ν 0.3 saddle turned 6° from the grid
         refines to 0.54-0.56 of it, its true twist 0.7; noisy spheres to 0-0.18)."""
         m_hi = reading.high
-        saddle_like = _mean_twist_terms(fields, self.grid.inner)[1] < 0.0
-        if reading.source != "membrane" or (reading.twist <= 0.5 * m_hi and not saddle_like):
+        base = _mean_twist_terms(fields, self.grid.inner)[1]
+        saddle_like = base < 0.0
+        if reading.source != "membrane":
+            # The trace's interval reads no ν and no sign: where it allows none and also the
+            # twist the curvature product alone would be (a developable sheet: K = 0), beyond the
+            # product's noise, the stretch has not decided between them either, and that twist
+            # joins σ (a 12×12 film pre-stretched 5 % on a cylinder of R 179 mm 6.8° off the
+            # columns: its stretch varies with the pre-stretch as a doubly curved sheet's would,
+            # no twist was taken or left open on one noisy frame of 150, 0.98 mm off with σ 0.063,
+            # 9.5 times the bound)
+            # (`extra["trace_open_twist"]`, reached as the product's open twist is, _posterior)
+            product_twist = math.sqrt(base) if base > 0.0 else 0.0
+            if (base > PRODUCT_OPEN_SIGMAS * self._product_sd(fields, sigma_f) and product_twist <= m_hi
+                    and abs(product_twist - abs(m0)) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM):
+                info["trace_open_twist"] = round(product_twist, 7)
+            return None
+        if reading.twist <= 0.5 * m_hi and not saddle_like:
             # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
             # it, that saddle 0.70; the refinement would double a warm sphere frame's cost.
             # A sheet whose curvature product is negative, as a saddle's near the grid lines,
