@@ -28,7 +28,8 @@ from .twistfamily import MIRROR_FLOOR_MM, _differs, _half_reach, _mean_twist_ter
 from .uncertainty import DEFAULT_STRAIN_SIGMA
 
 __all__ = ["StretchPatternTwist", "StretchTwist", "MOVE_SHARE", "SIGN_OWN_SHARE", "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS",
-           "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS", "CONTESTED_SIGMAS", "NOISE_REACH_LEVEL"]
+           "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS", "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS",
+           "NOISE_REACH_LEVEL"]
 
 # Where the stretch pattern needs a twist, an answer whose mean twist is off the pattern's
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
@@ -443,6 +444,8 @@ class StretchPatternTwist:
         it: None where the answer stands as it is; else the shifts on ``positions_at``'s family
         whose twists the data leave open (their spread joins node_sigma); or, for an answer that
         carries the frame before's twist which the refinement confirms, the decided magnitude.
+        A trace's interval gives None, and ``info["trace_open_twist"]`` where it holds the twist
+        the curvature product alone would be (joined to σ as the product's open twist).
 
         The membrane's reading, refined on the answer's own family, may still say a twist: the
         data have not decided between none and that one, and the twists up to it, of either sign
