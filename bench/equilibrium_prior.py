@@ -235,6 +235,17 @@ def run_turn(n: int, angles: list[float]) -> None:
               f"{shifts[best]:.3g} | {twist:.3g} |")
 
 
+def _table_head(*cells: str) -> None:
+    """A markdown table's header and rule."""
+    print("| " + " | ".join(cells) + " |")
+    print("|" + "---|" * len(cells))
+
+
+def _cases(text: str) -> list[tuple[str, int]]:
+    """``class:index,...`` as (class, index) pairs."""
+    return [(key, int(index)) for key, index in (case.split(":") for case in text.split(","))]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default=DEFAULT_CASES, help="class:index of bench/elastic_dataset.py, comma-separated")
@@ -255,47 +266,40 @@ def main() -> None:
     ap.add_argument("--sizes", default="8,16", help="sheet sizes N of --turn, comma-separated")
     args = ap.parse_args()
     if args.turn:
-        print("| film | turn | χ² against 0° | χ² against the twin | default mm | mean σ | worst / (3σ + 0.05) "
-              "| moved along the twist mode mm | by c /mm | true twist /mm |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+        _table_head("film", "turn", "χ² against 0°", "χ² against the twin", "default mm", "mean σ",
+                    "worst / (3σ + 0.05)", "moved along the twist mode mm", "by c /mm", "true twist /mm")
         with threadpool_limits(1):
             for size in args.sizes.split(","):
                 run_turn(int(size), [1.0, 2.0, 5.0])
         return
     if args.sliding:
-        print("| scene | default mm | height, no sliding | slid, 2 knots/pitch | slid, 3 "
-              "| height fitted, true sliding held | CPU s (3) |")
-        print("|---|---|---|---|---|---|---|")
+        _table_head("scene", "default mm", "height, no sliding", "slid, 2 knots/pitch", "slid, 3",
+                    "height fitted, true sliding held", "CPU s (3)")
         with threadpool_limits(1):
-            for case in args.cases.split(","):
-                key, index = case.split(":")
-                run_sliding(key, int(index), args.seed)
+            for key, index in _cases(args.cases):
+                run_sliding(key, index, args.seed)
         return
     if args.airy:
-        print("| scene | film's mean K 1/mm² | Airy K | s.d. | ratio |")
-        print("|---|---|---|---|---|")
-        for case in args.cases.split(","):
-            key, index = case.split(":")
-            run_airy(key, int(index), args.noise)
+        _table_head("scene", "film's mean K 1/mm²", "Airy K", "s.d.", "ratio")
+        for key, index in _cases(args.cases):
+            run_airy(key, index, args.noise)
         return
     if args.reconstructor:
-        print("| scene | draw | film ν | prior ν | default mm | default σ | elastic prior mm | σ | ≤ 3σ + 0.05 | prior | mirror kept | CPU s |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        _table_head("scene", "draw", "film ν", "prior ν", "default mm", "default σ", "elastic prior mm", "σ",
+                    "≤ 3σ + 0.05", "prior", "mirror kept", "CPU s")
         total = covered = 0
         with threadpool_limits(1):
-            for case in args.cases.split(","):
-                key, index = case.split(":")
-                n_cases, n_ok = run_reconstructor(key, int(index), args.nu.split(","), args.max_steps, args.noise,
+            for key, index in _cases(args.cases):
+                n_cases, n_ok = run_reconstructor(key, index, args.nu.split(","), args.max_steps, args.noise,
                                                   args.draws if args.noise > 0 else 1)
                 total, covered = total + n_cases, covered + n_ok
         print(f"within 3 sigma + 0.05 mm: {covered} of {total}")
         return
-    print("| scene | film ν | prior ν | default mm | position fit mm | χ²/datum | prior cost | steps | CPU ms |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    _table_head("scene", "film ν", "prior ν", "default mm", "position fit mm", "χ²/datum", "prior cost", "steps",
+                "CPU ms")
     with threadpool_limits(1):
-        for case in args.cases.split(","):
-            key, index = case.split(":")
-            run_case(key, int(index), args.nu.split(","), args.solver, args.max_steps, args.bias, args.noise)
+        for key, index in _cases(args.cases):
+            run_case(key, index, args.nu.split(","), args.solver, args.max_steps, args.bias, args.noise)
 
 
 if __name__ == "__main__":
