@@ -75,6 +75,7 @@ def solve_twist(
     sign_from_data: bool = True,
     product_noise: tuple[float, float] | None = None,
     quiet: float = 1.0,
+    open_spread: float | None = None,
 ) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -92,7 +93,9 @@ def solve_twist(
     is read as a twist); without it, independent noise on every node is assumed.  ``quiet``: the
     share of that noise the data themselves show, where they show clearly less (a positive
     product is read against that share; the search for a turned saddle keeps the stated noise,
-    whose product has no sign to read).  Returns the τ
+    whose product has no sign to read).  ``open_spread``: the product's s.d. that the twist left
+    open is judged with, where it is read otherwise than the twist taken (the fields' own,
+    where the gauge pairs' reading sets what is taken: ``Reconstructor._pair_reading``).  Returns the τ
     field and its constant without the graph refinement, the graph model
     (:class:`GraphTwist`) when the stretch pattern suggests one, and the twist the product
     allows where its noise shrank the one taken, or hides where none was taken (``open``).
@@ -154,13 +157,23 @@ def solve_twist(
     # one draw in 8 the product read 2.4 s.d. low)
     # (the stretch's verdict on developability counts only where the stretch a doubly curved
     # sheet would need exceeds three of its noise s.d.: below that its variation is the noise's)
+    # (judged at the noise of the product's other reading where the twist was read from the gauge
+    # pairs: a sharper reading takes more twists, it rules none out that the fields' noise
+    # leaves open: a 12×12 film pre-stretched 5 % on a cylinder 6.8° off the columns, whose
+    # stretch varies with the pre-stretch, read its product at 6.3 s.d. by the pairs, took no
+    # twist and left none open, 0.98 mm off with σ 0.056)
+    open_noise = noise if open_spread is None else 3.0 * open_spread
+    open_read = open_noise * quiet
+    open_significance = (min(max(prod / open_read - 1.0, 0.0), 1.0) if open_read > 0 else float(prod > 0)) \
+        if open_spread is not None else significance
     allowed = max(prod, 0.0) * (weight if need > 3.0 * stretch_sigma else 1.0)
-    opened = math.sqrt(allowed + noise / 3.0) if significance < 1.0 and prod > noise / 3.0 and c2 < allowed else 0.0
-    if c2 == 0.0 and graph is None and prod <= noise / 3.0 and (weight == 1.0 or need <= 3.0 * stretch_sigma):
+    opened = (math.sqrt(allowed + open_noise / 3.0) if open_significance < 1.0 and prod > open_noise / 3.0
+              and c2 < allowed else 0.0)
+    if c2 == 0.0 and graph is None and prod <= open_noise / 3.0 and (weight == 1.0 or need <= 3.0 * stretch_sigma):
         # nor is a product within one s.d. of its noise a proof of no twist, on a sheet the
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
-        opened = math.sqrt(max(prod, 0.0) + noise / 3.0)
+        opened = math.sqrt(max(prod, 0.0) + open_noise / 3.0)
     # the significance ramp's gain on the product's noise: inside the ramp d(c²)/d(product) is
     # weight · (significance + product/read), 2 at its middle, where the s.d. through c = √product
     # takes 1 (the weight left out: it only lowers it)

@@ -43,7 +43,7 @@ from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
 from .graphfit import GraphFit, GraphResult, disagreement
 from .graphsheet import SlopeNoise, free_part, graph_sheet_fields, slope_noise
-from .productnoise import ProductNoise, measure_product_noise, turning_noise_estimate
+from .productnoise import ProductNoise, measure_product_noise, pair_product, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
 from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
 from .airy import airy_gaussian_curvature
@@ -339,6 +339,8 @@ class Reconstructor(StretchPatternTwist):
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
+        # the last measured data's fields, with their input (_measured_fields)
+        self._measured_memo: tuple | None = None
         self._slope_noise_draws: SlopeNoise | None = None
         # the general model's scatter over the linear map's, per noise level (measured on first use)
         self._noise_responses: dict[float, tuple[float, float]] = {}
@@ -502,7 +504,7 @@ class Reconstructor(StretchPatternTwist):
             # the fields of the measured data, once a frame (the twist carried over and a warm
             # defect correction both read them)
             if not measured:
-                measured.append(grid.field_maps(valid)(turning, stretch)[:3])
+                measured.append(self._measured_fields(turning, stretch, valid))
             return measured[0]
 
         carried, reading = self._carried_twist(previous, twist_sign, turning, stretch, valid, strain_sigma,
@@ -627,7 +629,7 @@ class Reconstructor(StretchPatternTwist):
         for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "least_shear_marginal",
                     "undecided_twist", "open_twist",
                     "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_warm",
-                    "graph_twist_sd", "product_ramp"):
+                    "graph_twist_sd", "product_ramp", "pair_product"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
         if graph is not None:
@@ -1454,6 +1456,84 @@ class Reconstructor(StretchPatternTwist):
         each layer: (ε_u − ε_l)/(h_u + h_l)."""
         return math.sqrt(2.0) * sigma_f / (self.h_upper + self.h_lower)
 
+    def _pair_reading(self, k_u, k_v, tau0, turning, valid, strains, turning_sigma: float, present: float,
+                      product_noise: tuple[float, float], info: dict) -> tuple[float, float]:
+        """The (bias, s.d.) that :func:`.engine.solve_twist` reads the mean curvature product
+        with: the fields' own (``product_noise``, its bias at the noise ``present``), or, where
+        the cells' gauge pairs read the product k_u k_v more precisely
+        (:func:`.productnoise.pair_product`) and agree with the fields' within three s.d. of the
+        two, a bias that puts the product where the pairs read it, with the pairs' s.d. (the
+        twist field's part of the product, mean τ₀², stays the fields', debiased alike).  The
+        s.d. is at the stated noise ``turning_sigma`` as the fields' is (solve_twist's
+        ``quiet`` reads it against the noise the data show).  The pairs are read from the
+        measured ``strains`` where given: a defect pass's input (the measured data plus the
+        model's correction) is no gauge's reading (a 32×32 cylinder at 30°: its pairs read
+        2.083·10⁻⁶ /mm², the corrected input's 2.151, 3.4 s.d. off).  ``info["pair_product"]``:
+        the two readings and s.d.s where the pairs' was taken."""
+        noise = self._product_noise
+        if noise is None or not turning_sigma > 0.0:
+            return product_noise
+        inner = self.grid.inner
+        t0 = np.asarray(tau0, dtype=float)
+        t0 = t0 - t0.sum() / t0.size
+        fields = float((np.asarray(k_u)[inner] * np.asarray(k_v)[inner]).mean())
+        twist2 = float((t0[inner] ** 2).mean())
+        read_fields = fields - twist2 - product_noise[0]
+        measured_t0, measured_present = t0, present
+        if strains is not None:
+            m_turning, m_stretch, m_valid = unit_data(strains[0], strains[1], self.h_upper, self.h_lower,
+                                                      self.gauge_length)
+            if not (np.array_equal(m_turning, turning) and np.array_equal(m_valid, valid)):
+                # a defect pass: its twist field, like its pairs, is the correction's as much as
+                # the gauges' (the 32×32 cylinder's mean τ₀² read 3.8·10⁻⁸ below the noise's own
+                # bias, 7 s.d.): both come from the measured data
+                if not m_valid.any():
+                    return product_noise
+                measured_t0, measured_present = self._measured_twist(m_turning, m_stretch, m_valid, turning_sigma)
+            turning, valid = m_turning, m_valid
+        pair, pair_sd, cells = pair_product(turning, valid, turning_sigma)
+        if cells < 0.5 * self.n * self.m:
+            return product_noise
+        twist_bias, twist_sd = noise.twist_stats(measured_t0, inner, turning_sigma)
+        twist_bias *= (measured_present / turning_sigma) ** 2
+        read_pairs = pair - float((measured_t0[inner] ** 2).mean()) + twist_bias
+        sd = math.hypot(pair_sd, twist_sd)
+        if not (sd < product_noise[1] and abs(read_pairs - read_fields) <= 3.0 * math.hypot(sd, product_noise[1])):
+            return product_noise
+        info["pair_product"] = (float(f"{read_pairs:.4g}"), float(f"{read_fields:.4g}"), float(f"{sd:.3g}"),
+                                float(f"{product_noise[1]:.3g}"))
+        return fields - twist2 - read_pairs, sd
+
+    def _measured_fields(self, turning, stretch, valid) -> tuple:
+        """The field fit's k_u, k_v, τ₀ of the measured unit data.  A frame asks for them more
+        than once (the carried twist, the warm defect correction, each defect pass's
+        :meth:`_pair_reading`): the last answer is kept with its input, compared by value (a
+        caller may refill one buffer frame after frame), so a frame fits them once (about 1 ms
+        at 32×32)."""
+        return self._measured(turning, stretch, valid)[0]
+
+    def _measured(self, turning, stretch, valid) -> tuple:
+        """(:meth:`_measured_fields`, the turning noise the data show) of the measured unit data."""
+        memo = self._measured_memo
+        if (memo is not None and np.array_equal(memo[0], turning) and np.array_equal(memo[1], stretch)
+                and np.array_equal(memo[2], valid)):
+            return memo[3]
+        fields = tuple(np.array(f, dtype=float) for f in self.grid.field_maps(valid)(turning, stretch)[:3])
+        for f in fields:
+            f.flags.writeable = False  # shared by every pass that asks: read-only
+        out = (fields, turning_noise_estimate(turning, valid))
+        self._measured_memo = (np.array(turning, copy=True), np.array(stretch, copy=True),
+                               np.array(valid, copy=True), out)
+        return out
+
+    def _measured_twist(self, turning, stretch, valid, turning_sigma: float) -> tuple[np.ndarray, float]:
+        """The measured data's twist field τ₀ (zero-mean over the fine grid) and the turning noise
+        they carry (as :meth:`_general` reads it), for :meth:`_pair_reading`'s defect passes."""
+        fields, estimate = self._measured(turning, stretch, valid)
+        t0 = np.asarray(fields[2], dtype=float)
+        t0 = t0 - t0.sum() / t0.size
+        return t0, turning_sigma if not math.isfinite(estimate) else min(estimate, 2.0 * turning_sigma)
+
     def _product_sd(self, product_fields, sigma_f: float) -> float:
         """The s.d. of the mean curvature product k_u k_v − τ₀² of ``product_fields`` that strain
         noise ``sigma_f`` causes (:meth:`_product_stats`)."""
@@ -1549,9 +1629,17 @@ class Reconstructor(StretchPatternTwist):
             metric_stack[6] -= debias
             metric_stack[8] -= debias
             metric = Metric(*metric_stack)
+        # the product the twist is read from: the gauge pairs' where they read it more precisely
+        # (the twist left open, and the least-shear prior below, keep the fields' noise: a
+        # sharper reading takes more twists, it rules out none that noise leaves open)
+        reading = product_noise
+        if product_noise[0] != 0.0:
+            reading = self._pair_reading(k_u, k_v, tau0, turning, valid, strains, turning_sigma, present,
+                                         product_noise, convex_info)
         tau, twist_c, graph, open_twist, from_shear, product, ramp = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
-            product_noise=product_noise, quiet=quiet if quiet < QUIET_SHARE else 1.0,
+            product_noise=reading, quiet=quiet if quiet < QUIET_SHARE else 1.0,
+            open_spread=product_noise[1] if reading is not product_noise else None,
         )
         convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None

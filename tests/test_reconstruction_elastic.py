@@ -368,41 +368,45 @@ def test_a_prestretched_12x12_cylinder_whose_stretch_looks_doubly_curved_leaves_
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("index, spec, draw", [(1, "cylinder:radius=300.1,axis_angle=-70.4", 78),
-                                               (0, "cylinder:radius=-228.0,axis_angle=-6.6", 46)])
+@pytest.mark.parametrize("index, spec, draw, passes", [(1, "cylinder:radius=300.1,axis_angle=-70.4", 78, False),
+                                                       (0, "cylinder:radius=-228.0,axis_angle=-6.6", 46, True)])
 def test_a_16x16_cylinder_whose_defect_correction_loses_the_twist_keeps_it_open_within_3_sigma(cache, index, spec,
-                                                                                                draw):
+                                                                                                draw, passes):
     """Films on 16×16 cylinders, their sign told, on noisy frames of the bench's (of 150): the
     general model read the twist (R 300 mm 70° off the rows: its product 10.8 s.d. beyond the
     noise) or left the product's open (R 228 mm 6.6° off them), and the defect correction's
     passes, which the gauges preferred, took it to none with nothing left open: 2.5 and 1.2 mm
     off with σ 0.07, 21.6 and 10.5 times 3σ + 0.05 mm.  The gauges' forward model cannot tell a
-    twist from shear, so the twist the uncorrected model read stays open."""
+    twist from shear, so the twist the uncorrected model read stays open.  (Since the twist is
+    read from the gauge pairs' product, the R 300 mm frame keeps its twist and takes no defect
+    pass, 0.12 mm off; the R 228 mm frame still goes through one, ``passes``.)"""
     n = 16
     plan, shape, eu, el, truth = _dataset_frame("cylinder", index, n, spec, draw, cache)
     rec = Reconstructor(n, n, PITCH, H, H, G)
     surf = rec(eu, el, strain_sigma=NOISE, twist_sign=plan.twist_sign)
-    assert surf.diagnostics.extra.get("defect_steps", 0) >= 1
+    assert not passes or surf.diagnostics.extra.get("defect_steps", 0) >= 1
     assert np.all(frame_errors(shape, surf, rec.grid) <= 3.0 * surf.node_sigma + 0.05)
     assert np.all(aligned_distances(surf.nodes.reshape(-1, 3), truth) <= 3.0 * surf.node_sigma.reshape(-1) + 0.05)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("draw", [0, 1, 2, 3])
+@pytest.mark.parametrize("draw", [0, 1, 2, 3, 4])
 def test_a_cylinder_whose_less_sheared_twist_has_no_sign_told_has_an_answer_within_3_sigma(cache, draw):
     """A noisy 5×5 cylinder of R 72 mm 5.6° off the columns, no sign told: on draw 1 the
     least-shear twist the product agreed with was taken with the default sign, 1.5 mm off at a
     corner, with σ reaching back only to the product's shrunk twist (1.2 times the bound).  Its
     magnitude is read twice and its sign not at all: the mirror is tried, and stands beside it.
     (With the product's exact noise statistics draw 1 reads its twist within three s.d. and takes
-    none, 0.51 of the bound; draw 3 is the one whose least-shear twist is contested.)"""
+    none, 0.51 of the bound; with the product read from the gauge pairs, draw 4 is the one whose
+    least-shear twist is contested, and draw 3's, which was, is taken by a margin the noise could
+    undo, 0.60 of the bound.)"""
     _, _, eu, el, truth = _dataset_frame("cylinder", 0, N, "cylinder:radius=-72.2,axis_angle=-84.4", draw, cache)
     surf = Reconstructor(N, M, PITCH, H, H, G)(eu, el, strain_sigma=NOISE)
     extra = surf.diagnostics.extra
     agreed = bool(extra.get("least_shear_contested")) and "least_shear_shift" in extra
     if agreed:
         assert surf.mirror is not None
-    assert draw != 3 or agreed
+    assert draw != 4 or agreed
     worst = worst_of_answers(surf, truth)
     assert min(worst) <= 1.0, worst
 
