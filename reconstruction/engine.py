@@ -162,10 +162,12 @@ def solve_twist(
     # leaves open: a 12×12 film pre-stretched 5 % on a cylinder 6.8° off the columns, whose
     # stretch varies with the pre-stretch, read its product at 6.3 s.d. by the pairs, took no
     # twist and left none open, 0.98 mm off with σ 0.056)
-    open_noise = noise if open_spread is None else 3.0 * open_spread
-    open_read = open_noise * quiet
-    open_significance = (min(max(prod / open_read - 1.0, 0.0), 1.0) if open_read > 0 else float(prod > 0)) \
-        if open_spread is not None else significance
+    if open_spread is None:
+        open_noise, open_significance = noise, significance
+    else:
+        open_noise = 3.0 * open_spread
+        open_read = open_noise * quiet
+        open_significance = min(max(prod / open_read - 1.0, 0.0), 1.0) if open_read > 0 else float(prod > 0)
     allowed = max(prod, 0.0) * (weight if need > 3.0 * stretch_sigma else 1.0)
     opened = (math.sqrt(allowed + open_noise / 3.0) if open_significance < 1.0 and prod > open_noise / 3.0
               and c2 < allowed else 0.0)

@@ -1463,13 +1463,14 @@ class Reconstructor(StretchPatternTwist):
         the cells' gauge pairs read the product k_u k_v more precisely
         (:func:`.productnoise.pair_product`) and agree with the fields' within three s.d. of the
         two, a bias that puts the product where the pairs read it, with the pairs' s.d. (the
-        twist field's part of the product, mean τ₀², stays the fields', debiased alike).  The
+        twist field's part of the product, mean τ₀², no gauge reads: the measured data's field
+        fit gives it, debiased by its own noise, :meth:`.productnoise.ProductNoise.twist_stats`).  The
         s.d. is at the stated noise ``turning_sigma`` as the fields' is (solve_twist's
         ``quiet`` reads it against the noise the data show).  The pairs are read from the
-        measured ``strains`` where given: a defect pass's input (the measured data plus the
-        model's correction) is no gauge's reading (a 32×32 cylinder at 30°: its pairs read
-        2.083·10⁻⁶ /mm², the corrected input's 2.151, 3.4 s.d. off).  ``info["pair_product"]``:
-        the two readings and s.d.s where the pairs' was taken."""
+        measured ``strains`` where given, and τ₀ with them: a defect pass's input (the measured
+        data plus the model's correction) is no gauge's reading (a 32×32 cylinder at 30°: its
+        pairs read 2.083·10⁻⁶ /mm², the corrected input's 2.151, 3.4 s.d. off).
+        ``info["pair_product"]``: the two readings and s.d.s where the pairs' was taken."""
         noise = self._product_noise
         if noise is None or not turning_sigma > 0.0:
             return product_noise
