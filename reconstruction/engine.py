@@ -33,6 +33,7 @@ __all__ = [
     "metric_terms",
     "Metric",
     "solve_twist",
+    "stretch_variance",
     "TwistResult",
     "GraphTwist",
     "graph_slopes",
@@ -76,6 +77,7 @@ def solve_twist(
     product_noise: tuple[float, float] | None = None,
     quiet: float = 1.0,
     open_spread: float | None = None,
+    stretch_dev2: float | None = None,
 ) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -95,7 +97,9 @@ def solve_twist(
     product is read against that share; the search for a turned saddle keeps the stated noise,
     whose product has no sign to read).  ``open_spread``: the product's s.d. that the twist left
     open is judged with, where it is read otherwise than the twist taken (the fields' own,
-    where the gauge pairs' reading sets what is taken: ``Reconstructor._pair_reading``).  Returns the τ
+    where the gauge pairs' reading sets what is taken: ``Reconstructor._pair_reading``).
+    ``stretch_dev2``: the measured stretch's variance over the cells' region where the stretch
+    fields given are not the gauges' (a defect pass's corrected input).  Returns the τ
     field and its constant without the graph refinement, the graph model
     (:class:`GraphTwist`) when the stretch pattern suggests one, and the twist the product
     allows where its noise shrank the one taken, or hides where none was taken (``open``).
@@ -110,6 +114,8 @@ def solve_twist(
     # over a half-size ρ; a developable one needs none.  Attribute positive k_u k_v to a constant
     # twist only in proportion to how little the stretch varies.
     prod, need, dev2 = _stretch_need(grid, k_u, k_v, tau0, lam_u, lam_v)
+    if stretch_dev2 is not None:
+        dev2 = stretch_dev2
     if product_noise is not None:
         # the noise's own share of the product is no curvature (a flat noisy sheet is no cylinder)
         bias, spread = product_noise
@@ -491,13 +497,20 @@ def _stretch_need(grid: FineGrid, k_u, k_v, tau, lam_u, lam_v) -> tuple[float, f
     it needs to be laid out (|K| ρ²/12, ρ² the mean squared half-size) and the measured
     stretch's variance."""
     inner = grid.inner
-    ku_in, kv_in, t_in, lu_in, lv_in = k_u[inner], k_v[inner], tau[inner], lam_u[inner], lam_v[inner]
+    ku_in, kv_in, t_in = k_u[inner], k_v[inner], tau[inner]
     count = ku_in.size
     gauss = float((ku_in * kv_in - t_in * t_in).sum()) / count
     rho2 = _half_size2(grid)
+    return gauss, abs(gauss) * rho2 / 12.0, stretch_variance(grid, lam_u, lam_v)
+
+
+def stretch_variance(grid: FineGrid, lam_u, lam_v) -> float:
+    """The stretch fields' variance over the cells' region (the mean of the two directions')."""
+    inner = grid.inner
+    lu_in, lv_in = lam_u[inner], lam_v[inner]
+    count = lu_in.size
     lu_dev, lv_dev = lu_in - lu_in.sum() / count, lv_in - lv_in.sum() / count
-    dev2 = 0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count
-    return gauss, abs(gauss) * rho2 / 12.0, dev2
+    return 0.5 * float((lu_dev * lu_dev).sum() + (lv_dev * lv_dev).sum()) / count
 
 
 def _half_size2(grid: FineGrid) -> float:

@@ -36,6 +36,7 @@ from .engine import (
     rotation_rates,
     solve_shear,
     solve_twist,
+    stretch_variance,
     unit_data,
 )
 from .grid import FineGrid
@@ -1511,21 +1512,40 @@ class Reconstructor(StretchPatternTwist):
         :meth:`_pair_reading`): the last answer is kept with its input, compared by value (a
         caller may refill one buffer frame after frame), so a frame fits them once (about 1 ms
         at 32×32)."""
-        return self._measured(turning, stretch, valid)[0]
+        return self._measured(turning, stretch, valid)[0][:3]
 
     def _measured(self, turning, stretch, valid) -> tuple:
-        """(:meth:`_measured_fields`, the turning noise the data show) of the measured unit data."""
+        """((k_u, k_v, τ₀, λ_u, λ_v) of the measured unit data's field fit, the turning noise
+        the data show), kept as :meth:`_measured_fields` says."""
         memo = self._measured_memo
         if (memo is not None and np.array_equal(memo[0], turning) and np.array_equal(memo[1], stretch)
                 and np.array_equal(memo[2], valid)):
             return memo[3]
-        fields = tuple(np.array(f, dtype=float) for f in self.grid.field_maps(valid)(turning, stretch)[:3])
+        fields = tuple(np.array(f, dtype=float) for f in self.grid.field_maps(valid)(turning, stretch)[:5])
         for f in fields:
             f.flags.writeable = False  # shared by every pass that asks: read-only
         out = (fields, turning_noise_estimate(turning, valid))
         self._measured_memo = (np.array(turning, copy=True), np.array(stretch, copy=True),
                                np.array(valid, copy=True), out)
         return out
+
+    def _measured_stretch_variance(self, turning, stretch, valid, strains) -> float | None:
+        """The measured stretch fields' variance over the cells' region where ``turning`` and
+        ``stretch`` are a defect pass's corrected input, not the gauges' (``strains``, the
+        measured strains), else None: the developability test asks how the sheet stretches,
+        and the correction's stretch is the model's misfit (a noisy 32×32 cylinder 8.3° off the
+        rows: its gauges' stretch varied by 4·10⁻⁵, a pass's corrected input by 1.4–2.2·10⁻⁴,
+        doubly curved by the test, and the pass dropped the twist the first had read, on 3
+        frames of 12, 3.5 mm off)."""
+        if strains is None:
+            return None
+        m_turning, m_stretch, m_valid = unit_data(strains[0], strains[1], self.h_upper, self.h_lower,
+                                                  self.gauge_length)
+        if (np.array_equal(m_turning, turning) and np.array_equal(m_stretch, stretch)
+                and np.array_equal(m_valid, valid)) or not m_valid.any():
+            return None
+        fields = self._measured(m_turning, m_stretch, m_valid)[0]
+        return stretch_variance(self.grid, fields[3], fields[4])
 
     def _measured_twist(self, turning, stretch, valid, turning_sigma: float) -> tuple[np.ndarray, float]:
         """The measured data's twist field τ₀ (zero-mean over the fine grid) and the turning noise
@@ -1641,6 +1661,7 @@ class Reconstructor(StretchPatternTwist):
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=reading, quiet=quiet if quiet < QUIET_SHARE else 1.0,
             open_spread=product_noise[1] if reading is not product_noise else None,
+            stretch_dev2=self._measured_stretch_variance(turning, stretch, valid, strains),
         )
         convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None

@@ -243,8 +243,8 @@ def test_the_twist_field_s_share_of_the_product_has_the_bias_and_sd_measured(n):
 
 @pytest.mark.parametrize("n, radius, angle, bound", [
     (16, -228.0, -6.6, 0.4),
-    pytest.param(32, -374.0, -81.7, 1.6, marks=pytest.mark.slow),
-], ids=["16x16-6.6deg-0.4mm", "32x32-8.3deg-1.6mm"])
+    pytest.param(32, -374.0, -81.7, 0.6, marks=pytest.mark.slow),
+], ids=["16x16-6.6deg-0.4mm", "32x32-8.3deg-0.6mm"])
 def test_a_noisy_cylinder_near_the_grid_lines_keeps_its_twist_from_the_gauge_pairs_within_the_bound(n, radius, angle,
                                                                                                      bound):
     """An oblique cylinder a few degrees off the grid lines on a large sheet, its twist's sign
@@ -252,8 +252,9 @@ def test_a_noisy_cylinder_near_the_grid_lines_keeps_its_twist_from_the_gauge_pai
     that product's noise and was shrunk or dropped, while the gauge pairs read it at 4–8 s.d.
     Mean node error over the noisy frames within the bound (16×16, three frames: 0.95 mm before
     the pairs were read, 0.30 after; 32×32, the bench's ν 0.3 scene in kinematic form, six
-    frames: 1.95 mm before, 1.32 after: two frames still lose the twist, the least-shear
-    prior's test keeping the fields' noise), and every node within 3σ + 0.05 mm."""
+    frames: 1.95 mm before, 1.32 with the pairs, where two frames lost the twist in the defect
+    pass, whose corrected stretch read as a doubly curved sheet's; 0.22 since the pass reads
+    the measured stretch), and every node within 3σ + 0.05 mm."""
     shape = ph.Cylinder(radius, angle)
     eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
     truth = ph.ground_truth(shape, n, n, PITCH).nodes.reshape(-1, 3)
