@@ -1457,7 +1457,7 @@ class Reconstructor(StretchPatternTwist):
         each layer: (ε_u − ε_l)/(h_u + h_l)."""
         return math.sqrt(2.0) * sigma_f / (self.h_upper + self.h_lower)
 
-    def _pair_reading(self, k_u, k_v, tau0, turning, valid, strains, turning_sigma: float, present: float,
+    def _pair_reading(self, k_u, k_v, tau0, turning, stretch, valid, strains, turning_sigma: float, present: float,
                       product_noise: tuple[float, float], info: dict) -> tuple[float, float]:
         """The (bias, s.d.) that :func:`.engine.solve_twist` reads the mean curvature product
         with: the fields' own (``product_noise``, its bias at the noise ``present``), or, where
@@ -1482,16 +1482,15 @@ class Reconstructor(StretchPatternTwist):
         twist2 = float((t0[inner] ** 2).mean())
         read_fields = fields - twist2 - product_noise[0]
         measured_t0, measured_present = t0, present
-        if strains is not None:
-            m_turning, m_stretch, m_valid = unit_data(strains[0], strains[1], self.h_upper, self.h_lower,
-                                                      self.gauge_length)
-            if not (np.array_equal(m_turning, turning) and np.array_equal(m_valid, valid)):
-                # a defect pass: its twist field, like its pairs, is the correction's as much as
-                # the gauges' (the 32×32 cylinder's mean τ₀² read 3.8·10⁻⁸ below the noise's own
-                # bias, 7 s.d.): both come from the measured data
-                if not m_valid.any():
-                    return product_noise
-                measured_t0, measured_present = self._measured_twist(m_turning, m_stretch, m_valid, turning_sigma)
+        measured = self._measured_input(turning, stretch, valid, strains)
+        if measured is not None:
+            m_turning, m_stretch, m_valid = measured
+            if not m_valid.any():
+                return product_noise
+            # a defect pass: its twist field, like its pairs, is the correction's as much as the
+            # gauges' (the 32×32 cylinder's mean τ₀² read 3.8·10⁻⁸ below the noise's own bias, 7
+            # s.d.): both come from the measured data
+            measured_t0, measured_present = self._measured_twist(m_turning, m_stretch, m_valid, turning_sigma)
             turning, valid = m_turning, m_valid
         pair, pair_sd, cells = pair_product(turning, valid, turning_sigma)
         if cells < 0.5 * self.n * self.m:
@@ -1537,15 +1536,24 @@ class Reconstructor(StretchPatternTwist):
         rows: its gauges' stretch varied by 4·10⁻⁵, a pass's corrected input by 1.4–2.2·10⁻⁴,
         doubly curved by the test, and the pass dropped the twist the first had read, on 3
         frames of 12, 3.5 mm off)."""
+        measured = self._measured_input(turning, stretch, valid, strains)
+        if measured is None or not measured[2].any():
+            return None
+        fields = self._measured(*measured)[0]
+        return stretch_variance(self.grid, fields[3], fields[4])
+
+    def _measured_input(self, turning, stretch, valid, strains) -> tuple | None:
+        """The unit data (turning, stretch, valid) of the measured ``strains`` where the pass's
+        input differs from them (a defect pass's corrected input), else None (no strains given,
+        or the pass reads the gauges themselves)."""
         if strains is None:
             return None
         m_turning, m_stretch, m_valid = unit_data(strains[0], strains[1], self.h_upper, self.h_lower,
                                                   self.gauge_length)
         if (np.array_equal(m_turning, turning) and np.array_equal(m_stretch, stretch)
-                and np.array_equal(m_valid, valid)) or not m_valid.any():
+                and np.array_equal(m_valid, valid)):
             return None
-        fields = self._measured(m_turning, m_stretch, m_valid)[0]
-        return stretch_variance(self.grid, fields[3], fields[4])
+        return m_turning, m_stretch, m_valid
 
     def _measured_twist(self, turning, stretch, valid, turning_sigma: float) -> tuple[np.ndarray, float]:
         """The measured data's twist field τ₀ (zero-mean over the fine grid) and the turning noise
@@ -1655,7 +1663,7 @@ class Reconstructor(StretchPatternTwist):
         # sharper reading takes more twists, it rules out none that noise leaves open)
         reading = product_noise
         if product_noise[0] != 0.0:
-            reading = self._pair_reading(k_u, k_v, tau0, turning, valid, strains, turning_sigma, present,
+            reading = self._pair_reading(k_u, k_v, tau0, turning, stretch, valid, strains, turning_sigma, present,
                                          product_noise, convex_info)
         tau, twist_c, graph, open_twist, from_shear, product, ramp = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
