@@ -269,3 +269,29 @@ def test_a_noisy_cylinder_near_the_grid_lines_keeps_its_twist_from_the_gauge_pai
         assert np.all(err <= 3.0 * surf.node_sigma.reshape(-1) + 0.05)
         errors.append(err.mean())
     assert np.mean(errors) < bound
+
+
+def test_the_developability_test_reads_the_stretch_variance_it_is_given_not_the_corrected_input_s():
+    """solve_twist's developability weight: a uniformly curved sheet (k_u k_v > 0, no twist
+    field) whose stretch fields vary as much as a doubly curved sheet of that product needs is
+    read as doubly curved and its product's twist dropped; told the measured stretch's variance
+    (``stretch_dev2``: a defect pass's corrected input carries the model's misfit, the gauges'
+    stretch does not vary), it takes the twist the product says, √(k_u k_v)."""
+    from skinmap.reconstruction.engine import solve_twist, stretch_variance
+
+    n = 16
+    grid = Reconstructor(n, n).grid
+    shape = (grid.nf, grid.mf)
+    k_u, k_v, tau0 = np.full(shape, 2.5e-3), np.full(shape, 1.0e-4), np.zeros(shape)
+    product = 2.5e-3 * 1.0e-4
+    rho2 = 0.25 * (grid.u[grid.node_cols[-1]] ** 2 + grid.v[grid.node_rows[-1]] ** 2)
+    need = product * rho2 / 12.0
+    # stretch varying along u by about the need, as the corrected input of a defect pass did
+    ramp = np.linspace(-1.0, 1.0, grid.mf)[None, :] * np.ones(shape)
+    lam = 1.0 + 1.7 * need * ramp
+    assert stretch_variance(grid, lam, lam) > (0.5 * need) ** 2
+    sd = 0.01 * product
+    dropped = solve_twist(grid, k_u, k_v, tau0, lam, lam, 1.0, 2e-4, product_noise=(0.0, sd))
+    taken = solve_twist(grid, k_u, k_v, tau0, lam, lam, 1.0, 2e-4, product_noise=(0.0, sd), stretch_dev2=0.0)
+    assert dropped.constant == 0.0
+    assert abs(taken.constant - np.sqrt(product)) < 1e-3 * np.sqrt(product)
