@@ -142,6 +142,13 @@ def default_subdivision(n: int, m: int) -> int:
     return 4 if n * m <= 100 else 2
 
 
+def _noise_present(estimate: float, turning_sigma: float) -> float:
+    """The turning noise the data carry (``estimate``, productnoise.turning_noise_estimate): the
+    stated ``turning_sigma`` where too few units tell, at most twice it (more is a sharp
+    feature's doing)."""
+    return turning_sigma if not math.isfinite(estimate) else min(estimate, 2.0 * turning_sigma)
+
+
 @dataclasses.dataclass(frozen=True)
 class TwistLeftOpen:
     """What the data leave open about an answer's constant twist c0: each joins ``node_sigma``
@@ -1457,7 +1464,7 @@ class Reconstructor(StretchPatternTwist):
         each layer: (ε_u − ε_l)/(h_u + h_l)."""
         return math.sqrt(2.0) * sigma_f / (self.h_upper + self.h_lower)
 
-    def _pair_reading(self, k_u, k_v, tau0, turning, stretch, valid, strains, turning_sigma: float, present: float,
+    def _pair_reading(self, k_u, k_v, tau0, turning, valid, measured, turning_sigma: float, present: float,
                       product_noise: tuple[float, float], info: dict) -> tuple[float, float]:
         """The (bias, s.d.) that :func:`.engine.solve_twist` reads the mean curvature product
         with: the fields' own (``product_noise``, its bias at the noise ``present``), or, where
@@ -1468,7 +1475,8 @@ class Reconstructor(StretchPatternTwist):
         fit gives it, debiased by its own noise, :meth:`.productnoise.ProductNoise.twist_stats`).  The
         s.d. is at the stated noise ``turning_sigma`` as the fields' is (solve_twist's
         ``quiet`` reads it against the noise the data show).  The pairs are read from the
-        measured ``strains`` where given, and τ₀ with them: a defect pass's input (the measured
+        ``measured`` unit data where the pass's input is not the gauges' (:meth:`_measured_input`),
+        and τ₀ with them: a defect pass's input (the measured
         data plus the model's correction) is no gauge's reading (a 32×32 cylinder at 30°: its
         pairs read 2.083·10⁻⁶ /mm², the corrected input's 2.151, 3.4 s.d. off).
         ``info["pair_product"]``: the two readings and s.d.s where the pairs' was taken."""
@@ -1482,7 +1490,6 @@ class Reconstructor(StretchPatternTwist):
         twist2 = float((t0[inner] ** 2).mean())
         read_fields = fields - twist2 - product_noise[0]
         measured_t0, measured_present = t0, present
-        measured = self._measured_input(turning, stretch, valid, strains)
         if measured is not None:
             m_turning, m_stretch, m_valid = measured
             if not m_valid.any():
@@ -1528,15 +1535,14 @@ class Reconstructor(StretchPatternTwist):
                                np.array(valid, copy=True), out)
         return out
 
-    def _measured_stretch_variance(self, turning, stretch, valid, strains) -> float | None:
-        """The measured stretch fields' variance over the cells' region where ``turning`` and
-        ``stretch`` are a defect pass's corrected input, not the gauges' (``strains``, the
-        measured strains), else None: the developability test asks how the sheet stretches,
+    def _measured_stretch_variance(self, measured) -> float | None:
+        """The measured stretch fields' variance over the cells' region where the pass's input is
+        a defect pass's corrected input, not the gauges' (``measured``, :meth:`_measured_input`),
+        else None: the developability test asks how the sheet stretches,
         and the correction's stretch is the model's misfit (a noisy 32×32 cylinder 8.3° off the
         rows: its gauges' stretch varied by 4·10⁻⁵, a pass's corrected input by 1.4–2.2·10⁻⁴,
         doubly curved by the test, and the pass dropped the twist the first had read, on 3
         frames of 12, 3.5 mm off)."""
-        measured = self._measured_input(turning, stretch, valid, strains)
         if measured is None or not measured[2].any():
             return None
         fields = self._measured(*measured)[0]
@@ -1561,7 +1567,7 @@ class Reconstructor(StretchPatternTwist):
         fields, estimate = self._measured(turning, stretch, valid)
         t0 = np.asarray(fields[2], dtype=float)
         t0 = t0 - t0.sum() / t0.size
-        return t0, turning_sigma if not math.isfinite(estimate) else min(estimate, 2.0 * turning_sigma)
+        return t0, _noise_present(estimate, turning_sigma)
 
     def _product_sd(self, product_fields, sigma_f: float) -> float:
         """The s.d. of the mean curvature product k_u k_v − τ₀² of ``product_fields`` that strain
@@ -1641,8 +1647,7 @@ class Reconstructor(StretchPatternTwist):
         metric = Metric(*metric_stack)
         # the noise these data carry (too few units to tell: the stated; at most twice the
         # stated: more is a sharp feature's doing)
-        present = turning_noise_estimate(turning, valid) if n_valid else 0.0
-        present = turning_sigma if not math.isfinite(present) else min(present, 2.0 * turning_sigma)
+        present = _noise_present(turning_noise_estimate(turning, valid), turning_sigma) if n_valid else 0.0
         if product_noise[0] != 0.0:
             # the noise's own curvature product is no Gaussian curvature: the product the twist
             # is read from, and Brioschi's source for the shear (its F = 0 part and the base of
@@ -1662,14 +1667,15 @@ class Reconstructor(StretchPatternTwist):
         # (the twist left open, and the least-shear prior below, keep the fields' noise: a
         # sharper reading takes more twists, it rules out none that noise leaves open)
         reading = product_noise
+        measured = self._measured_input(turning, stretch, valid, strains)  # None unless a defect pass
         if product_noise[0] != 0.0:
-            reading = self._pair_reading(k_u, k_v, tau0, turning, stretch, valid, strains, turning_sigma, present,
+            reading = self._pair_reading(k_u, k_v, tau0, turning, valid, measured, turning_sigma, present,
                                          product_noise, convex_info)
         tau, twist_c, graph, open_twist, from_shear, product, ramp = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=reading, quiet=quiet if quiet < QUIET_SHARE else 1.0,
             open_spread=product_noise[1] if reading is not product_noise else None,
-            stretch_dev2=self._measured_stretch_variance(turning, stretch, valid, strains),
+            stretch_dev2=self._measured_stretch_variance(measured),
         )
         convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None
