@@ -12,7 +12,8 @@ are exact functionals of the height w (a = the gauge's direction, b = across it,
 The stretch is what the curvature-field model (steps 1-5) can only smooth: its pattern carries
 the sub-gauge distribution of slope, so a bump whose peak bend radius is shorter than a gauge is
 resolved here (5 mm / FWHM 15 mm bumps: 0.19 → 0.02 mm mean error).  w is a bicubic B-spline
-with knots every pitch/3 over the whole sheet; the fit minimises
+with knots every pitch/3 over the whole sheet (pitch/2 above :data:`COARSE_KNOTS_CELLS` cells, where
+a frame's band factorisation would otherwise exceed the frame budget); the fit minimises
 
     ½ Σ_gauges ((Θ/g)_model − Θ/g)²/σ_Θ² + ((L/g)_model − L/g)²/σ_L² + ½ s ∫∫ |∇³w|² du dv
 
@@ -31,7 +32,8 @@ sheet is not a graph (laid on isometrically, stretched in its plane, a glitching
 the general model takes over.  The
 uncertainty is propagated through the fit's own normal equations (:meth:`GraphFit.fine_height_sigma`).
 Small problems only: the unknowns grow with the cells, (3N + 3)(3M + 3), so the fit is offered
-up to :data:`MAX_CELLS` cells (the default there, see ``Reconstructor``).
+up to :data:`MAX_CELLS` cells (the default there, see ``Reconstructor``), and above, as the rescue
+of larger sheets, with (2N + 3)(2M + 3) unknowns beyond :data:`COARSE_KNOTS_CELLS` cells.
 """
 from __future__ import annotations
 
@@ -52,7 +54,8 @@ from skinmap.strains import cell_axes
 from .linalg import aligned_distances
 from .uncertainty import plane_slopes
 
-__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement"]
+__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement",
+           "KNOTS_PER_PITCH", "COARSE_KNOTS_CELLS", "knots_per_pitch"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
 #: noise variance.  Measured (5×5, noise s.d. 0.0057 %): converged graphs 0.3-3 (noise-free
@@ -71,7 +74,17 @@ AGREE_SIGMAS = 3.0
 MAX_CELLS = 64
 #: A graph twist (mean w_uv, 1/mm) smaller than this has no sign worth contradicting twist_sign.
 TWIST_SIGN_FLOOR = 1e-4
-_KNOTS_PER_PITCH = 3
+#: Knots a pitch of the graph's B-splines: every pitch/3 holds a bump of FWHM 15 mm (on 5×5,
+#: pitch/2 misfits it beyond ACCEPT_CHI2 and the spec corner falls back to the general model).
+KNOTS_PER_PITCH = 3
+#: Above this many cells (the rescue of larger sheets, 145 to 256 cells) knots every pitch/2: a
+#: warm frame's cost is one band factorisation, n·b² for n = (kN + 3)(kM + 3) unknowns and a band
+#: b of about 5(kM + 3), and pitch/3 made a 16×16 frame of a sharp moving bump 13–17 ms (7 ms of
+#: it the factorisation, 2601 unknowns).  At pitch/2 (1225 unknowns) it is 6.3 ms and its node σ
+#: 33 ms (85), and the bump is read to 0.048 mm (0.039; the general model alone 0.235): the
+#: bench's 16×16 kinematic bumps noise-free 0.0055 → 0.0092 mm, the spec corner 0.014 → 0.019,
+#: noisy the same (docs/reconstruction.md, *Larger sheets*).
+COARSE_KNOTS_CELLS = 144
 _QUADRATURE = (4, 2)  # Gauss-Legendre nodes per panel, panels per gauge
 _PRIOR_WEIGHTS = ((3, 0, 1.0), (2, 1, 3.0), (1, 2, 3.0), (0, 3, 1.0))  # ∫|∇³w|², isotropic
 _PRIOR_SCALE = 1000.0  # (mm units) far below the data where gauges are; stiff enough between
@@ -153,6 +166,12 @@ def disagreement(graph_pos: np.ndarray, general_pos: np.ndarray, tolerance: np.n
     return float(np.median(dist[keep] / tol[keep]))
 
 
+def knots_per_pitch(n: int, m: int) -> int:
+    """The graph's knots a pitch on an N×M sheet (:data:`KNOTS_PER_PITCH`, 2 above
+    :data:`COARSE_KNOTS_CELLS`)."""
+    return KNOTS_PER_PITCH if n * m <= COARSE_KNOTS_CELLS else 2
+
+
 def _basis_1d(lo: float, hi: float, intervals: int) -> tuple[np.ndarray, int]:
     knots = np.concatenate([[lo] * 3, np.linspace(lo, hi, intervals + 1), [hi] * 3])
     return knots, len(knots) - 4
@@ -200,8 +219,9 @@ class GraphFit:
         self._compiled = compiled
         #: the share of the stretch residuals' curvature the uncertainty takes (_SIGMA_CURVATURE)
         self.sigma_curvature = _SIGMA_CURVATURE if n * m <= _SIGMA_CURVATURE_CELLS else (0.0, 0.0)
-        ku, self.nbu = _basis_1d(-0.5 * m * pitch, 0.5 * m * pitch, _KNOTS_PER_PITCH * m)
-        kv, self.nbv = _basis_1d(-0.5 * n * pitch, 0.5 * n * pitch, _KNOTS_PER_PITCH * n)
+        self.knots_per_pitch = per = knots_per_pitch(n, m)
+        ku, self.nbu = _basis_1d(-0.5 * m * pitch, 0.5 * m * pitch, per * m)
+        kv, self.nbv = _basis_1d(-0.5 * n * pitch, 0.5 * n * pitch, per * n)
         nbu, nbv = self.nbu, self.nbv
         self.size = nc = nbu * nbv
         uc, vc = cell_axes(n, m, pitch)
