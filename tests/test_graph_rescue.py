@@ -98,17 +98,20 @@ def test_the_banded_linear_start_is_the_least_squares_solution():
     assert np.abs(got - want).max() < 1e-6 * max(1.0, np.abs(want).max())
 
 
-def test_skinmapd_on_a_12x12_sheet_fits_a_sharp_bump_as_a_graph_and_replays_it_from_the_block_start():
-    """The daemon's pipeline on 12×12 (graph_fit on, its default): a sharp bump sliding along the
-    rows is answered by the graph (rescued: the general model misfits it) on every frame, within 0.03 mm
-    of the truth (the general model alone: 0.21 mm), and a log that starts at a block's first scan replays the same bits
-    from the take-over of the restart chain on (the chains run for the rescue as for small sheets)."""
+@pytest.mark.parametrize("n, bound", [(12, 0.03), (16, 0.04)])
+def test_skinmapd_on_12x12_and_16x16_sheets_fits_a_sharp_bump_as_a_graph_within_0_03_and_0_04_mm_and_replays_it_from_the_block_start(
+        n, bound):
+    """The daemon's pipeline on 12×12 and 16×16 (graph_fit on, its default): a sharp bump sliding
+    along the rows is answered by the graph (rescued: the general model misfits it) on every
+    frame, within 0.03 mm of the truth on 12×12 and 0.04 mm on 16×16, whose graph has knots every
+    pitch/2 (measured 0.016-0.033; the general model alone: 0.21 and 0.24 mm), and a log that
+    starts at a block's first scan replays the same bits from the take-over of the restart chain
+    on (the chains run for the rescue as for small sheets)."""
     from conftest import pipeline_sheet
 
     from skinmap.daemon.pipeline import GRAPH_ADOPT_SCANS, GRAPH_RESTART_SCANS, FramePipeline
     from skinmap.strains import Calibration
 
-    n = 12
     geometry, element_uv, gf, r0 = pipeline_sheet(n, n, PITCH)
     start = 2 * GRAPH_RESTART_SCANS - 2
     count = GRAPH_ADOPT_SCANS + 5
@@ -132,13 +135,14 @@ def test_skinmapd_on_a_12x12_sheet_fits_a_sharp_bump_as_a_graph_and_replays_it_f
     centres = ph.cell_centres(n, n, PITCH)
     for seq, frame in live.items():
         assert frame.surface.diagnostics.extra["model"] == "graph", seq
-        assert aligned_error(frame.nodes_mm, shape(seq).position(centres)) < 0.03, seq
+        assert aligned_error(frame.nodes_mm, shape(seq).position(centres)) < bound, seq
     block = start + 2
     _, replay = run(range(block, start + count))
-    # 16×16 keeps the general model in skinmapd (its graph answers could not keep 10 Hz)
-    big, big_uv, big_gf, big_r0 = pipeline_sheet(16, 16, PITCH)
-    large = FramePipeline(big, Calibration(big_gf, big_r0), big_uv, np.zeros(len(big_uv)))
-    assert not large.reconstructor.graph_rescue and not large.reconstructor.graph_fit
+    if n == 12:
+        # above 256 cells skinmapd keeps the general model (no graph fit at all)
+        big, big_uv, big_gf, big_r0 = pipeline_sheet(17, 17, PITCH)
+        large = FramePipeline(big, Calibration(big_gf, big_r0), big_uv, np.zeros(len(big_uv)))
+        assert not large.reconstructor.graph_rescue and not large.reconstructor.graph_fit
     for seq in range(block + GRAPH_ADOPT_SCANS, start + count):
         assert np.array_equal(live[seq].element_positions_mm, replay[seq].element_positions_mm), seq
 
