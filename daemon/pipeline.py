@@ -106,11 +106,10 @@ GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 GRAPH_CATCH_UP_SCANS = 4
 #: The largest sheet (cells) skinmapd fits as a height graph at all: on 12×12 and 16×16 a sharp
 #: bump's graph answers keep 10 Hz output (emulated, 50 scans/s: 12×12 p99 82-176 ms, 0-1 output
-#: dropped in 15-20 s; 16×16, on knots every pitch/2 since: solver 34-50 ms, p99 54 ms once
-#: started, 5-6 outputs dropped in the first 3 s while the first restart chain builds its
-#: reconstructor).  On knots every pitch/3
-#: 16×16 (13 ms a warm frame and 70 ms its node σ) fell to 8-9 Hz with 31 frames dropped in 20 s
-#: (docs/reconstruction.md, *Larger sheets*).
+#: dropped in 15-20 s; 16×16, on knots every pitch/2: solver 34-50 ms, p99 54 ms once started,
+#: 5-6 outputs dropped in the first 3 s while the first restart chain builds its reconstructor).
+#: On knots every pitch/3, 16×16 (13 ms a warm frame, 70 ms its node σ) fell to 8-9 Hz with 31
+#: frames dropped in 20 s (docs/reconstruction.md, *Larger sheets*).
 PIPELINE_GRAPH_MAX_CELLS = 256
 
 

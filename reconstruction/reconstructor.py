@@ -389,10 +389,10 @@ class Reconstructor(StretchPatternTwist):
         cold although ``previous`` holds a graph, and the general model's defect correction from
         none, not from the previous frame's (a warm start depends on the frames before it;
         skinmapd restarts cold every 64 scans so that a log replays bit for bit from there; on
-        8×8 and larger sheets a warm graph chain also wanders off the frame's optimum over
-        longer runs, 0.047 mm mean over 100 frames against 0.023 cold, so a caller chaining
-        frames through ``previous`` should pass ``graph_warm=False`` now and then:
-        docs/reconstruction.md, "Long warm chains").
+        7×7 and larger sheets a long warm graph chain can also settle away from where a cold fit
+        lands (a broad bump circling over 8×8: 0.047 mm mean over 100 frames, 0.023 cold), so a
+        caller chaining frames through ``previous`` should pass ``graph_warm=False`` now and
+        then: docs/reconstruction.md, "Long warm chains").
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
         model (its first answer, no defect correction), with ``diagnostics.extra``

@@ -139,7 +139,8 @@ def test_skinmapd_on_12x12_and_16x16_sheets_fits_a_sharp_bump_as_a_graph_within_
     block = start + 2
     _, replay = run(range(block, start + count))
     if n == 12:
-        # above 256 cells skinmapd keeps the general model (no graph fit at all)
+        # above 256 cells skinmapd keeps the general model (no graph fit at all; the library
+        # offers none there either, GRAPH_RESCUE_MAX_CELLS)
         big, big_uv, big_gf, big_r0 = pipeline_sheet(17, 17, PITCH)
         large = FramePipeline(big, Calibration(big_gf, big_r0), big_uv, np.zeros(len(big_uv)))
         assert not large.reconstructor.graph_rescue and not large.reconstructor.graph_fit
