@@ -297,6 +297,48 @@ def _ambiguity(surf, e: np.ndarray, truth: np.ndarray, ambiguous: list, either: 
         either.append(min(e.mean(), node_errors(surf.mirror.nodes, truth).mean()) < 0.05)
 
 
+#: Moving shapes for the warm-chain table: (label, height mm, FWHM mm, ellipse half-axes mm, frames a turn)
+WARM_CHAIN_SHAPES = (("bump circling", 3.0, 36.0, (12.0, 6.0), 60), ("dent circling", -3.5, 30.0, (10.0, 10.0), 70),
+                     ("broad dent", -2.5, 40.0, (14.0, 9.0), 80))
+
+
+def warm_chain_table(frames: int, seed: int, sizes: tuple[int, ...] = (5, 8)) -> None:
+    """Slowly moving broad shapes reconstructed frame after frame warm from the one before, as
+    skinmapd and a library caller chaining ``previous`` run them, against each frame
+    reconstructed cold: mean and largest mean node error, the frames with some node beyond
+    3 node_sigma + 0.05 mm, and the frames a warm fit was refused for another basin
+    (reconstructor.WARM_BASIN_RATIO) and fitted cold."""
+    print(f"\nWarm chains: {frames} noisy frames of a shape moving on an ellipse, each warm from the one before "
+          "(cold: each frame alone)")
+    print(f"{'N x N':>7s} {'shape':16s} {'warm mean':>10s} {'warm max':>9s} {'beyond':>7s} {'refits':>7s} "
+          f"{'cold mean':>10s} {'cold max':>9s} {'beyond':>7s}")
+    for n in sizes:
+        centres = ph.cell_centres(n, n, PITCH)
+        rec = Reconstructor(n, n, PITCH, H, H, GAUGE)
+        for label, height, fwhm, (ax, ay), period in WARM_CHAIN_SHAPES:
+            rng = np.random.default_rng(seed)
+            data = []
+            for k in range(frames):
+                phase = 2 * np.pi * k / period
+                shape = ph.GaussianBumps(height=height, fwhm=fwhm, centre=(ax * np.cos(phase), ay * np.sin(phase)))
+                eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
+                data.append((eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape),
+                             shape.position(centres)))
+            row = []
+            for warm in (True, False):
+                prev, errs, beyond, refits = None, [], 0, 0
+                for k, (eu, el, truth) in enumerate(data):
+                    prev = rec(eu, el, previous=prev if warm else None)
+                    err = node_errors(prev.nodes, truth)
+                    errs.append(float(err.mean()))
+                    beyond += bool(np.any(err > 3.0 * prev.node_sigma.ravel() + 0.05))
+                    refits += warm and k > 0 and prev.diagnostics.extra.get("graph_fit") in ("linear", "general")
+                row.append((np.mean(errs), max(errs), beyond, refits))
+            (wm, wx, wb, wr), (cm, cx, cb, _) = row
+            print(f"{n:>3d}x{n:<3d} {label:16s} {wm:10.4f} {wx:9.4f} {wb:>3d}/{frames:<3d} {wr:7d} {cm:10.4f} {cx:9.4f} "
+                  f"{cb:>3d}/{frames:<3d}")
+
+
 def bump_grid_table(positions: int, seed: int) -> None:
     """Noise-free mean node error of bumps by height and FWHM, ``positions`` random centres each."""
     rng = np.random.default_rng(seed)
@@ -785,6 +827,7 @@ def main() -> None:
         for n in kinematic_sizes:
             accuracy_table(k, 1 if args.quick else 3, args.seed, False if args.general else None, n)
         bump_grid_table(4 if args.quick else 10, args.seed)
+        warm_chain_table(40 if args.quick else 100, args.seed)
     if args.only in (None, "elastic"):
         k_el = args.elastic_shapes or (1 if args.quick else 2)
         for n in elastic_sizes:

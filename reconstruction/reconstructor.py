@@ -97,6 +97,18 @@ WARM_DEFECT_MAX_CELLS = 144
 #: 16×16 crossed it once and stayed on warm graph frames of 12-30 ms: docs/reconstruction.md.)
 GRAPH_RESCUE_MAX_CELLS = 256
 GRAPH_RESCUE_CHI2 = 8.0
+#: A warm graph fit whose objective (data misfit and prior) is above this many times that of its
+#: chain's last cold fit is not taken: it has followed another basin of the fit, one the chain
+#: carried from frame to frame while a cold fit of the same data lands elsewhere (the modes the
+#: gauges pin least, beyond their ends), and the frame fits cold instead (skinmapd: on its
+#: restart worker).  Broad shapes moving on an ellipse over 5×5, 100 noisy frames each warm from
+#: the one before (bench/reconstruction.py, *Warm chains*): 0.051 / 0.153 / 0.087 mm mean with
+#: 74 / 75 / 58 frames beyond 3σ + 0.05 mm, now 0.010 / 0.018 / 0.025 mm with 0 / 0 / 11 (each
+#: frame cold: 0.011 / 0.018 / 0.015, 0 / 0 / 2), 1-4 cold refits a chain; a sharp bump moving
+#: over 12×12 and 16×16 never reaches it (docs/reconstruction.md, "Long warm chains").  The
+#: objective at the optimum scatters with the noise (a 7×7 chain's cold fits 8.6–18.7), so a
+#: ratio much below 2 refits on noise alone.
+WARM_BASIN_RATIO = 2.0
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it; none included) has its square uncertain by this share of the answer's mean
 # Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
@@ -388,11 +400,12 @@ class Reconstructor(StretchPatternTwist):
         data decide unless ``twist_sign`` is given.  ``graph_warm=False``: the graph fit starts
         cold although ``previous`` holds a graph, and the general model's defect correction from
         none, not from the previous frame's (a warm start depends on the frames before it;
-        skinmapd restarts cold every 64 scans so that a log replays bit for bit from there; on
-        7×7 and larger sheets a long warm graph chain can also settle away from where a cold fit
-        lands (a broad bump circling over 8×8: 0.047 mm mean over 100 frames, 0.023 cold), so a
-        caller chaining frames through ``previous`` should pass ``graph_warm=False`` now and
-        then: docs/reconstruction.md, "Long warm chains").
+        skinmapd restarts cold every 64 scans so that a log replays bit for bit from there).  A
+        warm graph fit far above its chain's last cold fit's objective has followed another
+        basin and the frame fits cold (:data:`WARM_BASIN_RATIO`); a chain that drifts slowly
+        within the noise is not caught by that, so a caller chaining frames through ``previous``
+        for long may still pass ``graph_warm=False`` now and then (docs/reconstruction.md, "Long
+        warm chains").
         ``graph_cold=False``: a frame that would need a cold graph fit (no warm start, or the warm
         fit failed) and whose data the fit's screen does not rule out is answered by the general
         model (its first answer, no defect correction), with ``diagnostics.extra``
@@ -538,6 +551,12 @@ class Reconstructor(StretchPatternTwist):
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
+                assert state is not None
+                reference = state.graph_reference
+                if graph.accepted and graph.objective > WARM_BASIN_RATIO * reference:
+                    graph = graph._replace(accepted=False, how=(
+                        f"warm: objective {graph.objective:.4g}, {graph.objective / reference:.3g} times the chain's "
+                        "cold fit's (another basin)"))
             if self.graph_rescue and (graph is None or not graph.accepted):
                 # a larger sheet: the general model answers first, and the graph is fitted cold
                 # only where that answer misfits the gauges (below)
@@ -732,7 +751,10 @@ class Reconstructor(StretchPatternTwist):
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         # (and the general model's defect correction, from which the next frame's starts)
         defect = cast("tuple[np.ndarray, float] | None", convex_info.get("defect")) if fit is not None else None
-        surf.state = (FrameState(graph.coeffs, earlier) if fit is None and graph is not None
+        # the yardstick of the chain's warm fits: its last cold fit's objective
+        reference = (previous.state.graph_reference if earlier is not None and previous is not None
+                     else graph.objective if graph is not None else math.inf)
+        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference) if fit is None and graph is not None
                       else FrameState() if defect is None
                       else FrameState(defect=defect[0], defect_chi2=defect[1], strains=np.stack([eu, el])))
         if self._position is not None and n_valid:
