@@ -100,8 +100,9 @@ GRAPH_RESCUE_CHI2 = 8.0
 #: A warm graph fit whose objective (data misfit and prior) is above this many times that of its
 #: chain's last cold fit is not taken: it has followed another basin of the fit, one the chain
 #: carried from frame to frame while a cold fit of the same data lands elsewhere (the modes the
-#: gauges pin least, beyond their ends), and the frame fits cold instead (skinmapd: on its
-#: restart worker).  Broad shapes moving on an ellipse over 5×5, 100 noisy frames each warm from
+#: gauges pin least, beyond their ends), and the frame fits cold instead (the library's default,
+#: ``Reconstructor(warm_basin_ratio=...)``; skinmapd turns it off, its chains restarting cold
+#: every 64 scans, daemon/pipeline.py).  Broad shapes moving on an ellipse over 5×5, 100 noisy frames each warm from
 #: the one before (bench/reconstruction.py, *Warm chains*): 0.051 / 0.153 / 0.087 mm mean with
 #: 74 / 75 / 58 frames beyond 3σ + 0.05 mm, now 0.010 / 0.018 / 0.025 mm with 0 / 0 / 11 (each
 #: frame cold: 0.011 / 0.018 / 0.015, 0 / 0 / 2), 1-4 cold refits a chain; a sharp bump moving
@@ -248,6 +249,11 @@ class Reconstructor(StretchPatternTwist):
         does, the interval's spread is part of ``node_sigma`` and a sign the gauges cannot tell
         leaves :attr:`Surface.mirror` set (docs/reconstruction.md, "The stretch pattern's
         twist").  None: off.
+    warm_basin_ratio : a warm graph fit above this many times its chain's last cold fit's
+        objective has followed another basin and the frame fits cold (default
+        :data:`WARM_BASIN_RATIO`; None: off).  skinmapd turns it off: its chains start cold every
+        64 scans, which bounds the same wander, and a refused warm fit there would leave the
+        frame to the general model (docs/reconstruction.md, "Long warm chains").
     gauge_screen : screen every frame for a gauge its neighbours contradict (a gain off by tens
         of percent, still reading) before the fits (:class:`.robust.GaugeScreen`: a closed-form
         fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it
@@ -275,8 +281,13 @@ class Reconstructor(StretchPatternTwist):
         elastic_prior: PositionFitSettings | None = None,
         gauge_screen: bool = True,
         poisson_range: tuple[float, float] | None = (0.3, 0.5),
+        warm_basin_ratio: float | None = WARM_BASIN_RATIO,
     ):
         self.least_shear = bool(least_shear)
+        if warm_basin_ratio is not None and not (isinstance(warm_basin_ratio, (int, float))
+                                                 and not isinstance(warm_basin_ratio, bool) and warm_basin_ratio > 1.0):
+            raise ValueError(f"warm_basin_ratio must be a number > 1 or None, got {warm_basin_ratio!r}")
+        self.warm_basin_ratio = math.inf if warm_basin_ratio is None else float(warm_basin_ratio)
         if poisson_range is not None:
             try:
                 lo, hi = (float(x) for x in poisson_range)
@@ -553,7 +564,7 @@ class Reconstructor(StretchPatternTwist):
                 graph = self._graph.fit_warm(data, warm, twist_sign)
                 assert state is not None
                 reference = state.graph_reference
-                if graph.accepted and graph.objective > WARM_BASIN_RATIO * reference:
+                if graph.accepted and graph.objective > self.warm_basin_ratio * reference:
                     graph = graph._replace(accepted=False, how=(
                         f"warm: objective {graph.objective:.4g}, {graph.objective / reference:.3g} times the chain's "
                         "cold fit's (another basin)"))

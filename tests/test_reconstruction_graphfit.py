@@ -88,12 +88,15 @@ def test_warm_start_follows_a_moving_bump(recs):
     assert max(errs) < 0.12
 
 
-def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_stays_within_0_06_mm_mean():
+@pytest.mark.parametrize("ratio", ["default", None])
+def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_stays_within_0_06_mm_mean(ratio):
     """100 noisy frames of a 3.5 mm dent of FWHM 30 mm circling over 5×5, each warm from the one
     before: a warm fit far above its chain's last cold fit's objective (WARM_BASIN_RATIO) has
-    followed another basin and the frame fits cold.  Without that the chain wandered to 0.186 mm
+    followed another basin and the frame fits cold.  Without that (``warm_basin_ratio=None``, as
+    skinmapd runs it, whose chains restart cold every 64 scans) the chain wandered to 0.186 mm
     mean, 0.35 max (each frame cold: 0.019, 0.053); with it 0.039, 0.079."""
-    rec = Reconstructor(N, M, PITCH, H, H, G)
+    rec = (Reconstructor(N, M, PITCH, H, H, G) if ratio == "default"
+           else Reconstructor(N, M, PITCH, H, H, G, warm_basin_ratio=None))
     rng = np.random.default_rng(6)
     prev, errs, cold = None, [], 0
     for k in range(100):
@@ -104,8 +107,26 @@ def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_s
         assert prev.diagnostics.extra["model"] == "graph"
         cold += k > 0 and prev.diagnostics.extra["graph_fit"] in ("linear", "general")
         errs.append(aligned_error(prev.nodes, shape.position(CENTRES)))
+    if ratio is None:  # the wander the ratio catches
+        assert cold == 0 and np.mean(errs) > 0.1
+        return
     assert cold >= 1
     assert np.mean(errs) < 0.06 and max(errs) < 0.12
+
+
+def test_warm_basin_ratio_is_checked_and_off_in_skinmapd():
+    from conftest import pipeline_sheet
+
+    from skinmap.daemon.pipeline import FramePipeline
+    from skinmap.strains import Calibration
+
+    for bad in (1.0, 0.5, True, "2"):
+        with pytest.raises(ValueError, match="warm_basin_ratio"):
+            Reconstructor(N, M, PITCH, H, H, G, warm_basin_ratio=bad)
+    geometry, element_uv, gf, r0 = pipeline_sheet(N, M, PITCH)
+    pipe = FramePipeline(geometry, Calibration(gf, r0), element_uv, np.zeros(len(element_uv)))
+    assert pipe.reconstructor.warm_basin_ratio == np.inf
+    assert Reconstructor(N, M, PITCH, H, H, G).warm_basin_ratio == 2.0
 
 
 def test_a_glitching_gauge_falls_back_and_a_dead_one_still_gives_a_surface(recs):
