@@ -219,7 +219,7 @@ class GraphFit:
         self._compiled = compiled
         #: the share of the stretch residuals' curvature the uncertainty takes (_SIGMA_CURVATURE)
         self.sigma_curvature = _SIGMA_CURVATURE if n * m <= _SIGMA_CURVATURE_CELLS else (0.0, 0.0)
-        self.knots_per_pitch = per = knots_per_pitch(n, m)
+        per = knots_per_pitch(n, m)
         ku, self.nbu = _basis_1d(-0.5 * m * pitch, 0.5 * m * pitch, per * m)
         kv, self.nbv = _basis_1d(-0.5 * n * pitch, 0.5 * n * pitch, per * n)
         nbu, nbv = self.nbu, self.nbv
