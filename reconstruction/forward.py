@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import uniform_filter
 
 from skinmap.strains import cell_axes
 
 from .surface import hermite_weights
 
-__all__ = ["GaugeLayout", "Patches", "surface_strains", "misfit", "misfit_and_strains"]
+__all__ = ["GaugeLayout", "Patches", "surface_strains", "misfit", "misfit_and_strains", "unit_box_mean"]
 
 # Chords per gauge of the coarse polyline; the fine one has twice as many and Richardson's rule
 # removes their common O(segment²) shortfall (a 25 mm bend: 1e-7 strain).  The coarse polyline's
@@ -157,3 +158,19 @@ def _chi2(fu, fl, eps_upper, eps_lower, strain_sigma: float) -> tuple[float, int
     counted = np.isfinite(r)
     chi2 = float(np.square(r[counted]).sum())
     return chi2, int(counted.sum()), r
+
+
+def unit_box_mean(values: np.ndarray, width: int) -> np.ndarray:
+    """Each gauge's value (directions first: (2, N, M)) averaged with those of its kind (the
+    same direction) over the ``width`` × ``width`` units about it, those beyond the sheet's edge
+    or not finite (a missing gauge) left out; a missing gauge stays NaN."""
+    values = np.asarray(values, dtype=float)
+    if width < 1 or width % 2 == 0:
+        raise ValueError(f"width must be an odd number of units >= 1, got {width!r}")
+    finite = np.isfinite(values)
+    out = np.full(values.shape, np.nan)
+    for k in range(values.shape[0]):
+        weight = uniform_filter(finite[k].astype(float), size=width, mode="constant", cval=0.0)
+        total = uniform_filter(np.where(finite[k], values[k], 0.0), size=width, mode="constant", cval=0.0)
+        out[k] = np.where(finite[k], total / np.where(finite[k], weight, 1.0), np.nan)
+    return out

@@ -46,7 +46,7 @@ from .graphfit import GraphFit, GraphResult, disagreement
 from .graphsheet import SlopeNoise, free_part, graph_sheet_fields, slope_noise
 from .productnoise import ProductNoise, measure_product_noise, pair_product, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
-from .forward import GaugeLayout, Patches, misfit, misfit_and_strains
+from .forward import GaugeLayout, Patches, misfit, misfit_and_strains, unit_box_mean
 from .airy import airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, membrane_maps
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
@@ -69,6 +69,15 @@ LEAST_SHEAR_GAIN, LEAST_SHEAR_TIE = 0.5, 1.2
 MARGINAL_SIGMAS = 5.0
 # A defect-correction pass is kept only if it lowers the χ² below this share of the last.
 DEFECT_GAIN = 0.99
+#: Where the noise alone leaves the general model above one χ² per gauge (24×24 and larger: its
+#: nonlinear steps; `_noise_response`), a defect pass that does not gain on the raw residual is
+#: tried again on the residual averaged over this many units square, gauge by gauge kind: the
+#: model's defect is smooth over the cells, the noise is not, and the raw residual feeds the noise
+#: back into the model's input a second time.  Without it a noisy 32×32 sphere's pass failed on
+#: about half the frames, which then kept the uncorrected model's own error: a bias of the noise,
+#: 0.067 mm rms over the nodes against 0.006 with it (docs/reconstruction.md, *Under noise on
+#: large sheets*).
+DEFECT_SMOOTH_UNITS = 3
 # Passes that take the constant twist below this share of what the uncorrected model read (or
 # left open) leave that twist open (the passes refine a twist; losing most of it is no refinement:
 # kinematic 12×12 and 16×16 saddles' passes move it by less, and their σ would double).
@@ -671,7 +680,8 @@ class Reconstructor(StretchPatternTwist):
         )
         for key in ("least_shear_shift", "least_shear_stretch_rss", "least_shear_contested", "least_shear_marginal",
                     "undecided_twist", "open_twist",
-                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_warm",
+                    "shear_prior_twist", "shear_prior_curvature", "defect_steps", "defect_smoothed", "defect_unsmoothed_chi2",
+                    "defect_warm",
                     "graph_twist_sd", "product_ramp", "pair_product"):
             if key in convex_info:
                 diag.extra[key] = convex_info[key]
@@ -956,6 +966,10 @@ class Reconstructor(StretchPatternTwist):
         corrected where the data see them; what the data cannot see stays the prior's.  At
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
         and none once the answer fits within the noise.  The constant twist keeps its sign.
+        Where the noise alone leaves the model above one χ² per gauge, a pass that does not gain
+        is tried again on the residual averaged over :data:`DEFECT_SMOOTH_UNITS` units square,
+        and taken only if it keeps the constant twist (``defect_smoothed``: how many such passes;
+        ``defect_unsmoothed_chi2``: the χ² per gauge before them, which σ keeps widening by).
         The answer's info carries the correction its input had (2, 2, N, M) and its χ²
         (``defect``: where the next frame's starts, :meth:`_warm_general`)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
@@ -968,15 +982,38 @@ class Reconstructor(StretchPatternTwist):
             sign = math.copysign(1.0, general[1])
         first_twist, first_open = general[1], float(general[3].get("open_twist", 0.0))
         steps = 0
+        smoothed = 0  # passes taken on the averaged residual (DEFECT_SMOOTH_UNITS)
+        unsmoothed_chi2 = 0.0  # the χ² per gauge the raw passes left, where averaged ones followed
+
+        def corrected(cu: np.ndarray, cl: np.ndarray) -> tuple:
+            # the model run on the corrected input (cu, cl), and its reading of the gauges
+            # (np.maximum keeps a missing gauge's NaN)
+            turning, stretch, _ = unit_data(np.maximum(cu, -0.99), np.maximum(cl, -0.99), self.h_upper, self.h_lower,
+                                            self.gauge_length)
+            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
+            return (trial, *misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f))
+
         for _ in range(self.defect_steps):
             if chi <= dof:
                 break
+            base_u, base_l = du, dl
             du, dl = du + (eu - fu), dl + (el - fl)
-            # (np.maximum keeps a missing gauge's NaN)
-            turning, stretch, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper, self.h_lower,
-                                            self.gauge_length)
-            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
-            chi_t, _, fu_t, fl_t = misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f)
+            trial, chi_t, _, fu_t, fl_t = corrected(du, dl)
+            if (not (chi_t < DEFECT_GAIN * chi and np.isfinite(trial[0]).all())
+                    and self._noise_response(strain_sigma)[1] > 1.0):
+                # the noise fed back twice: the smooth part of the residual alone, taken only
+                # where it keeps the answer's constant twist (it corrects the model's defect, it
+                # reads no twist: the gauges cannot tell a twist from shear, and such passes took
+                # one onto a flat 32×32 sheet, 0.95 mm off, and lost a 5 % pre-stretched
+                # cylinder's, 12.5 mm off)
+                du = base_u + unit_box_mean(eu - fu, DEFECT_SMOOTH_UNITS)
+                dl = base_l + unit_box_mean(el - fl, DEFECT_SMOOTH_UNITS)
+                trial, chi_t, _, fu_t, fl_t = corrected(du, dl)
+                if not math.isclose(float(trial[1]), float(general[1]), rel_tol=1e-3, abs_tol=1e-12):
+                    break
+                on_average = True
+            else:
+                on_average = False
             # a pass must gain clearly (1 %): a decision at the rounding level would make the
             # answer depend on how the arithmetic was ordered (replay needs the same bytes)
             # (a pass that overshoots is not taken again at half the correction: on an unseen
@@ -989,8 +1026,13 @@ class Reconstructor(StretchPatternTwist):
             # (the stretch pattern is read with the measured data's fields: the corrected ones
             # carry the answer's own twist back into them)
             measured = general[3].get("measured_fields", general[3].get("product_fields"))
-            general = (trial[0], trial[1], general[2], {**trial[3], "defect_steps": steps + 1, "measured_fields": measured},
-                       trial[4], trial[5])
+            info = {**trial[3], "defect_steps": steps + 1, "measured_fields": measured}
+            if on_average and not smoothed:
+                unsmoothed_chi2 = round(chi / max(dof, 1), 3)
+            smoothed += on_average
+            if smoothed:
+                info.update(defect_smoothed=smoothed, defect_unsmoothed_chi2=unsmoothed_chi2)
+            general = (trial[0], trial[1], general[2], info, trial[4], trial[5])
             chi, fu, fl = chi_t, fu_t, fl_t
             steps += 1
             kept = (du, dl)
@@ -1360,6 +1402,12 @@ class Reconstructor(StretchPatternTwist):
         diag.extra["ambiguous"] = mirror is not None
         surf.mirror = mirror
         scale = math.sqrt(birge)
+        unsmoothed = diag.extra.get("defect_unsmoothed_chi2")
+        if unsmoothed is not None:
+            # the averaged passes (DEFECT_SMOOTH_UNITS) fit the residual's smooth part, down to
+            # below the noise's own χ²: the misfit the raw passes left stays the evidence σ is
+            # widened by (without it a 32×32 twisted quadric's σ fell by half for the same error)
+            scale = math.sqrt(max(birge, unsmoothed / chi2_noise))
 
         # no position is less certain than "somewhere on the sheet's own extent"
         ceiling = math.sqrt(self._half_diagonal2)
