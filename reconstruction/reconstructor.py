@@ -74,9 +74,9 @@ DEFECT_GAIN = 0.99
 #: tried again on the residual averaged over this many units square, gauge by gauge kind: the
 #: model's defect is smooth over the cells, the noise is not, and the raw residual feeds the noise
 #: back into the model's input a second time.  Without it a noisy 32×32 sphere's pass failed on
-#: about half the frames, which then kept the uncorrected model's own error: a bias of the noise,
-#: 0.067 mm rms over the nodes against 0.006 with it (docs/reconstruction.md, *Under noise on
-#: large sheets*).
+#: half the frames or more, which then kept the uncorrected model's own error: a bias of the
+#: noise, 0.067 mm rms over the nodes against 0.006 with it (docs/reconstruction.md, *Under noise
+#: on large sheets*).
 DEFECT_SMOOTH_UNITS = 3
 # Passes that take the constant twist below this share of what the uncorrected model read (or
 # left open) leave that twist open (the passes refine a twist; losing most of it is no refinement:
