@@ -70,13 +70,13 @@ MARGINAL_SIGMAS = 5.0
 # A defect-correction pass is kept only if it lowers the χ² below this share of the last.
 DEFECT_GAIN = 0.99
 #: Where the noise alone leaves the general model above one χ² per gauge (24×24 and larger: its
-#: nonlinear steps; `_noise_response`), a defect pass that does not gain on the raw residual is
-#: tried again on the residual averaged over this many units square, gauge by gauge kind: the
-#: model's defect is smooth over the cells, the noise is not, and the raw residual feeds the noise
-#: back into the model's input a second time.  Without it a noisy 32×32 sphere's pass failed on
-#: half the frames or more, which then kept the uncorrected model's own error: a bias of the
-#: noise, 0.067 mm rms over the nodes against 0.006 with it (docs/reconstruction.md, *Under noise
-#: on large sheets*).
+#: nonlinear steps; `_noise_response`), a defect pass also reads the residual averaged over this
+#: many units square, gauge by gauge kind (on noisy data always, on noise-free data where the raw
+#: pass fails): the model's defect is smooth over the cells, the noise is not, and the raw
+#: residual feeds the noise back into the model's input a second time.  Without it a noisy 32×32
+#: sphere's pass failed on half the frames or more, which then kept the uncorrected model's own
+#: error: a bias of the noise, 0.067 mm rms over the nodes against 0.011 with it
+#: (docs/reconstruction.md, *Under noise on large sheets*).
 DEFECT_SMOOTH_UNITS = 3
 # Passes that take the constant twist below this share of what the uncorrected model read (or
 # left open) leave that twist open (the passes refine a twist; losing most of it is no refinement:
@@ -966,10 +966,11 @@ class Reconstructor(StretchPatternTwist):
         corrected where the data see them; what the data cannot see stays the prior's.  At
         most ``defect_steps`` passes, each kept only if it fits the measured strains better,
         and none once the answer fits within the noise.  The constant twist keeps its sign.
-        Where the noise alone leaves the model above one χ² per gauge, a pass that does not gain
-        is tried again on the residual averaged over :data:`DEFECT_SMOOTH_UNITS` units square,
-        and taken only if it keeps the constant twist (``defect_smoothed``: how many such passes;
-        ``defect_unsmoothed_chi2``: the χ² per gauge before them, which σ keeps widening by).
+        Where the noise alone leaves the model above one χ² per gauge, a pass also reads the
+        residual averaged over :data:`DEFECT_SMOOTH_UNITS` units square (on data that carry noise
+        always, else where the raw pass fails) and takes it where it gains and keeps the constant
+        twist (``defect_smoothed``: how many such passes; ``defect_unsmoothed_chi2``: the χ² per
+        gauge the raw pass leaves, which σ widens by).
         The answer's info carries the correction its input had (2, 2, N, M) and its χ²
         (``defect``: where the next frame's starts, :meth:`_warm_general`)."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
@@ -993,27 +994,44 @@ class Reconstructor(StretchPatternTwist):
             trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
             return (trial, *misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f))
 
+        # where the noise alone leaves the model above one χ² per gauge (large sheets) the raw
+        # residual feeds the noise back in a second time: there its average over
+        # DEFECT_SMOOTH_UNITS units is tried too, first where the data carry noise (their own
+        # turning noise at least QUIET_SHARE of the stated), else where the raw pass fails
+        averaging = (self.defect_steps > 0 and chi > dof and n_valid > 0
+                     and self._noise_response(strain_sigma)[1] > 1.0)
+        noisy = False
+        if averaging:
+            sigma_t = self._turning_sd(strain_sigma)
+            measured_turning = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)[0]
+            noisy = sigma_t > 0.0 and (_noise_present(turning_noise_estimate(measured_turning, valid), sigma_t)
+                                       >= QUIET_SHARE * sigma_t)
         for _ in range(self.defect_steps):
             if chi <= dof:
                 break
-            base_u, base_l = du, dl
-            du, dl = du + (eu - fu), dl + (el - fl)
-            trial, chi_t, _, fu_t, fl_t = corrected(du, dl)
-            if (not (chi_t < DEFECT_GAIN * chi and np.isfinite(trial[0]).all())
-                    and self._noise_response(strain_sigma)[1] > 1.0):
-                # the noise fed back twice: the smooth part of the residual alone, taken only
-                # where it keeps the answer's constant twist (it corrects the model's defect, it
-                # reads no twist: the gauges cannot tell a twist from shear, and such passes took
-                # one onto a flat 32×32 sheet, 0.95 mm off, and lost a 5 % pre-stretched
-                # cylinder's, 12.5 mm off)
-                du = base_u + unit_box_mean(eu - fu, DEFECT_SMOOTH_UNITS)
-                dl = base_l + unit_box_mean(el - fl, DEFECT_SMOOTH_UNITS)
-                trial, chi_t, _, fu_t, fl_t = corrected(du, dl)
-                if not math.isclose(float(trial[1]), float(general[1]), rel_tol=1e-3, abs_tol=1e-12):
+            raw_u, raw_l = du + (eu - fu), dl + (el - fl)
+            raw = corrected(raw_u, raw_l)
+            raw_gains = bool(raw[1] < DEFECT_GAIN * chi and np.isfinite(raw[0][0]).all())
+            on_average, left = False, chi
+            if averaging and (noisy or not raw_gains):
+                # the smooth part of the residual alone, taken only where it keeps the answer's
+                # constant twist (it corrects the model's defect, it reads no twist: the gauges
+                # cannot tell a twist from shear, and such passes took one onto a flat 32×32
+                # sheet, 0.95 mm off, and lost a 5 % pre-stretched cylinder's, 12.5 mm off)
+                avg_u = du + unit_box_mean(eu - fu, DEFECT_SMOOTH_UNITS)
+                avg_l = dl + unit_box_mean(el - fl, DEFECT_SMOOTH_UNITS)
+                averaged = corrected(avg_u, avg_l)
+                keeps_twist = math.isclose(float(averaged[0][1]), float(general[1]), rel_tol=1e-3, abs_tol=1e-12)
+                if averaged[1] < DEFECT_GAIN * chi and np.isfinite(averaged[0][0]).all() and keeps_twist:
+                    on_average, left = True, (raw[1] if raw_gains else chi)
+                elif not raw_gains:
                     break
-                on_average = True
+            if on_average:
+                du, dl = avg_u, avg_l
+                trial, chi_t, _, fu_t, fl_t = averaged
             else:
-                on_average = False
+                du, dl = raw_u, raw_l
+                trial, chi_t, _, fu_t, fl_t = raw
             # a pass must gain clearly (1 %): a decision at the rounding level would make the
             # answer depend on how the arithmetic was ordered (replay needs the same bytes)
             # (a pass that overshoots is not taken again at half the correction: on an unseen
@@ -1028,7 +1046,7 @@ class Reconstructor(StretchPatternTwist):
             measured = general[3].get("measured_fields", general[3].get("product_fields"))
             info = {**trial[3], "defect_steps": steps + 1, "measured_fields": measured}
             if on_average and not smoothed:
-                unsmoothed_chi2 = round(chi / max(dof, 1), 3)
+                unsmoothed_chi2 = round(left / max(dof, 1), 3)  # what the raw pass leaves
             smoothed += on_average
             if smoothed:
                 info.update(defect_smoothed=smoothed, defect_unsmoothed_chi2=unsmoothed_chi2)

@@ -1,8 +1,8 @@
 """Defect correction under noise: where the noise alone leaves the general model above one χ² per
-gauge (large sheets), a pass that does not gain on the raw residual is tried again on its average
-over 3 × 3 units (reconstruction.DEFECT_SMOOTH_UNITS) and kept where it gains and keeps the
-constant twist, so the noise is not fed back into the model twice and the answer carries no bias
-of the noise (docs/reconstruction.md, *Under noise on large sheets*)."""
+gauge (large sheets), a pass also reads the residual averaged over 3 × 3 units
+(reconstruction.DEFECT_SMOOTH_UNITS) and takes it where it gains and keeps the constant twist, so
+the noise is not fed back into the model twice and the answer carries no bias of the noise
+(docs/reconstruction.md, *Under noise on large sheets*)."""
 from __future__ import annotations
 
 import numpy as np
@@ -41,8 +41,8 @@ def test_unit_box_mean_averages_each_gauge_kind_over_its_neighbours_and_keeps_mi
 def test_a_noisy_32x32_sphere_is_read_without_a_bias_of_the_noise_below_0_04_mm(radius):
     # Antithetic pairs of noise draws: the mean of a pair's two answers less the noise-free
     # answer is what the noise does to the answer beyond its first-order scatter.  Before the
-    # averaged pass most of these frames' raw passes failed (21 of 24 now take an averaged one)
-    # and left the uncorrected model's own error in: 0.104 mm rms over the nodes, now 0.010.
+    # averaged pass most of these frames' raw passes failed and left the uncorrected model's own
+    # error in: 0.104 mm rms over the nodes, now 0.010 (every frame takes an averaged pass).
     n = 32
     shape = ph.SphereCap(radius=radius)
     eu, el = ph.gauge_strains(shape, n, n, 12.0, 0.2, 0.2, 10.0)
