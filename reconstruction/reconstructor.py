@@ -984,7 +984,7 @@ class Reconstructor(StretchPatternTwist):
         first_twist, first_open = general[1], float(general[3].get("open_twist", 0.0))
         steps = 0
         smoothed = 0  # passes taken on the averaged residual (DEFECT_SMOOTH_UNITS)
-        unsmoothed_chi2 = 0.0  # the χ² per gauge the raw passes left, where averaged ones followed
+        unsmoothed_chi2 = 0.0  # the χ² per gauge the raw pass left beside the first averaged one taken
 
         def corrected(cu: np.ndarray, cl: np.ndarray) -> tuple:
             # the model run on the corrected input (cu, cl), and its reading of the gauges
@@ -996,8 +996,8 @@ class Reconstructor(StretchPatternTwist):
 
         # where the noise alone leaves the model above one χ² per gauge (large sheets) the raw
         # residual feeds the noise back in a second time: there its average over
-        # DEFECT_SMOOTH_UNITS units is tried too, first where the data carry noise (their own
-        # turning noise at least QUIET_SHARE of the stated), else where the raw pass fails
+        # DEFECT_SMOOTH_UNITS units is tried too, and preferred, where the data carry noise (their
+        # own turning noise at least QUIET_SHARE of the stated), else only where the raw pass fails
         averaging = (self.defect_steps > 0 and chi > dof and n_valid > 0
                      and self._noise_response(strain_sigma)[1] > 1.0)
         noisy = False
