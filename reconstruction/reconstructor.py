@@ -1462,6 +1462,17 @@ class Reconstructor(StretchPatternTwist):
         def square_sd(sigma_strain: float) -> float:
             return ramp * product_sd(sigma_strain)
 
+        # where the cells' gauge pairs read the product (_pair_reading: large sheets), the twist
+        # taken scatters by their s.d., not the fields' (a 32×32 cylinder at 68°: the fields'
+        # 4.5·10⁻⁸ /mm², the pairs' 1.5·10⁻⁸; its twist scattered by 5-8·10⁻⁶ /mm over noisy
+        # frames, 2.5-3.3·10⁻⁵ by the fields', 1.0·10⁻⁵ by the pairs'); what the data leave open
+        # about the twist keeps the fields' (a sharper reading rules out none of it)
+        pair = diag.extra.get("pair_product")
+        pair_share = pair[2] / pair[3] if pair is not None and pair[3] > 0.0 else 1.0
+
+        def scatter_square_sd(sigma_strain: float) -> float:
+            return square_sd(sigma_strain) * pair_share
+
         twist = self._twist_noise(positions_at, base_shift, c0, square_sd, strain_sigma, TwistLeftOpen(
             undecided=diag.extra.get("undecided_twist", 0.0),
             undecided_read="least_shear_shift" not in diag.extra,
@@ -1476,7 +1487,7 @@ class Reconstructor(StretchPatternTwist):
         # the way between the ramp's shrunk product twist and the least-shear one weighed
         # against it: the noise takes one on some frames, the other on others)
         # (and the stretch reading's own noise where it holds the twist)
-        twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, square_sd, strain_sigma,
+        twist_scatter = self._twist_noise(positions_at, base_shift, diag.twist_constant, scatter_square_sd, strain_sigma,
                                           TwistLeftOpen(undecided=diag.extra.get("undecided_twist", 0.0)
                                                         if diag.extra.get("least_shear_contested")
                                                         or diag.extra.get("least_shear_marginal") else 0.0), graph_sd)
