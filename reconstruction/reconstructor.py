@@ -1003,9 +1003,10 @@ class Reconstructor(StretchPatternTwist):
         noisy = False
         if averaging:
             sigma_t = self._turning_sd(strain_sigma)
-            measured_turning = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)[0]
-            noisy = sigma_t > 0.0 and (_noise_present(turning_noise_estimate(measured_turning, valid), sigma_t)
-                                       >= QUIET_SHARE * sigma_t)
+            # the measured data's own turning noise, as the passes' field fit of them keeps it
+            # (_measured: the passes read the same data again)
+            shown = self._measured(*unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length))[1]
+            noisy = sigma_t > 0.0 and _noise_present(shown, sigma_t) >= QUIET_SHARE * sigma_t
         for _ in range(self.defect_steps):
             if chi <= dof:
                 break
