@@ -1466,8 +1466,9 @@ class Reconstructor(StretchPatternTwist):
         # where the cells' gauge pairs read the product (_pair_reading: large sheets), the twist
         # taken scatters by their s.d., not the fields' (a 32×32 cylinder at 68°: the fields'
         # 4.5·10⁻⁸ /mm², the pairs' 1.5·10⁻⁸; its twist scattered by 5-8·10⁻⁶ /mm over noisy
-        # frames, 2.5-3.3·10⁻⁵ by the fields', 1.0·10⁻⁵ by the pairs'); what the data leave open
-        # about the twist keeps the fields' (a sharper reading rules out none of it)
+        # frames, where the fields' s.d. said 2.5-3.3·10⁻⁵ and the pairs' 1.0·10⁻⁵); node_sigma,
+        # and what the data leave open about the twist, keep the fields' (a sharper reading
+        # rules out none of it)
         pair = diag.extra.get("pair_product")
         pair_share = pair[2] / pair[3] if pair is not None and pair[3] > 0.0 else 1.0
 
