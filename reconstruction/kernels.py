@@ -1011,6 +1011,12 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     coeffs = np.empty((nf, mf, 4, 3))
     slopes = np.empty((2, 3, nf, mf))
     hermite_coefficients(np.ascontiguousarray(pos), float(h), coeffs, slopes[0], slopes[1])
+    # read-only arrays are another signature to numba: a twist family's members are shared
+    # read-only, and their first use compiled in the middle of a frame (a held elastic saddle's
+    # first frame: 1.2 s with an empty cache, 5-10 ms loading from a filled one)
+    frozen = np.array(pos)
+    frozen.flags.writeable = False
+    hermite_coefficients(frozen, float(h), coeffs, slopes[0], slopes[1])
     strain = np.empty(1)
     gauge_strains(coeffs.reshape(nf * mf, 4, 3), np.zeros(3, dtype=np.intp), mf, np.zeros((3, 3, 16)), 3, 0.2, 0.2,
                   1.0, strain, strain)
@@ -1025,7 +1031,11 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     corner = np.zeros(1, dtype=np.intp)
     k_flat = np.empty(1)
     basis_curvature(pos.transpose(1, 2, 0), corner, corner, float(h), k_flat)
-    stretch_residual(np.zeros((4, 1)), k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
+    basis_curvature(frozen.transpose(1, 2, 0), corner, corner, float(h), k_flat)
+    ab = np.zeros((4, 1))
+    stretch_residual(ab, k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
+    ab.flags.writeable = False  # the membrane maps' are shared read-only
+    stretch_residual(ab, k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
 
 
 if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use

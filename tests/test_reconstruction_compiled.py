@@ -316,3 +316,45 @@ def test_held_elastic_saddle_frames_match_the_numpy_reference():
         assert a.diagnostics.extra.get("stretch_estimate") == b.diagnostics.extra.get("stretch_estimate")
         assert np.abs(a.nodes - b.nodes).max() <= 1e-9 * np.abs(b.nodes).max()
         prev_f, prev_r = a, b
+
+
+_SIGNATURES_SCRIPT = textwrap.dedent("""
+    import json
+    import numpy as np
+    from skinmap.emulator import physics as ph, scenes
+    from skinmap.reconstruction import Reconstructor, kernels
+
+    def signatures():
+        return {name: sorted(str(s) for s in getattr(kernels, name).signatures) for name in kernels._ENTRY_POINTS}
+
+    rec = Reconstructor(5, 5)
+    warmed = signatures()
+    rng = np.random.default_rng(3)
+    shapes = [scenes.parse_scene_spec("saddle:radius=90,axis_angle=75", "elastic", 5, 5, 12.0),
+              ph.SphereCap(70.0), ph.GaussianBumps(height=3.0, fwhm=18.0, centre=(4.0, -3.0)),
+              ph.Cylinder(60.0, axis_angle=30.0)]
+    for shape in shapes:
+        eu, el = ph.gauge_strains(shape, 5, 5, 12.0, 0.2, 0.2, 10.0)
+        prev = None
+        for _ in range(3):
+            prev = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape), previous=prev)
+            prev.node_sigma, prev.node_scatter_sigma, prev.locate_sigma(np.zeros((2, 2)))
+    after = signatures()
+    print(json.dumps({name: [s for s in after[name] if s not in warmed[name]] for name in after}))
+""")
+
+
+def test_the_warm_up_compiles_every_signature_the_frames_use():
+    """A kernel first called with argument types its warm-up did not use is compiled (or loaded
+    from the cache) in the middle of a frame: read-only arrays are such a type to numba, and a
+    twist family's members are shared read-only.  Before the warm-up covered them, a held elastic
+    saddle's first frame took 1.2 s with an empty cache and 5-10 ms loading from a filled one
+    (the emulated palm at 10 Hz: its slowest frame).  In a fresh process (this one has run
+    other frames), no frame of these shapes, held or not, adds a signature to any kernel."""
+    import json
+
+    proc = subprocess.run([sys.executable, "-c", _SIGNATURES_SCRIPT], capture_output=True, text=True, timeout=600,
+                          cwd=TESTS_DIR)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    added = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert not any(added.values()), added
