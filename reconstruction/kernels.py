@@ -1012,8 +1012,9 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     slopes = np.empty((2, 3, nf, mf))
     hermite_coefficients(np.ascontiguousarray(pos), float(h), coeffs, slopes[0], slopes[1])
     # read-only arrays are another signature to numba: a twist family's members are shared
-    # read-only, and their first use compiled in the middle of a frame (a held elastic saddle's
-    # first frame: 1.2 s with an empty cache, 5-10 ms loading from a filled one)
+    # read-only, and their first use was compiled, or loaded from the cache, in the middle of a
+    # frame (a held elastic saddle's first frame: 1.2 s with an empty cache, 5-10 ms from a
+    # filled one)
     frozen = np.array(pos)
     frozen.flags.writeable = False
     hermite_coefficients(frozen, float(h), coeffs, slopes[0], slopes[1])
