@@ -14,6 +14,9 @@ every mold stays below 62° of slope under the film, margin and pre-stretch incl
 
 - bump: one Gaussian, |h| 2-5 mm (either sign), FWHM 15-24 mm, centre anywhere over the cells;
 - sphere convex / concave: R 50-100 mm;
+- dome: principal radii R 50-100 mm and 1.2-2 times that (one sign), turned at any angle (a
+  quadric; its twist reaches the data only through its Gaussian curvature, and its sign is not
+  told);
 - saddle: |R| 60-120 mm, axes at any angle (0-180 deg);
 - ridge: three equal bumps in a line at any angle (|h| 2-5, FWHM 15-24, 0.4-0.6 FWHM apart),
   the middle one over the inner half of the cells;
@@ -159,6 +162,21 @@ def draw_sphere_any(rng, sheet):
     return [("sphere", {"radius": _round(_signed(rng, 50.0, 100.0) * sheet.scale, 1)})], None
 
 
+def draw_dome(rng, sheet):
+    """A dome with unequal principal radii (|R| 50-100 mm and 1.2-2 times that, one sign) turned
+    at any angle: z = ½(k_uu u² + 2 k_uv u v + k_vv v²), whose twist k_uv only its Gaussian
+    curvature carries into the data (its sign is not told: a dome and its mirror image read
+    alike, and the reconstruction is judged by the better of its answers where it says so)."""
+    sign = float(rng.choice([-1.0, 1.0]))
+    r1 = float(rng.uniform(50.0, 100.0)) * sheet.scale
+    r2 = r1 * float(rng.uniform(1.2, 2.0))
+    angle = math.radians(float(rng.uniform(0.0, 180.0)))
+    k1, k2, c, s = sign / r1, sign / r2, math.cos(angle), math.sin(angle)
+    terms = {"k_uu": _round(k1 * c * c + k2 * s * s, 7), "k_uv": _round((k1 - k2) * s * c, 7),
+             "k_vv": _round(k1 * s * s + k2 * c * c, 7)}
+    return [("quadric", terms)], None
+
+
 def draw_saddle(rng, sheet):
     return [("saddle", {"radius": _round(_signed(rng, 60.0, 120.0) * sheet.scale, 1),
                         "axis_angle": _round(rng.uniform(0.0, 180.0), 1)})], None
@@ -204,6 +222,7 @@ CLASSES: list[tuple[str, str, Callable, dict[str, float]]] = [
     ("bump", "bump |h| 2-5, FWHM 15-24, anywhere", draw_bump, {}),
     ("sphere_convex", "sphere convex, R 50-100", draw_sphere(1.0), {}),
     ("sphere_concave", "sphere concave, R 50-100", draw_sphere(-1.0), {}),
+    ("dome", "dome |R| 50-100, 1.2-2 x, any angle", draw_dome, {}),
     ("saddle", "saddle |R| 60-120, any angle", draw_saddle, {}),
     ("ridge", "ridge: 3 bumps in a line, any angle", draw_ridge, {}),
     ("two_bumps", "two bumps |h| 2-5, FWHM 15-24", draw_two_bumps, {}),

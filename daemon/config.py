@@ -41,6 +41,7 @@ class ConfigError(ValueError):
 
 ConvexSolver = Literal["factorized", "clarabel"]
 TwistSign = Literal["auto", "positive", "negative"]
+TwistPrior = Literal["open", "none"]
 ElementLayout = Literal["grid", "explicit", "none"]
 ZenohMode = Literal["peer", "client"]
 LogCompression = Literal["zstd", "lz4", "none"]
@@ -81,6 +82,12 @@ class ReconstructionConfig:
     # oblique cylinder): "auto" reports both (AMBIGUOUS), "positive"/"negative" fix it for a
     # sheet whose mounting is known (docs/reconstruction.md, "Mirror images")
     twist_sign: TwistSign = "auto"
+    # a twist the stretch cannot tell from none where the answer has none (a dome: a sphere and a
+    # dome turned off the grid read alike): "open" puts the twists the stretch allows into σ,
+    # "none" is for a sheet known to carry none there (a balloon, a sphere, molds whose principal
+    # axes lie along the rows and columns); the answers are the same (docs/reconstruction.md,
+    # "A twist the stretch cannot tell from none")
+    twist_prior: TwistPrior = "open"
     # the full-position fit with the membrane-equilibrium prior after the default answer (sheets
     # of up to 64 cells, about a second of CPU per cold 5×5 frame: docs/reconstruction.md,
     # "Elastic films"); it needs the film's Poisson ratio
@@ -335,6 +342,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "convex_solver": _choice(ConvexSolver),
         "graph_fit": _boolean,
         "twist_sign": _choice(TwistSign),
+        "twist_prior": _choice(TwistPrior),
         "elastic_prior": _boolean,
         "poisson_ratio": _number(0, 0.499),
         "poisson_ratio_sd": _number(0, 0.2),

@@ -122,6 +122,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
         twist_sign={"positive": 1, "negative": -1}.get(cfg.reconstruction.twist_sign),
         elastic_prior=elastic,
         poisson_range=poisson_range_for(cfg, cal),
+        twist_prior=cfg.reconstruction.twist_prior,
     )
 
 

@@ -338,6 +338,7 @@ class FramePipeline:
         defer_cold_fits: bool = True,
         elastic_prior: Any = None,
         poisson_range: tuple[float, float] = (0.3, 0.5),
+        twist_prior: str = "open",
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -355,6 +356,8 @@ class FramePipeline:
         # the film's Poisson ratio as an interval, for the stretch pattern's twist (any elastomer
         # unless the config or the calibration file gives ν)
         self.poisson_range = poisson_range
+        # what node_sigma takes of a twist the stretch cannot tell from none (Reconstructor)
+        self.twist_prior = twist_prior
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -417,7 +420,7 @@ class FramePipeline:
         # 0.0204, no frame beyond 3σ + 0.05 mm either way)
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
-                             poisson_range=self.poisson_range, warm_basin_ratio=None)
+                             poisson_range=self.poisson_range, warm_basin_ratio=None, twist_prior=self.twist_prior)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""
@@ -449,7 +452,8 @@ class FramePipeline:
         reconnect or a new HELLO) when the geometry is the same."""
         if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
                 and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign
-                and earlier.elastic_prior == self.elastic_prior and earlier.poisson_range == self.poisson_range):
+                and earlier.elastic_prior == self.elastic_prior and earlier.poisson_range == self.poisson_range
+                and earlier.twist_prior == self.twist_prior):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq

@@ -51,7 +51,7 @@ from .airy import airy_gaussian_curvature
 from .membrane import MembraneMaps, TwistReading, membrane_maps
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
-from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, StretchPatternTwist
+from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, StretchPatternTwist
 from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _mean_twist_terms, _memo, _widened,
                           _with_reading_noise, _with_twist, _within_noise)
 from .uncertainty import (DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, alignment_floor,
@@ -269,6 +269,14 @@ class Reconstructor(StretchPatternTwist):
         fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it
         names is left out as missing and reported in ``Surface.diagnostics.suspect_gauges``
         (docs/reconstruction.md, "Robust gauge screen").  On by default.
+    twist_prior : what ``node_sigma`` takes of a twist the stretch pattern cannot tell from
+        none, where the answer has none: "open" (default: the twists up to the reading's
+        interval's top, of either sign not told, join it; the gauges read a dome's twist only
+        through its Gaussian curvature, so a sphere and a dome turned off the grid read
+        alike) or "none" (the sheet is known to carry no twist there: a balloon, a sphere,
+        molds whose principal axes lie along the rows and columns; its σ then does not
+        reach it).  Answers are the same either way (docs/reconstruction.md, "A twist the
+        stretch cannot tell from none").
     """
 
     def __init__(
@@ -292,8 +300,12 @@ class Reconstructor(StretchPatternTwist):
         gauge_screen: bool = True,
         poisson_range: tuple[float, float] | None = (0.3, 0.5),
         warm_basin_ratio: float | None = WARM_BASIN_RATIO,
+        twist_prior: str = "open",
     ):
         self.least_shear = bool(least_shear)
+        if twist_prior not in TWIST_PRIORS:
+            raise ValueError(f"twist_prior must be one of {', '.join(TWIST_PRIORS)}, got {twist_prior!r}")
+        self.twist_prior = twist_prior
         if warm_basin_ratio is not None and not (isinstance(warm_basin_ratio, (int, float))
                                                  and not isinstance(warm_basin_ratio, bool) and warm_basin_ratio > 1.0):
             raise ValueError(f"warm_basin_ratio must be a number > 1 or None, got {warm_basin_ratio!r}")
@@ -2072,6 +2084,7 @@ def reconstruct(
     previous: Surface | None = None,
     twist_sign: float | None = None,
     graph_fit: bool | None = None,
+    twist_prior: str = "open",
 ) -> Surface:
     """Reconstruct the sheet's surface from one frame of strains.
 
@@ -2081,19 +2094,23 @@ def reconstruct(
     the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly (and
     overrides a sign the stretch pattern would fix).  ``graph_fit``: try the height-graph fit
     first (None, the default: on for sheets of up to 64 cells; see :class:`Reconstructor`).
-    Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length, graph_fit).
+    ``twist_prior``: "open" (default) or "none", as :class:`Reconstructor` takes it.
+    Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length,
+    graph_fit, twist_prior).
     """
     eu = np.asarray(eps_upper, dtype=float)
     if eu.ndim != 3 or eu.shape[0] != 2:
         raise ValueError(f"eps_upper must have shape (2, N, M), got {eu.shape}")
-    key = (eu.shape[1], eu.shape[2], float(pitch), float(h_upper), float(h_lower), float(gauge_length), graph_fit)
+    key = (eu.shape[1], eu.shape[2], float(pitch), float(h_upper), float(h_lower), float(gauge_length), graph_fit,
+           twist_prior)
     with _CACHE_LOCK:
         entry = _CACHE.get(key)
         if entry is not None:
             _CACHE.move_to_end(key)
     if entry is None:
         # built outside the lock (a second or so on large sheets); a race builds it twice
-        built = (Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length, graph_fit=graph_fit),
+        built = (Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length, graph_fit=graph_fit,
+                               twist_prior=twist_prior),
                  threading.Lock())
         with _CACHE_LOCK:
             entry = _CACHE.setdefault(key, built)

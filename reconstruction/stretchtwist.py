@@ -27,7 +27,7 @@ from .surface import Surface
 from .twistfamily import MIRROR_FLOOR_MM, _differs, _half_reach, _mean_twist_terms, _memo, _with_twist, _within_noise
 from .uncertainty import DEFAULT_STRAIN_SIGMA
 
-__all__ = ["StretchPatternTwist", "StretchTwist", "MOVE_SHARE", "SIGN_OWN_SHARE", "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS",
+__all__ = ["StretchPatternTwist", "StretchTwist", "TWIST_PRIORS", "MOVE_SHARE", "SIGN_OWN_SHARE", "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS",
            "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS", "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS",
            "NOISE_REACH_LEVEL"]
 
@@ -53,6 +53,10 @@ OPEN_SIGMAS = 2.0
 # reading needs a twist but its refined interval reaches none, a refined twist above this share
 # of the reading's top decides the twist: the answer moves to it (StretchPatternTwist._stretch_twist).
 UNDECIDED_SHARE = 1.0 / 3.0
+#: What node_sigma takes of a twist the stretch pattern cannot tell from none, where the answer
+#: has none (StretchPatternTwist._open_to_top): "open", the twists the reading allows; "none",
+#: the sheet is known to carry none there.
+TWIST_PRIORS = ("open", "none")
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
 # at most this share of the answer's misfit.
@@ -125,6 +129,8 @@ class StretchPatternTwist:
     gauge_length: float
     #: ν's interval for the stretch pattern's readings (None: they are not taken)
     poisson_range: tuple[float, float] | None
+    #: what node_sigma takes of a twist the reading cannot tell from none (TWIST_PRIORS)
+    twist_prior: str
     _membrane: MembraneMaps | None  # the membrane's maps, made on first use
     _compiled: Any  # the compiled kernels, or None
     _half_diagonal2: float  # the sheet's squared half-diagonal (mm²)
@@ -242,8 +248,9 @@ class StretchPatternTwist:
         has the Gaussian curvature its stretch pattern says, and with the measured curvatures
         k_u, k_v that fixes the square of the mean twist: mean(k_u k_v − τ²) = K
         (:meth:`_twist_reading`: the free-edge membrane's reading, else the trace's interval).
-        Where the interval allows no twist and the answer has none, nothing changes (the
-        least-shear prior decides).  Else the membrane's reading is refined on the answer's own
+        Where the interval allows no twist and the answer has none, the answer stands (the
+        least-shear prior decides) and, unless something refines the reading, the twists it
+        allows join σ (:meth:`_open_to_top`).  Else the membrane's reading is refined on the answer's own
         family with each member's exact Gaussian curvature (:meth:`_refine_twist`); an answer
         off the estimate is modelled afresh there.  The sign is not read from the stretch: of the
         two signs the one whose surface explains the stretch pattern better is the answer (by
@@ -297,8 +304,9 @@ class StretchPatternTwist:
                 # the answer stays; where the reading's interval reaches none by less than the
                 # noise reaches, other frames clear it and move to the refined twist
                 ends = left
-                refined = float(info["stretch_twist_refined"][0])
-                flips = self._flip_within_noise(reading, fields_read, sigma_f)
+                # (a reading left open without its refinement moves no frame: nothing flips)
+                flips = "stretch_twist_refined" in info and self._flip_within_noise(reading, fields_read, sigma_f)
+                refined = float(info["stretch_twist_refined"][0]) if flips else 0.0
                 if flips:
                     info["stretch_twist_contested"] = True
                 return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)),
@@ -468,7 +476,7 @@ class StretchPatternTwist:
             if (base > PRODUCT_OPEN_SIGMAS * self._product_sd(fields, sigma_f) and product_twist <= m_hi
                     and abs(product_twist - abs(m0)) * self._half_diagonal2 / 2.0 > MIRROR_FLOOR_MM):
                 info["trace_open_twist"] = round(product_twist, 7)
-            return None
+            return self._open_to_top(m_hi, m0, sign, sign_open, info)
         if reading.twist <= 0.5 * m_hi and not saddle_like:
             # (the reading itself below half the interval's top: spheres read 0.15-0.45 of
             # it, that saddle 0.70; the refinement would double a warm sphere frame's cost.
@@ -476,7 +484,7 @@ class StretchPatternTwist:
             # has nothing but the stretch to tell its twist: it is refined whatever the
             # reading (a 12×12 saddle of R 286 mm at 83° read 0.22 of the top on one draw in
             # 20, its twist 0.84 of it: 1.0 mm off with σ 0.050, 10.9 times the bound))
-            return None
+            return self._open_to_top(m_hi, m0, sign, sign_open, info)
         mag = self._refine_twist(lambda m: positions_at(base_shift + sign * m - m0), reading, stretch, valid)
         info["stretch_twist_refined"] = (round(mag, 7), 0.0, round(mag, 7))
         refined = mag
@@ -501,6 +509,19 @@ class StretchPatternTwist:
         # the other (a held 12×12 saddle of R 286 mm at 83° went between its twist and none frame
         # by frame, 0.05 and 1.0 mm off)
         return mag
+
+    def _open_to_top(self, m_hi: float, m0: float, sign: float, sign_open: bool, info: dict) -> list[float] | None:
+        """The shifts to the twists a reading leaves open where the answer stands and nothing
+        refines it: to the interval's top, of either sign where none is told (None with
+        ``twist_prior`` "none": the sheet is known to carry none).  A dome's twist is read
+        only through its Gaussian curvature (k_u k_v − τ²), and the reading does not tell a
+        twist up to its top from none: on a 5×5 film on a mold, a dome k_uu = k_vv = 0.0143 /mm
+        with k_uv = 0.002 (principal axes at 45°) read 0.00147 of a top of 0.00353, a sphere of
+        R 70 mm 0.00135 of 0.00377, and the answer kept none, 0.34 mm off with σ 0.06."""
+        if self.twist_prior == "none":
+            return None
+        info["stretch_twist_open"] = round(m_hi, 7)
+        return [m - m0 for m in ((sign * m_hi, -sign * m_hi) if sign_open else (sign * m_hi,))]
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
                         sigma_f: float, eu, el, refined_sign: float) -> tuple[list["_SignCandidate"], int]:

@@ -56,6 +56,7 @@ def test_defaults_are_loopback():
         ({"reconstruction": {"graph_fit": "yes"}}, "reconstruction.graph_fit", "true or false"),
         ({"reconstruction": {"poisson_ratio": 0.5}}, "reconstruction.poisson_ratio", "≤ 0.499"),
         ({"reconstruction": {"elastic_prior": 1}}, "reconstruction.elastic_prior", "true or false"),
+        ({"reconstruction": {"twist_prior": "zero"}}, "reconstruction.twist_prior", "one of"),
     ],
 )
 def test_bad_values_name_key_and_rule(doc, key, fragment):

@@ -361,3 +361,22 @@ def test_the_stretch_patterns_poisson_interval_is_any_elastomers_unless_the_conf
     state.on_hello(hello)
     pipeline, _ = state.ensure_pipeline()
     assert pipeline is not None and pipeline.reconstructor.poisson_range == pytest.approx((0.45, 0.5))
+
+
+def test_the_twist_prior_reaches_the_reconstructor_from_the_config(tmp_path):
+    """[reconstruction] twist_prior (a twist the stretch cannot tell from none: "open" by default,
+    "none" for a sheet known to carry none) is what the gateway's reconstructor takes."""
+    import dataclasses
+
+    from skinmap.daemon.device_setup import ScannerState
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "elastic", 20.0)
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    for prior in ("open", "none"):
+        given = dataclasses.replace(cfg, reconstruction=dataclasses.replace(cfg.reconstruction, twist_prior=prior))
+        state = ScannerState(given)
+        state.on_hello(hello)
+        pipeline, _ = state.ensure_pipeline()
+        assert pipeline is not None and pipeline.reconstructor.twist_prior == prior

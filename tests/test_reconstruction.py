@@ -229,11 +229,12 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     assert np.all(raised >= -0.05 * full.node_sigma) and raised[1, 4] == raised.max() and raised[1, 4] > 0.1
     # the general model's linear propagation: never lower anywhere (on a sphere, whose
     # curvature does not change: no resolution term to compare as well, and whose curvature
-    # product leaves no twist open)
+    # product leaves no twist open; told it carries none, as its stretch cannot tell a dome's
+    # twist from none: test_reconstruction_sigma.py)
     eu_c, el_c = strains(ph.SphereCap(radius=80.0))
-    full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False)
+    full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none")
     eu_c[0, 1, 3] = np.nan
-    raised_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False).node_sigma - full_g.node_sigma
+    raised_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none").node_sigma - full_g.node_sigma
     assert np.all(raised_g >= -1e-12) and raised_g[1, 4] > 5 * full_g.node_sigma[1, 4]
 
 
@@ -248,11 +249,13 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     # the general model (the graph fit's own: test_reconstruction_graphfit.py)
     # a sheet the model explains within the noise (χ² per gauge below 1: no misfit to add),
     # whose curvature does not change (no resolution term: see below) and whose curvature
-    # product leaves no twist open (an aligned cylinder's does: test_twist_the_product_hides...)
+    # product leaves no twist open (an aligned cylinder's does: test_twist_the_product_hides...),
+    # told it carries none (its stretch cannot tell a dome's twist from none: that term is not
+    # the noise's, test_reconstruction_sigma.py)
     shape = ph.SphereCap(radius=80.0)
     eu, el = strains(shape)
-    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False)
-    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False)
+    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False, twist_prior="none")
+    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False, twist_prior="none")
     assert base.diagnostics.extra["chi2_per_gauge"] < 1.0
     # the frame pins the centre node (no scatter there); node_sigma keeps the alignment floor
     # there too, the mean over the nodes (an aligned reference shares their centroid instead)
@@ -266,7 +269,8 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     assert np.allclose(base.locate_sigma(CENTRES.reshape(-1, 2)), base.node_sigma.ravel())
     rng = np.random.default_rng(2)
     runs = np.array(
-        [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, graph_fit=False).nodes for _ in range(40)]
+        [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, graph_fit=False,
+                     twist_prior="none").nodes for _ in range(40)]
     )
     # empirical one-s.d. scatter of the corner nodes (all runs share the sensor frame)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))
