@@ -52,8 +52,8 @@ from .membrane import MembraneMaps, TwistReading, membrane_maps
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, StretchPatternTwist
-from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _mean_twist_terms, _memo, _widened,
-                          _with_reading_noise, _with_twist, _within_noise)
+from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _larger, _mean_twist_terms, _memo,
+                          _widened, _with_reading_noise, _with_twist, _within_noise)
 from .uncertainty import (DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, alignment_floor,
                           fine_sigma, resolution_sigma, sigma_field, stretch_noise_sd)
 
@@ -1514,6 +1514,8 @@ class Reconstructor(StretchPatternTwist):
                 # (and node_sigma reaches the other answer too: never below the scatter's part)
                 twist_scatter = _widened(positions_at, base_shift, list(pattern.contested), twist_scatter)
                 twist = _widened(positions_at, base_shift, list(pattern.contested), pattern.spread)
+            elif pattern.keeps_rest:
+                twist = _larger(pattern.spread, twist)
             else:
                 twist = pattern.spread
             twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern.noise_sd))

@@ -116,6 +116,10 @@ class StretchTwist(NamedTuple):
     #: noise takes one branch on some frames and the other on others (their way joins the
     #: scatter part of σ)
     contested: tuple[float, ...] = ()
+    #: ``spread`` widens what σ took of the twist without the pattern (its noise, what the
+    #: least-shear prior left open) instead of replacing it: an answer that stands where the
+    #: reading leaves its twist open to its top
+    keeps_rest: bool = False
 
 
 class StretchPatternTwist:
@@ -310,7 +314,8 @@ class StretchPatternTwist:
                 if flips:
                     info["stretch_twist_contested"] = True
                 return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)),
-                                    chi0, positions_at, 0.0, (sign * refined - m0,) if flips else ())
+                                    chi0, positions_at, 0.0, (sign * refined - m0,) if flips else (),
+                                    "stretch_twist_open" in info)
             magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:

@@ -77,6 +77,17 @@ def _widened(positions_at, base_shift: float, shifts, rest: Callable[[], np.ndar
     return _memo(widened)
 
 
+def _larger(first: Callable[[], np.ndarray | None], second: Callable[[], np.ndarray | None]):
+    """A spread function: the larger of two spreads node by node (either may be None, no
+    spread), computed once, when first asked."""
+
+    def larger() -> np.ndarray | None:
+        a, b = first(), second()
+        return b if a is None else a if b is None else np.maximum(a, b)
+
+    return _memo(larger)
+
+
 def _half_reach(positions_at, base_shift: float, shifts) -> np.ndarray:
     """Half the largest distance (fine grid, mm) from the sheet at ``base_shift`` on its twist
     family to the sheet at each of ``base_shift + shifts``: a twist the data leave open joins
