@@ -27,9 +27,9 @@ from .surface import Surface
 from .twistfamily import MIRROR_FLOOR_MM, _differs, _half_reach, _mean_twist_terms, _memo, _with_twist, _within_noise
 from .uncertainty import DEFAULT_STRAIN_SIGMA
 
-__all__ = ["StretchPatternTwist", "StretchTwist", "TWIST_PRIORS", "MOVE_SHARE", "SIGN_OWN_SHARE", "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS",
-           "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS", "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS",
-           "NOISE_REACH_LEVEL"]
+__all__ = ["StretchPatternTwist", "StretchTwist", "TWIST_PRIORS", "MOVE_SHARE", "SIGN_OWN_SHARE",
+           "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS", "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS",
+           "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS", "NOISE_REACH_LEVEL"]
 
 # Where the stretch pattern needs a twist, an answer whose mean twist is off the pattern's
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
@@ -254,9 +254,9 @@ class StretchPatternTwist:
         (:meth:`_twist_reading`: the free-edge membrane's reading, else the trace's interval).
         Where the interval allows no twist and the answer has none, the answer stands (the
         least-shear prior decides) and, unless something refines the reading, the twists it
-        allows join σ (:meth:`_open_to_top`).  Else the membrane's reading is refined on the answer's own
-        family with each member's exact Gaussian curvature (:meth:`_refine_twist`); an answer
-        off the estimate is modelled afresh there.  The sign is not read from the stretch: of the
+        allows join σ (:meth:`_open_to_top`).  Else the membrane's reading is refined on the
+        answer's own family with each member's exact Gaussian curvature
+        (:meth:`_refine_twist`); an answer off the estimate is modelled afresh there.  The sign is not read from the stretch: of the
         two signs the one whose surface explains the stretch pattern better is the answer (by
         twice the misfit, for an answer that had a sign of its own), the other the mirror unless
         the gauges reject it (χ² worse by ``tell`` and by the answer's own misfit: the forward
