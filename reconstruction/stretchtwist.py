@@ -29,7 +29,7 @@ from .uncertainty import DEFAULT_STRAIN_SIGMA
 
 __all__ = ["StretchPatternTwist", "StretchTwist", "TWIST_PRIORS", "MOVE_SHARE", "SIGN_OWN_SHARE",
            "CARRIED_MOVE_SIGMAS", "OPEN_SIGMAS", "UNDECIDED_SHARE", "MEMBRANE_SIGN_RATIO", "SIGN_SIGMAS",
-           "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS", "NOISE_REACH_LEVEL"]
+           "CONTESTED_SIGMAS", "PRODUCT_OPEN_SIGMAS", "NOISE_REACH_LEVEL", "DOME_SHARE"]
 
 # Where the stretch pattern needs a twist, an answer whose mean twist is off the pattern's
 # estimate by more than this share of it is modelled afresh at the estimate (the refined
@@ -57,6 +57,9 @@ UNDECIDED_SHARE = 1.0 / 3.0
 #: has none (StretchPatternTwist._open_to_top): "open", the twists the reading allows; "none",
 #: the sheet is known to carry none there.
 TWIST_PRIORS = ("open", "none")
+#: A sheet whose curvature product is positive on at least this share of its cells is a dome all
+#: over: where no reading explains its stretch, its twist is left open (_unread_twist).
+DOME_SHARE = 0.9
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
 # at most this share of the answer's misfit.
@@ -118,7 +121,7 @@ class StretchTwist(NamedTuple):
     contested: tuple[float, ...] = ()
     #: ``spread`` widens what σ took of the twist without the pattern (its noise, what the
     #: least-shear prior left open) instead of replacing it: an answer that stands where the
-    #: reading leaves its twist open to its top
+    #: reading leaves its twist open to its top, or where nothing reads the stretch of a dome
     keeps_rest: bool = False
 
 
@@ -270,12 +273,13 @@ class StretchPatternTwist:
         fields_read = product_fields if measured_fields is None else measured_fields  # the reading's input
         if reading is None:
             reading = self._twist_reading(stretch, valid, fields_read, sigma_f)
-        if reading is None:
-            return None
         c0 = surf.diagnostics.twist_constant
         if twist_mean is None:
             twist_mean = float(np.asarray(product_fields[2])[self.grid.inner].mean()) + c0 - base_shift
         m0 = twist_mean + base_shift  # the answer's (a swapped mirror sits at base_shift on the family)
+        if reading is None:
+            return self._unread_twist(surf, mirror, m0, base_shift, positions_at, twist_sign, stretch, valid, fields_read,
+                                      sigma_f, chi0, info)
         m_lo, m_hi, magnitude = reading.low, reading.high, reading.twist
         # a twist below the mirror floor bends nothing the elements would see
         if m_hi * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
@@ -514,6 +518,44 @@ class StretchPatternTwist:
         # the other (a held 12×12 saddle of R 286 mm at 83° went between its twist and none frame
         # by frame, 0.05 and 1.0 mm off)
         return mag
+
+    def _unread_twist(self, surf: Surface, mirror: Surface | None, m0: float, base_shift: float, positions_at,
+                      twist_sign, stretch, valid, fields, sigma_f: float, chi0: float,
+                      info: dict) -> StretchTwist | None:
+        """Where the stretch has a pattern (its trace spread beyond 3 s.d. of its noise) that
+        neither reading explains (friction on a dome, a bump on one) on a sheet that is a dome
+        all over (the curvature product positive on DOME_SHARE of the cells, and its mean beyond
+        its noise): nothing tells its twist between none and the one that would leave it no
+        Gaussian curvature (√(mean k_u k_v − τ₀²), a developable sheet's), and both ends, of
+        either sign where none is told and no mirror stands beside the answer, join node_sigma
+        (``extra["stretch_unread_twist"]``).  None otherwise, and with ``twist_prior`` "none": a
+        pattern within its noise says K is about none, which the least-shear prior takes (a
+        cylinder); a bump or a ridge on a flat sheet has flat cells, whose stretch the prior
+        reads right (reached there, 12×12 and 16×16 bumps' σ went 0.36-0.59 → 1.2-2.5 mm for
+        errors of 0.04-0.10).  A 12×12 film with friction 10⁻³ on a dome k_uu = 0.0052,
+        k_uv = 0.0008, k_vv = 0.0033 /mm read nothing, kept none and was 0.97 mm off with σ
+        0.06 (9.5-10 times 3σ + 0.05 mm)."""
+        if self.twist_prior == "none":
+            return None
+        k_u, k_v, _ = (np.asarray(f)[self.grid.inner] for f in fields)
+        if not float(np.mean(k_u * k_v > 0.0)) >= DOME_SHARE:
+            return None
+        base = _mean_twist_terms(fields, self.grid.inner)[1]
+        if not base > PRODUCT_OPEN_SIGMAS * self._product_sd(fields, sigma_f):
+            return None
+        both = np.asarray(valid, bool).all(axis=0)
+        trace = np.asarray(stretch, float)[0][both] + np.asarray(stretch, float)[1][both]
+        if not trace.size or not float(np.std(trace)) > 3.0 * math.sqrt(2.0) * self._stretch_sd(sigma_f):
+            return None
+        top = math.sqrt(base)
+        if top * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
+            return None
+        info["stretch_unread_twist"] = round(top, 7)
+        sign = float(twist_sign) if twist_sign is not None else (math.copysign(1.0, m0) if m0 != 0.0 else 1.0)
+        signs = (sign, -sign) if twist_sign is None and mirror is None else (sign,)
+        ends = [m - m0 for m in (0.0, *(sg * top for sg in signs))]
+        return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0,
+                            positions_at, 0.0, keeps_rest=True)
 
     def _open_to_top(self, m_hi: float, m0: float, sign: float, sign_open: bool, info: dict) -> list[float] | None:
         """The shifts to the twists a reading leaves open where the answer stands and nothing
