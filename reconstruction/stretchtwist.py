@@ -57,8 +57,10 @@ UNDECIDED_SHARE = 1.0 / 3.0
 #: has none (StretchPatternTwist._open_to_top): "open", the twists the reading allows; "none",
 #: the sheet is known to carry none there.
 TWIST_PRIORS = ("open", "none")
-#: A sheet whose curvature product is positive on at least this share of its cells is a dome all
-#: over: where no reading explains its stretch, its twist is left open (_unread_twist).
+#: A sheet whose mean curvatures' product is at least this share of its mean curvature product
+#: is a dome on the scale of the sheet (a bump or a ridge on a flat sheet bends it both ways and
+#: its mean curvatures are about none): where no reading explains its stretch, its twist is left
+#: open (_unread_twist).
 DOME_SHARE = 0.9
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
@@ -523,24 +525,26 @@ class StretchPatternTwist:
                       twist_sign, stretch, valid, fields, sigma_f: float, chi0: float,
                       info: dict) -> StretchTwist | None:
         """Where the stretch has a pattern (its trace spread beyond 3 s.d. of its noise) that
-        neither reading explains (friction on a dome, a bump on one) on a sheet that is a dome
-        all over (the curvature product positive on DOME_SHARE of the cells, and its mean beyond
-        its noise): nothing tells its twist between none and the one that would leave it no
-        Gaussian curvature (√(mean k_u k_v − τ₀²), a developable sheet's), and both ends, of
-        either sign where none is told and no mirror stands beside the answer, join node_sigma
-        (``extra["stretch_unread_twist"]``).  None otherwise, and with ``twist_prior`` "none": a
-        pattern within its noise says K is about none, which the least-shear prior takes (a
-        cylinder); a bump or a ridge on a flat sheet has flat cells, whose stretch the prior
-        reads right (reached there, 12×12 and 16×16 bumps' σ went 0.36-0.59 → 1.2-2.5 mm for
-        errors of 0.04-0.10).  A 12×12 film with friction 10⁻³ on a dome k_uu = 0.0052,
-        k_uv = 0.0008, k_vv = 0.0033 /mm read nothing, kept none and was 0.97 mm off with σ
-        0.06 (9.5-10 times 3σ + 0.05 mm)."""
+        neither reading explains (friction on a dome, a bump on one) on a sheet that is a dome on
+        its own scale: nothing tells its twist between none and the one that would leave it no
+        Gaussian curvature (c² = mean k_u k_v − the spread of τ₀, a developable sheet's), and
+        both ends, of either sign where none is told and no mirror stands beside the answer,
+        join node_sigma (``extra["stretch_unread_twist"]``: c).  A dome on its own scale: the
+        product of the mean curvatures at least DOME_SHARE of c², and c² beyond its noise.  None
+        otherwise, and with ``twist_prior`` "none": a pattern within its noise says K is about
+        none, which the least-shear prior takes (a cylinder); a bump or a ridge on a flat sheet
+        bends it both ways, its mean curvatures about none, and has flat cells, whose stretch
+        the prior reads right (reached there, 12×12 and 16×16 bumps' σ went 0.36-0.59 → 1.2-2.5
+        mm for errors of 0.04-0.10).  A 5×5 film on a dome k_uu = 0.010, k_uv = 0.003, k_vv =
+        0.006 /mm with a 2 mm bump on it was 0.60 mm off with σ 0.28 (2.2 times 3σ + 0.05 mm); a
+        12×12 film with friction 10⁻³ on a dome k_uu = 0.0052, k_uv = 0.0008, k_vv = 0.0033 /mm
+        0.97 mm off with σ 0.06 (9.5-10 times)."""
         if self.twist_prior == "none":
             return None
         k_u, k_v, _ = (np.asarray(f)[self.grid.inner] for f in fields)
-        if not float(np.mean(k_u * k_v > 0.0)) >= DOME_SHARE:
-            return None
         base = _mean_twist_terms(fields, self.grid.inner)[1]
+        if not float(np.mean(k_u)) * float(np.mean(k_v)) >= DOME_SHARE * base:
+            return None
         if not base > PRODUCT_OPEN_SIGMAS * self._product_sd(fields, sigma_f):
             return None
         both = np.asarray(valid, bool).all(axis=0)

@@ -252,9 +252,10 @@ def test_twist_the_stretch_leaves_undecided_joins_sigma_on_a_turned_poisson_0_3_
     assert undecided, "no draw reached the undecided case: the test no longer tests it"
 
 
-def noisy_frames_within_3_sigma_in_frame(spec: str, n: int, seed: int, frames: int, key: str) -> int:
+def noisy_frames_within_3_sigma_in_frame(spec: str, n: int, seed: int, frames: int, keys: tuple[str, ...]) -> int:
     """Noisy frames of an elastic n×n scene, each asserted within 3σ + 0.05 mm in the sensor frame
-    (its answer or, flagged ambiguous, its mirror); how many carry ``key`` in their diagnostics."""
+    (its answer or, flagged ambiguous, its mirror); how many carry one of ``keys`` in their
+    diagnostics."""
     from skinmap.emulator import scenes
 
     rec = Reconstructor(n, n)
@@ -266,16 +267,18 @@ def noisy_frames_within_3_sigma_in_frame(spec: str, n: int, seed: int, frames: i
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
         err = frame_errors(shape, surf, rec.grid)
         assert within_3_sigma_in_frame(shape, surf, rec.grid), (err.max(), surf.node_sigma.max(), surf.diagnostics.extra)
-        count += key in surf.diagnostics.extra
+        count += any(key in surf.diagnostics.extra for key in keys)
     return count
 
 
 #: Films on domes turned off the grid, whose twist (k_uv, 1/mm) the stretch pattern does not tell
-#: from none: frictionless, with partial friction, pre-stretched 5 % (principal axes at 45°).
+#: from none: frictionless, with partial friction, pre-stretched 5 % (principal axes at 45°), and
+#: with a bump on it, whose stretch neither reading explains.
 TURNED_DOMES = (
     "quadric:k_uu=0.0143,k_uv=0.002,k_vv=0.0143",
     "quadric:k_uu=0.0125,k_uv=0.002,k_vv=0.008,friction=0.001",
     "quadric:k_uu=0.0143,k_uv=0.0057,k_vv=0.0143,prestretch=0.05",
+    "quadric:k_uu=0.01,k_uv=0.003,k_vv=0.006 + gaussian:height=2,fwhm=16,u0=6,v0=-5",
 )
 
 
@@ -285,10 +288,13 @@ def test_a_turned_dome_whose_twist_the_stretch_cannot_tell_from_none_is_within_3
     reads that to a few percent: a dome of k = 0.0143 /mm with its principal axes at 45°
     (k_uv = 0.002) read 0.00147 /mm of an interval [0, 0.00353], a sphere of R 70 mm 0.00135
     of [0, 0.00377].  The answer keeps none (the least-shear prior), 0.9-1.1 mm off at a
-    corner (3.8 mm pre-stretched); the twists the reading allows join node_sigma, and every
-    noisy frame's sensor-frame errors lie within 3σ + 0.05 mm (before, on 6 noisy frames of
-    another seed, 0.35-1.7 mm mean off with σ 0.03-0.11: 4-10 times the bound)."""
-    opened = noisy_frames_within_3_sigma_in_frame(spec, N, seed=5, frames=6, key="stretch_twist_open")
+    corner (3.8 mm pre-stretched); the twists the reading allows join node_sigma (where
+    neither reading explains the stretch, a bump on the dome, those between none and the
+    curvature product's own), and every noisy frame's sensor-frame errors lie within 3σ + 0.05
+    mm (before, on 6 noisy frames of another seed, 0.35-1.7 mm mean off with σ 0.03-0.28: 2-10
+    times the bound)."""
+    opened = noisy_frames_within_3_sigma_in_frame(spec, N, seed=5, frames=6,
+                                                  keys=("stretch_twist_open", "stretch_unread_twist"))
     assert opened, "no draw left the twist open: the test no longer tests it"
 
 
@@ -301,7 +307,7 @@ def test_a_dome_with_friction_whose_stretch_nothing_reads_is_within_3_sigma() ->
     every noisy frame lies within 3σ + 0.05 mm in the sensor frame (before, σ 0.06 mm: 9.5-10
     times the bound)."""
     unread = noisy_frames_within_3_sigma_in_frame("quadric:k_uu=0.0052,k_uv=0.0008,k_vv=0.0033,friction=0.001", 12,
-                                                  seed=7, frames=4, key="stretch_unread_twist")
+                                                  seed=7, frames=4, keys=("stretch_unread_twist",))
     assert unread, "no draw left the stretch unread: the test no longer tests it"
 
 
