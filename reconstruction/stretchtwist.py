@@ -57,10 +57,10 @@ UNDECIDED_SHARE = 1.0 / 3.0
 #: has none (StretchPatternTwist._open_to_top): "open", the twists the reading allows; "none",
 #: the sheet is known to carry none there.
 TWIST_PRIORS = ("open", "none")
-#: A sheet whose mean curvatures' product is at least this share of its mean curvature product
-#: is a dome on the scale of the sheet (a bump or a ridge on a flat sheet bends it both ways and
-#: its mean curvatures are about none): where no reading explains its stretch, its twist is left
-#: open (_unread_twist).
+#: A sheet the product of whose mean curvatures (mean k_u · mean k_v) is at least this share of
+#: its twist-free curvature product (c², _unread_twist) is a dome on the scale of the sheet (a
+#: bump or a ridge on a flat sheet bends it both ways and its mean curvatures are about none):
+#: where no reading explains its stretch, its twist is left open.
 DOME_SHARE = 0.9
 # The sign of a twist the stretch pattern needs is not told by it; an answer's own sign gives way
 # to the other where that surface explains the pattern (through its own Gaussian curvature) with
