@@ -28,7 +28,8 @@ import numpy as np
 
 from skinmap.strains import cell_axes
 
-__all__ = ["TraceLaplacian", "trace_laplacian", "airy_gaussian_curvature", "airy_curvature_range", "MIN_UNITS"]
+__all__ = ["TraceLaplacian", "trace_laplacian", "stretch_trace", "airy_gaussian_curvature", "airy_curvature_range",
+           "MIN_UNITS"]
 
 _TERMS = 7
 MIN_UNITS = _TERMS + 3  # fewer leave the fit's scatter unknown
@@ -93,13 +94,19 @@ def _design(n: int, m: int, pitch_mm: float, mask: bytes) -> tuple[np.ndarray, n
     return a, solve, float(np.linalg.pinv(a.T @ a)[1, 1])
 
 
+def stretch_trace(stretch: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Every unit's stretch trace, ε_uu + ε_vv (N, M), from its stretch ratios (2, N, M); NaN
+    where either gauge is not measured (``valid``)."""
+    stretch = np.asarray(stretch, float)
+    both = np.asarray(valid, bool).all(axis=0)
+    return np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
+
+
 def airy_gaussian_curvature(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float, poisson: float,
                             poisson_sd: float = 0.0) -> tuple[float, float]:
     """Mean Gaussian curvature over the units (1/mm²) and its s.d. (the fit's, ν's and the closed
     form's own error) from the units' stretch ratios (2, N, M) (``valid``: which are measured)."""
-    stretch = np.asarray(stretch, float)
-    both = np.asarray(valid, bool).all(axis=0)
-    trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
+    trace = stretch_trace(stretch, valid)
     fit = trace_laplacian(trace, pitch_mm)
     k = -fit.laplacian / (1.0 - poisson)
     sd = math.sqrt((fit.sd / (1.0 - poisson)) ** 2 + (k * poisson_sd / (1.0 - poisson)) ** 2 + (AIRY_MODEL_SD * k) ** 2
@@ -119,10 +126,8 @@ def airy_curvature_range(stretch: np.ndarray, valid: np.ndarray, pitch_mm: float
     unit's trace from noise alone: no pattern to read)."""
     if not 0.0 <= poisson_lo <= poisson_hi < 1.0:
         raise ValueError(f"the Poisson range must satisfy 0 <= lo <= hi < 1, got [{poisson_lo!r}, {poisson_hi!r}]")
-    stretch = np.asarray(stretch, float)
-    both = np.asarray(valid, bool).all(axis=0)
-    trace = np.where(both, stretch[0] + stretch[1] - 2.0, np.nan)
-    if int(both.sum()) < MIN_UNITS:
+    trace = stretch_trace(stretch, valid)
+    if int(np.isfinite(trace).sum()) < MIN_UNITS:
         return None
     spread = float(np.nanstd(trace))
     if not spread > 3.0 * noise_sd:

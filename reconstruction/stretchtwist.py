@@ -17,7 +17,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from .airy import airy_curvature_range
+from .airy import airy_curvature_range, stretch_trace
 from .engine import unit_data
 from .forward import misfit, misfit_and_strains
 from .grid import FineGrid
@@ -547,9 +547,10 @@ class StretchPatternTwist:
             return None
         if not base > PRODUCT_OPEN_SIGMAS * self._product_sd(fields, sigma_f):
             return None
-        both = np.asarray(valid, bool).all(axis=0)
-        trace = np.asarray(stretch, float)[0][both] + np.asarray(stretch, float)[1][both]
-        if not trace.size or not float(np.std(trace)) > 3.0 * math.sqrt(2.0) * self._stretch_sd(sigma_f):
+        # (the trace's own test of a pattern, airy_curvature_range's)
+        trace = stretch_trace(stretch, valid)
+        noise = 3.0 * math.sqrt(2.0) * self._stretch_sd(sigma_f)
+        if not np.isfinite(trace).any() or not float(np.nanstd(trace)) > noise:
             return None
         top = math.sqrt(base)
         if top * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:
