@@ -413,14 +413,16 @@ class FramePipeline:
         # on: the reconstructor's own choice by size up to PIPELINE_GRAPH_MAX_CELLS (the graph first
         # up to 64 cells, where the general model misfits above), the general model alone above
         graph_fit = None if self.graph_fit and g.n * g.m <= PIPELINE_GRAPH_MAX_CELLS else False
-        # warm_basin_ratio off: the chains start cold every 64 scans, which bounds a warm chain's
-        # wander, and a refused warm fit would leave the frame to the general model (DEGRADED): on
-        # the emulated palm at 10 Hz output 69 of 320 frames deferred against 15, each scan
-        # reconstructed no nearer (0.0135 against 0.0131 mm mean; a moving dent 0.0154 against
-        # 0.0204, no frame beyond 3σ + 0.05 mm either way)
+        # the warm fits' basin test on (reconstructor.WARM_BASIN_RATIO): the chains' cold start every
+        # 64 scans does not bound a warm chain's wander.  On the emulated palm gesture (every scan
+        # through the pipeline, 400 scans, bench/pipeline_accuracy.py) an 8×8 sheet turning from a
+        # bump into a saddle followed a warm graph to 2.6 times 3σ + 0.05 mm, 6 frames beyond;
+        # 12×12 9 frames (2.5 times), 16×16 6 (3.9); with the test none, none and one (1.05).  A
+        # refused warm fit leaves the frame to the general model (DEGRADED) until the catch-up
+        # chain's cold fit takes over.
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
-                             poisson_range=self.poisson_range, warm_basin_ratio=None, twist_prior=self.twist_prior)
+                             poisson_range=self.poisson_range, twist_prior=self.twist_prior)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""

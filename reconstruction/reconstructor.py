@@ -110,8 +110,8 @@ GRAPH_RESCUE_CHI2 = 8.0
 #: chain's last cold fit is not taken: it has followed another basin of the fit, one the chain
 #: carried from frame to frame while a cold fit of the same data lands elsewhere (the modes the
 #: gauges pin least, beyond their ends), and the frame fits cold instead (the library's default,
-#: ``Reconstructor(warm_basin_ratio=...)``; skinmapd turns it off, its chains restarting cold
-#: every 64 scans, daemon/pipeline.py).  Broad shapes moving on an ellipse over 5×5, 100 noisy
+#: ``Reconstructor(warm_basin_ratio=...)``, and skinmapd's: its chains' cold restart every 64
+#: scans does not bound the wander, daemon/pipeline.py).  Broad shapes moving on an ellipse over 5×5, 100 noisy
 #: frames each warm from the one before (bench/reconstruction.py, *Warm chains*): 0.051 / 0.153 /
 #: 0.087 mm mean with
 #: 74 / 75 / 58 frames beyond 3σ + 0.05 mm, now 0.010 / 0.018 / 0.025 mm with 0 / 0 / 11 (each
@@ -261,9 +261,8 @@ class Reconstructor(StretchPatternTwist):
         twist").  None: off.
     warm_basin_ratio : a warm graph fit above this many times its chain's last cold fit's
         objective has followed another basin and the frame fits cold (default
-        :data:`WARM_BASIN_RATIO`; None: off).  skinmapd turns it off: its chains start cold every
-        64 scans, which bounds the same wander, and a refused warm fit there would leave the
-        frame to the general model (docs/reconstruction.md, "Long warm chains").
+        :data:`WARM_BASIN_RATIO`; None: off; skinmapd keeps it on, docs/reconstruction.md,
+        "Long warm chains").
     gauge_screen : screen every frame for a gauge its neighbours contradict (a gain off by tens
         of percent, still reading) before the fits (:class:`.robust.GaugeScreen`: a closed-form
         fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it

@@ -92,9 +92,9 @@ def test_warm_start_follows_a_moving_bump(recs):
 def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_stays_within_0_06_mm_mean(ratio):
     """100 noisy frames of a 3.5 mm dent of FWHM 30 mm circling over 5×5, each warm from the one
     before: a warm fit far above its chain's last cold fit's objective (WARM_BASIN_RATIO) has
-    followed another basin and the frame fits cold.  Without that (``warm_basin_ratio=None``, as
-    skinmapd runs it, whose chains restart cold every 64 scans) the chain wandered to 0.186 mm
-    mean, 0.35 max (each frame cold: 0.019, 0.053); with it 0.039, 0.079."""
+    followed another basin and the frame fits cold.  Without that (``warm_basin_ratio=None``) the
+    chain wandered to 0.186 mm mean, 0.35 max (each frame cold: 0.019, 0.053); with it 0.039,
+    0.079."""
     rec = (Reconstructor(N, M, PITCH, H, H, G) if ratio == "default"
            else Reconstructor(N, M, PITCH, H, H, G, warm_basin_ratio=None))
     rng = np.random.default_rng(6)
@@ -114,7 +114,7 @@ def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_s
     assert np.mean(errs) < 0.06 and max(errs) < 0.12
 
 
-def test_warm_basin_ratio_is_checked_and_off_in_skinmapd():
+def test_warm_basin_ratio_is_checked_and_on_in_skinmapd():
     from conftest import pipeline_sheet
 
     from skinmap.daemon.pipeline import FramePipeline
@@ -125,7 +125,7 @@ def test_warm_basin_ratio_is_checked_and_off_in_skinmapd():
             Reconstructor(N, M, PITCH, H, H, G, warm_basin_ratio=bad)
     geometry, element_uv, gf, r0 = pipeline_sheet(N, M, PITCH)
     pipe = FramePipeline(geometry, Calibration(gf, r0), element_uv, np.zeros(len(element_uv)))
-    assert pipe.reconstructor.warm_basin_ratio == np.inf
+    assert pipe.reconstructor.warm_basin_ratio == 2.0
     assert Reconstructor(N, M, PITCH, H, H, G).warm_basin_ratio == 2.0
 
 

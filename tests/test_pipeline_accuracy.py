@@ -1,0 +1,61 @@
+"""skinmapd's frame pipeline on the emulated device, against the emulator's truth
+(bench/pipeline_accuracy.py prints the same over whole gestures): the warm chains, the deferred
+cold fits and their catch-up chains as skinmapd runs them, every scan processed."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground
+from skinmap.emulator import physics as ph
+from skinmap.emulator.device import Device, ScannerSpec
+from skinmap.emulator.electrical import ElectricalConfig
+from skinmap.strains import Calibration
+
+SCAN_RATE = 50.0
+
+
+def node_errors(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per-node distances after the best rigid alignment (Kabsch), as aligned_error averages them."""
+    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
+    pc, qc = p - p.mean(axis=0), q - q.mean(axis=0)
+    u, _, vt = np.linalg.svd(pc.T @ qc)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return np.linalg.norm(pc @ rot.T - qc, axis=1)
+
+
+def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: ElectricalConfig) -> list[tuple]:
+    """(time, worst node error / (3σ + 0.05 mm), mean error) of every scan from ``first_s`` to
+    ``last_s``, each frame flagged ambiguous judged by the better of its answer and its mirror."""
+    scanner = ScannerSpec(n=n, m=n, scan_rate_hz=SCAN_RATE, electrical=electrical)
+    shape = ph.parse_shape_spec(spec)
+    device = Device(scanner, shape)
+    hello = device.hello()
+    geometry = ArrayGeometry(n, n, scanner.pitch_mm, scanner.h_upper_mm, scanner.h_lower_mm, scanner.gauge_length_mm)
+    pipe = FramePipeline(geometry, Calibration(hello.gauge_factor(), hello.base_resistance_ohm()),
+                         np.zeros((1, 2)), np.zeros(1), background=InlineBackground())
+    rows = []
+    for k in range(int(first_s * SCAN_RATE), int(last_s * SCAN_RATE)):
+        t = k / SCAN_RATE
+        wire = device.readout.read(device.strains(np.full((2, n, n), t)), t)
+        result = pipe.process(np.asarray(wire, dtype=float) * 1e-6, k, 0, 0)
+        truth = ph.ground_truth(shape, n, n, scanner.pitch_mm, t=t).nodes
+        mirror = result.surface.mirror
+        answers = [result.nodes_mm] + ([mirror.nodes] if mirror is not None else [])
+        e = min((node_errors(a, truth) for a in answers), key=lambda x: float(x.mean()))
+        rows.append((t, float(np.max(e / (3.0 * result.node_sigma_mm.reshape(-1) + 0.05))), float(e.mean())))
+    return rows
+
+
+@pytest.mark.slow
+def test_an_8x8_sheet_turning_from_a_bump_into_a_saddle_stays_within_3_sigma_through_the_pipeline():
+    """The palm gesture on an 8×8 sheet up to its bump turning into its saddle, every scan
+    through the pipeline (the gauges' hysteresis off: what is tested is the chain).  With the warm
+    fits' basin test off in skinmapd (its chains restarting cold every 64 scans were taken to
+    bound the wander) a warm graph followed another basin from 5.32 s: nodes up to 2.59 times
+    3σ + 0.05 mm off at 5.42 s; 0.62 at most with it."""
+    rows = run_pipeline(8, "palm:radius=64,fwhm=38.4", 0.0, 5.6, ElectricalConfig().without("hysteresis"))
+    worst = max(rows, key=lambda r: r[1])
+    assert worst[1] <= 1.0, f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm (mean {worst[2]:.3f} mm)"
+    assert np.mean([r[2] for r in rows]) < 0.05
