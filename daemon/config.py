@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, get_args
 
+from skinmap.strains import HYSTERESIS_GAIN_SD
+
 __all__ = [
     "ConfigError",
     "DaemonConfig",
@@ -88,6 +90,11 @@ class ReconstructionConfig:
     # axes lie along the rows and columns); the answers are the same (docs/reconstruction.md,
     # "A twist the stretch cannot tell from none")
     twist_prior: TwistPrior = "open"
+    # the s.d. (relative) of a gain error every gauge shares, carried into σ: by default the
+    # gauges' hysteresis (a loop 4.21 ± 0.70 % of the excursion high reads a sheet pressed and
+    # held up to half of it low); more for gauges whose gauge factors are known less well, 0 to
+    # leave it out (docs/reconstruction.md, "A gain the gauges share")
+    gain_sd: float = HYSTERESIS_GAIN_SD
     # the full-position fit with the membrane-equilibrium prior after the default answer (sheets
     # of up to 64 cells, about a second of CPU per cold 5×5 frame: docs/reconstruction.md,
     # "Elastic films"); it needs the film's Poisson ratio
@@ -343,6 +350,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "graph_fit": _boolean,
         "twist_sign": _choice(TwistSign),
         "twist_prior": _choice(TwistPrior),
+        "gain_sd": _number(0, 0.3),
         "elastic_prior": _boolean,
         "poisson_ratio": _number(0, 0.499),
         "poisson_ratio_sd": _number(0, 0.2),

@@ -123,6 +123,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
         elastic_prior=elastic,
         poisson_range=poisson_range_for(cfg, cal),
         twist_prior=cfg.reconstruction.twist_prior,
+        gain_sd=cfg.reconstruction.gain_sd,
     )
 
 

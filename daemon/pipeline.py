@@ -21,7 +21,7 @@ import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
-from skinmap.strains import (GAUGE_LENGTH_MM, Calibration, cell_bending, cell_centres, reject_implausible_units,
+from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, Calibration, cell_bending, cell_centres, reject_implausible_units,
                              resistances_to_strains, to_nominal_offsets, turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
@@ -339,6 +339,7 @@ class FramePipeline:
         elastic_prior: Any = None,
         poisson_range: tuple[float, float] = (0.3, 0.5),
         twist_prior: str = "open",
+        gain_sd: float = HYSTERESIS_GAIN_SD,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -358,6 +359,8 @@ class FramePipeline:
         self.poisson_range = poisson_range
         # what node_sigma takes of a twist the stretch cannot tell from none (Reconstructor)
         self.twist_prior = twist_prior
+        # the s.d. of a gain error the gauges share (their hysteresis), carried into σ (Reconstructor)
+        self.gain_sd = float(gain_sd)
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -422,7 +425,7 @@ class FramePipeline:
         # chain's cold fit takes over.
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
-                             poisson_range=self.poisson_range, twist_prior=self.twist_prior)
+                             poisson_range=self.poisson_range, twist_prior=self.twist_prior, gain_sd=self.gain_sd)
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""
@@ -455,7 +458,7 @@ class FramePipeline:
         if (earlier is not None and earlier.geometry == self.geometry and earlier.convex_solver == self.convex_solver
                 and earlier.graph_fit == self.graph_fit and earlier.twist_sign == self.twist_sign
                 and earlier.elastic_prior == self.elastic_prior and earlier.poisson_range == self.poisson_range
-                and earlier.twist_prior == self.twist_prior):
+                and earlier.twist_prior == self.twist_prior and earlier.gain_sd == self.gain_sd):
             self._reconstructor = earlier._reconstructor
             self._previous = earlier._previous
             self._previous_seq = earlier._previous_seq

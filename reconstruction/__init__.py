@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from .decouple import decouple
 from .reconstructor import (
+    DEFAULT_GAIN_SD,
     DEFAULT_STRAIN_SIGMA,
     ELASTIC_PRIOR_MAX_CELLS,
     GRAPH_AGREE_SIGMAS,
@@ -35,5 +36,6 @@ from .reconstructor import (
 from .surface import Diagnostics, FrameState, Surface
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
+           "DEFAULT_GAIN_SD",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "ELASTIC_PRIOR_MAX_CELLS", "default_subdivision",
            "to_sensor_frame", "nodes_in_sensor_frame"]

@@ -54,10 +54,12 @@ from .surface import Diagnostics, FrameState, Surface
 from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, StretchPatternTwist
 from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _larger, _mean_twist_terms, _memo,
                           _widened, _with_reading_noise, _with_twist, _within_noise)
-from .uncertainty import (DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField, alignment_floor,
-                          fine_sigma, resolution_sigma, sigma_field, stretch_noise_sd)
+from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField,
+                          alignment_floor, fine_sigma, gain_sigma, resolution_sigma, sigma_field, stretch_noise_sd,
+                          with_gain)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
+           "DEFAULT_GAIN_SD",
            "GRAPH_FIT_MAX_CELLS", "GRAPH_AGREE_SIGMAS", "to_sensor_frame", "nodes_in_sensor_frame"]
 
 # The least-shear twist replaces the model's own when it needs less than this share of the
@@ -276,6 +278,12 @@ class Reconstructor(StretchPatternTwist):
         molds whose principal axes lie along the rows and columns; its σ then does not
         reach it).  Answers are the same either way (docs/reconstruction.md, "A twist the
         stretch cannot tell from none").
+    gain_sd : the s.d. (relative) of a gain error every gauge shares, carried into
+        ``node_sigma`` (not into its scatter part: it is the same on every frame of a held
+        sheet).  Default :data:`DEFAULT_GAIN_SD`, the gauges' hysteresis (a loop 4.21 ± 0.70 %
+        of the excursion high reads a sheet pressed and held up to half of it low); raise it
+        for gauges whose gauge factors are known less well, 0 leaves it out
+        (docs/reconstruction.md, "A gain the gauges share").
     """
 
     def __init__(
@@ -300,8 +308,13 @@ class Reconstructor(StretchPatternTwist):
         poisson_range: tuple[float, float] | None = (0.3, 0.5),
         warm_basin_ratio: float | None = WARM_BASIN_RATIO,
         twist_prior: str = "open",
+        gain_sd: float = DEFAULT_GAIN_SD,
     ):
         self.least_shear = bool(least_shear)
+        if (isinstance(gain_sd, bool) or not isinstance(gain_sd, (int, float)) or not math.isfinite(gain_sd)
+                or not 0.0 <= gain_sd < 0.5):
+            raise ValueError(f"gain_sd must be a number in [0, 0.5), got {gain_sd!r}")
+        self.gain_sd = float(gain_sd)
         if twist_prior not in TWIST_PRIORS:
             raise ValueError(f"twist_prior must be one of {', '.join(TWIST_PRIORS)}, got {twist_prior!r}")
         self.twist_prior = twist_prior
@@ -457,6 +470,13 @@ class Reconstructor(StretchPatternTwist):
             t_screen = time.perf_counter() - t0
             surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
                                      graph_cold)
+        if self.gain_sd > 0.0:
+            stretch = unit_data(np.asarray(eps_upper, dtype=float), np.asarray(eps_lower, dtype=float),
+                                self.h_upper, self.h_lower, self.gauge_length)[1]
+            for answer in (surf, surf.mirror):
+                if answer is not None and answer._fine_sigma_fn is not None:
+                    answer._fine_sigma_fn = with_gain(answer._fine_sigma_fn,
+                                                      partial(self._gain_map, answer._coeffs[..., 0, :], stretch))
         for answer in (surf, surf.mirror):
             if answer is not None and answer._fine_sigma_fn is not None:
                 answer._fine_sigma_fn = sigma_field(answer._fine_sigma_fn).wrapped(self._one_blas_thread)
@@ -465,6 +485,14 @@ class Reconstructor(StretchPatternTwist):
             if answer is not None and screened is not None:
                 _report_screen(answer.diagnostics, screened[0], screened[1], t_screen)
         return surf
+
+    def _gain_map(self, positions: np.ndarray, stretch: np.ndarray) -> np.ndarray:
+        """The fine-node σ of a gain error the gauges share (:func:`.uncertainty.gain_sigma`),
+        no less anywhere than its mean over the nodes: after a reference's best rigid fit the
+        sheet's centre moves by the mean of the nodes' errors too (the alignment floor, as the
+        noise's σ has it)."""
+        sigma = gain_sigma(positions, self.grid.u, self.grid.v, stretch, self.pitch, self.gain_sd)
+        return np.maximum(sigma, alignment_floor(sigma[np.ix_(self.grid.node_rows, self.grid.node_cols)]))
 
     def _screen_gauges(self, eps_upper, eps_lower, strain_sigma):
         """The gauge screen's verdict on this frame, (suspects, what it did, the strains with the
@@ -2086,6 +2114,7 @@ def reconstruct(
     twist_sign: float | None = None,
     graph_fit: bool | None = None,
     twist_prior: str = "open",
+    gain_sd: float = DEFAULT_GAIN_SD,
 ) -> Surface:
     """Reconstruct the sheet's surface from one frame of strains.
 
@@ -2095,15 +2124,15 @@ def reconstruct(
     the sign of an unobservable constant twist); ``twist_sign`` sets that sign explicitly (and
     overrides a sign the stretch pattern would fix).  ``graph_fit``: try the height-graph fit
     first (None, the default: on for sheets of up to 64 cells; see :class:`Reconstructor`).
-    ``twist_prior``: "open" (default) or "none", as :class:`Reconstructor` takes it.
-    Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower, gauge_length,
-    graph_fit, twist_prior).
+    ``twist_prior``: "open" (default) or "none", and ``gain_sd``, as :class:`Reconstructor`
+    takes them.  Geometry-dependent work is cached by (N, M, pitch, h_upper, h_lower,
+    gauge_length, graph_fit, twist_prior, gain_sd).
     """
     eu = np.asarray(eps_upper, dtype=float)
     if eu.ndim != 3 or eu.shape[0] != 2:
         raise ValueError(f"eps_upper must have shape (2, N, M), got {eu.shape}")
     key = (eu.shape[1], eu.shape[2], float(pitch), float(h_upper), float(h_lower), float(gauge_length), graph_fit,
-           twist_prior)
+           twist_prior, gain_sd)
     with _CACHE_LOCK:
         entry = _CACHE.get(key)
         if entry is not None:
@@ -2111,7 +2140,7 @@ def reconstruct(
     if entry is None:
         # built outside the lock (a second or so on large sheets); a race builds it twice
         built = (Reconstructor(eu.shape[1], eu.shape[2], pitch, h_upper, h_lower, gauge_length, graph_fit=graph_fit,
-                               twist_prior=twist_prior),
+                               twist_prior=twist_prior, gain_sd=gain_sd),
                  threading.Lock())
         with _CACHE_LOCK:
             entry = _CACHE.setdefault(key, built)

@@ -18,16 +18,23 @@ from typing import Callable, cast
 
 import numpy as np
 
+from skinmap.strains import HYSTERESIS_GAIN_SD
+
 from .grid import FineGrid
 from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
 __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
-           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor", "DEFAULT_STRAIN_SIGMA"]
+           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor", "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD",
+           "gain_sigma", "with_gain"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
 DEFAULT_STRAIN_SIGMA = 0.0057e-2
+
+#: Default s.d. (relative) of a gain error the gauges share: their hysteresis
+#: (skinmap.strains.HYSTERESIS_GAIN_SD, 0.0142; docs/reconstruction.md, "A gain the gauges share").
+DEFAULT_GAIN_SD = HYSTERESIS_GAIN_SD
 
 #: The share of :func:`resolution_sigma` that joins the general model's node_sigma where it
 #: answers (the whole term stands for a deferred frame).  Measured on kinematic sheets of 1-3
@@ -107,6 +114,60 @@ class SigmaField:
     def wrapped(self, around: Callable[[Callable], Callable]) -> "SigmaField":
         """The same map with both ways of reading it run inside ``around`` (e.g. a thread limit)."""
         return SigmaField(around(self.__call__), around(self.at) if self._at_nodes is not None else None)
+
+
+def gain_sigma(positions: np.ndarray, u: np.ndarray, v: np.ndarray, stretch: np.ndarray, pitch: float,
+               gain_sd: float) -> np.ndarray:
+    """(nf, mf) σ (mm) of the fine nodes from a gain error of s.d. ``gain_sd`` (relative) common
+    to every gauge: it scales each unit's turning and stretch alike.  ``positions`` (nf, mf, 3)
+    in the sensor frame over material coordinates ``u`` (mf,), ``v`` (nf,); ``stretch`` (2, N,
+    M) the units' stretch ratios L/g (row gauges, column gauges; 1 where missing).
+
+    To first order in the gain g a node moves by g·((2 d_x − s_u, 2 d_y − s_v), d_z), with d the
+    node's deflection from its flat place (u, v, 0): the height is linear in the curvature, the
+    in-plane pull of bending (d_xy − s) quadratic, and s, the stretch's own in-plane shift (its
+    integral along the row and the column from the sheet's centre), linear in the stretch.
+    Measured against reconstructions of strains scaled by 1.01 (docs/reconstruction.md): within
+    0.86-2 times their change in the sensor frame on kinematic and elastic spheres, cylinders,
+    saddles and bumps at 5×5 and 12×12, as large as it near the largest (0.95-1.07 on spheres
+    and cylinders)."""
+    pos = np.asarray(positions, dtype=float)
+    ext = np.asarray(stretch, dtype=float) - 1.0
+    n, m = ext.shape[1:]
+    # each fine node takes the stretch of the cell it lies in (the outer half pitch: the outer cell's)
+    cols = np.clip(np.rint(u / pitch + 0.5 * (m - 1)).astype(int), 0, m - 1)
+    rows = np.clip(np.rint(v / pitch + 0.5 * (n - 1)).astype(int), 0, n - 1)
+    e_u, e_v = ext[0][np.ix_(rows, cols)], ext[1][np.ix_(rows, cols)]
+    s_u = np.concatenate([np.zeros((len(v), 1)), np.cumsum(0.5 * (e_u[:, 1:] + e_u[:, :-1]) * np.diff(u), axis=1)], axis=1)
+    s_v = np.concatenate([np.zeros((1, len(u))), np.cumsum(0.5 * (e_v[1:] + e_v[:-1]) * np.diff(v)[:, None], axis=0)], axis=0)
+    # from the sheet's material centre (u = v = 0, the frame's origin)
+    s_u -= np.array([np.interp(0.0, u, row) for row in s_u])[:, None]
+    s_v -= np.array([np.interp(0.0, v, col) for col in s_v.T])[None, :]
+    dx = 2.0 * (pos[..., 0] - u[None, :]) - s_u
+    dy = 2.0 * (pos[..., 1] - v[:, None]) - s_v
+    return gain_sd * np.sqrt(dx * dx + dy * dy + pos[..., 2] ** 2)
+
+
+def with_gain(field: Callable[[], np.ndarray], gain: Callable[[], np.ndarray]) -> SigmaField:
+    """σ ``field`` with a gain error's σ ``gain`` (a whole-field callable, computed once on
+    first use) in quadrature, read whole or node by node as ``field`` is."""
+    base = sigma_field(field)
+    known: list[np.ndarray] = []
+
+    def gain_map() -> np.ndarray:
+        if not known:
+            known.append(gain())
+        return known[0]
+
+    def whole() -> np.ndarray:
+        out = np.hypot(base(), gain_map())
+        out.flags.writeable = False
+        return out
+
+    def at(flat: np.ndarray) -> np.ndarray:
+        return np.hypot(base.at(flat), gain_map().reshape(-1)[flat])
+
+    return SigmaField(whole, at)
 
 
 def stretch_noise_sd(strain_sigma: float, h_upper: float, h_lower: float) -> float:

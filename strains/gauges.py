@@ -30,7 +30,8 @@ import numpy as np
 
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
            "GAUGE_LENGTH_MM", "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
-           "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD"]
+           "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "HYSTERESIS_LOOP", "HYSTERESIS_LOOP_SD",
+           "HYSTERESIS_GAIN_SD"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
@@ -100,6 +101,16 @@ def to_nominal_offsets(eps_upper: np.ndarray, eps_lower: np.ndarray, h_upper: np
 
 #: The gauges' length (mm) where a device's is not given: the paper's 10 mm.
 GAUGE_LENGTH_MM = 10.0
+
+#: The gauges' hysteresis: the loop's height as a share of the strain excursion, 4.21 ± 0.70 %
+#: over 100 channels (the sensor's paper).  The loop closes at rest, so a gauge reads up to half
+#: of it off its strain: low while the strain grows from rest, high while it returns.
+HYSTERESIS_LOOP = 0.0421
+HYSTERESIS_LOOP_SD = 0.0070
+#: The s.d. of the gain error the gauges share through it (relative): gauges that move together
+#: (a sheet pressed onto a shape and held) read off the same way, by up to half a loop one s.d.
+#: high (2.5 %), a bounded error of unknown sign: a rectangular distribution's s.d. (÷ √3).
+HYSTERESIS_GAIN_SD = 0.5 * (HYSTERESIS_LOOP + HYSTERESIS_LOOP_SD) / math.sqrt(3.0)
 
 
 def grid_size(n: int, m: int) -> tuple[int, int]:

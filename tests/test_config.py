@@ -57,6 +57,8 @@ def test_defaults_are_loopback():
         ({"reconstruction": {"poisson_ratio": 0.5}}, "reconstruction.poisson_ratio", "≤ 0.499"),
         ({"reconstruction": {"elastic_prior": 1}}, "reconstruction.elastic_prior", "true or false"),
         ({"reconstruction": {"twist_prior": "zero"}}, "reconstruction.twist_prior", "one of"),
+        ({"reconstruction": {"gain_sd": 0.5}}, "reconstruction.gain_sd", "≤ 0.3"),
+        ({"reconstruction": {"gain_sd": -0.01}}, "reconstruction.gain_sd", "≥ 0"),
     ],
 )
 def test_bad_values_name_key_and_rule(doc, key, fragment):

@@ -380,3 +380,24 @@ def test_the_twist_prior_reaches_the_reconstructor_from_the_config(tmp_path):
         state.on_hello(hello)
         pipeline, _ = state.ensure_pipeline()
         assert pipeline is not None and pipeline.reconstructor.twist_prior == prior
+
+
+def test_the_gain_sd_reaches_the_reconstructor_from_the_config(tmp_path):
+    """[reconstruction] gain_sd (a gain error the gauges share, in σ: their hysteresis by
+    default) is what the gateway's reconstructor takes."""
+    import dataclasses
+
+    from skinmap.daemon.device_setup import ScannerState
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+    from skinmap.strains import HYSTERESIS_GAIN_SD
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "elastic", 20.0)
+    assert cfg.reconstruction.gain_sd == HYSTERESIS_GAIN_SD
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    for gain in (0.0, 0.05):
+        given = dataclasses.replace(cfg, reconstruction=dataclasses.replace(cfg.reconstruction, gain_sd=gain))
+        state = ScannerState(given)
+        state.on_hello(hello)
+        pipeline, _ = state.ensure_pipeline()
+        assert pipeline is not None and pipeline.reconstructor.gain_sd == gain

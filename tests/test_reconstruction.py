@@ -230,11 +230,13 @@ def test_dead_gauge_gives_a_valid_surface_with_raised_uncertainty():
     # the general model's linear propagation: never lower anywhere (on a sphere, whose
     # curvature does not change: no resolution term to compare as well, and whose curvature
     # product leaves no twist open; told it carries none, as its stretch cannot tell a dome's
-    # twist from none: test_reconstruction_sigma.py)
+    # twist from none: test_reconstruction_sigma.py; and without the gauges' shared gain, the
+    # same with a dead gauge or not: test_reconstruction_gain.py)
     eu_c, el_c = strains(ph.SphereCap(radius=80.0))
-    full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none")
+    full_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none", gain_sd=0.0)
     eu_c[0, 1, 3] = np.nan
-    raised_g = reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none").node_sigma - full_g.node_sigma
+    raised_g = (reconstruct(eu_c, el_c, PITCH, graph_fit=False, twist_prior="none", gain_sd=0.0).node_sigma
+                - full_g.node_sigma)
     assert np.all(raised_g >= -1e-12) and raised_g[1, 4] > 5 * full_g.node_sigma[1, 4]
 
 
@@ -254,8 +256,8 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     # the noise's, test_reconstruction_sigma.py)
     shape = ph.SphereCap(radius=80.0)
     eu, el = strains(shape)
-    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False, twist_prior="none")
-    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False, twist_prior="none")
+    base = reconstruct(eu, el, PITCH, strain_sigma=NOISE, graph_fit=False, twist_prior="none", gain_sd=0.0)
+    double = reconstruct(eu, el, PITCH, strain_sigma=2 * NOISE, graph_fit=False, twist_prior="none", gain_sd=0.0)
     assert base.diagnostics.extra["chi2_per_gauge"] < 1.0
     # the frame pins the centre node (no scatter there); node_sigma keeps the alignment floor
     # there too, the mean over the nodes (an aligned reference shares their centroid instead)
@@ -270,7 +272,7 @@ def test_uncertainty_scales_with_noise_and_matches_monte_carlo():
     rng = np.random.default_rng(2)
     runs = np.array(
         [reconstruct(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), PITCH, graph_fit=False,
-                     twist_prior="none").nodes for _ in range(40)]
+                     twist_prior="none", gain_sd=0.0).nodes for _ in range(40)]
     )
     # empirical one-s.d. scatter of the corner nodes (all runs share the sensor frame)
     scatter = np.sqrt((np.linalg.norm(runs - runs.mean(0), axis=-1) ** 2).mean(0))

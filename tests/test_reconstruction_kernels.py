@@ -73,7 +73,7 @@ def test_all_valid_uncertainty_is_shared_per_noise_level(surfaces):
     # misfit): the noise map alone, computed once per mask and noise level
     # (told it carries no twist: a 3×3 sheet has too few units for the stretch to be read, and a
     # dome's twist would be left open, a term the same at every noise level)
-    rec = Reconstructor(3, 3, 12.0, twist_prior="none")
+    rec = Reconstructor(3, 3, 12.0, twist_prior="none", gain_sd=0.0)
     eu, el = ph.gauge_strains(ph.SphereCap(150.0), 3, 3, 12.0, 0.2, 0.2, 10.0)  # no twist the noise leaves open
     a, b = rec(eu, el), rec(0.5 * eu, 0.5 * el)
     assert a.diagnostics.extra["chi2_per_gauge"] < 1.0 and b.diagnostics.extra["chi2_per_gauge"] < 1.0
