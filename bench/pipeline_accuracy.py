@@ -15,10 +15,12 @@ units read at one instant here, so that a moving shape has one truth a frame):
 Shapes (kinematic, ``skinmap.emulator.physics``): the palm gesture (flat → cylinder → bump →
 saddle, held 1 s each, 1 s transitions), its radii and bump width grown with the sheet; and the
 same shapes held still after a press from flat (``--held``): the gauges' hysteresis reads them
-on its loading branch, about 2 % low (docs/reconstruction.md, "A gain the gauges share").
+on its loading branch, about 2 % low (docs/reconstruction.md, "A gain the gauges share"); with
+``--mechanics elastic`` the held shapes are elastic films laminated on molds of those shapes
+(``skinmap.emulator.scenes``, solved once and cached).
 
     .venv/bin/python bench/pipeline_accuracy.py [--sizes 5,8,12,16] [--outputs 0,10] [--seconds 8]
-        [--hysteresis on,off] [--held]
+        [--hysteresis on,off] [--held [--mechanics elastic]]
 """
 from __future__ import annotations
 
@@ -37,6 +39,7 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 from reconstruction import node_errors  # noqa: E402
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
+from skinmap.emulator import scenes  # noqa: E402
 from skinmap.emulator.device import Device, ScannerSpec  # noqa: E402
 from skinmap.emulator.electrical import ElectricalConfig  # noqa: E402
 from skinmap.strains import Calibration  # noqa: E402
@@ -109,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=8.0, help="seconds of the gesture (one cycle: 8)")
     ap.add_argument("--hysteresis", default="on,off", help="the gauges' hysteresis: on, off or both")
     ap.add_argument("--held", action="store_true", help="shapes pressed from flat over 1 s and held 2 s instead")
+    ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
+                    help="the held shapes as kinematic sheets or elastic films on molds")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
@@ -119,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
           f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'deferred':>8s} {'s':>5s}")
     for n in sizes:
-        cases = ([(label, ph.parse_shape_spec(spec), 3.0, 1.0) for label, spec in held_specs(n)] if args.held
+        cases = ([(label, scenes.parse_scene_spec(spec, args.mechanics, n, n, 12.0), 3.0, 1.0)
+                  for label, spec in held_specs(n)] if args.held
                  else [("palm", ph.parse_shape_spec(palm_spec(n)), args.seconds, 0.0)])
         for label, shape, seconds, ramp in cases:
             for output in outputs:

@@ -31,16 +31,23 @@ def test_the_default_is_half_the_hysteresis_loop_one_sd_high_as_a_rectangular_sd
             Reconstructor(5, 5, gain_sd=bad)
 
 
-@pytest.mark.parametrize("n, spec", [(5, "sphere:radius=60"), (5, "cylinder:radius=40,axis_angle=30"),
-                                     (5, "saddle:radius=80,axis_angle=20"), (5, "gaussian:height=4,fwhm=20,u0=6,v0=-4"),
-                                     (12, "cylinder:radius=96")])
-def test_the_gain_term_follows_the_reconstruction_of_strains_scaled_by_a_common_gain(n: int, spec: str) -> None:
+@pytest.mark.parametrize("n, spec, mechanics", [
+    (5, "sphere:radius=60", "kinematic"), (5, "cylinder:radius=40,axis_angle=30", "kinematic"),
+    (5, "saddle:radius=80,axis_angle=20", "kinematic"), (5, "gaussian:height=4,fwhm=20,u0=6,v0=-4", "kinematic"),
+    (12, "cylinder:radius=96", "kinematic"), (5, "sphere:radius=70,prestretch=0.05", "elastic"),
+    (5, "saddle:radius=80,axis_angle=20", "elastic"), (5, "gaussian:height=4,fwhm=20,u0=6,v0=-4", "elastic")])
+def test_the_gain_term_follows_the_reconstruction_of_strains_scaled_by_a_common_gain(n: int, spec: str,
+                                                                                    mechanics: str) -> None:
     """σ's gain part (node_sigma² with the gain less node_sigma² without it, over gain_sd²) against
     what a gain of 1 % does to the answer in the sensor frame, raised to its mean over the nodes
-    as σ's part is (the alignment floor): within 0.8-2.6 times it where that is at least a fifth
+    as σ's part is (the alignment floor): within 0.8-3.5 times it where that is at least a fifth
     of its largest (the first-order model: heights linear in the curvature, the in-plane pull of
-    bending quadratic, the stretch's own shift linear)."""
-    eu, el = ph.gauge_strains(ph.parse_shape_spec(spec), n, n, PITCH)
+    bending quadratic, the stretch's own shift linear; measured 0.90-2.14 on the kinematic
+    sheets, 0.92-3.36 on the elastic films, the most on the saddle, least tight where the
+    in-plane pull and the stretch's shift partly cancel)."""
+    from skinmap.emulator import scenes
+
+    eu, el = ph.gauge_strains(scenes.parse_scene_spec(spec, mechanics, n, n, PITCH), n, n, PITCH)
     plain = Reconstructor(n, n, twist_prior="none", gain_sd=0.0)
     with_gain = Reconstructor(n, n, twist_prior="none", gain_sd=0.02)
     base = plain(eu, el)
@@ -51,7 +58,7 @@ def test_the_gain_term_follows_the_reconstruction_of_strains_scaled_by_a_common_
     moved = np.maximum(moved, moved.mean())
     big = moved >= 0.2 * moved.max()
     ratio = part[big] / moved[big]
-    assert ratio.min() >= 0.8 and ratio.max() <= 2.6, (ratio.min(), ratio.max())
+    assert ratio.min() >= 0.8 and ratio.max() <= 3.5, (ratio.min(), ratio.max())
 
 
 @pytest.mark.parametrize("n, spec", [(5, "cylinder:radius=40"), (12, "saddle:radius=144"),
