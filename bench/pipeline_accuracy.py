@@ -112,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=8.0, help="seconds of the gesture (one cycle: 8)")
     ap.add_argument("--hysteresis", default="on,off", help="the gauges' hysteresis: on, off or both")
     ap.add_argument("--held", action="store_true", help="shapes pressed from flat over 1 s and held 2 s instead")
+    ap.add_argument("--shape", default=None,
+                    help="a moving shape spec instead of the palm gesture (skinmap.emulator.physics), as given at every size")
     ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
                     help="the held shapes as kinematic sheets or elastic films on molds")
     args = ap.parse_args(argv)
@@ -126,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     for n in sizes:
         cases = ([(label, scenes.parse_scene_spec(spec, args.mechanics, n, n, 12.0), 3.0, 1.0)
                   for label, spec in held_specs(n)] if args.held
+                 else [(args.shape.split(":")[0], ph.parse_shape_spec(args.shape), args.seconds, 0.0)] if args.shape
                  else [("palm", ph.parse_shape_spec(palm_spec(n)), args.seconds, 0.0)])
         for label, shape, seconds, ramp in cases:
             for output in outputs:

@@ -225,6 +225,9 @@ class GraphFit:
         nbu, nbv = self.nbu, self.nbv
         self.size = nc = nbu * nbv
         uc, vc = cell_axes(n, m, pitch)
+        # the units' mean squared distance from the centre across their gauges: a twist τ stretches
+        # a row gauge by τ²v²/2 and a column gauge by τ²u²/2
+        self._mean_cross2 = 0.5 * (float(np.mean(vc * vc)) + float(np.mean(uc * uc)))
         xq, wq = np.polynomial.legendre.leggauss(_QUADRATURE[0])
         panels = _QUADRATURE[1]
         s = np.concatenate([((p + (xq + 1.0) / 2.0) / panels - 0.5) * gauge_length for p in range(panels)])
@@ -527,6 +530,29 @@ class GraphFit:
                 c = predicted
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
+
+    def warm_screen(self, c: np.ndarray, data: tuple) -> tuple[str, tuple[list, list[str]]]:
+        """Why the warm graph ``c`` cannot stand ('' where it may), and the cold fit's linear start
+        (:meth:`cold_starts` without the general model's surface: a refused frame's cold fit
+        takes it).  Where the screen of the turning's linear start finds the gauges stretched with
+        slopes too small to stretch them (``stretch above: small slopes``), only a twist, which
+        the turning does not see, could make the sheet a graph; a warm graph whose own twist
+        stretches it by less than the screen's floor explains that stretch with structure
+        between the gauges instead.  On a membrane pulled flat by its frame as two fingertips
+        released it (8×8, each frame warm from the one before) the warm graphs read the gauges
+        within the noise, twist 1-4·10⁻⁵ /mm, while their nodes went 0.05 → 0.25 mm off with
+        σ 0.06 (6.9 times 3σ + 0.05 mm); a cold fit of the same frames is screened out."""
+        linear = self.cold_starts(data)
+        reason = linear[1][0]
+        if reason != f"{_MORE_STRETCH} small slopes":
+            return "", linear
+        sigma_s = float(data[7])
+        tau = float(self._twist @ c)
+        twist_stretch = 0.5 * tau * tau * self._mean_cross2
+        if twist_stretch >= _SCREEN_SIGMAS * sigma_s:
+            return "", linear
+        return (f"{reason}, and the graph's own twist stretches it by {twist_stretch / sigma_s:.2g} noise s.d.",
+                linear)
 
     def cold_starts(self, data: tuple, general: np.ndarray | None = None,
                     linear: tuple[list, list[str]] | None = None) -> tuple[list, list[str]]:

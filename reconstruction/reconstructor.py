@@ -608,6 +608,7 @@ class Reconstructor(StretchPatternTwist):
             sig_s = self._stretch_sd(fit_sigma)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             state = previous.state if previous is not None and graph_warm else None
+            warm_linear = None  # the cold fit's linear start, where the warm fit's screen made it
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
                 graph = self._graph.fit_warm(data, warm, twist_sign)
@@ -617,12 +618,16 @@ class Reconstructor(StretchPatternTwist):
                     graph = graph._replace(accepted=False, how=(
                         f"warm: objective {graph.objective:.4g}, {graph.objective / reference:.3g} times the chain's "
                         "cold fit's (another basin)"))
+                if graph.accepted:
+                    why, warm_linear = self._graph.warm_screen(graph.coeffs, data)
+                    if why:
+                        graph = graph._replace(accepted=False, how=f"warm: {why}")
             if self.graph_rescue and (graph is None or not graph.accepted):
                 # a larger sheet: the general model answers first, and the graph is fitted cold
                 # only where that answer misfits the gauges (below)
                 rescue = True
-            linear = (self._graph.cold_starts(data) if (graph is None or not graph.accepted) and not rescue
-                      else None)
+            linear = ((warm_linear if warm_linear is not None else self._graph.cold_starts(data))
+                      if (graph is None or not graph.accepted) and not rescue else None)
             ruled_out = self._graph.ruled_out(linear) if linear is not None else None
             if ruled_out is not None:
                 # no graph can answer (the screen needs no start but the linear one): the general
