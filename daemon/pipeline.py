@@ -21,8 +21,8 @@ import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
-from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, Calibration, cell_bending, cell_centres, reject_implausible_units,
-                             resistances_to_strains, to_nominal_offsets, turning_noise_rad)
+from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, Calibration, cell_bending, cell_centres,
+                             reject_implausible_units, resistances_to_strains, to_nominal_offsets, turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
            "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "graph_restart",

@@ -225,8 +225,8 @@ class GraphFit:
         nbu, nbv = self.nbu, self.nbv
         self.size = nc = nbu * nbv
         uc, vc = cell_axes(n, m, pitch)
-        # the units' mean squared distance from the centre across their gauges: a twist τ stretches
-        # a row gauge by τ²v²/2 and a column gauge by τ²u²/2
+        # a twist τ stretches a row gauge by τ²v²/2 and a column gauge by τ²u²/2: their mean over
+        # the units is τ²/2 times this (the mean of v² and u² over the cells' centres)
         self._mean_cross2 = 0.5 * (float(np.mean(vc * vc)) + float(np.mean(uc * uc)))
         xq, wq = np.polynomial.legendre.leggauss(_QUADRATURE[0])
         panels = _QUADRATURE[1]

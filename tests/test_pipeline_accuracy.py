@@ -10,6 +10,7 @@ from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackgrou
 from skinmap.emulator import physics as ph
 from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
+from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.strains import Calibration
 
 SCAN_RATE = 50.0
@@ -17,12 +18,7 @@ SCAN_RATE = 50.0
 
 def node_errors(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Per-node distances after the best rigid alignment (Kabsch), as aligned_error averages them."""
-    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
-    pc, qc = p - p.mean(axis=0), q - q.mean(axis=0)
-    u, _, vt = np.linalg.svd(pc.T @ qc)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return np.linalg.norm(pc @ rot.T - qc, axis=1)
+    return aligned_distances(np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3))
 
 
 def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: ElectricalConfig) -> list[tuple]:

@@ -9,6 +9,7 @@ from conftest import frame_errors
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import DEFAULT_GAIN_SD, Reconstructor, reconstruct
+from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.strains import HYSTERESIS_GAIN_SD, HYSTERESIS_LOOP
 
 PITCH = 12.0
@@ -17,11 +18,7 @@ NOISE = 5.7e-5
 
 def aligned(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Per-node distances after the best rigid alignment (Kabsch)."""
-    p, q = nodes.reshape(-1, 3), truth.reshape(-1, 3)
-    pc, qc = p - p.mean(axis=0), q - q.mean(axis=0)
-    u, _, vt = np.linalg.svd(pc.T @ qc)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    return np.linalg.norm(pc @ (vt.T @ np.diag([1.0, 1.0, d]) @ u.T).T - qc, axis=1)
+    return aligned_distances(np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3))
 
 
 def test_the_default_is_half_the_hysteresis_loop_one_sd_high_as_a_rectangular_sd():
