@@ -141,12 +141,20 @@ def gain_sigma(positions: np.ndarray, u: np.ndarray, v: np.ndarray, stretch: np.
     e_u, e_v = ext[0][np.ix_(rows, cols)], ext[1][np.ix_(rows, cols)]
     s_u = np.concatenate([np.zeros((len(v), 1)), np.cumsum(0.5 * (e_u[:, 1:] + e_u[:, :-1]) * np.diff(u), axis=1)], axis=1)
     s_v = np.concatenate([np.zeros((1, len(u))), np.cumsum(0.5 * (e_v[1:] + e_v[:-1]) * np.diff(v)[:, None], axis=0)], axis=0)
-    # from the sheet's material centre (u = v = 0, the frame's origin)
-    s_u -= np.array([np.interp(0.0, u, row) for row in s_u])[:, None]
-    s_v -= np.array([np.interp(0.0, v, col) for col in s_v.T])[None, :]
+    # from the sheet's material centre (u = v = 0, the frame's origin), linear between the nodes about it
+    s_u -= _at_zero(u, s_u, axis=1)[:, None]
+    s_v -= _at_zero(v, s_v, axis=0)[None, :]
     dx = 2.0 * (pos[..., 0] - u[None, :]) - s_u
     dy = 2.0 * (pos[..., 1] - v[:, None]) - s_v
     return gain_sd * np.sqrt(dx * dx + dy * dy + pos[..., 2] ** 2)
+
+
+def _at_zero(x: np.ndarray, f: np.ndarray, axis: int) -> np.ndarray:
+    """``f`` interpolated linearly along ``axis`` at x = 0 (``x`` increasing, spanning 0)."""
+    k = int(np.clip(np.searchsorted(x, 0.0) - 1, 0, len(x) - 2))
+    w = (0.0 - x[k]) / (x[k + 1] - x[k])
+    lo, hi = np.take(f, k, axis=axis), np.take(f, k + 1, axis=axis)
+    return lo + w * (hi - lo)
 
 
 def with_gain(field: Callable[[], np.ndarray], gain: Callable[[], np.ndarray]) -> SigmaField:
