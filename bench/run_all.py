@@ -13,6 +13,7 @@ RUNS = [
     ["mechanics.py", "--sizes", "5"],
     ["reconstruction.py", "--quick"],
     ["latency.py", "--seconds", "15"],
+    ["pipeline_accuracy.py", "--sizes", "5,8", "--outputs", "10"],
     ["soak.py", "--seconds", "60"],
 ]
 
