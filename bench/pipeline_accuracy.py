@@ -60,7 +60,8 @@ def held_specs(n: int) -> list[tuple[str, str]]:
     """Shapes pressed from flat and held: (label, spec with a ramp from flat over 1 s)."""
     s = n / 5.0
     return [("cylinder", f"cylinder:radius={50 * s:g}"), ("sphere", f"sphere:radius={70 * s:g}"),
-            ("saddle", f"saddle:radius={80 * s:g},axis_angle=20"), ("bump", f"gaussian:height=4,fwhm={20 * min(s, 2):g}")]
+            ("saddle", f"saddle:radius={80 * s:g},axis_angle=20"),
+            ("bump", f"gaussian:height=4,fwhm={20 * min(s, 2):g}")]
 
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
@@ -113,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hysteresis", default="on,off", help="the gauges' hysteresis: on, off or both")
     ap.add_argument("--held", action="store_true", help="shapes pressed from flat over 1 s and held 2 s instead")
     ap.add_argument("--shape", default=None,
-                    help="a moving shape spec instead of the palm gesture (skinmap.emulator.physics), as given at every size")
+                    help="a moving shape spec instead of the palm gesture (skinmap.emulator.physics), "
+                         "as given at every size")
     ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
                     help="the held shapes as kinematic sheets or elastic films on molds")
     args = ap.parse_args(argv)

@@ -115,8 +115,9 @@ GRAPH_RESCUE_CHI2 = 8.0
 #: ``Reconstructor(warm_basin_ratio=...)``, and skinmapd's: its chains' cold restart every 64
 #: scans does not bound the wander, daemon/pipeline.py).  Broad shapes moving on an ellipse over
 #: 5×5, 100 noisy frames each warm from the one before (bench/reconstruction.py, *Warm chains*):
-#: 0.051 / 0.153 / 0.087 mm mean with 74 / 75 / 58 frames beyond 3σ + 0.05 mm, now 0.010 / 0.018 / 0.025 mm with 0 / 0 / 11 (each
-#: frame cold: 0.011 / 0.018 / 0.015, 0 / 0 / 2), 1-4 cold refits a chain; a sharp bump moving
+#: 0.051 / 0.153 / 0.087 mm mean with 74 / 75 / 58 frames beyond 3σ + 0.05 mm, now 0.010 /
+#: 0.018 / 0.025 mm with 0 / 0 / 11 (each frame cold: 0.011 / 0.018 / 0.015, 0 / 0 / 2), 1-4
+#: cold refits a chain; a sharp bump moving
 #: over 12×12 and 16×16 never reaches it (docs/reconstruction.md, "Long warm chains").  The
 #: objective at the optimum scatters with the noise (a 7×7 chain's cold fits 8.6–18.7), so a
 #: ratio much below 2 refits on noise alone.

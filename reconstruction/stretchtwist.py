@@ -261,9 +261,10 @@ class StretchPatternTwist:
         least-shear prior decides) and, unless something refines the reading, the twists it
         allows join σ (:meth:`_open_to_top`).  Else the membrane's reading is refined on the
         answer's own family with each member's exact Gaussian curvature
-        (:meth:`_refine_twist`); an answer off the estimate is modelled afresh there.  The sign is not read from the stretch: of the
-        two signs the one whose surface explains the stretch pattern better is the answer (by
-        twice the misfit, for an answer that had a sign of its own), the other the mirror unless
+        (:meth:`_refine_twist`); an answer off the estimate is modelled afresh there.  The sign
+        is not read from the stretch: of the two signs the one whose surface explains the stretch
+        pattern better is the answer (by twice the misfit, for an answer that had a sign of its
+        own), the other the mirror unless
         the gauges reject it (χ² worse by ``tell`` and by the answer's own misfit: the forward
         model is kinematic, the film is not); the interval's ends are the twist's spread in
         ``node_sigma``.  ``twist_mean``: the answer's mean twist over the cells (at zero shift
@@ -280,8 +281,8 @@ class StretchPatternTwist:
             twist_mean = float(np.asarray(product_fields[2])[self.grid.inner].mean()) + c0 - base_shift
         m0 = twist_mean + base_shift  # the answer's (a swapped mirror sits at base_shift on the family)
         if reading is None:
-            return self._unread_twist(surf, mirror, m0, base_shift, positions_at, twist_sign, stretch, valid, fields_read,
-                                      sigma_f, chi0, info)
+            return self._unread_twist(surf, mirror, m0, base_shift, positions_at, twist_sign, stretch, valid,
+                                      fields_read, sigma_f, chi0, info)
         m_lo, m_hi, magnitude = reading.low, reading.high, reading.twist
         # a twist below the mirror floor bends nothing the elements would see
         if m_hi * self._half_diagonal2 / 2.0 <= MIRROR_FLOOR_MM:

@@ -139,8 +139,11 @@ def gain_sigma(positions: np.ndarray, u: np.ndarray, v: np.ndarray, stretch: np.
     cols = np.clip(np.rint(u / pitch + 0.5 * (m - 1)).astype(int), 0, m - 1)
     rows = np.clip(np.rint(v / pitch + 0.5 * (n - 1)).astype(int), 0, n - 1)
     e_u, e_v = ext[0][np.ix_(rows, cols)], ext[1][np.ix_(rows, cols)]
-    s_u = np.concatenate([np.zeros((len(v), 1)), np.cumsum(0.5 * (e_u[:, 1:] + e_u[:, :-1]) * np.diff(u), axis=1)], axis=1)
-    s_v = np.concatenate([np.zeros((1, len(u))), np.cumsum(0.5 * (e_v[1:] + e_v[:-1]) * np.diff(v)[:, None], axis=0)], axis=0)
+    # (the trapezoid rule along the rows and the columns)
+    s_u = np.zeros(e_u.shape)
+    s_u[:, 1:] = np.cumsum(0.5 * (e_u[:, 1:] + e_u[:, :-1]) * np.diff(u), axis=1)
+    s_v = np.zeros(e_v.shape)
+    s_v[1:] = np.cumsum(0.5 * (e_v[1:] + e_v[:-1]) * np.diff(v)[:, None], axis=0)
     # from the sheet's material centre (u = v = 0, the frame's origin), linear between the nodes about it
     s_u -= _at_zero(u, s_u, axis=1)[:, None]
     s_v -= _at_zero(v, s_v, axis=0)[None, :]

@@ -168,14 +168,19 @@ def pipeline_sheet(n: int = 5, m: int = 5, pitch: float = 12.0) -> tuple[Any, An
     return ArrayGeometry(n, m, pitch, 0.2, 0.2), elements, gf, r0
 
 
-def aligned_error(nodes: Any, truth: Any) -> float:
-    """Mean node error after the best rigid alignment (Kabsch)."""
+def aligned_node_errors(nodes: Any, truth: Any) -> Any:
+    """Every node's error (K,) after the best rigid alignment (Kabsch) of ``nodes`` onto ``truth``."""
     import numpy as np
 
     from skinmap.reconstruction.linalg import aligned_distances
 
     p, q = np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3)
-    return float(aligned_distances(p, q).mean())
+    return aligned_distances(p, q)
+
+
+def aligned_error(nodes: Any, truth: Any) -> float:
+    """Mean node error after the best rigid alignment (Kabsch)."""
+    return float(aligned_node_errors(nodes, truth).mean())
 
 
 def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:

@@ -5,20 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import aligned_node_errors
 
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground
 from skinmap.emulator import physics as ph
 from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
-from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.strains import Calibration
 
 SCAN_RATE = 50.0
-
-
-def node_errors(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Per-node distances after the best rigid alignment (Kabsch), as aligned_error averages them."""
-    return aligned_distances(np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3))
 
 
 def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: ElectricalConfig,
@@ -50,7 +45,7 @@ def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: E
         truth = ph.ground_truth(shape, n, n, scanner.pitch_mm, t=t).nodes
         mirror = result.surface.mirror
         answers = [result.nodes_mm] + ([mirror.nodes] if mirror is not None else [])
-        e = min((node_errors(a, truth) for a in answers), key=lambda x: float(x.mean()))
+        e = min((aligned_node_errors(a, truth) for a in answers), key=lambda x: float(x.mean()))
         rows.append((t, float(np.max(e / (3.0 * result.node_sigma_mm.reshape(-1) + 0.05))), float(e.mean())))
     return rows
 
@@ -64,7 +59,8 @@ def test_an_8x8_sheet_turning_from_a_bump_into_a_saddle_stays_within_3_sigma_thr
     3σ + 0.05 mm off at 5.42 s; 0.62 at most with it."""
     rows = run_pipeline(8, "palm:radius=64,fwhm=38.4", 0.0, 5.6, ElectricalConfig().without("hysteresis"))
     worst = max(rows, key=lambda r: r[1])
-    assert worst[1] <= 1.0, f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm (mean {worst[2]:.3f} mm)"
+    assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
+                             f"(mean {worst[2]:.3f} mm)")
     assert np.mean([r[2] for r in rows]) < 0.05
 
 
@@ -77,4 +73,5 @@ def test_a_saddle_pressed_from_flat_and_held_through_the_gauges_hysteresis_is_wi
     rows = run_pipeline(8, "saddle:radius=128,axis_angle=20", 0.0, 3.0, ElectricalConfig(), every=5, ramp_s=1.0)
     assert len(rows) >= 15
     worst = max(rows, key=lambda r: r[1])
-    assert worst[1] <= 1.0, f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm (mean {worst[2]:.3f} mm)"
+    assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
+                             f"(mean {worst[2]:.3f} mm)")

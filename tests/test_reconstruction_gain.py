@@ -5,20 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import frame_errors
+from conftest import aligned_node_errors, frame_errors
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import DEFAULT_GAIN_SD, Reconstructor, reconstruct
-from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.strains import HYSTERESIS_GAIN_SD, HYSTERESIS_LOOP
 
 PITCH = 12.0
 NOISE = 5.7e-5
-
-
-def aligned(nodes: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Per-node distances after the best rigid alignment (Kabsch)."""
-    return aligned_distances(np.asarray(nodes, dtype=float).reshape(-1, 3), np.asarray(truth, dtype=float).reshape(-1, 3))
 
 
 def test_the_default_is_half_the_hysteresis_loop_one_sd_high_as_a_rectangular_sd():
@@ -74,7 +68,7 @@ def test_a_sheet_read_half_a_hysteresis_loop_off_on_every_gauge_is_within_3_sigm
         surf = rec(gain * eu + rng.normal(0.0, NOISE, eu.shape), gain * el + rng.normal(0.0, NOISE, el.shape))
         bound = 3.0 * surf.node_sigma.reshape(-1) + 0.05
         answers = [surf] + ([surf.mirror] if surf.mirror is not None else [])
-        worst = min(max(float(np.max(aligned(a.nodes, truth) / bound)),
+        worst = min(max(float(np.max(aligned_node_errors(a.nodes, truth) / bound)),
                         float(np.max(frame_errors(shape, a, rec.grid).reshape(-1) / bound))) for a in answers)
         assert worst <= 1.0, (gain, worst)
 

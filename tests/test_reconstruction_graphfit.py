@@ -420,7 +420,7 @@ def test_a_warm_graph_whose_stretch_its_slopes_and_twist_cannot_make_is_refused(
     0.25 mm off with σ 0.06, 6.9 times 3σ + 0.05 mm; refused, the frames are the general
     model's, within the bound."""
     n = 8
-    from skinmap.reconstruction.linalg import aligned_distances
+    from conftest import aligned_node_errors
 
     shape = ph.parse_shape_spec("membrane:fingers=2,half_u=54,half_v=54")
     rec = Reconstructor(n, n, PITCH, H, H, G)
@@ -431,7 +431,7 @@ def test_a_warm_graph_whose_stretch_its_slopes_and_twist_cannot_make_is_refused(
         prev = rec(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), previous=prev)
         # (a refused frame's cold fit is screened out as well: the general model answers)
         refused += t > 1.65 and prev.diagnostics.extra["model"] == "general"
-        err = aligned_distances(prev.nodes.reshape(-1, 3), ph.ground_truth(shape, n, n, PITCH, t=t).nodes.reshape(-1, 3))
+        err = aligned_node_errors(prev.nodes, ph.ground_truth(shape, n, n, PITCH, t=t).nodes)
         worst = max(worst, float(np.max(err / (3.0 * prev.node_sigma.reshape(-1) + 0.05))))
     assert refused >= 1
     assert worst <= 1.0, worst

@@ -269,7 +269,8 @@ def noisy_frames_within_3_sigma_in_frame(spec: str, n: int, seed: int, frames: i
     for _ in range(frames):
         surf = rec(eu + rng.normal(0.0, 5.7e-5, eu.shape), el + rng.normal(0.0, 5.7e-5, el.shape))
         err = frame_errors(shape, surf, rec.grid)
-        assert within_3_sigma_in_frame(shape, surf, rec.grid), (err.max(), surf.node_sigma.max(), surf.diagnostics.extra)
+        assert within_3_sigma_in_frame(shape, surf, rec.grid), (err.max(), surf.node_sigma.max(),
+                                                                 surf.diagnostics.extra)
         count += any(key in surf.diagnostics.extra for key in keys)
     return count
 
