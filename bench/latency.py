@@ -175,7 +175,7 @@ def stage_table(trace: dict, received_ns: dict[int, int]) -> list[str]:
     kinds: dict[str, int] = {}
     for f in frames:
         how = f.get("graph", "")
-        key = ("deferred" if how.startswith("deferred") else how if how in ("warm", "linear", "general") else
+        key = ("deferred" if how.startswith("deferred") else how if how in ("warm", "warm: linear start", "linear", "general") else
                "not a graph" if how else "-")
         kinds[key] = kinds.get(key, 0) + 1
     lines.append("  graph fit per frame: " + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())))

@@ -54,7 +54,8 @@ from skinmap.strains import cell_axes
 from .linalg import aligned_distances
 from .uncertainty import plane_slopes
 
-__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "disagreement",
+__all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "WARM_LINEAR",
+           "WARM_UNSETTLED", "disagreement",
            "KNOTS_PER_PITCH", "COARSE_KNOTS_CELLS", "knots_per_pitch"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
@@ -131,6 +132,22 @@ _SCREEN_RATIO = (0.5, 8.0)
 _MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
 _BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ from the band factor, J sparse
+#: A warm fit whose Gauss-Newton step still to take is longer than this, squared, in its own
+#: posterior s.d. (the Newton decrement on the last matrix factorised, :meth:`GraphFit._descend`;
+#: 3: the 3σ of the error bound) has not followed the shape, and the basin its chain holds may not
+#: be the one a fresh start finds: the linear start is then descended as well, as a cold fit
+#: descends it, and the lower objective answers (how: :data:`WARM_LINEAR`; the chain keeps its
+#: basin test's yardstick).  Fingertips releasing a 5×5 membrane (``membrane:fingers=2``), each
+#: scan warm from the one before: the warm graphs lagged into another basin (turning χ² 0.2-0.9
+#: against a cold fit's 0.003-0.03, objectives 37-230 above the linear start's), frames beyond
+#: 3σ + 0.05 mm up to 1.31 times; with the linear start beside the warm one where the step left
+#: is longer than 3 s.d., over 6 noise seeds: every scan 56 of 2400 frames → 8 (worst 1.34 →
+#: 1.14), at 10 Hz 8 of 480 → 0 (1.10 → 0.60).  The linear start's descent costs about four warm
+#: fits (5×5: 2.7 ms, 8×8: 6.4); on sheets above :data:`MAX_CELLS`, where the graph answers only
+#: as a rescue, it would cost 19 ms (12×12) and changed nothing measured, so they keep the warm
+#: answer (and its basin test).
+WARM_UNSETTLED = 9.0
+WARM_LINEAR = "warm: linear start"
 
 
 class GraphResult(NamedTuple):
@@ -453,13 +470,15 @@ class GraphFit:
 
     def _descend(self, c, turning, stretch, w_t, w_s, n_valid: int, max_steps: int, curvature=(0.0, 0.0),
                  reuse: float = _REUSE_RATIO, curvature_near: float | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float, float]:
         """Gauss-Newton with a backtracking line search.  The factorised matrix is reused for the
         next step while the steps keep shrinking (by at least the factor ``reuse``: it changes
         little near the optimum) and refreshed otherwise or when a step with it fails.  Given
         ``curvature_near``, once the objective is below that many times ``n_valid`` the matrix also takes the
         stretch residuals' own curvature where it adds to JᵀJ (:data:`_NEAR_CURVATURE`).  Returns
-        (c, rt, rs, steps, the objective)."""
+        (c, rt, rs, steps, the objective, the step still to take): the last as gᵀH⁻¹g, the
+        gradient at c on the last matrix factorised (the Newton decrement: the step's squared
+        length in the fit's posterior s.d.; inf if the matrix was not definite)."""
         g = len(turning)
         f0, grad, res, factor = self._evaluate(c, turning, stretch, w_t, w_s, True, curvature)
         fresh, last = True, math.inf
@@ -502,7 +521,8 @@ class GraphFit:
             else:
                 fresh = False
             last = drop
-        return c, res[:g], res[g:], steps, f0
+        left = math.inf if factor is None else float(grad @ self._solve(factor, grad))
+        return c, res[:g], res[g:], steps, f0, left
 
     def prepare(self, turning: np.ndarray, stretch: np.ndarray, valid: np.ndarray, sigma_t: float,
                 sigma_s: float) -> tuple:
@@ -517,7 +537,9 @@ class GraphFit:
     def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None) -> GraphResult:
         """A few Gauss-Newton steps from the previous frame's accepted graph: ``start`` =
         (its coefficients, those of the graph before it or None).  For a shape in motion the
-        linear prediction from the two is tried first."""
+        linear prediction from the two is tried first.  Where the steps stop with more than
+        :data:`WARM_UNSETTLED` still to take, the linear start is descended too (sheets of up to
+        :data:`MAX_CELLS` cells) and the lower objective answers."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
             raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")
@@ -529,7 +551,20 @@ class GraphFit:
                     < self._objective(c, turning, stretch, w_t, w_s)[0]):
                 c = predicted
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
-        return self._judge(self._result(*out, n_valid, sigma_t, "warm"), twist_sign)
+        warm = self._judge(self._result(*out[:5], n_valid, sigma_t, "warm"), twist_sign)
+        left = out[5]
+        if not warm.accepted or left <= WARM_UNSETTLED or self.n * self.m > MAX_CELLS:
+            return warm
+        # the warm steps stopped far from their optimum: the shape has moved faster than they
+        # follow, and the chain may hold a basin a fresh start would leave (the linear start,
+        # as a cold fit descends from it; the lower objective answers)
+        starts, reasons = self.cold_starts(data)
+        if reasons[0]:
+            return warm
+        fresh = self._judge(self._result(*self._descend(starts[0][1], turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
+                                                        curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR)[:5],
+                                         n_valid, sigma_t, WARM_LINEAR), twist_sign)
+        return fresh if fresh.accepted and fresh.objective < warm.objective else warm
 
     def warm_screen(self, c: np.ndarray, data: tuple) -> tuple[str, tuple[list, list[str]]]:
         """Why the warm graph ``c`` cannot stand ('' where it may), and the cold fit's linear start
@@ -597,7 +632,7 @@ class GraphFit:
         if all(reasons):
             return _rejected(starts, reasons[-1])
         results = [self._judge(self._result(*self._descend(c, turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
-                                                           curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR),
+                                                           curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR)[:5],
                                             n_valid, sigma_t, how), twist_sign)
                    for (how, c), why in zip(starts, reasons) if not why]
         if agree is not None:

@@ -42,7 +42,7 @@ from .engine import (
 from .grid import FineGrid
 from .graphfit import MAX_CELLS as GRAPH_FIT_MAX_CELLS
 from .graphfit import AGREE_SIGMAS as GRAPH_AGREE_SIGMAS
-from .graphfit import GraphFit, GraphResult, disagreement
+from .graphfit import WARM_LINEAR, GraphFit, GraphResult, disagreement
 from .graphsheet import SlopeNoise, free_part, graph_sheet_fields, slope_noise
 from .productnoise import ProductNoise, measure_product_noise, pair_product, turning_noise_estimate
 from .robust import GaugeScreen, Suspect, huber_potential
@@ -817,10 +817,14 @@ class Reconstructor(StretchPatternTwist):
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         # (and the general model's defect correction, from which the next frame's starts)
         defect = cast("tuple[np.ndarray, float] | None", convex_info.get("defect")) if fit is not None else None
-        # the yardstick of the chain's warm fits: its last cold fit's objective
-        reference = (previous.state.graph_reference if earlier is not None and previous is not None
+        # the yardstick of the chain's warm fits: its last cold fit's objective (a warm frame the
+        # linear start answered stays in the chain and keeps it; only the prediction from the
+        # graph before, in another basin, is dropped)
+        chained = warm is not None and graph is not None and graph.how in ("warm", WARM_LINEAR)
+        reference = (previous.state.graph_reference if chained and previous is not None
                      else graph.objective if graph is not None else math.inf)
-        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference) if fit is None and graph is not None
+        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference)
+                      if fit is None and graph is not None
                       else FrameState() if defect is None
                       else FrameState(defect=defect[0], defect_chi2=defect[1], strains=np.stack([eu, el])))
         if self._position is not None and n_valid:

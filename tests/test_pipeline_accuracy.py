@@ -75,3 +75,16 @@ def test_a_saddle_pressed_from_flat_and_held_through_the_gauges_hysteresis_is_wi
     worst = max(rows, key=lambda r: r[1])
     assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
                              f"(mean {worst[2]:.3f} mm)")
+
+
+def test_fingertips_releasing_a_5x5_membrane_stay_within_3_sigma_through_the_pipeline():
+    """Two fingertips pressing and releasing a 5×5 membrane, every scan through the pipeline
+    (the gauges' hysteresis off: what is tested is the chain).  While the fingertips release, the
+    warm graphs lagged into another basin, whose objective a descent from the linear start beats
+    by 37-230: before graphfit.WARM_UNSETTLED 7 of these 50 frames stood beyond 3σ + 0.05 mm, up
+    to 1.32 times (1.84 s); with the linear start tried where the warm steps stop unsettled, none
+    (0.87 at most, the first frame, fitted cold mid-press)."""
+    rows = run_pipeline(5, "membrane:fingers=2", 1.2, 2.2, ElectricalConfig().without("hysteresis"))
+    worst = max(rows, key=lambda r: r[1])
+    assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
+                             f"(mean {worst[2]:.3f} mm)")
