@@ -33,6 +33,7 @@ __all__ = [
     "metric_terms",
     "Metric",
     "solve_twist",
+    "least_shear_noise",
     "stretch_variance",
     "TwistResult",
     "GraphTwist",
@@ -78,6 +79,7 @@ def solve_twist(
     quiet: float = 1.0,
     open_spread: float | None = None,
     stretch_dev2: float | None = None,
+    shear_noise: float = 0.0,
 ) -> "TwistResult":
     """Twist field τ: the potential's twist (made zero-mean) plus a constant from the Gauss
     equation K = k_u k_v − τ².
@@ -99,12 +101,16 @@ def solve_twist(
     open is judged with, where it is read otherwise than the twist taken (the fields' own,
     where the gauge pairs' reading sets what is taken: ``Reconstructor._pair_reading``).
     ``stretch_dev2``: the measured stretch's variance over the cells' region where the stretch
-    fields given are not the gauges' (a defect pass's corrected input).  Returns the τ
+    fields given are not the gauges' (a defect pass's corrected input).  ``shear_noise``: three
+    s.d. of the least-shear square of a turned saddle's twist that the stretch noise causes
+    (:func:`least_shear_noise` times the stretch s.d. and 3); the search for a turned saddle
+    reads its square against that and the product's noise together.  Returns the τ
     field and its constant without the graph refinement, the graph model
     (:class:`GraphTwist`) when the stretch pattern suggests one, and the twist the product
     allows where its noise shrank the one taken, or hides where none was taken (``open``).
     """
     tau0 = tau0 - tau0.sum() / tau0.size
+    shear_open = 0.0  # the twist a least-shear square within its noise hides
     # Only the region spanned by the cell centres: one-sided differences at the border would
     # bias the estimates.
     inner = grid.inner
@@ -151,11 +157,20 @@ def solve_twist(
         if prod <= read:  # no positive curvature product to explain: look for a turned saddle
             if graph is not None and graph.significant:
                 return TwistResult(tau0 + graph.constant, graph.constant, graph)
-            c2, clipped = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner, noise, metric)
+            c2, clipped, square = _saddle_twist(grid, k_u, k_v, lam_u, lam_v, tau0, inner,
+                                                math.hypot(noise, shear_noise), metric)
             # the search's answer is the least-shear prior's alone; so is none where the prior
             # asked for a negative square beyond the noise (a film with friction on a saddle 11°
             # off the rows: -4·10⁻⁶ /mm², the twist taken none for 1.3·10⁻³ /mm)
             from_shear = c2 > 0.0 or clipped
+            if c2 == 0.0 and not clipped:
+                # nor is a least-shear square within its noise a proof of no twist: the twist one
+                # s.d. beyond it hides (a saddle 45° off the rows has no bend along them, and
+                # its twist reaches the gauges only through the stretch: on 5×5, R 2000-3000 mm,
+                # 3.3-5·10⁻⁴ /mm, stood 1.2-1.7 times beyond 3σ + 0.05 mm)
+                spread = math.hypot(noise, shear_noise) / 3.0
+                hidden = (max(square, 0.0) + spread if square >= -spread else spread * spread / -square)
+                shear_open = math.sqrt(hidden)
     c = math.copysign(math.sqrt(c2), twist_sign)
     # a product the data show (beyond 1 s.d. of its noise) but the significance test shrank:
     # the twist it would be, and one s.d. of the product beyond, is not ruled out (a cylinder 6°
@@ -182,6 +197,7 @@ def solve_twist(
         # stretch cannot call doubly curved: the twist one s.d. of the product hides (a 5 %
         # pre-stretched cylinder 4.9° off the rows: a twist of 0.0009 /mm reads 0.8 s.d.)
         opened = math.sqrt(max(prod, 0.0) + open_noise / 3.0)
+    opened = max(opened, shear_open)
     # the significance ramp's gain on the product's noise: inside the ramp d(c²)/d(product) is
     # weight · (significance + product/read), 2 at its middle, where the s.d. through c = √product
     # takes 1 (the weight left out: it only lowers it)
@@ -360,7 +376,8 @@ def _graph_twist(grid: FineGrid, k_u, k_v, tau0, inner, metric: Metric, stretch_
     return GraphTwist(c_eff, decisive, best < 0.5 * zero, c, p_full, q_full)
 
 
-def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric) -> tuple[float, bool]:
+def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: float, metric: Metric
+                  ) -> tuple[float, bool, float]:
     """Squared constant twist of a sheet whose stretch pattern needs negative Gaussian curvature
     (a saddle turned off the grid lines: small k_u k_v, strongly varying stretch).
 
@@ -374,24 +391,20 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     twist, as on a saddle, not the local shear around a bump) and stands above the noise.
     Also returns whether the least-shear square is negative beyond the noise while explaining
     most of the shear as well: no twist can give it, the shear is not the prior's (in-plane
-    loads), and the none returned is the prior's boundary, not a reading.
+    loads), and the none returned is the prior's boundary, not a reading; and the least-shear
+    square itself (0 where no twist shears the sheet).
     """
-    h = grid.spacing
-    eg = metric.eg
-    src0 = metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau0 * tau0) * eg
-    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.array([src0, eg])))
-    f0, f1 = f0[inner], f1[inner]
+    f0, f1, x = _least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0, inner, metric)
+    if x is None:
+        return 0.0, False, 0.0
     den = float((f1 * f1).sum())
-    if den <= 0.0:
-        return 0.0, False
-    x = float((f0 * f1).sum()) / den
     explained = x * x * den / max(float((f0 * f0).sum()), 1e-300)
     weight = min(max((explained - 0.5) / 0.3, 0.0), 1.0)
     significance = min(max(abs(x) / noise - 1.0, 0.0), 1.0) if noise > 0 else 1.0
     if x <= 0.0:
-        return 0.0, weight * significance > 0.0
+        return 0.0, weight * significance > 0.0, x
     if weight * significance == 0.0:
-        return 0.0, False
+        return 0.0, False, x
     # Σ ((f₀ − x f₁)² − P)² over x ∈ [0, x_ls]: a quartic; its stationary points are the roots
     # of the cubic below (g = a x² + b x + c, cost' = 2 Σ g g')
     a, b = f1 * f1, -2.0 * f0 * f1
@@ -401,7 +414,45 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     cands = np.array([0.0, x, *(r.real for r in roots if abs(r.imag) <= 1e-12 * abs(r) and 0.0 < r.real < x)])
     g = a[None] * cands[:, None, None] ** 2 + b[None] * cands[:, None, None] + c[None]
     best = float(cands[np.argmin((g * g).sum(axis=(1, 2)))])
-    return best * weight * significance, False
+    return best * weight * significance, False, x
+
+
+def _least_shear_square(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, metric: Metric
+                        ) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """Brioschi's shear without twist F₀ and the twist's part F₁ over the cells' region, and the
+    least-shear square of the constant twist, Σ F₀F₁ / Σ F₁² (None where F₁ vanishes)."""
+    h = grid.spacing
+    eg = metric.eg
+    src0 = metric.source0 + (k_u * k_v / (lam_u * lam_v) - tau0 * tau0) * eg
+    f0, f1 = _mixed_antiderivative((h * h) * _cell_mean(np.array([src0, eg])))
+    f0, f1 = f0[inner], f1[inner]
+    den = float((f1 * f1).sum())
+    return f0, f1, (float((f0 * f1).sum()) / den if den > 0.0 else None)
+
+
+#: Seeded draws of :func:`least_shear_noise` (the same every time: a log replays bit for bit).
+SHEAR_NOISE_DRAWS, SHEAR_NOISE_SEED = 64, 20261207
+
+
+def least_shear_noise(grid: FineGrid, maps) -> float:
+    """The s.d. of the least-shear square of the twist (:func:`_saddle_twist`'s reading) that
+    stretch noise of unit s.d. on every unit causes on a flat sheet, from the all-valid field
+    ``maps`` (``FineGrid.field_maps``) on seeded draws, read on a small step (the square is
+    linear in the stretch there: Brioschi's source takes the metric's second derivatives).  The
+    turning's noise reaches it through the curvature product, whose s.d. is measured apart
+    (:mod:`.productnoise`); the stretch's reaches it through the metric, and on a 5×5 sheet it is
+    the larger part by far (1.1·10⁻⁷ /mm² at the sensor's noise, against the product's 1.7·10⁻⁸)."""
+    rng = np.random.default_rng(SHEAR_NOISE_SEED)
+    shape = (2, grid.n, grid.m)
+    zeros = np.zeros(shape)
+    step = 1e-4
+    squares = []
+    for _ in range(SHEAR_NOISE_DRAWS):
+        k_u, k_v, tau0, lam_u, lam_v = maps(zeros, 1.0 + step * rng.normal(0.0, 1.0, shape))[:5]
+        metric = metric_terms(grid.spacing, lam_u, lam_v)
+        x = _least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0 - tau0.mean(), grid.inner, metric)[2]
+        squares.append(0.0 if x is None else x / step)
+    return math.sqrt(float(np.mean(np.square(squares))))
 
 
 def _mixed_antiderivative(cell: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ from .decouple import decouple
 from .engine import (
     Metric,
     integrate_frames,
+    least_shear_noise,
     least_shear_twists,
     least_shear_value,
     stretch_supports_curvature,
@@ -404,6 +405,7 @@ class Reconstructor(StretchPatternTwist):
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
+        self._least_shear_sd: float | None = None  # engine.least_shear_noise, on first use
         # the last measured data's fields, with their input (_measured_fields)
         self._measured_memo: tuple | None = None
         self._slope_noise_draws: SlopeNoise | None = None
@@ -908,6 +910,13 @@ class Reconstructor(StretchPatternTwist):
             valid = np.ones((2, self.n, self.m), dtype=bool)
             self._slope_noise_draws = slope_noise(self.grid, self.grid.field_maps(valid))
         return self._slope_noise_draws
+
+    def _least_shear_noise(self) -> float:
+        """The s.d. of the least-shear square of the twist per unit stretch noise
+        (:func:`.engine.least_shear_noise`, measured on first use)."""
+        if self._least_shear_sd is None:
+            self._least_shear_sd = least_shear_noise(self.grid, self.grid.field_maps(np.ones((2, self.n, self.m), dtype=bool)))
+        return self._least_shear_sd
 
     def _product_stats(self, k_u, k_v, tau0, turning_sigma: float) -> tuple[float, float]:
         """(bias, s.d.) of the mean curvature product k_u k_v − τ₀² over the cells' region
@@ -1838,11 +1847,16 @@ class Reconstructor(StretchPatternTwist):
         if product_noise[0] != 0.0:
             reading = self._pair_reading(k_u, k_v, tau0, turning, valid, measured, turning_sigma, present,
                                          product_noise, convex_info)
+        # three s.d. of a least-shear square of the twist that the stretch noise causes through
+        # Brioschi's source (on a 5×5 sheet six times the curvature product's: flat noisy frames
+        # took twists of 4·10⁻⁴ /mm, 0.2 mm at the corners, when only the product's was counted)
+        shear_noise = 3.0 * stretch_sigma * self._least_shear_noise()
         tau, twist_c, graph, open_twist, from_shear, product, ramp = solve_twist(
             grid, k_u, k_v, tau0, lam_u, lam_v, sign, turning_sigma, metric, stretch_sigma, sign_from_data=twist_sign is None,
             product_noise=reading, quiet=quiet if quiet < QUIET_SHARE else 1.0,
             open_spread=product_noise[1] if reading is not product_noise else None,
             stretch_dev2=self._measured_stretch_variance(measured),
+            shear_noise=shear_noise,
         )
         convex_info["product_fields"] = (k_u, k_v, tau0)
         shear_graph = None
@@ -1878,9 +1892,11 @@ class Reconstructor(StretchPatternTwist):
             tau_mean = float(tau.sum()) / tau.size
             options = least_shear_twists(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric)
             here = least_shear_value(grid, k_u, k_v, lam_u, lam_v, tau - tau_mean, metric, tau_mean)
-            # a twist whose square the turning noise could produce is no evidence (three s.d. of
-            # the mean curvature product, as solve_twist judges the Gauss equation's)
-            noise = 3.0 * product_noise[1]
+            # a twist whose square the noise could produce is no evidence (three s.d. of the mean
+            # curvature product, as solve_twist judges the Gauss equation's, and of the
+            # least-shear square the stretch noise moves)
+            product_bar = 3.0 * product_noise[1]
+            noise = math.hypot(product_bar, shear_noise)
             options = [(c, val) for c, val in options if val < LEAST_SHEAR_GAIN * here]
             if sign_known:
                 options = [opt for opt in options if opt[0] * sign > 0.0]
@@ -1891,9 +1907,9 @@ class Reconstructor(StretchPatternTwist):
                 # (the least-shear twist where the product reads it too, within the product's
                 # noise, and the ramp shrank or hid it: whether it is taken is the noise's to
                 # decide, frame by frame; it is taken where the product is beyond its noise)
-                contested = (open_twist > 0.0 and product > noise / 3.0 and abs(tau_mean) < abs(c_ls)
+                contested = (open_twist > 0.0 and product > product_bar / 3.0 and abs(tau_mean) < abs(c_ls)
                              and abs(c_ls**2 - product) <= noise)
-                if contested and product > noise and tau_mean != 0.0:
+                if contested and product > product_bar and tau_mean != 0.0:
                     # the product's twist, beyond its noise but shrunk by its significance
                     # ramp, and the least-shear prior's, an independent reading, agree: the
                     # prior's is weighed as a choice (a noisy 12×12 cylinder of R 225 mm 9.7°
