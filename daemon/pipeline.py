@@ -9,7 +9,9 @@ fit's restart chains run on a worker (skinmapd) or in line (replay). It does no 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
+import math
 import os
 import queue
 import threading
@@ -25,7 +27,8 @@ from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, Calibration, c
                              reject_implausible_units, resistances_to_strains, to_nominal_offsets, turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
-           "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "graph_restart",
+           "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "GRAPH_AUDIT_SCANS",
+           "AUDIT_MAX_CELLS", "graph_audit", "graph_restart",
            "graph_adopt"]
 
 log = logging.getLogger("skinmapd")
@@ -104,6 +107,14 @@ GRAPH_SYNC_SCANS = GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
 #: whether a frame defers depends on the frames before it, so a replay is in step with it only
 #: where it already was.
 GRAPH_CATCH_UP_SCANS = 4
+#: Every this many sample indices a frame the warm chain answered begins an audit (sheets of up to
+#: AUDIT_MAX_CELLS cells): a catch-up chain from the scan's cold fit, fed the following scans, and
+#: at the catch-up scan taken over only where its graph fits that scan with the lower objective.  A
+#: warm chain can settle in a basin of the graph fit a cold fit of the same scan leaves (its
+#: Gauss-Newton step left short, so graphfit.WARM_UNSETTLED does not see it; its objective below
+#: the basin test's yardstick): fingertips releasing a 5×5 membrane through the gauges' hysteresis.
+GRAPH_AUDIT_SCANS = 8
+AUDIT_MAX_CELLS = 64
 #: The largest sheet (cells) skinmapd fits as a height graph at all: on 12×12 and 16×16 a sharp
 #: bump's graph answers keep 10 Hz output (emulated, 50 scans/s: 12×12 p99 82-176 ms, 0-1 output
 #: dropped in 15-20 s; 16×16, on knots every pitch/2: solver 34-50 ms, p99 54 ms once started,
@@ -117,6 +128,16 @@ def graph_restart(previous_seq: int | None, seq: int) -> bool:
     """Whether the scan ``seq`` begins a block (a cold restart of the graph fit), given the last
     processed scan."""
     return previous_seq is None or seq // GRAPH_RESTART_SCANS != previous_seq // GRAPH_RESTART_SCANS
+
+
+def graph_audit(seq: int) -> bool:
+    """Whether the scan ``seq`` may begin an audit (GRAPH_AUDIT_SCANS): every GRAPH_AUDIT_SCANS
+    sample indices, but not before the block's restart chain is taken over nor where the audit
+    would still run at the next block's start, so that a replay from a block's start audits
+    the same frames as the live run from the take-over on."""
+    within = seq % GRAPH_RESTART_SCANS
+    return (seq % GRAPH_AUDIT_SCANS == 0 and within >= GRAPH_ADOPT_SCANS
+            and within + GRAPH_CATCH_UP_SCANS < GRAPH_RESTART_SCANS)
 
 
 def graph_adopt(origin_seq: int, seq: int, after: int = GRAPH_ADOPT_SCANS) -> bool:
@@ -255,11 +276,14 @@ class _Chain:
     ``last`` is its latest usable surface."""
 
     def __init__(self, origin: int, reconstructor: Any, element_uv: np.ndarray,
-                 adopt_after: int = GRAPH_ADOPT_SCANS) -> None:
+                 adopt_after: int = GRAPH_ADOPT_SCANS, audit: bool = False) -> None:
         self.origin = origin
         self.reconstructor = reconstructor
         self.element_uv = element_uv
         self.adopt_after = adopt_after
+        # an audit of the published frames' warm chain (GRAPH_AUDIT_SCANS): taken over only where
+        # its graph fits the same scan with the lower objective
+        self.audit = audit
         self.last: Any = None
         self.last_seq: int | None = None
         self._pending: Pending | None = None
@@ -301,6 +325,35 @@ def _step(chain: _Chain, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs:
         chain.step(eps_u, eps_l, seq, kwargs)
 
     return run
+
+
+def _warm_graph(surf: Any) -> bool:
+    """Whether ``surf`` was answered by a warm graph fit (the frame before's, or its linear start's)."""
+    how = getattr(getattr(surf, "diagnostics", None), "extra", {}).get("graph_fit")
+    return isinstance(how, str) and how.startswith("warm") and getattr(surf.diagnostics, "extra", {}).get("model") == "graph"
+
+
+def _lower_objective(audit: Any, audit_seq: int | None, published: Any, published_seq: int | None) -> bool:
+    """Whether an audit chain's last surface fits the scan the published frames' chain last fitted
+    with a lower graph objective (both graphs of the same scan; otherwise the published stands)."""
+    if audit_seq is None or audit_seq != published_seq:
+        return False
+    mine = getattr(getattr(audit, "state", None), "graph_objective", math.inf)
+    theirs = getattr(getattr(published, "state", None), "graph_objective", math.inf)
+    return bool(mine < theirs)
+
+
+def _with_yardstick(audit: Any, published: Any) -> Any:
+    """The audit's surface, its chain's basin-test yardstick (FrameState.graph_reference) the
+    published chain's where that is the higher: an audit moves the chain to a lower objective,
+    and its own cold fit's yardstick refused warm fits the chain had kept (5×5 fingertips on a
+    membrane: deferred frames doubled)."""
+    state = getattr(audit, "state", None)
+    theirs = getattr(getattr(published, "state", None), "graph_reference", math.inf)
+    if state is None or not math.isfinite(theirs) or not theirs > state.graph_reference:
+        return audit
+    audit.state = dataclasses.replace(state, graph_reference=theirs)
+    return audit
 
 
 def _graph_tried(surf: Any) -> bool:
@@ -502,6 +555,8 @@ class FramePipeline:
         deferred = bool(getattr(getattr(surf, "diagnostics", None), "extra", {}).get("graph_deferred", False))
         if deferred:
             self._catch_up_chain(eps_u, eps_l, seq, kwargs, previous)
+        elif chained and self.defer_cold_fits and graph_audit(seq) and _warm_graph(surf):
+            self._audit_chain(eps_u, eps_l, seq, kwargs, previous)
         t_caught = time.perf_counter()
         nodes = np.asarray(surf.nodes, dtype=np.float64)
         normals = np.asarray(surf.normals, dtype=np.float64)
@@ -616,6 +671,11 @@ class FramePipeline:
                               chain.origin)
                 last = None
                 self._catch_up_failed = not restart
+            if last is not None and chain.audit:
+                if not _lower_objective(last, chain.last_seq, self._previous, self._previous_seq):
+                    last = None  # the published frames' chain stands
+                else:
+                    last = _with_yardstick(last, self._previous)
             if last is not None:
                 self._previous, self._previous_seq = last, chain.last_seq
                 if restart:
@@ -638,11 +698,25 @@ class FramePipeline:
                 self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
         return False
 
+    def _audit_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
+                     previous: Any) -> None:
+        """A published frame answered warm at an audit's scan (GRAPH_AUDIT_SCANS): begin an
+        audit, a catch-up chain from this scan's cold fit taken over only where it ends on the
+        lower objective (unless a chain is under way)."""
+        if self._catch_up is not None or getattr(self.geometry, "n", 0) * getattr(self.geometry, "m", 0) > AUDIT_MAX_CELLS:
+            return
+        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=True)
+        cold = {**kwargs, "graph_warm": False}
+        if previous is not None:
+            cold["previous"] = previous
+        self._begin(self._catch_up, eps_u, eps_l, seq, cold)
+
     def _catch_up_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                         previous: Any) -> None:
         """A published frame deferred its cold graph fit: begin a catch-up chain with it (unless
-        one is under way: it will take the frames over)."""
+        one is under way: it will take the frames over, an audit then unconditionally)."""
         if self._catch_up is not None:
+            self._catch_up.audit = False
             return
         self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS)
         cold = {**kwargs, "graph_warm": False}

@@ -825,7 +825,7 @@ class Reconstructor(StretchPatternTwist):
         chained = warm is not None and graph is not None and graph.how in ("warm", WARM_LINEAR)
         reference = (previous.state.graph_reference if chained and previous is not None
                      else graph.objective if graph is not None else math.inf)
-        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference)
+        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference, graph_objective=graph.objective)
                       if fit is None and graph is not None
                       else FrameState() if defect is None
                       else FrameState(defect=defect[0], defect_chi2=defect[1], strains=np.stack([eu, el])))

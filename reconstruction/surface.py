@@ -178,6 +178,7 @@ class FrameState:
     # the objective of the graph chain's last cold fit: a warm fit far above it has followed
     # another basin (reconstructor.WARM_BASIN_RATIO)
     graph_reference: float = math.inf
+    graph_objective: float = math.inf  # this frame's graph fit's objective (data misfit and prior)
     position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)
     # the general model's defect correction, (2, 2, N, M): what its answer's input added to the
     # measured strains (upper, lower layer), that answer's χ² against the gauges, and the

@@ -100,3 +100,17 @@ def test_a_flat_5x5_sheet_at_rest_stays_within_3_sigma_through_the_pipeline():
     worst = max(rows, key=lambda r: r[1])
     assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
                              f"(mean {worst[2]:.3f} mm)")
+
+
+def test_fingertips_releasing_a_5x5_membrane_through_the_gauges_hysteresis_stay_within_3_sigma():
+    """The same membrane through the emulated gauges' hysteresis, every scan up to 4 s.  The warm
+    chain settled in another basin of the graph fit as the fingertips released (its Newton step
+    left short, so graphfit.WARM_UNSETTLED does not see it; turning χ² 0.15-0.36 per unit where a
+    cold fit of the same scans reads 0.005-0.03): 6 frames at 3.76-3.86 s stood 1.05-1.18 times
+    beyond 3σ + 0.05 mm.  The pipeline's audits (GRAPH_AUDIT_SCANS: a cold fit every 8 scans,
+    followed as a catch-up chain and taken over where its objective is the lower) move the chain
+    out of it."""
+    rows = run_pipeline(5, "membrane:fingers=2", 0.0, 4.0, ElectricalConfig())
+    worst = max(rows, key=lambda r: r[1])
+    assert worst[1] <= 1.0, (f"t {worst[0]:.2f} s: a node off by {worst[1]:.2f} times 3σ + 0.05 mm "
+                             f"(mean {worst[2]:.3f} mm)")

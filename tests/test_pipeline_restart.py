@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import pipeline_sheet
 
-from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_CATCH_UP_SCANS, GRAPH_RESTART_SCANS, GRAPH_SYNC_SCANS,
-                                     FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
-                                     graph_restart)
+from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_AUDIT_SCANS, GRAPH_CATCH_UP_SCANS, GRAPH_RESTART_SCANS,
+                                     GRAPH_SYNC_SCANS, FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
+                                     graph_audit, graph_restart)
 from skinmap.emulator.physics import gauge_strains, make_shape
 from skinmap.strains import Calibration
 
@@ -47,6 +47,42 @@ def test_restart_and_adoption_rules():
     assert not graph_adopt(64, 64 + GRAPH_ADOPT_SCANS - 1) and graph_adopt(64, 64 + GRAPH_ADOPT_SCANS)
     assert graph_adopt(64, 3)  # the sample index went back (a restarted scanner)
     assert GRAPH_SYNC_SCANS == GRAPH_RESTART_SCANS + GRAPH_ADOPT_SCANS
+
+
+def test_audits_begin_only_where_a_replay_from_the_block_start_begins_them_too():
+    # every GRAPH_AUDIT_SCANS, from the restart chain's take-over on, and done before the next
+    # block's start
+    begun = [seq for seq in range(0, 3 * GRAPH_RESTART_SCANS) if graph_audit(seq)]
+    assert begun and all(seq % GRAPH_AUDIT_SCANS == 0 for seq in begun)
+    within = {seq % GRAPH_RESTART_SCANS for seq in begun}
+    assert min(within) >= GRAPH_ADOPT_SCANS and max(within) + GRAPH_CATCH_UP_SCANS < GRAPH_RESTART_SCANS
+
+
+def test_an_audit_is_taken_over_only_where_it_fits_the_scan_with_the_lower_objective(monkeypatch):
+    """The bump sliding over the rows: each audit begun after the take-over is decided on the
+    scan both chains fitted last, and the published frames go on from the audit's surface only
+    where its graph objective there was the lower."""
+    import skinmap.daemon.pipeline as pipeline_module
+
+    decided: list[tuple] = []
+    lower = pipeline_module._lower_objective
+
+    def spy(audit, audit_seq, published, published_seq):
+        verdict = lower(audit, audit_seq, published, published_seq)
+        decided.append((audit, audit_seq, published_seq, verdict,
+                        audit.state.graph_objective < published.state.graph_objective))
+        return verdict
+
+    monkeypatch.setattr(pipeline_module, "_lower_objective", spy)
+    pipe = pipeline()
+    for seq in range(START, START + COUNT + 2 * GRAPH_AUDIT_SCANS):
+        count = len(decided)
+        pipe.process(SCANS.get(seq, scan(seq)), seq, 0, 0)
+        if len(decided) > count:
+            audit, audit_seq, published_seq, verdict, lower_there = decided[-1]
+            assert audit_seq == published_seq == seq - 1
+            assert verdict == lower_there
+    assert len(decided) >= 2, "fewer audits than expected"
 
 
 def test_published_frames_never_wait_for_the_cold_restart():
