@@ -9,6 +9,7 @@ fit's restart chains run on a worker (skinmapd) or in line (replay). It does no 
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import logging
 import math
@@ -284,6 +285,8 @@ class _Chain:
         # an audit of the published frames' warm chain (GRAPH_AUDIT_SCANS): taken over only where
         # its graph fits the same scan with the lower objective
         self.audit = audit
+        # a restart chain is looked at once before its take-over (FramePipeline._peek)
+        self.peeked = False
         self.last: Any = None
         self.last_seq: int | None = None
         self._pending: Pending | None = None
@@ -680,6 +683,7 @@ class FramePipeline:
                 self._previous, self._previous_seq = last, chain.last_seq
                 if restart:
                     self.chain_origin = chain.origin
+        self._peek(seq)
         previous = self._previous
         if self._previous_seq is not None and graph_restart(self._previous_seq, seq):
             # a catch-up chain under way began in the block before: a replay from here could not
@@ -698,12 +702,32 @@ class FramePipeline:
                 self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
         return False
 
+    def _peek(self, seq: int) -> None:
+        """The restart chain under way, GRAPH_CATCH_UP_SCANS after its cold start, is an audit of
+        the published frames (audits begin only after its take-over): where it fits the scan both
+        fitted last with the lower objective, the published frames go on from a copy of its
+        surface (the chain goes on, and is taken over as before; the frames until then may differ
+        from a replay's, as they may anyway)."""
+        chain = self._chain
+        g = self.geometry
+        if (chain is None or chain.peeked or seq - chain.origin < GRAPH_CATCH_UP_SCANS
+                or graph_adopt(chain.origin, seq, chain.adopt_after) or g.n * g.m > AUDIT_MAX_CELLS):
+            return
+        chain.peeked = True
+        try:
+            last = chain.wait()
+        except Exception:  # noqa: BLE001 - the chain's failure is reported at its take-over
+            return
+        if last is not None and _lower_objective(last, chain.last_seq, self._previous, self._previous_seq):
+            self._previous = _with_yardstick(copy.copy(last), self._previous)
+            self._previous_seq = chain.last_seq
+
     def _audit_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                      previous: Any) -> None:
         """A published frame answered warm at an audit's scan (GRAPH_AUDIT_SCANS): begin an
         audit, a catch-up chain from this scan's cold fit taken over only where it ends on the
         lower objective (unless a chain is under way)."""
-        if self._catch_up is not None or getattr(self.geometry, "n", 0) * getattr(self.geometry, "m", 0) > AUDIT_MAX_CELLS:
+        if self._catch_up is not None or self.geometry.n * self.geometry.m > AUDIT_MAX_CELLS:
             return
         self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=True)
         cold = {**kwargs, "graph_warm": False}
