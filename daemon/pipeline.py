@@ -653,10 +653,12 @@ class FramePipeline:
 
     def _restart_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any]) -> bool:
         """The chains' part of a frame, before it is reconstructed (GRAPH_RESTART_SCANS,
-        GRAPH_CATCH_UP_SCANS): take over a chain that is due (a restart chain after a catch-up
-        chain due at the same scan: it begins the lineage), begin a restart chain at a block's
-        first scan, or feed the chains under way this scan.  True where this frame itself must
-        start cold (a block's first scan with no graph to begin a chain from)."""
+        GRAPH_CATCH_UP_SCANS, GRAPH_AUDIT_SCANS): take over a chain that is due (a restart chain
+        after a catch-up chain due at the same scan: it begins the lineage; an audit only where it
+        fits the last scan with the lower objective), look at the restart chain before its
+        take-over (:meth:`_peek`), begin a restart chain at a block's first scan, or feed the
+        chains under way this scan.  True where this frame itself must start cold (a block's
+        first scan with no graph to begin a chain from)."""
         if not self._chained():
             return False
         for restart in (False, True):
@@ -707,7 +709,8 @@ class FramePipeline:
         the published frames (audits begin only after its take-over): where it fits the scan both
         fitted last with the lower objective, the published frames go on from a copy of its
         surface (the chain goes on, and is taken over as before; the frames until then may differ
-        from a replay's, as they may anyway)."""
+        from a replay's, as they may anyway).  Like a take-over, it waits for the chain's steps so
+        far."""
         chain = self._chain
         g = self.geometry
         if (chain is None or chain.peeked or seq - chain.origin < GRAPH_CATCH_UP_SCANS

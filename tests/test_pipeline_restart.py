@@ -59,9 +59,9 @@ def test_audits_begin_only_where_a_replay_from_the_block_start_begins_them_too()
 
 
 def test_an_audit_is_taken_over_only_where_it_fits_the_scan_with_the_lower_objective(monkeypatch):
-    """The bump sliding over the rows: each audit begun after the take-over is decided on the
-    scan both chains fitted last, and the published frames go on from the audit's surface only
-    where its graph objective there was the lower."""
+    """The bump sliding over the rows: each audit begun after the take-over, and the look at the
+    restart chain before it, is decided on the scan both chains fitted last, by the lower graph
+    objective there."""
     import skinmap.daemon.pipeline as pipeline_module
 
     decided: list[tuple] = []
