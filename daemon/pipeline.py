@@ -704,6 +704,11 @@ class FramePipeline:
                 self._submit(chain, _step(chain, eps_u, eps_l, seq, dict(kwargs)))
         return False
 
+    @property
+    def _audited(self) -> bool:
+        """Whether this sheet's warm chain is audited (up to AUDIT_MAX_CELLS cells)."""
+        return self.geometry.n * self.geometry.m <= AUDIT_MAX_CELLS
+
     def _peek(self, seq: int) -> None:
         """The restart chain under way, GRAPH_CATCH_UP_SCANS after its cold start, is an audit of
         the published frames (audits begin only after its take-over): where it fits the scan both
@@ -712,9 +717,8 @@ class FramePipeline:
         from a replay's, as they may anyway).  Like a take-over, it waits for the chain's steps so
         far."""
         chain = self._chain
-        g = self.geometry
         if (chain is None or chain.peeked or seq - chain.origin < GRAPH_CATCH_UP_SCANS
-                or graph_adopt(chain.origin, seq, chain.adopt_after) or g.n * g.m > AUDIT_MAX_CELLS):
+                or graph_adopt(chain.origin, seq, chain.adopt_after) or not self._audited):
             return
         chain.peeked = True
         try:
@@ -730,7 +734,7 @@ class FramePipeline:
         """A published frame answered warm at an audit's scan (GRAPH_AUDIT_SCANS): begin an
         audit, a catch-up chain from this scan's cold fit taken over only where it ends on the
         lower objective (unless a chain is under way)."""
-        if self._catch_up is not None or self.geometry.n * self.geometry.m > AUDIT_MAX_CELLS:
+        if self._catch_up is not None or not self._audited:
             return
         self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=True)
         cold = {**kwargs, "graph_warm": False}
