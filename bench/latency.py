@@ -232,28 +232,16 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
 
 def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: float, shape: str) -> list[str]:
     """Deferred against undeferred cold fits on the same emulated scans (see the docstring)."""
-    from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground
-    from skinmap.emulator.device import Device, ScannerSpec
-    from skinmap.emulator.physics import parse_shape_spec
-    from skinmap.strains import Calibration
+    from emulated_pipeline import emulated_device, emulated_pipeline, emulated_scans
 
     n, m = (int(x) for x in size.split("x"))
-    spec = ScannerSpec(n=n, m=m, scan_rate_hz=scan_rate)
-    device = Device(spec, parse_shape_spec(shape))
-    hello = device.hello()
-    calibration = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
+    device, spec = emulated_device(n, shape, m=m, scan_rate=scan_rate)
     step = 1 if output_rate == 0 else max(1, round(scan_rate / output_rate))
-    scans = []
-    for k in range(0, int(seconds * scan_rate), step):
-        t = k / scan_rate
-        wire = device.readout.read(device.strains(np.full((2, n, m), t)), t)
-        scans.append((k, np.asarray(wire, dtype=float) * 1e-6))
-    geometry = ArrayGeometry(n, m, spec.pitch_mm, spec.h_upper_mm, spec.h_lower_mm, spec.gauge_length_mm)
+    scans = [(k, raw) for k, _, raw in emulated_scans(device, spec, seconds, every=step)]
     uv = np.stack([(np.arange(64) - 31.5) * 0.6, np.zeros(64)], axis=1)  # the latency runs' element row
     runs = []
     for defer in (True, False):
-        pipe = FramePipeline(geometry, calibration, uv, np.zeros(len(uv)), background=InlineBackground(),
-                             defer_cold_fits=defer)
+        pipe = emulated_pipeline(device, spec, uv, defer_cold_fits=defer)
         runs.append([pipe.process(raw, seq, 0, 0) for seq, raw in scans])
     ratios, sig_d, sig_u, gaps = [], [], [], []
     for a, b in zip(*runs):

@@ -20,7 +20,7 @@ on its loading branch, about 2 % low (docs/reconstruction.md, "A gain the gauges
 (``skinmap.emulator.scenes``, solved once and cached).
 
     .venv/bin/python bench/pipeline_accuracy.py [--sizes 5,8,12,16] [--outputs 0,10] [--seconds 8]
-        [--hysteresis on,off] [--held [--mechanics elastic]]
+        [--hysteresis on,off] [--held [--mechanics elastic]] [--seed 0]
 """
 from __future__ import annotations
 
@@ -36,15 +36,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
+from emulated_pipeline import SCAN_RATE, emulated_device, emulated_pipeline, emulated_scans  # noqa: E402
 from reconstruction import node_errors  # noqa: E402
-from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
-from skinmap.emulator.device import Device, ScannerSpec  # noqa: E402
 from skinmap.emulator.electrical import ElectricalConfig  # noqa: E402
-from skinmap.strains import Calibration  # noqa: E402
-
-SCAN_RATE = 50.0
 
 
 def palm_spec(n: int) -> str:
@@ -65,31 +61,18 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
-        ramp_s: float = 0.0) -> dict:
+        ramp_s: float = 0.0, seed: int = 0) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
-    held, where ``ramp_s`` > 0)."""
+    held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration)."""
     electrical = ElectricalConfig() if hysteresis else ElectricalConfig().without("hysteresis")
-    spec = ScannerSpec(n=n, m=n, scan_rate_hz=SCAN_RATE, electrical=electrical)
-    device = Device(spec, shape)
-    hello = device.hello()
-    calibration = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
-    geometry = ArrayGeometry(n, n, spec.pitch_mm, spec.h_upper_mm, spec.h_lower_mm, spec.gauge_length_mm)
-    pipe = FramePipeline(geometry, calibration, np.zeros((1, 2)), np.zeros(1), background=InlineBackground())
+    device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE)
+    pipe = emulated_pipeline(device, spec)
     pipe.prepare()
     step = 1 if output_rate == 0 else max(1, round(SCAN_RATE / output_rate))
     errs, ratios, deferred = [], [], 0
     with threadpool_limits(1):
-        for k in range(int(seconds * SCAN_RATE)):
-            t = k / SCAN_RATE
-            if ramp_s > 0:
-                scale = min(t / ramp_s, 1.0)
-                strains = scale * device.strains(np.full((2, n, n), 0.0))
-            else:
-                strains = device.strains(np.full((2, n, n), t))
-            wire = device.readout.read(strains, t)
-            if k % step:
-                continue
-            result = pipe.process(np.asarray(wire, dtype=float) * 1e-6, k, 0, 0)
+        for k, t, resistances in emulated_scans(device, spec, seconds, every=step, ramp_s=ramp_s):
+            result = pipe.process(resistances, k, 0, 0)
             if ramp_s > 0 and t < ramp_s + 0.2:
                 continue  # judged held
             truth = ph.ground_truth(shape, n, n, spec.pitch_mm, t=t).nodes
@@ -118,13 +101,14 @@ def main(argv: list[str] | None = None) -> int:
                          "as given at every size")
     ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
                     help="the held shapes as kinematic sheets or elastic films on molds")
+    ap.add_argument("--seed", type=int, default=0, help="the emulated device's seed (gauge noise, calibration)")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
     modes = [x.strip() == "on" for x in args.hysteresis.split(",")]
     print(f"skinmapd's frame pipeline on the emulated device ({SCAN_RATE:g} scans/s), errors against the truth "
           f"(mean node error after the best rigid alignment; beyond: frames with some node off by more than "
-          f"3 σ + 0.05 mm)")
+          f"3 σ + 0.05 mm; device seed {args.seed})")
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
           f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'deferred':>8s} {'s':>5s}")
     for n in sizes:
@@ -136,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             for output in outputs:
                 for hysteresis in modes:
                     t0 = time.perf_counter()
-                    row = run(n, shape, seconds, output, hysteresis, ramp)
+                    row = run(n, shape, seconds, output, hysteresis, ramp, args.seed)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "
                           f"{row['frames']:6d} {row['mean']:8.4f} {row['largest']:8.3f} "

@@ -34,6 +34,7 @@ __all__ = [
     "Metric",
     "solve_twist",
     "least_shear_noise",
+    "least_shear_square",
     "stretch_variance",
     "TwistResult",
     "GraphTwist",
@@ -394,7 +395,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     loads), and the none returned is the prior's boundary, not a reading; and the least-shear
     square itself (0 where no twist shears the sheet).
     """
-    f0, f1, x = _least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0, inner, metric)
+    f0, f1, x = least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0, inner, metric)
     if x is None:
         return 0.0, False, 0.0
     den = float((f1 * f1).sum())
@@ -417,7 +418,7 @@ def _saddle_twist(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, noise: fl
     return best * weight * significance, False, x
 
 
-def _least_shear_square(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, metric: Metric
+def least_shear_square(grid: FineGrid, k_u, k_v, lam_u, lam_v, tau0, inner, metric: Metric
                         ) -> tuple[np.ndarray, np.ndarray, float | None]:
     """Brioschi's shear without twist F₀ and the twist's part F₁ over the cells' region, and the
     least-shear square of the constant twist, Σ F₀F₁ / Σ F₁² (None where F₁ vanishes)."""
@@ -450,7 +451,7 @@ def least_shear_noise(grid: FineGrid, maps) -> float:
     for _ in range(SHEAR_NOISE_DRAWS):
         k_u, k_v, tau0, lam_u, lam_v = maps(zeros, 1.0 + step * rng.normal(0.0, 1.0, shape))[:5]
         metric = metric_terms(grid.spacing, lam_u, lam_v)
-        x = _least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0 - tau0.mean(), grid.inner, metric)[2]
+        x = least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0 - tau0.mean(), grid.inner, metric)[2]
         squares.append(0.0 if x is None else x / step)
     return math.sqrt(float(np.mean(np.square(squares))))
 

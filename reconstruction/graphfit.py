@@ -534,12 +534,14 @@ class GraphFit:
         return (np.where(valid, turning, 0.0), np.where(valid, stretch, 1.0), valid / sigma_t, valid / sigma_s,
                 valid, max(int(valid.sum()), 1), float(sigma_t), float(sigma_s))
 
-    def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None) -> GraphResult:
+    def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None,
+                 linear: Callable[[], tuple[list, list[str]]] | None = None) -> GraphResult:
         """A few Gauss-Newton steps from the previous frame's accepted graph: ``start`` =
         (its coefficients, those of the graph before it or None).  For a shape in motion the
         linear prediction from the two is tried first.  Where the steps stop with more than
         :data:`WARM_UNSETTLED` still to take, the linear start is descended too (sheets of up to
-        :data:`MAX_CELLS` cells) and the lower objective answers."""
+        :data:`MAX_CELLS` cells) and the lower objective answers.  ``linear``: gives
+        :meth:`cold_starts` of ``data`` (a caller that needs it too computes it once)."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
             raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")
@@ -558,7 +560,7 @@ class GraphFit:
         # the warm steps stopped far from their optimum: the shape has moved faster than they
         # follow, and the chain may hold a basin a fresh start would leave (the linear start,
         # as a cold fit descends from it; the lower objective answers)
-        starts, reasons = self.cold_starts(data)
+        starts, reasons = self.cold_starts(data) if linear is None else linear()
         if reasons[0]:
             return warm
         fresh = self._judge(self._result(*self._descend(starts[0][1], turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
@@ -566,7 +568,8 @@ class GraphFit:
                                          n_valid, sigma_t, WARM_LINEAR), twist_sign)
         return fresh if fresh.accepted and fresh.objective < warm.objective else warm
 
-    def warm_screen(self, c: np.ndarray, data: tuple) -> tuple[str, tuple[list, list[str]]]:
+    def warm_screen(self, c: np.ndarray, data: tuple, linear: tuple[list, list[str]] | None = None
+                    ) -> tuple[str, tuple[list, list[str]]]:
         """Why the warm graph ``c`` cannot stand ('' where it may), and the cold fit's linear start
         (:meth:`cold_starts` without the general model's surface: a refused frame's cold fit
         takes it).  Where the screen of the turning's linear start finds the gauges stretched with
@@ -576,8 +579,10 @@ class GraphFit:
         between the gauges instead.  On a membrane pulled flat by its frame as two fingertips
         released it (8×8, each frame warm from the one before) the warm graphs read the gauges
         within the noise, twist 1-4·10⁻⁵ /mm, while their nodes went 0.05 → 0.25 mm off with
-        σ 0.06 (6.9 times 3σ + 0.05 mm); a cold fit of the same frames is screened out."""
-        linear = self.cold_starts(data)
+        σ 0.06 (6.9 times 3σ + 0.05 mm); a cold fit of the same frames is screened out.
+        ``linear``: :meth:`cold_starts` of ``data``, if already known."""
+        if linear is None:
+            linear = self.cold_starts(data)
         reason = linear[1][0]
         if reason != f"{_MORE_STRETCH} small slopes":
             return "", linear

@@ -610,10 +610,16 @@ class Reconstructor(StretchPatternTwist):
             sig_s = self._stretch_sd(fit_sigma)
             data = self._graph.prepare(turning, stretch, valid, sig_t, sig_s)
             state = previous.state if previous is not None and graph_warm else None
-            warm_linear = None  # the cold fit's linear start, where the warm fit's screen made it
+            linear_once: list = []  # the cold fit's linear start, computed once where asked for
+
+            def linear_start() -> tuple[list, list[str]]:
+                if not linear_once:
+                    linear_once.append(self._graph_fit().cold_starts(data))
+                return linear_once[0]
+
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
-                graph = self._graph.fit_warm(data, warm, twist_sign)
+                graph = self._graph.fit_warm(data, warm, twist_sign, linear_start)
                 assert state is not None
                 reference = state.graph_reference
                 if graph.accepted and graph.objective > self.warm_basin_ratio * reference:
@@ -621,15 +627,14 @@ class Reconstructor(StretchPatternTwist):
                         f"warm: objective {graph.objective:.4g}, {graph.objective / reference:.3g} times the chain's "
                         "cold fit's (another basin)"))
                 if graph.accepted:
-                    why, warm_linear = self._graph.warm_screen(graph.coeffs, data)
+                    why, _ = self._graph.warm_screen(graph.coeffs, data, linear_start())
                     if why:
                         graph = graph._replace(accepted=False, how=f"warm: {why}")
             if self.graph_rescue and (graph is None or not graph.accepted):
                 # a larger sheet: the general model answers first, and the graph is fitted cold
                 # only where that answer misfits the gauges (below)
                 rescue = True
-            linear = ((warm_linear if warm_linear is not None else self._graph.cold_starts(data))
-                      if (graph is None or not graph.accepted) and not rescue else None)
+            linear = linear_start() if (graph is None or not graph.accepted) and not rescue else None
             ruled_out = self._graph.ruled_out(linear) if linear is not None else None
             if ruled_out is not None:
                 # no graph can answer (the screen needs no start but the linear one): the general
@@ -671,7 +676,7 @@ class Reconstructor(StretchPatternTwist):
             chi_read = answered[3].get("forward_chi2")
             chi2_noise = self._noise_response(strain_sigma)[1]
             if chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * chi2_noise * max(chi_read[2], 1):
-                linear = self._graph_fit().cold_starts(data)
+                linear = linear_start()
                 ruled_out = self._graph_fit().ruled_out(linear)
                 if ruled_out is not None:
                     graph = ruled_out

@@ -193,16 +193,21 @@ def frame_errors(shape: Any, surf: Any, grid: Any) -> Any:
     return np.linalg.norm(surf.nodes - nodes_in_sensor_frame(grid, shape.position), axis=-1)
 
 
-def elastic_dataset() -> Any:
-    """bench/elastic_dataset.py, the elastic bench's scenes and noise draws (imported from the
-    bench folder: tests replay the bench's own cases, not copies of its seeds)."""
+def bench_module(name: str) -> Any:
+    """A module of the bench folder (tests replay the bench's own cases and loops, not copies)."""
+    import importlib
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-    import elastic_dataset as ed
+    folder = str(Path(__file__).resolve().parent.parent / "bench")
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    return importlib.import_module(name)
 
-    return ed
+
+def elastic_dataset() -> Any:
+    """bench/elastic_dataset.py, the elastic bench's scenes and noise draws."""
+    return bench_module("elastic_dataset")
 
 
 def worst_of_answers(surf: Any, truth: Any) -> list[float]:

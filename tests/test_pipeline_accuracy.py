@@ -5,15 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import aligned_node_errors
+from conftest import aligned_node_errors, bench_module
 
-from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline, InlineBackground
 from skinmap.emulator import physics as ph
-from skinmap.emulator.device import Device, ScannerSpec
 from skinmap.emulator.electrical import ElectricalConfig
-from skinmap.strains import Calibration
 
-SCAN_RATE = 50.0
+emulated = bench_module("emulated_pipeline")
 
 
 def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: ElectricalConfig,
@@ -23,26 +20,14 @@ def run_pipeline(n: int, spec: str, first_s: float, last_s: float, electrical: E
     its mirror (``seed``: the emulated device's); with ``ramp_s``, a still shape pressed from flat over that long (its strains
     scaled up from none, so the gauges' hysteresis reads its loading branch) and then held, the
     frames of the press left out."""
-    scanner = ScannerSpec(n=n, m=n, scan_rate_hz=SCAN_RATE, electrical=electrical, seed=seed)
-    shape = ph.parse_shape_spec(spec)
-    device = Device(scanner, shape)
-    hello = device.hello()
-    geometry = ArrayGeometry(n, n, scanner.pitch_mm, scanner.h_upper_mm, scanner.h_lower_mm, scanner.gauge_length_mm)
-    pipe = FramePipeline(geometry, Calibration(hello.gauge_factor(), hello.base_resistance_ohm()),
-                         np.zeros((1, 2)), np.zeros(1), background=InlineBackground())
+    device, scanner = emulated.emulated_device(n, spec, electrical, seed)
+    pipe = emulated.emulated_pipeline(device, scanner)
     rows = []
-    for k in range(int(first_s * SCAN_RATE), int(last_s * SCAN_RATE)):
-        t = k / SCAN_RATE
-        strains = device.strains(np.full((2, n, n), t))
-        if ramp_s > 0.0:
-            strains = min(t / ramp_s, 1.0) * strains
-        wire = device.readout.read(strains, t)
-        if k % every:
-            continue
-        result = pipe.process(np.asarray(wire, dtype=float) * 1e-6, k, 0, 0)
+    for k, t, resistances in emulated.emulated_scans(device, scanner, last_s, first_s, every, ramp_s):
+        result = pipe.process(resistances, k, 0, 0)
         if t < ramp_s:
             continue
-        truth = ph.ground_truth(shape, n, n, scanner.pitch_mm, t=t).nodes
+        truth = ph.ground_truth(device.shape, n, n, scanner.pitch_mm, t=t).nodes
         mirror = result.surface.mirror
         answers = [result.nodes_mm] + ([mirror.nodes] if mirror is not None else [])
         e = min((aligned_node_errors(a, truth) for a in answers), key=lambda x: float(x.mean()))

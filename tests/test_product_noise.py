@@ -12,7 +12,7 @@ from conftest import aligned_node_errors
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import DEFAULT_STRAIN_SIGMA, Reconstructor
-from skinmap.reconstruction.engine import _least_shear_square, least_shear_noise, metric_terms, unit_data
+from skinmap.reconstruction.engine import least_shear_square, least_shear_noise, metric_terms, unit_data
 from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.reconstruction.productnoise import measure_product_noise, pair_product, turning_noise_estimate
 
@@ -229,7 +229,7 @@ def test_the_least_shear_square_s_stretch_noise_is_measured_within_its_draws_sam
     for _ in range(400):
         k_u, k_v, tau0, lam_u, lam_v = maps(zeros, 1.0 + sd * rng.normal(size=(2, n, n)))[:5]
         metric = metric_terms(grid.spacing, lam_u, lam_v)
-        squares.append(_least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0 - tau0.mean(), grid.inner, metric)[2])
+        squares.append(least_shear_square(grid, k_u, k_v, lam_u, lam_v, tau0 - tau0.mean(), grid.inner, metric)[2])
     measured = float(np.std(squares)) / sd
     assert 0.75 < measured / predicted < 1.3, (measured, predicted)
 
