@@ -55,7 +55,7 @@ from .linalg import aligned_distances
 from .uncertainty import plane_slopes
 
 __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "WARM_LINEAR",
-           "WARM_UNSETTLED", "disagreement",
+           "WARM_UNSETTLED", "WARM_MORE_STEPS", "disagreement",
            "KNOTS_PER_PITCH", "COARSE_KNOTS_CELLS", "knots_per_pitch"]
 
 #: Acceptance: mean squared residual of the turning and of the stretch, each in units of its
@@ -148,6 +148,14 @@ _BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ 
 #: answer (and its basin test).
 WARM_UNSETTLED = 9.0
 WARM_LINEAR = "warm: linear start"
+#: Steps more for a warm fit whose first :data:`_WARM_STEPS` leave the gauges misread (not
+#: accepted), on sheets up to :data:`MAX_CELLS` cells: with them as many as a cold fit takes;
+#: accepted, the linear start is descended beside it (:meth:`GraphFit.fit_warm`).  skinmapd at
+#: 10 Hz (a warm start five scans old), 5×5, over the emulated device's noise seeds: frames
+#: answered while their cold fit was deferred (DEGRADED, σ widened by the gauges' resolution)
+#: on the palm gesture 77 → 22 of 480, on two fingertips releasing a membrane 145 → 24 (mean node
+#: error 0.089 → 0.046 mm), none beyond 3σ + 0.05 mm before or after (docs/reconstruction.md).
+WARM_MORE_STEPS = _MAX_STEPS - _WARM_STEPS
 
 
 class GraphResult(NamedTuple):
@@ -540,7 +548,9 @@ class GraphFit:
         (its coefficients, those of the graph before it or None).  For a shape in motion the
         linear prediction from the two is tried first.  Where the steps stop with more than
         :data:`WARM_UNSETTLED` still to take, the linear start is descended too (sheets of up to
-        :data:`MAX_CELLS` cells) and the lower objective answers.  ``linear``: gives
+        :data:`MAX_CELLS` cells) and the lower objective answers; where they stop with the gauges
+        misread, :data:`WARM_MORE_STEPS` steps more are taken from there and, if that fit is
+        accepted, the linear start is descended beside it likewise.  ``linear``: gives
         :meth:`cold_starts` of ``data`` (a caller that needs it too computes it once)."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
@@ -554,8 +564,20 @@ class GraphFit:
                 c = predicted
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         warm = self._judge(self._result(*out[:5], n_valid, sigma_t, "warm"), twist_sign)
+        further = False
+        if not warm.accepted and self.n * self.m <= MAX_CELLS and math.isfinite(out[4]):
+            # the steps stopped with the gauges misread: the shape moved further than they follow
+            # (skinmapd at 10 Hz starts from a graph five scans old), and the descent goes on
+            # from where they stopped, as far as a cold fit's would (:data:`WARM_MORE_STEPS`);
+            # a chain that lags so far may hold another basin, so the linear start is
+            # descended beside it as for an unsettled fit
+            more = self._descend(out[0], turning, stretch, w_t, w_s, n_valid, WARM_MORE_STEPS, _WARM_CURVATURE,
+                                 _WARM_REUSE)
+            longer = self._judge(self._result(*more[:5], n_valid, sigma_t, "warm"), twist_sign)
+            if longer.accepted:
+                warm, out, further = longer._replace(iterations=out[3] + more[3]), more, True
         left = out[5]
-        if not warm.accepted or left <= WARM_UNSETTLED or self.n * self.m > MAX_CELLS:
+        if not warm.accepted or (left <= WARM_UNSETTLED and not further) or self.n * self.m > MAX_CELLS:
             return warm
         # the warm steps stopped far from their optimum: the shape has moved faster than they
         # follow, and the chain may hold a basin a fresh start would leave (the linear start,
