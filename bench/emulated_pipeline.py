@@ -35,13 +35,14 @@ def emulated_device(n: int, shape: ph.Shape | str, electrical: ElectricalConfig 
 def emulated_pipeline(device: Device, spec: ScannerSpec, elements_uv: np.ndarray | None = None,
                       **options: Any) -> FramePipeline:
     """A FramePipeline as skinmapd builds it from the device's HELLO (gauge factors and base
-    resistances), its background inline; ``elements_uv`` (K, 2) mm, none by default (one
-    element at the centre); ``options`` go to FramePipeline."""
+    resistances), its background inline unless ``options`` give one; ``elements_uv`` (K, 2) mm,
+    none by default (one element at the centre); ``options`` go to FramePipeline."""
     hello = device.hello()
     calibration = Calibration(hello.gauge_factor(), hello.base_resistance_ohm(), "factory")
     geometry = ArrayGeometry(spec.n, spec.m, spec.pitch_mm, spec.h_upper_mm, spec.h_lower_mm, spec.gauge_length_mm)
     uv = np.zeros((1, 2)) if elements_uv is None else np.asarray(elements_uv, dtype=float)
-    return FramePipeline(geometry, calibration, uv, np.zeros(len(uv)), background=InlineBackground(), **options)
+    options.setdefault("background", InlineBackground())
+    return FramePipeline(geometry, calibration, uv, np.zeros(len(uv)), **options)
 
 
 def emulated_scans(device: Device, spec: ScannerSpec, last_s: float, first_s: float = 0.0, every: int = 1,

@@ -328,6 +328,8 @@ class GraphFit:
         self._band_flat = band_d * nc + band_j
         self._lower_flat = band_j * nc + (band_j + band_d)
         self._lower_buffer: np.ndarray | None = None
+        # the sensor frame's linear forms by centre node (_frame_height_rows)
+        self._frame_forms: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
@@ -892,13 +894,17 @@ class GraphFit:
         linear forms in the coefficients."""
         fv, fu = self._fv[0], self._fu[0]
         a, b = np.divmod(flat, len(self._fine_u))
-        a0, b0 = centre
-        ref = (fv[a0][:, None] * fu[b0][None, :]).reshape(-1)
-        # uncertainty.plane_slopes as linear forms: over a separable grid each slope's sum is one
-        # outer product (the whole (nf, mf, coefficients) array would cost megabytes a frame)
         u, v = self._fine_u, self._fine_v
-        slope_u = np.outer(fv.sum(axis=0), u @ fu).reshape(-1) / (len(v) * float(u @ u))
-        slope_v = np.outer(v @ fv, fu.sum(axis=0)).reshape(-1) / (len(u) * float(v @ v))
+        frame = self._frame_forms.get(centre)
+        if frame is None:  # the frame's own forms depend on the geometry and the centre alone
+            a0, b0 = centre
+            ref = (fv[a0][:, None] * fu[b0][None, :]).reshape(-1)
+            # uncertainty.plane_slopes as linear forms: over a separable grid each slope's sum is
+            # one outer product (the whole (nf, mf, coefficients) array would cost megabytes a frame)
+            slope_u = np.outer(fv.sum(axis=0), u @ fu).reshape(-1) / (len(v) * float(u @ u))
+            slope_v = np.outer(v @ fv, fu.sum(axis=0)).reshape(-1) / (len(u) * float(v @ v))
+            frame = self._frame_forms[centre] = (ref, slope_u, slope_v)
+        ref, slope_u, slope_v = frame
         height = (fv[a][:, :, None] * fu[b][:, None, :]).reshape(len(a), self.size)
         return height - ref - u[b][:, None] * slope_u[None, :] - v[a][:, None] * slope_v[None, :]
 
