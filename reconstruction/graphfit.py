@@ -149,12 +149,13 @@ _BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ 
 WARM_UNSETTLED = 9.0
 WARM_LINEAR = "warm: linear start"
 #: Steps more for a warm fit whose first :data:`_WARM_STEPS` leave the gauges misread (not
-#: accepted), on sheets up to :data:`MAX_CELLS` cells: with them as many as a cold fit takes;
-#: accepted, the linear start is descended beside it (:meth:`GraphFit.fit_warm`).  skinmapd at
+#: accepted) and whose frame's linear start, descended as a cold fit descends it, is not
+#: accepted either, on sheets up to :data:`MAX_CELLS` cells: with them as many as a cold fit
+#: takes (:meth:`GraphFit.fit_warm`).  skinmapd at
 #: 10 Hz (a warm start five scans old), 5×5, over the emulated device's noise seeds: frames
 #: answered while their cold fit was deferred (DEGRADED, σ widened by the gauges' resolution)
-#: on the palm gesture 77 → 22 of 480, on two fingertips releasing a membrane 145 → 24 (mean node
-#: error 0.089 → 0.046 mm), none beyond 3σ + 0.05 mm before or after (docs/reconstruction.md).
+#: on the palm gesture 77 → 20 of 480, on two fingertips releasing a membrane 145 → 25 (mean node
+#: error 0.089 → 0.047 mm), none beyond 3σ + 0.05 mm before or after (docs/reconstruction.md).
 WARM_MORE_STEPS = _MAX_STEPS - _WARM_STEPS
 
 
@@ -551,8 +552,8 @@ class GraphFit:
         linear prediction from the two is tried first.  Where the steps stop with more than
         :data:`WARM_UNSETTLED` still to take, the linear start is descended too (sheets of up to
         :data:`MAX_CELLS` cells) and the lower objective answers; where they stop with the gauges
-        misread, :data:`WARM_MORE_STEPS` steps more are taken from there and, if that fit is
-        accepted, the linear start is descended beside it likewise.  ``linear``: gives
+        misread (not accepted), the linear start descended so answers if it is accepted, else
+        :data:`WARM_MORE_STEPS` steps more from where the warm steps stopped.  ``linear``: gives
         :meth:`cold_starts` of ``data`` (a caller that needs it too computes it once)."""
         turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
@@ -566,31 +567,48 @@ class GraphFit:
                 c = predicted
         out = self._descend(c, turning, stretch, w_t, w_s, n_valid, _WARM_STEPS, _WARM_CURVATURE, _WARM_REUSE)
         warm = self._judge(self._result(*out[:5], n_valid, sigma_t, "warm"), twist_sign)
-        further = False
-        if not warm.accepted and self.n * self.m <= MAX_CELLS and math.isfinite(out[4]):
-            # the steps stopped with the gauges misread: the shape moved further than they follow
-            # (skinmapd at 10 Hz starts from a graph five scans old), and the descent goes on
-            # from where they stopped, as far as a cold fit's would (:data:`WARM_MORE_STEPS`);
-            # a chain that lags so far may hold another basin, so the linear start is
-            # descended beside it as for an unsettled fit
-            more = self._descend(out[0], turning, stretch, w_t, w_s, n_valid, WARM_MORE_STEPS, _WARM_CURVATURE,
-                                 _WARM_REUSE)
-            longer = self._judge(self._result(*more[:5], n_valid, sigma_t, "warm"), twist_sign)
-            if longer.accepted:
-                warm, out, further = longer._replace(iterations=out[3] + more[3]), more, True
-        left = out[5]
-        if not warm.accepted or (left <= WARM_UNSETTLED and not further) or self.n * self.m > MAX_CELLS:
+        cells_ok = self.n * self.m <= MAX_CELLS
+        if not warm.accepted and cells_ok and math.isfinite(out[4]):
+            rescued = self._misread_rescue(data, out, twist_sign, linear)
+            return warm if rescued is None else rescued
+        if not warm.accepted or out[5] <= WARM_UNSETTLED or not cells_ok:
             return warm
         # the warm steps stopped far from their optimum: the shape has moved faster than they
         # follow, and the chain may hold a basin a fresh start would leave (the linear start,
         # as a cold fit descends from it; the lower objective answers)
+        fresh = self._linear_descent(data, twist_sign, linear)
+        if fresh is None:
+            return warm
+        return fresh if fresh.accepted and fresh.objective < warm.objective else warm
+
+    def _misread_rescue(self, data: tuple, out: tuple, twist_sign: float | None,
+                        linear: Callable[[], tuple[list, list[str]]] | None) -> GraphResult | None:
+        """A graph for a frame whose warm steps (``out``: :meth:`_descend`'s) stopped with the
+        gauges misread, or None: the shape moved further than they follow (skinmapd at 10 Hz
+        starts from a graph five scans old).  A chain that lags so far may hold another basin:
+        the frame's linear start is descended as a cold fit descends it, and where that is not
+        accepted the warm descent goes on from where it stopped, as far as a cold fit's would
+        (:data:`WARM_MORE_STEPS`)."""
+        fresh = self._linear_descent(data, twist_sign, linear)
+        if fresh is not None and fresh.accepted:
+            return fresh
+        turning, stretch, w_t, w_s, _, n_valid, sigma_t, _ = data
+        more = self._descend(out[0], turning, stretch, w_t, w_s, n_valid, WARM_MORE_STEPS, _WARM_CURVATURE,
+                             _WARM_REUSE)
+        longer = self._judge(self._result(*more[:5], n_valid, sigma_t, "warm"), twist_sign)
+        return longer._replace(iterations=out[3] + more[3]) if longer.accepted else None
+
+    def _linear_descent(self, data: tuple, twist_sign: float | None,
+                        linear: Callable[[], tuple[list, list[str]]] | None) -> GraphResult | None:
+        """The frame's linear start descended as a cold fit descends it (how: :data:`WARM_LINEAR`);
+        None where its screen rules it out."""
+        turning, stretch, w_t, w_s, _, n_valid, sigma_t, _ = data
         starts, reasons = self.cold_starts(data) if linear is None else linear()
         if reasons[0]:
-            return warm
-        fresh = self._judge(self._result(*self._descend(starts[0][1], turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
-                                                        curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR)[:5],
-                                         n_valid, sigma_t, WARM_LINEAR), twist_sign)
-        return fresh if fresh.accepted and fresh.objective < warm.objective else warm
+            return None
+        return self._judge(self._result(*self._descend(starts[0][1], turning, stretch, w_t, w_s, n_valid, _MAX_STEPS,
+                                                       curvature=_COLD_CURVATURE, curvature_near=_CURVATURE_NEAR)[:5],
+                                        n_valid, sigma_t, WARM_LINEAR), twist_sign)
 
     def warm_screen(self, c: np.ndarray, data: tuple, linear: tuple[list, list[str]] | None = None
                     ) -> tuple[str, tuple[list, list[str]]]:

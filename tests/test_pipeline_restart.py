@@ -14,6 +14,7 @@ from skinmap.daemon.pipeline import (GRAPH_ADOPT_SCANS, GRAPH_AUDIT_SCANS, GRAPH
                                      GRAPH_SYNC_SCANS, FramePipeline, InlineBackground, WorkerBackground, graph_adopt,
                                      graph_audit, graph_restart)
 from skinmap.emulator.physics import gauge_strains, make_shape
+from skinmap.reconstruction.graphfit import WARM_LINEAR, GraphFit
 from skinmap.strains import Calibration
 
 N = M = 5
@@ -229,6 +230,15 @@ def run_jump(pipe: FramePipeline) -> dict:
     return {seq: pipe.process(JUMP_SCANS[seq], seq, 0, 0) for seq in JUMP_SCANS}
 
 
+@pytest.fixture
+def no_warm_rescue(monkeypatch):
+    """The jump's warm fit is rescued in the frame by the linear start
+    (graphfit.GraphFit._misread_rescue); switched off, the frame needs a cold fit, which is what
+    these tests follow."""
+    monkeypatch.setattr(GraphFit, "_misread_rescue", lambda self, *args: None)
+
+
+@pytest.mark.usefixtures("no_warm_rescue")
 def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_frame():
     worker = WorkerBackground()
     try:
@@ -267,6 +277,17 @@ def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_fram
                            atol=1e-6), seq
 
 
+def test_a_jump_the_warm_steps_misread_is_answered_in_the_frame_from_its_linear_start():
+    """The jump's four warm steps misread the gauges; the frame's linear start, descended in the
+    frame (graphfit.GraphFit._misread_rescue), answers it as a graph: no frame is deferred to a
+    catch-up chain."""
+    results = run_jump(pipeline())
+    assert results[JUMP_AT].surface.diagnostics.extra["graph_fit"] == WARM_LINEAR
+    assert not any(r.diagnostics.get("graph_deferred") for r in results.values())
+    assert all(r.surface.diagnostics.extra["model"] == "graph" for r in results.values())
+
+
+@pytest.mark.usefixtures("no_warm_rescue")
 def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
     """Replay runs the catch-up chains in line: the same elements as the live worker's."""
     worker = WorkerBackground()
@@ -283,6 +304,7 @@ def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
         assert np.array_equal(threaded[seq].node_sigma_mm, inline[seq].node_sigma_mm), seq
 
 
+@pytest.mark.usefixtures("no_warm_rescue")
 def test_a_failed_catch_up_chain_lets_the_next_frame_fit_cold_itself(caplog):
     pipe = pipeline()
 
