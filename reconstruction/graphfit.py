@@ -569,8 +569,8 @@ class GraphFit:
         warm = self._judge(self._result(*out[:5], n_valid, sigma_t, "warm"), twist_sign)
         cells_ok = self.n * self.m <= MAX_CELLS
         if not warm.accepted and cells_ok and math.isfinite(out[4]):
-            rescued = self._misread_rescue(data, out, twist_sign, linear)
-            return warm if rescued is None else rescued
+            refit = self._misread_refit(data, out, twist_sign, linear)
+            return warm if refit is None else refit
         if not warm.accepted or out[5] <= WARM_UNSETTLED or not cells_ok:
             return warm
         # the warm steps stopped far from their optimum: the shape has moved faster than they
@@ -581,7 +581,7 @@ class GraphFit:
             return warm
         return fresh if fresh.accepted and fresh.objective < warm.objective else warm
 
-    def _misread_rescue(self, data: tuple, out: tuple, twist_sign: float | None,
+    def _misread_refit(self, data: tuple, out: tuple, twist_sign: float | None,
                         linear: Callable[[], tuple[list, list[str]]] | None) -> GraphResult | None:
         """A graph for a frame whose warm steps (``out``: :meth:`_descend`'s) stopped with the
         gauges misread, or None: the shape moved further than they follow (skinmapd at 10 Hz

@@ -231,14 +231,14 @@ def run_jump(pipe: FramePipeline) -> dict:
 
 
 @pytest.fixture
-def no_warm_rescue(monkeypatch):
-    """The jump's warm fit is rescued in the frame by the linear start
-    (graphfit.GraphFit._misread_rescue); switched off, the frame needs a cold fit, which is what
+def no_misread_refit(monkeypatch):
+    """The jump's misreading warm fit is refitted in the frame from its linear start
+    (graphfit.GraphFit._misread_refit); switched off, the frame needs a cold fit, which is what
     these tests follow."""
-    monkeypatch.setattr(GraphFit, "_misread_rescue", lambda self, *args: None)
+    monkeypatch.setattr(GraphFit, "_misread_refit", lambda self, *args: None)
 
 
-@pytest.mark.usefixtures("no_warm_rescue")
+@pytest.mark.usefixtures("no_misread_refit")
 def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_frame():
     worker = WorkerBackground()
     try:
@@ -279,7 +279,7 @@ def test_a_frame_whose_warm_fit_fails_is_answered_without_a_cold_fit_in_the_fram
 
 def test_a_jump_the_warm_steps_misread_is_answered_in_the_frame_from_its_linear_start():
     """The jump's four warm steps misread the gauges; the frame's linear start, descended in the
-    frame (graphfit.GraphFit._misread_rescue), answers it as a graph: no frame is deferred to a
+    frame (graphfit.GraphFit._misread_refit), answers it as a graph: no frame is deferred to a
     catch-up chain."""
     results = run_jump(pipeline())
     assert results[JUMP_AT].surface.diagnostics.extra["graph_fit"] == WARM_LINEAR
@@ -287,7 +287,7 @@ def test_a_jump_the_warm_steps_misread_is_answered_in_the_frame_from_its_linear_
     assert all(r.surface.diagnostics.extra["model"] == "graph" for r in results.values())
 
 
-@pytest.mark.usefixtures("no_warm_rescue")
+@pytest.mark.usefixtures("no_misread_refit")
 def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
     """Replay runs the catch-up chains in line: the same elements as the live worker's."""
     worker = WorkerBackground()
@@ -304,7 +304,7 @@ def test_deferred_cold_fits_give_the_same_bits_on_the_worker_and_in_line():
         assert np.array_equal(threaded[seq].node_sigma_mm, inline[seq].node_sigma_mm), seq
 
 
-@pytest.mark.usefixtures("no_warm_rescue")
+@pytest.mark.usefixtures("no_misread_refit")
 def test_a_failed_catch_up_chain_lets_the_next_frame_fit_cold_itself(caplog):
     pipe = pipeline()
 
