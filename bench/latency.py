@@ -7,6 +7,8 @@ subscribes to the element messages over Zenoh, and prints:
   host time stamp) to this subscriber holding the decoded element coordinates: median, p99;
 - the daemon's CPU use (share of one core) and resident memory, from /proc;
 - MCAP bytes per hour, from the log folder's growth;
+- what the subscriber was told of the elements: the share of messages with some element flagged
+  DEGRADED (its σ above skinmap.elements.DEGRADED_SIGMA_MM) and the elements' σ median, in µm;
 - with --stages, where the time goes: the daemon runs with timing hooks (this file's
   ``--traced-daemon`` mode, the daemon's own code otherwise) and records per published frame
   the wait from the scan's last byte to the processing thread, the pipeline's stages
@@ -38,6 +40,7 @@ import numpy as np
 
 from skinmap.daemon.cli import start_emulator, stop_process
 from skinmap.client import SkinmapClient
+from skinmap.wire.messages import ElementFlag
 
 
 WARM_UP_S = 3.0
@@ -200,6 +203,8 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
                else [sys.executable, "-m", "skinmap.daemon.service", "--config", str(cfg)])
     daemon = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     latencies: list[float] = []
+    degraded: list[bool] = []
+    sigma_um: list[float] = []
     received_ns: dict[int, int] = {}
     try:
         with SkinmapClient([f"tcp/127.0.0.1:{zenoh_port}"], prefix="skinmap", device="bench") as client:
@@ -215,6 +220,8 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
                 msg = client.elements(timeout=5.0)
                 now = time.time_ns()
                 latencies.append((now - msg.host_time_ns) / 1e6)
+                degraded.append(bool((msg.flags & int(ElementFlag.DEGRADED)).any()))
+                sigma_um.append(float(np.median(msg.uncertainty)) * 1e6)
                 received_ns[msg.seq] = now
             elapsed = time.monotonic() - t0
             cpu = (proc_cpu_seconds(daemon.pid) - cpu0) / elapsed
@@ -227,7 +234,9 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
     stage_lines = stage_table(json.loads(trace.read_text()), received_ns) if stages and trace.exists() else []
     return {"stages": stage_lines,"size": size, "scan_rate": scan_rate, "output": "every scan" if output_rate == 0 else f"{output_rate:g} Hz",
             "n": lat.size, "rate": lat.size / elapsed, "median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
-            "cpu": cpu * 100, "rss": rss, "mcap_gb_h": mcap_rate / 1e9}
+            "cpu": cpu * 100, "rss": rss, "mcap_gb_h": mcap_rate / 1e9,
+            "degraded": 100.0 * float(np.mean(degraded)) if degraded else 0.0,
+            "sigma_um": float(np.median(sigma_um)) if sigma_um else float("nan")}
 
 
 def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: float, shape: str) -> list[str]:
@@ -301,15 +310,17 @@ def main() -> None:
                 r = rows[-1]
                 print(f"{r['size']:>6} scan {r['scan_rate']:g}/s output {r['output']:>10}: {r['n']} msgs "
                       f"({r['rate']:.1f}/s)  latency median {r['median']:.2f} ms  p99 {r['p99']:.2f} ms  "
-                      f"CPU {r['cpu']:.1f} %  RSS {r['rss']:.0f} MB  MCAP {r['mcap_gb_h']:.2f} GB/h", flush=True)
+                      f"CPU {r['cpu']:.1f} %  RSS {r['rss']:.0f} MB  MCAP {r['mcap_gb_h']:.2f} GB/h  "
+                      f"DEGRADED {r['degraded']:.1f} % of messages  element σ median {r['sigma_um']:.0f} µm", flush=True)
                 for line in r["stages"]:
                     print(line, flush=True)
     print(f"\nload average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print("| array | scans/s | output | messages | latency median ms | latency p99 ms | daemon CPU % | RSS MB | MCAP GB/h |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| array | scans/s | output | messages | latency median ms | latency p99 ms | daemon CPU % | RSS MB | MCAP GB/h "
+          "| DEGRADED messages % | element σ median µm |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['size']} | {r['scan_rate']:g} | {r['output']} | {r['n']} | {r['median']:.2f} | {r['p99']:.2f} | "
-              f"{r['cpu']:.1f} | {r['rss']:.0f} | {r['mcap_gb_h']:.2f} |")
+              f"{r['cpu']:.1f} | {r['rss']:.0f} | {r['mcap_gb_h']:.2f} | {r['degraded']:.1f} | {r['sigma_um']:.0f} |")
 
 
 if __name__ == "__main__":
