@@ -555,7 +555,7 @@ class GraphFit:
         misread (not accepted), the linear start descended so answers if it is accepted, else
         :data:`WARM_MORE_STEPS` steps more from where the warm steps stopped.  ``linear``: gives
         :meth:`cold_starts` of ``data`` (a caller that needs it too computes it once)."""
-        turning, stretch, w_t, w_s, valid, n_valid, sigma_t, _ = data
+        turning, stretch, w_t, w_s, _, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
             raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")
         c = np.array(start[0], dtype=float)

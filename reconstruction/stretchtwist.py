@@ -107,6 +107,15 @@ class _SignCandidate(NamedTuple):
         return float(self.residual @ self.residual)
 
 
+class _LeftOpen(NamedTuple):
+    """Twists the data leave open about an answer that stands (StretchPatternTwist._twist_left_open)."""
+
+    ends: list[float]  # shifts on the answer's family to them (their spread joins node_sigma)
+    #: they reach the reading's top with nothing refined (StretchPatternTwist._open_to_top): σ keeps
+    #: what it took of the twist without the pattern (StretchTwist.keeps_rest)
+    to_top: bool
+
+
 class StretchTwist(NamedTuple):
     """What the stretch pattern made of an answer's twist (StretchPatternTwist._stretch_twist)."""
 
@@ -311,10 +320,10 @@ class StretchPatternTwist:
                                          fields_read, carried, info, sigma_f)
             if left is None:
                 return None
-            if isinstance(left, list):
+            if isinstance(left, _LeftOpen):
                 # the answer stays; where the reading's interval reaches none by less than the
                 # noise reaches, other frames clear it and move to the refined twist
-                ends = left
+                ends = left.ends
                 # (a reading left open without its refinement moves no frame: nothing flips)
                 flips = "stretch_twist_refined" in info and self._flip_within_noise(reading, fields_read, sigma_f)
                 refined = float(info["stretch_twist_refined"][0]) if flips else 0.0
@@ -322,7 +331,7 @@ class StretchPatternTwist:
                     info["stretch_twist_contested"] = True
                 return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)),
                                     chi0, positions_at, 0.0, (sign * refined - m0,) if flips else (),
-                                    "stretch_twist_open" in info)
+                                    left.to_top)
             magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:
@@ -459,7 +468,7 @@ class StretchPatternTwist:
 
     def _twist_left_open(self, reading: TwistReading, m0: float, sign: float, sign_open: bool, base_shift: float,
                          positions_at, stretch, valid, fields, carried: bool, info: dict,
-                         sigma_f: float) -> list[float] | float | None:
+                         sigma_f: float) -> _LeftOpen | float | None:
         """Where the stretch pattern's interval allows no twist too and the answer's twist lies in
         it: None where the answer stands as it is; else the shifts on ``positions_at``'s family
         whose twists the data leave open (their spread joins node_sigma); or, for an answer that
@@ -515,7 +524,7 @@ class StretchPatternTwist:
             # held 12×12 saddle of R 286 mm at 83°, twist 0.0008 /mm, refined on the untwisted
             # answer's family to 0.00046 on one frame in 40: 1.05 mm off, 1.21 times 3σ + 0.05 mm)
             mag += OPEN_SIGMAS * self._estimate_sd(mag, reading, fields, sigma_f)
-            return [m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))]
+            return _LeftOpen([m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))], False)
         # The answer carries the frame before's twist (:meth:`_carried_twist`) and the
         # refinement confirms it: decided, and its sign kept unless the stretch clearly prefers
         # the other (a held 12×12 saddle of R 286 mm at 83° went between its twist and none frame
@@ -563,7 +572,7 @@ class StretchPatternTwist:
         return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0,
                             positions_at, 0.0, keeps_rest=True)
 
-    def _open_to_top(self, m_hi: float, m0: float, sign: float, sign_open: bool, info: dict) -> list[float] | None:
+    def _open_to_top(self, m_hi: float, m0: float, sign: float, sign_open: bool, info: dict) -> _LeftOpen | None:
         """The shifts to the twists a reading leaves open where the answer stands and nothing
         refines it: to the interval's top, of either sign where none is told (None with
         ``twist_prior`` "none": the sheet is known to carry none).  A dome's twist is read
@@ -574,7 +583,7 @@ class StretchPatternTwist:
         if self.twist_prior == "none":
             return None
         info["stretch_twist_open"] = round(m_hi, 7)
-        return [m - m0 for m in ((sign * m_hi, -sign * m_hi) if sign_open else (sign * m_hi,))]
+        return _LeftOpen([m - m0 for m in ((sign * m_hi, -sign * m_hi) if sign_open else (sign * m_hi,))], True)
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
                         sigma_f: float, eu, el, refined_sign: float) -> tuple[list["_SignCandidate"], int]:
