@@ -734,13 +734,8 @@ class FramePipeline:
         """A published frame answered warm at an audit's scan (GRAPH_AUDIT_SCANS): begin an
         audit, a catch-up chain from this scan's cold fit taken over only where it ends on the
         lower objective (unless a chain is under way)."""
-        if self._catch_up is not None or not self._audited:
-            return
-        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=True)
-        cold = {**kwargs, "graph_warm": False}
-        if previous is not None:
-            cold["previous"] = previous
-        self._begin(self._catch_up, eps_u, eps_l, seq, cold)
+        if self._catch_up is None and self._audited:
+            self._begin_catch_up(eps_u, eps_l, seq, kwargs, previous, audit=True)
 
     def _catch_up_chain(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                         previous: Any) -> None:
@@ -749,7 +744,12 @@ class FramePipeline:
         if self._catch_up is not None:
             self._catch_up.audit = False
             return
-        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS)
+        self._begin_catch_up(eps_u, eps_l, seq, kwargs, previous, audit=False)
+
+    def _begin_catch_up(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
+                        previous: Any, audit: bool) -> None:
+        """Begin the catch-up chain (an audit, or a deferred frame's) from this scan's cold fit."""
+        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=audit)
         cold = {**kwargs, "graph_warm": False}
         if previous is not None:
             cold["previous"] = previous

@@ -116,6 +116,12 @@ class _LeftOpen(NamedTuple):
     to_top: bool
 
 
+def _shifts_to(magnitude: float, m0: float, sign: float, sign_open: bool) -> list[float]:
+    """Shifts from the answer's twist ``m0`` to the twist of ``magnitude``, of either sign where
+    none is told (``sign_open``), else of ``sign``."""
+    return [m - m0 for m in ((sign * magnitude, -sign * magnitude) if sign_open else (sign * magnitude,))]
+
+
 class StretchTwist(NamedTuple):
     """What the stretch pattern made of an answer's twist (StretchPatternTwist._stretch_twist)."""
 
@@ -524,7 +530,7 @@ class StretchPatternTwist:
             # held 12×12 saddle of R 286 mm at 83°, twist 0.0008 /mm, refined on the untwisted
             # answer's family to 0.00046 on one frame in 40: 1.05 mm off, 1.21 times 3σ + 0.05 mm)
             mag += OPEN_SIGMAS * self._estimate_sd(mag, reading, fields, sigma_f)
-            return _LeftOpen([m - m0 for m in ((sign * mag, -sign * mag) if sign_open else (sign * mag,))], False)
+            return _LeftOpen(_shifts_to(mag, m0, sign, sign_open), False)
         # The answer carries the frame before's twist (:meth:`_carried_twist`) and the
         # refinement confirms it: decided, and its sign kept unless the stretch clearly prefers
         # the other (a held 12×12 saddle of R 286 mm at 83° went between its twist and none frame
@@ -583,7 +589,7 @@ class StretchPatternTwist:
         if self.twist_prior == "none":
             return None
         info["stretch_twist_open"] = round(m_hi, 7)
-        return _LeftOpen([m - m0 for m in ((sign * m_hi, -sign * m_hi) if sign_open else (sign * m_hi,))], True)
+        return _LeftOpen(_shifts_to(m_hi, m0, sign, sign_open), True)
 
     def _afresh_by_sign(self, signs, magnitude: float, reading: TwistReading, surf: Surface, turning, stretch, valid,
                         sigma_f: float, eu, el, refined_sign: float) -> tuple[list["_SignCandidate"], int]:
