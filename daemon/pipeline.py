@@ -478,10 +478,13 @@ class FramePipeline:
         # bump into a saddle followed a warm graph to 2.6 times 3σ + 0.05 mm, 6 frames beyond;
         # 12×12 9 frames (2.5 times), 16×16 6 (3.9); with the test none, none and one (1.05).  A
         # refused warm fit leaves the frame to the general model (DEGRADED) until the catch-up
-        # chain's cold fit takes over.
+        # chain's cold fit takes over.  Its yardstick is the chain's last cold fit's: the audits
+        # (GRAPH_AUDIT_SCANS) bound the wander the library's "lowest" yardstick catches, and with
+        # that one the 5×5 palm deferred 8 → 44 of 400 frames, the two fingertips 15 → 48.
         return Reconstructor(g.n, g.m, g.pitch_mm, g.h_upper_mm, g.h_lower_mm, g.gauge_length_mm,
                              convex_solver=self.convex_solver, graph_fit=graph_fit, elastic_prior=self.elastic_prior,
-                             poisson_range=self.poisson_range, twist_prior=self.twist_prior, gain_sd=self.gain_sd)
+                             poisson_range=self.poisson_range, twist_prior=self.twist_prior, gain_sd=self.gain_sd,
+                             warm_basin_yardstick="cold")
 
     def _chain_reconstructor_built(self) -> Any:
         """The restart chains' reconstructor (on the background: built and prepared there)."""

@@ -109,8 +109,9 @@ WARM_DEFECT_MAX_CELLS = 144
 #: 16×16 crossed it once and stayed on warm graph frames of 12-30 ms: docs/reconstruction.md.)
 GRAPH_RESCUE_MAX_CELLS = 256
 GRAPH_RESCUE_CHI2 = 8.0
-#: A warm graph fit whose objective (data misfit and prior) is above this many times that of its
-#: chain's last cold fit is not taken: it has followed another basin of the fit, one the chain
+#: A warm graph fit whose objective (data misfit and prior) is above this many times its chain's
+#: yardstick (its last cold fit's objective, or the lowest since: WARM_BASIN_YARDSTICKS) is not
+#: taken: it has followed another basin of the fit, one the chain
 #: carried from frame to frame while a cold fit of the same data lands elsewhere (the modes the
 #: gauges pin least, beyond their ends), and the frame fits cold instead (the library's default,
 #: ``Reconstructor(warm_basin_ratio=...)``, and skinmapd's: its chains' cold restart every 64
@@ -123,6 +124,15 @@ GRAPH_RESCUE_CHI2 = 8.0
 #: objective at the optimum scatters with the noise (a 7×7 chain's cold fits 8.6–18.7), so a
 #: ratio much below 2 refits on noise alone.
 WARM_BASIN_RATIO = 2.0
+#: What a warm graph fit's objective is held against (``Reconstructor(warm_basin_yardstick=...)``):
+#: "lowest", the lowest objective its chain has reached since its last cold fit (a chain that
+#: leaves its basin climbs from there, while a cold fit that itself landed high lets it climb
+#: twice as far: a broad dent whose chain began on a cold fit at objective 15.9, where the
+#: frames' own cold fits sat at 1.4-5.5, climbed to 30 before it refitted, 0.12 mm off with σ
+#: 0.04); "cold", the last cold fit's (skinmapd: its audits fit its chain's scans cold every
+#: 8th scan and take over where lower, and a frame it refuses is deferred, DEGRADED, not
+#: refitted in the frame; with "lowest" its 5×5 palm deferred 8 → 44 of 400 frames).
+WARM_BASIN_YARDSTICKS = ("lowest", "cold")
 # A constant twist that only the least-shear prior of a turned saddle gives (no stretch reading
 # confirms it; none included) has its square uncertain by this share of the answer's mean
 # Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
@@ -262,10 +272,13 @@ class Reconstructor(StretchPatternTwist):
         does, the interval's spread is part of ``node_sigma`` and a sign the gauges cannot tell
         leaves :attr:`Surface.mirror` set (docs/reconstruction.md, "The stretch pattern's
         twist").  None: off.
-    warm_basin_ratio : a warm graph fit above this many times its chain's last cold fit's
-        objective has followed another basin and the frame fits cold (default
+    warm_basin_ratio : a warm graph fit above this many times its chain's yardstick
+        (``warm_basin_yardstick``) has followed another basin and the frame fits cold (default
         :data:`WARM_BASIN_RATIO`; None: off; skinmapd keeps it on, docs/reconstruction.md,
         "Long warm chains").
+    warm_basin_yardstick : that yardstick: "lowest" (default), the lowest objective the chain
+        has reached since its last cold fit; "cold", the last cold fit's (skinmapd, which
+        audits its chain; :data:`WARM_BASIN_YARDSTICKS`).
     gauge_screen : screen every frame for a gauge its neighbours contradict (a gain off by tens
         of percent, still reading) before the fits (:class:`.robust.GaugeScreen`: a closed-form
         fit with redundancy, and a Huber fit by Clarabel when a gauge stands out); a gauge it
@@ -308,6 +321,7 @@ class Reconstructor(StretchPatternTwist):
         gauge_screen: bool = True,
         poisson_range: tuple[float, float] | None = (0.3, 0.5),
         warm_basin_ratio: float | None = WARM_BASIN_RATIO,
+        warm_basin_yardstick: str = "lowest",
         twist_prior: str = "open",
         gain_sd: float = DEFAULT_GAIN_SD,
     ):
@@ -323,6 +337,10 @@ class Reconstructor(StretchPatternTwist):
                                                  and not isinstance(warm_basin_ratio, bool) and warm_basin_ratio > 1.0):
             raise ValueError(f"warm_basin_ratio must be a number > 1 or None, got {warm_basin_ratio!r}")
         self.warm_basin_ratio = math.inf if warm_basin_ratio is None else float(warm_basin_ratio)
+        if warm_basin_yardstick not in WARM_BASIN_YARDSTICKS:
+            raise ValueError(f"warm_basin_yardstick must be one of {', '.join(WARM_BASIN_YARDSTICKS)}, "
+                             f"got {warm_basin_yardstick!r}")
+        self.warm_basin_yardstick = warm_basin_yardstick
         if poisson_range is not None:
             try:
                 lo, hi = (float(x) for x in poisson_range)
@@ -824,12 +842,14 @@ class Reconstructor(StretchPatternTwist):
         earlier = warm[0] if graph is not None and graph.how == "warm" and warm is not None else None
         # (and the general model's defect correction, from which the next frame's starts)
         defect = cast("tuple[np.ndarray, float] | None", convex_info.get("defect")) if fit is not None else None
-        # the yardstick of the chain's warm fits: its last cold fit's objective (a warm frame the
-        # linear start answered stays in the chain and keeps it; only the prediction from the
-        # graph before, in another basin, is dropped)
+        # the yardstick of the chain's warm fits: its last cold fit's objective, or the lowest
+        # since (WARM_BASIN_YARDSTICKS; a warm frame the linear start answered stays in the chain;
+        # only the prediction from the graph before, in another basin, is dropped)
         chained = warm is not None and graph is not None and graph.how in ("warm", WARM_LINEAR)
         reference = (previous.state.graph_reference if chained and previous is not None
                      else graph.objective if graph is not None else math.inf)
+        if chained and graph is not None and self.warm_basin_yardstick == "lowest":
+            reference = min(reference, graph.objective)
         surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference, graph_objective=graph.objective)
                       if fit is None and graph is not None
                       else FrameState() if defect is None

@@ -175,8 +175,9 @@ class FrameState:
 
     graph: np.ndarray | None = None
     graph_before: np.ndarray | None = None
-    # the objective of the graph chain's last cold fit: a warm fit far above it has followed
-    # another basin (reconstructor.WARM_BASIN_RATIO)
+    # the graph chain's yardstick: its last cold fit's objective, or the lowest since
+    # (reconstructor.WARM_BASIN_YARDSTICKS); a warm fit far above it has followed another basin
+    # (reconstructor.WARM_BASIN_RATIO)
     graph_reference: float = math.inf
     graph_objective: float = math.inf  # this frame's graph fit's objective (data misfit and prior)
     position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import aligned_error
+from conftest import aligned_error, aligned_node_errors
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import Reconstructor, graphfit, reconstruct
@@ -90,6 +90,22 @@ def test_warm_start_follows_a_moving_bump(recs):
     assert max(errs) < 0.12
 
 
+def _moving_chain(rec: Reconstructor, seed: int, frames: int, height: float, fwhm: float, period: int,
+                  radii: tuple[float, float]):
+    """(k, surface, true cell centres) for ``frames`` noisy frames (noise seed ``seed``) of a
+    Gaussian bump moving on an ellipse of ``radii`` in ``period`` frames, each reconstructed warm
+    from the one before, every one a graph."""
+    rng = np.random.default_rng(seed)
+    prev = None
+    for k in range(frames):
+        phase = 2 * np.pi * k / period
+        shape = ph.GaussianBumps(height=height, fwhm=fwhm, centre=(radii[0] * np.cos(phase), radii[1] * np.sin(phase)))
+        eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
+        prev = rec(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), previous=prev)
+        assert prev.diagnostics.extra["model"] == "graph"
+        yield k, prev, shape.position(CENTRES)
+
+
 @pytest.mark.parametrize("guard", ["both", "linear start alone", "neither"])
 def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_stays_within_0_06_mm_mean(
         guard, monkeypatch):
@@ -104,22 +120,35 @@ def test_a_warm_chain_that_follows_another_basin_refits_cold_and_a_moving_dent_s
         monkeypatch.setattr(graphfit, "WARM_UNSETTLED", math.inf)
     rec = (Reconstructor(N, M, PITCH, H, H, G) if guard == "both"
            else Reconstructor(N, M, PITCH, H, H, G, warm_basin_ratio=None))
-    rng = np.random.default_rng(6)
-    prev, errs, cold = None, [], 0
-    for k in range(100):
-        phase = 2 * np.pi * k / 70
-        shape = ph.GaussianBumps(height=-3.5, fwhm=30.0, centre=(10.0 * np.cos(phase), 10.0 * np.sin(phase)))
-        eu, el = ph.gauge_strains(shape, N, M, PITCH, H, H, G)
-        prev = rec(eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape), previous=prev)
-        assert prev.diagnostics.extra["model"] == "graph"
-        cold += k > 0 and prev.diagnostics.extra["graph_fit"] in ("linear", "general")
-        errs.append(aligned_error(prev.nodes, shape.position(CENTRES)))
+    errs, cold = [], 0
+    for k, surf, truth in _moving_chain(rec, 6, 100, -3.5, 30.0, 70, (10.0, 10.0)):
+        cold += k > 0 and surf.diagnostics.extra["graph_fit"] in ("linear", "general")
+        errs.append(aligned_error(surf.nodes, truth))
     if guard == "neither":  # the wander the guards catch
         assert cold == 0 and np.mean(errs) > 0.1
         return
     assert np.mean(errs) < 0.06
     if guard == "both":
         assert cold >= 1 and max(errs) < 0.12
+
+
+@pytest.mark.parametrize("yardstick", ["lowest", "cold"])
+def test_a_warm_chain_held_to_the_lowest_objective_it_reached_stays_within_3_sigma_where_its_cold_fit_landed_high(
+        yardstick):
+    """40 noisy frames of a 2.5 mm dent of FWHM 40 mm moving on an ellipse over 5×5 (the bench's
+    broad dent, noise seed 5), each warm from the one before.  Held to its last cold fit's
+    objective (``warm_basin_yardstick="cold"``) the chain climbed while within twice that of a
+    cold fit that had itself landed high: 22 frames with a node beyond 3σ + 0.05 mm, the worst
+    2.7 times.  Held to the lowest objective it has reached since (the default), none."""
+    rec = Reconstructor(N, M, PITCH, H, H, G, warm_basin_yardstick=yardstick)
+    beyond, cold = 0, 0
+    for k, surf, truth in _moving_chain(rec, 5, 40, -2.5, 40.0, 80, (14.0, 9.0)):
+        cold += k > 0 and surf.diagnostics.extra["graph_fit"] in ("linear", "general")
+        beyond += bool(np.any(aligned_node_errors(surf.nodes, truth) > 3.0 * surf.node_sigma.ravel() + 0.05))
+    if yardstick == "cold":  # the wander the lowest objective catches
+        assert beyond >= 5
+        return
+    assert beyond == 0 and cold >= 1
 
 
 def test_warm_basin_ratio_is_checked_and_on_in_skinmapd():
@@ -135,6 +164,13 @@ def test_warm_basin_ratio_is_checked_and_on_in_skinmapd():
     pipe = FramePipeline(geometry, Calibration(gf, r0), element_uv, np.zeros(len(element_uv)))
     assert pipe.reconstructor.warm_basin_ratio == 2.0
     assert Reconstructor(N, M, PITCH, H, H, G).warm_basin_ratio == 2.0
+    # skinmapd holds its warm fits to its chains' last cold fit (it audits them), a library chain to
+    # the lowest objective reached
+    assert pipe.reconstructor.warm_basin_yardstick == "cold"
+    assert Reconstructor(N, M, PITCH, H, H, G).warm_basin_yardstick == "lowest"
+    for bad_yardstick in ("min", None):
+        with pytest.raises(ValueError, match="warm_basin_yardstick"):
+            Reconstructor(N, M, PITCH, H, H, G, warm_basin_yardstick=bad_yardstick)
 
 
 def test_a_glitching_gauge_falls_back_and_a_dead_one_still_gives_a_surface(recs):
