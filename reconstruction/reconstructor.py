@@ -89,6 +89,12 @@ LOST_TWIST_SHARE = 0.5
 # misfit's Birge ratio) does not tell two answers apart (2 s.d. of one parameter).
 MIRROR_CHI2 = 4.0
 MIRROR_SHARE = 0.5
+# ... and a mirror image is said aloud (Surface.mirror, AMBIGUOUS) unless the gauges read it worse
+# than the answer by this many units (3 s.d.): a wrong sign costs millimetres with a small σ.  At
+# 2 s.d. a saddle turned by exactly 45° on 8×8 (R -147 mm; both signs give the same strains, and
+# the two graph fits read them 0.029 and 0.048 per gauge) took the wrong sign unflagged, 7.8 mm
+# off (1 of 16 noisy frames; 5×5: 1 of 48).
+MIRROR_FLAG_CHI2 = 9.0
 # A frame's defect correction starts from the previous frame's where the strains changed by no
 # more than this many times what two noise draws differ by (rms over the gauges): the sheet held
 # still (Reconstructor._warm_general).
@@ -1405,6 +1411,7 @@ class Reconstructor(StretchPatternTwist):
         # nor can a difference below a share of the misfit the model leaves anyway: that misfit
         # is systematic, and two mirror images carry nearly the same
         tell = max(MIRROR_CHI2 * birge, MIRROR_SHARE * chi0)
+        flag_tell = max(MIRROR_FLAG_CHI2 * birge, MIRROR_SHARE * chi0)
         c0 = diag.twist_constant
         base_shift = 0.0  # where the answer sits on positions_at's family
         info = {"chi2_per_gauge": round(chi0 / max(dof, 1), 3)}
@@ -1488,7 +1495,7 @@ class Reconstructor(StretchPatternTwist):
                 base_shift = -2.0 * c0
                 info["mirror_swapped"] = True
                 swapped = True
-            if (chi_m - chi0 < tell or within_noise or (swapped and fit_in_doubt)) and _differs(surf, cand):
+            if (chi_m - chi0 < flag_tell or within_noise or (swapped and fit_in_doubt)) and _differs(surf, cand):
                 mirror = cand
         pattern = None
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:

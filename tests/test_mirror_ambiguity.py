@@ -99,6 +99,34 @@ def test_a_45_deg_saddle_on_12x12_is_flagged_with_its_mirror_modelled_afresh_and
     assert max(errors) > 1.0, errors  # the two answers really differ: the sign matters here
 
 
+@pytest.mark.parametrize("flag_chi2", [None, 4.0])
+def test_a_45_deg_saddle_whose_mirror_reads_the_gauges_worse_by_less_than_3_sd_is_flagged(flag_chi2, monkeypatch):
+    """A saddle R −147.4 mm at 45° on 8×8 (both signs give the same strains), noise seed 37: the
+    two graph fits read the gauges 0.029 and 0.048 per gauge, the wrong sign the better.  Told
+    apart at 2 s.d. (a χ² difference of 4, ``flag_chi2=4``) the wrong sign stood unflagged, 7.8 mm
+    off; a mirror is now said aloud unless the gauges read it worse by 3 s.d.
+    (reconstructor.MIRROR_FLAG_CHI2), and the answer or its mirror is within 0.05 mm."""
+    from skinmap.reconstruction import Reconstructor, reconstructor
+    from skinmap.reconstruction.linalg import aligned_distances
+
+    if flag_chi2 is not None:
+        monkeypatch.setattr(reconstructor, "MIRROR_FLAG_CHI2", flag_chi2)
+    n = 8
+    shape = ph.Saddle(-147.4, axis_angle=45.0)
+    eu, el = ph.gauge_strains(shape, n, n, PITCH, 0.2, 0.2, 10.0)
+    rng = np.random.default_rng(37)
+    noisy = eu + rng.normal(0, 5.7e-5, eu.shape), el + rng.normal(0, 5.7e-5, el.shape)
+    truth = shape.position(ph.cell_centres(n, n, PITCH)).reshape(-1, 3)
+    surf = Reconstructor(n, n, PITCH)(*noisy)
+    answers = (surf,) if surf.mirror is None else (surf, surf.mirror)
+    errors = [float(aligned_distances(a.nodes.reshape(-1, 3), truth).mean()) for a in answers]
+    if flag_chi2 is not None:  # what the 3 s.d. catch
+        assert surf.mirror is None and errors[0] > 1.0, errors
+        return
+    assert surf.mirror is not None and surf.diagnostics.extra["ambiguous"]
+    assert min(errors) <= 0.05, errors
+
+
 def test_a_mirror_modelled_afresh_is_flagged_never_taken_on_a_16x16_saddle_at_49_deg():
     """A saddle R 272 mm at 48.6° on 16×16, the bench's 17th noise draw: the answer (the right
     sign) misreads the gauges at 2.2 per gauge, its mirror modelled afresh at 0.74.  Taking the
