@@ -117,9 +117,9 @@ GRAPH_RESCUE_MAX_CELLS = 256
 GRAPH_RESCUE_CHI2 = 8.0
 #: A warm graph fit whose objective (data misfit and prior) is above this many times its chain's
 #: yardstick (its last cold fit's objective, or the lowest since: WARM_BASIN_YARDSTICKS) is not
-#: taken: it has followed another basin of the fit, one the chain
-#: carried from frame to frame while a cold fit of the same data lands elsewhere (the modes the
-#: gauges pin least, beyond their ends), and the frame fits cold instead (the library's default,
+#: taken: it has followed another basin of the fit, one the chain carried from frame to frame
+#: while a cold fit of the same data lands elsewhere (the modes the gauges pin least, beyond
+#: their ends), and the frame fits cold instead (the library's default,
 #: ``Reconstructor(warm_basin_ratio=...)``, and skinmapd's: its chains' cold restart every 64
 #: scans does not bound the wander, daemon/pipeline.py).  Broad shapes moving on an ellipse over
 #: 5×5, 100 noisy frames each warm from the one before (bench/reconstruction.py, *Warm chains*):
