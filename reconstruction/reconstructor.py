@@ -93,7 +93,7 @@ MIRROR_SHARE = 0.5
 # than the answer by this many units (3 s.d.): a wrong sign costs millimetres with a small σ.  At
 # 2 s.d. a saddle turned by exactly 45° on 8×8 (R -147 mm; both signs give the same strains, and
 # the two graph fits read them 0.029 and 0.048 per gauge) took the wrong sign unflagged, 7.8 mm
-# off (1 of 16 noisy frames; 5×5: 1 of 48).
+# off (1 of 16 reconstructions, 8 clean and 8 noisy; 5×5: 1 of 48).
 MIRROR_FLAG_CHI2 = 9.0
 # A frame's defect correction starts from the previous frame's where the strains changed by no
 # more than this many times what two noise draws differ by (rms over the gauges): the sheet held
