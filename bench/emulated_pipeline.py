@@ -46,8 +46,9 @@ def emulated_pipeline(device: Device, spec: ScannerSpec, elements_uv: np.ndarray
 
 
 def emulated_scans(device: Device, spec: ScannerSpec, last_s: float, first_s: float = 0.0, every: int = 1,
-                   ramp_s: float = 0.0) -> Iterator[tuple[int, float, np.ndarray]]:
-    """(sample index k, time s, resistances Ω (4, N, M)) of every ``every``-th scan from
+                   ramp_s: float = 0.0, lead: int = 0) -> Iterator[tuple[int, float, np.ndarray]]:
+    """(sample index k, time s, resistances Ω (4, N, M)) of every ``every``-th scan and the
+    ``lead`` scans before each (skinmapd's lead scans, `[output] lead_scans`: k % every ≠ 0) from
     ``first_s`` to ``last_s`` (index k counted from t = 0; the scans between them are read too,
     so that the electrical model's state is that of a device scanning throughout).  With
     ``ramp_s``, the shape is pressed from flat over that long (its strains scaled up from none,
@@ -61,6 +62,6 @@ def emulated_scans(device: Device, spec: ScannerSpec, last_s: float, first_s: fl
         if ramp_s > 0.0:
             strains = min(t / ramp_s, 1.0) * strains
         wire = device.readout.read(strains, t)
-        if k % every:
+        if k % every and k % every < every - lead:
             continue
         yield k, t, np.asarray(wire, dtype=float) * 1e-6

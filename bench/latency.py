@@ -70,8 +70,10 @@ def dir_bytes(path: Path) -> int:
 
 def write_daemon_config(path: Path, *, device: str, serial_port: int, zenoh_port: int, logs: Path, state: Path,
                         scan_rate: float, output_rate: float, rotate_minutes: float = 60.0,
-                        rotate_mb: float = 256.0) -> None:
-    """A skinmapd config for the benchmarks: emulator on loopback TCP, 64 elements in a row."""
+                        rotate_mb: float = 256.0, lead_scans: int | None = None) -> None:
+    """A skinmapd config for the benchmarks: emulator on loopback TCP, 64 elements in a row;
+    ``lead_scans``: `[output] lead_scans` (None: the daemon's default)."""
+    lead = "" if lead_scans is None else f"lead_scans = {lead_scans}"
     path.write_text(f"""
 [device]
 port = "socket://127.0.0.1:{serial_port}"
@@ -79,6 +81,7 @@ name = "{device}"
 scan_rate_hz = {scan_rate}
 [output]
 rate_hz = {output_rate}
+{lead}
 [elements]
 layout = "grid"
 rows = 1
@@ -115,10 +118,10 @@ def traced_daemon(config: str, trace_path: str) -> int:
     process = processing.FramePipeline.process
     put = zenoh_io.SkinmapPublisher.publish_elements
 
-    def traced_take(self, record):
+    def traced_take(self, record, lead=False):
         current.clear()
         current["picked_ns"] = time.time_ns()
-        return take(self, record)
+        return take(self, record, lead)
 
     def traced_process(self, *args, **kwargs):
         result = process(self, *args, **kwargs)
@@ -191,12 +194,13 @@ def stage_table(trace: dict, received_ns: dict[int, int]) -> list[str]:
 
 
 def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, workdir: Path,
-             shape: str = "palm", stages: bool = False) -> dict:
+             shape: str = "palm", stages: bool = False, lead_scans: int | None = None) -> dict:
     serial_port, zenoh_port = free_port(), free_port()
     logs = workdir / f"logs-{size}-{output_rate:g}"
     cfg = workdir / f"bench-{size}-{output_rate:g}.toml"
     write_daemon_config(cfg, device="bench", serial_port=serial_port, zenoh_port=zenoh_port, logs=logs,
-                        state=workdir / "state", scan_rate=scan_rate, output_rate=output_rate)
+                        state=workdir / "state", scan_rate=scan_rate, output_rate=output_rate,
+                        lead_scans=lead_scans)
     emulator = start_emulator(serial_port, size=size, shape=shape, rate=scan_rate)
     trace = workdir / f"trace-{size}-{output_rate:g}.json"
     command = ([sys.executable, __file__, "--traced-daemon", str(cfg), str(trace)] if stages
@@ -239,19 +243,23 @@ def run_case(size: str, scan_rate: float, output_rate: float, seconds: float, wo
             "sigma_um": float(np.median(sigma_um)) if sigma_um else float("nan")}
 
 
-def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: float, shape: str) -> list[str]:
-    """Deferred against undeferred cold fits on the same emulated scans (see the docstring)."""
+def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: float, shape: str,
+                   lead_scans: int | None = None) -> list[str]:
+    """Deferred against undeferred cold fits on the same emulated scans (see the docstring), the
+    lead scans (``lead_scans``, None: skinmapd's default) reconstructed and not compared."""
+    from skinmap.daemon.config import OutputConfig
     from emulated_pipeline import emulated_device, emulated_pipeline, emulated_scans
 
     n, m = (int(x) for x in size.split("x"))
     device, spec = emulated_device(n, shape, m=m, scan_rate=scan_rate)
     step = 1 if output_rate == 0 else max(1, round(scan_rate / output_rate))
-    scans = [(k, raw) for k, _, raw in emulated_scans(device, spec, seconds, every=step)]
+    lead = OutputConfig().lead_scans if lead_scans is None else lead_scans
+    scans = [(k, raw) for k, _, raw in emulated_scans(device, spec, seconds, every=step, lead=lead)]
     uv = np.stack([(np.arange(64) - 31.5) * 0.6, np.zeros(64)], axis=1)  # the latency runs' element row
     runs = []
     for defer in (True, False):
         pipe = emulated_pipeline(device, spec, uv, defer_cold_fits=defer)
-        runs.append([pipe.process(raw, seq, 0, 0) for seq, raw in scans])
+        runs.append([r for r in (pipe.process(raw, seq, 0, 0) for seq, raw in scans) if r.seq % step == 0])
     ratios, sig_d, sig_u, gaps = [], [], [], []
     for a, b in zip(*runs):
         if a.diagnostics.get("graph_deferred"):
@@ -262,7 +270,7 @@ def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: flo
             sig_u.append(b.element_sigma_mm)
     differ = sum(not np.array_equal(a.element_positions_mm, b.element_positions_mm) for a, b in zip(*runs))
     mode = "every scan" if output_rate == 0 else f"{output_rate:g} Hz"
-    head = (f"  accuracy {size} {mode}: {len(scans)} frames, {len(ratios)} deferred, {differ} differ from the "
+    head = (f"  accuracy {size} {mode}: {len(runs[0])} frames, {len(ratios)} deferred, {differ} differ from the "
             f"run that fits cold in the frame")
     if not ratios:
         return [head]
@@ -283,6 +291,8 @@ def main() -> None:
     ap.add_argument("--scan-rate", type=float, default=50.0, help="emulated scans per second")
     ap.add_argument("--shape", default="palm", help="emulated shape spec (default: the moving palm gesture)")
     ap.add_argument("--outputs", default="10,0", help="output rates to measure, Hz (0 = every scan)")
+    ap.add_argument("--lead-scans", type=int, default=None,
+                    help="[output] lead_scans of the daemon (default: its own default)")
     ap.add_argument("--stages", action="store_true", help="time the daemon's stages per frame (see above)")
     ap.add_argument("--accuracy", action="store_true",
                     help="only compare deferred with in-frame cold graph fits, in process (see above)")
@@ -293,7 +303,8 @@ def main() -> None:
     if args.accuracy:
         for size in args.sizes.split(","):
             for output_rate in (float(x) for x in args.outputs.split(",")):
-                print("\n".join(accuracy_lines(size, args.scan_rate, output_rate, max(args.seconds, 32.0), args.shape)),
+                print("\n".join(accuracy_lines(size, args.scan_rate, output_rate, max(args.seconds, 32.0), args.shape,
+                                                    args.lead_scans)),
                       flush=True)
         return
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
@@ -303,7 +314,7 @@ def main() -> None:
             for output_rate in (float(x) for x in args.outputs.split(",")):
                 try:
                     rows.append(run_case(size, args.scan_rate, output_rate, args.seconds, Path(tmp), args.shape,
-                                         args.stages))
+                                         args.stages, args.lead_scans))
                 except Exception as exc:  # noqa: BLE001 - report the case and go on with the others
                     print(f"{size} output {output_rate:g} Hz: FAILED: {exc}", flush=True)
                     continue

@@ -20,7 +20,7 @@ on its loading branch, about 2 % low (docs/reconstruction.md, "A gain the gauges
 (``skinmap.emulator.scenes``, solved once and cached).
 
     .venv/bin/python bench/pipeline_accuracy.py [--sizes 5,8,12,16] [--outputs 0,10] [--seconds 8]
-        [--hysteresis on,off] [--held [--mechanics elastic]] [--seed 0]
+        [--hysteresis on,off] [--held [--mechanics elastic]] [--seed 0] [--lead-scans 1]
 """
 from __future__ import annotations
 
@@ -40,6 +40,7 @@ from emulated_pipeline import SCAN_RATE, emulated_device, emulated_pipeline, emu
 from reconstruction import node_errors  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
+from skinmap.daemon.config import OutputConfig  # noqa: E402
 from skinmap.emulator.electrical import ElectricalConfig  # noqa: E402
 
 
@@ -61,9 +62,10 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
-        ramp_s: float = 0.0, seed: int = 0) -> dict:
+        ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
-    held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration)."""
+    held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration);
+    ``lead_scans``: skinmapd's `[output] lead_scans` (reconstructed, not judged)."""
     electrical = ElectricalConfig() if hysteresis else ElectricalConfig().without("hysteresis")
     device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE)
     pipe = emulated_pipeline(device, spec)
@@ -71,8 +73,10 @@ def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis:
     step = 1 if output_rate == 0 else max(1, round(SCAN_RATE / output_rate))
     errs, ratios, deferred = [], [], 0
     with threadpool_limits(1):
-        for k, t, resistances in emulated_scans(device, spec, seconds, every=step, ramp_s=ramp_s):
+        for k, t, resistances in emulated_scans(device, spec, seconds, every=step, ramp_s=ramp_s, lead=lead_scans):
             result = pipe.process(resistances, k, 0, 0)
+            if k % step:
+                continue  # a lead scan: not published
             if ramp_s > 0 and t < ramp_s + 0.2:
                 continue  # judged held
             truth = ph.ground_truth(shape, n, n, spec.pitch_mm, t=t).nodes
@@ -102,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
                     help="the held shapes as kinematic sheets or elastic films on molds")
     ap.add_argument("--seed", type=int, default=0, help="the emulated device's seed (gauge noise, calibration)")
+    ap.add_argument("--lead-scans", type=int, default=OutputConfig().lead_scans,
+                    help="skinmapd's [output] lead_scans: scans reconstructed before each one due, not judged")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
@@ -120,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             for output in outputs:
                 for hysteresis in modes:
                     t0 = time.perf_counter()
-                    row = run(n, shape, seconds, output, hysteresis, ramp, args.seed)
+                    row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "
                           f"{row['frames']:6d} {row['mean']:8.4f} {row['largest']:8.3f} "

@@ -106,6 +106,9 @@ class ReconstructionConfig:
 @dataclass(frozen=True)
 class OutputConfig:
     rate_hz: float = 10.0  # 0 = every scan
+    # scans reconstructed (not published) just before each one due at rate_hz, so that its warm
+    # start is one scan old rather than several (docs/architecture.md, "Lead scans"); 0: none
+    lead_scans: int = 1
     strains_rate_hz: float = 2.0
     status_rate_hz: float = 1.0
     surface_rate_hz: float = 10.0
@@ -357,6 +360,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
     },
     "output": {
         "rate_hz": _number(0, 2000),
+        "lead_scans": _number(0, 16, integer=True),
         "strains_rate_hz": _number(0, 2000),
         "status_rate_hz": _number(0.01, 100, lo_open=True),
         "surface_rate_hz": _number(0, 2000),

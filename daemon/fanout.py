@@ -88,16 +88,17 @@ class ConfigRecord(LoggedRecord):
 
 @dataclass(frozen=True, slots=True)
 class WireRecord(LoggedRecord):
-    """An encoded wire message (skinmap.wire.messages) of one processed scan."""
+    """An encoded wire message (skinmap.wire.messages) of one processed scan; "lead": the
+    strains message of a lead scan (reconstructed, not published)."""
 
-    kind: Literal["strains", "elements", "surface"]
+    kind: Literal["strains", "lead", "elements", "surface"]
     t_ns: int
     payload: bytes
     latency_ms: float | None = None  # elements only: the scan's latency to publication
 
     def write_to(self, sink: LogSink) -> None:
-        if self.kind == "strains":
-            sink.log_strains(self.t_ns, self.payload)
+        if self.kind in ("strains", "lead"):
+            sink.log_strains(self.t_ns, self.payload, lead=self.kind == "lead")
         elif self.kind == "elements":
             sink.log_elements(self.t_ns, self.payload, self.latency_ms)
         else:

@@ -78,7 +78,8 @@ class Gateway:
         self.output = ResultOutput(cfg, self.records, publishers, logging_on=self.log is not None)
         self.processing = ProcessingListener(cfg.output.rate_hz, self.scanner, self.output, self.records,
                                              on_new_pipeline=self._on_new_pipeline,
-                                             on_first_result=self._on_first_result)
+                                             on_first_result=self._on_first_result,
+                                             lead_scans=cfg.output.lead_scans, scan_rate_hz=cfg.device.scan_rate_hz)
         for listener in (self.monitor, self.processing, self.log):
             if listener is not None:
                 self.records.add_listener(listener)

@@ -165,6 +165,8 @@ class Health:
             "frames_dropped": int(ls.scans_lost + s.scans_dropped_queue),
             "scans_lost": int(ls.scans_lost),
             "scans_dropped_queue": int(s.scans_dropped_queue),
+            "lead_scans": int(self.processing.leads),
+            "lead_scans_skipped": int(self.processing.leads_skipped),
             "scans_in": int(s.scans_in),
             "results": int(s.results),
             "crc_errors": int(dec.get("crc_errors", 0)),

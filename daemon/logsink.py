@@ -53,7 +53,8 @@ class LogSink(ABC):
     def log_raw_frame(self, t_ns: int, data: bytes) -> None: ...
 
     @abstractmethod
-    def log_strains(self, t_ns: int, payload: bytes) -> None: ...
+    def log_strains(self, t_ns: int, payload: bytes, lead: bool = False) -> None:
+        """``lead``: the strains of a lead scan, reconstructed and not published."""
 
     @abstractmethod
     def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None) -> None: ...
@@ -103,7 +104,7 @@ class NullLogSink(LogSink):
     def log_raw_frame(self, t_ns: int, data: bytes) -> None:
         pass
 
-    def log_strains(self, t_ns: int, payload: bytes) -> None:
+    def log_strains(self, t_ns: int, payload: bytes, lead: bool = False) -> None:
         pass
 
     def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None) -> None:
@@ -158,15 +159,15 @@ class MemoryLogSink(LogSink):
         self.records.append((kind, int(t_ns), value))
 
     def kinds(self, kind: str) -> list[Any]:
-        """The values logged under `kind` ("raw", "strains", "elements", "surface", "status",
+        """The values logged under `kind` ("raw", "strains", "lead", "elements", "surface", "status",
         "contact", "pose", "event", "config"), in order."""
         return [value for k, _t, value in self.records if k == kind]
 
     def log_raw_frame(self, t_ns: int, data: bytes) -> None:
         self._keep("raw", t_ns, bytes(data))
 
-    def log_strains(self, t_ns: int, payload: bytes) -> None:
-        self._keep("strains", t_ns, bytes(payload))
+    def log_strains(self, t_ns: int, payload: bytes, lead: bool = False) -> None:
+        self._keep("lead" if lead else "strains", t_ns, bytes(payload))
 
     def log_elements(self, t_ns: int, payload: bytes, latency_ms: float | None = None) -> None:
         self._keep("elements", t_ns, (bytes(payload), latency_ms))

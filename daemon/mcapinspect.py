@@ -289,6 +289,8 @@ def expected_rates(config_text: str | None) -> tuple[dict[Any, float], str]:
         rates[topic] = out_hz
     for topic in ("/surface", "/surface/nodes", "/tf"):
         rates[topic] = surf_hz
+    if out_hz < scan and cfg.output.lead_scans:  # (their seqs are not checked for gaps: a lead may be skipped)
+        rates["/strains/lead"] = min(cfg.output.lead_scans * out_hz, scan - out_hz)
     for topic in ("/strains", "/strains/plot"):
         rates[("seq_step", topic)] = max(1, round(scan / out_hz))
     for topic in ("/surface", "/surface/nodes"):

@@ -159,10 +159,12 @@ class McapLogger(LogSink):
             raise TypeError(f"raw frame must be bytes, got {type(data).__name__}")
         self._log(TOPICS["/raw"], t_ns, bytes(data))
 
-    def log_strains(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
+    def log_strains(self, t_ns: int, payload: bytes, lead: bool = False, *, device: str | None = None) -> None:
         """`/strains`: a wire strains message (skinmap.wire.messages.encode_strains), and its
-        plottable view `/strains/plot`. With `device`, under `/<device>/...`."""
-        self._log_views(wire_views("strains", as_payload("strains", payload), t_ns, device))
+        plottable view `/strains/plot`; ``lead``: a lead scan's, `/strains/lead` alone. With
+        `device`, under `/<device>/...`."""
+        kind = "lead" if lead else "strains"
+        self._log_views(wire_views(kind, as_payload(kind, payload), t_ns, device))
 
     def log_surface(self, t_ns: int, payload: bytes, *, device: str | None = None) -> None:
         """`/surface/nodes`: a wire surface message (nodes, normals, σ, dense cloud; metres);

@@ -76,6 +76,9 @@ TOPICS: dict[str, TopicSpec] = {
         TopicSpec("/strains", "skinmap.Strains", LAYOUT_SCHEMA_ENCODING,
                   _wire_layout("strains", "every processed scan"), f"skinmap.strains/{messages.LAYOUT_VERSION}",
                   has_sequence=True),
+        TopicSpec("/strains/lead", "skinmap.Strains", LAYOUT_SCHEMA_ENCODING,
+                  _wire_layout("strains", "a lead scan: reconstructed just before a scan due, not published"),
+                  f"skinmap.strains/{messages.LAYOUT_VERSION}", has_sequence=True),
         TopicSpec("/strains/plot", "skinmap.StrainsPlot", "jsonschema",
                   _json_schema(fox.STRAINS_PLOT_SCHEMA), "json", has_sequence=True),
         TopicSpec("/surface", "foxglove.PointCloud", "protobuf",
@@ -178,10 +181,13 @@ def device_topic(topic: str, device: str | None = None) -> TopicSpec:
 def wire_views(kind: str, payload: bytes, t_ns: int, device: str | None = None,
                latency_ms: float | None = None) -> list[tuple[TopicSpec, bytes, int | None, int]]:
     """A wire message and its Foxglove views as (topic spec, data, seq or None, time) —
-    what the log stores and the live bridge serves. `kind` is elements, surface or strains;
+    what the log stores and the live bridge serves. `kind` is elements, surface, strains or lead
+    (a lead scan's strains, docs/logging.md);
     raises MessageError (bad layout) or ValueError (non-finite surface)."""
     frame = device or fox.FRAME_ID
     t = device_topic
+    if kind == "lead":  # (not published: no plot)
+        return [(t("/strains/lead", device), payload, messages.decode_strains(payload).seq, t_ns)]
     if kind == "strains":
         st = messages.decode_strains(payload)
         return [(t("/strains", device), payload, st.seq, t_ns),

@@ -48,6 +48,15 @@ def encode_result_surface(r: FrameResult, cloud_mm: Any) -> bytes:
         r.node_sigma_mm / 1000.0, np.asarray(cloud_mm).reshape(-1, 3) / 1000.0, scatter=_metres(r.node_scatter_mm))
 
 
+def encode_result_strains(r: FrameResult) -> bytes:
+    """The strains message of one result: the strains it was reconstructed from, and which
+    gauges were usable."""
+    gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
+        r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
+    return messages.encode_strains(r.seq & 0xFFFFFFFF, r.device_time_us, r.host_time_ns, np.nan_to_num(r.eps_upper),
+                                   np.nan_to_num(r.eps_lower), gauge_flags)
+
+
 @dataclass
 class OutputStats:
     published: int = 0
@@ -113,12 +122,8 @@ class ResultOutput:
                 log.warning("publish failed: %s", exc)
         want_surface = self._surface.due(t_mono)
         want_strains = self._strains.due(t_mono)
-        gauge_flags = (r.gauge_valid[0].astype(np.uint8) * messages.GaugeFlag.UPPER_VALID) | (
-            r.gauge_valid[1].astype(np.uint8) * messages.GaugeFlag.LOWER_VALID)
         # The same strains message is published (at the strains rate) and logged (every scan).
-        strains = messages.encode_strains(
-            seq, r.device_time_us, r.host_time_ns, np.nan_to_num(r.eps_upper), np.nan_to_num(r.eps_lower),
-            gauge_flags)
+        strains = encode_result_strains(r)
         if pub is not None and ok:
             try:
                 if want_surface:

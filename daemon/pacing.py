@@ -25,3 +25,11 @@ class HostDecimator:
             self._next_due += self.period_ns
             return True
         return False
+
+    def ahead(self, host_mono_ns: int, lead_ns: int) -> bool:
+        """Whether a scan that :meth:`due` just passed over arrives within ``lead_ns`` before
+        the next due scan's window opens (a lead scan: reconstructed, not published)."""
+        if self.period_ns == 0 or self._next_due is None or lead_ns <= 0:
+            return False
+        opens = self._next_due - self.period_ns // 4
+        return opens - lead_ns <= host_mono_ns < opens

@@ -2,7 +2,10 @@
 
 A `QueuedListener` of the gateway's Notifier: the scans due (chosen on the link thread by the
 host clock) wait in a queue of PROCESS_QUEUE_SIZE where the newest wins; the skipped ones are
-counted in `dropped` (status `scans_dropped_queue`).
+counted in `dropped` (status `scans_dropped_queue`).  Below the scan rate, the `[output]
+lead_scans` scans just before each due one are reconstructed too, not published (their strains
+logged as `/strains/lead`), so that the warm fit of the scan due starts one scan back
+(docs/architecture.md, "Lead scans"); a lead is skipped where a scan due already waits.
 """
 from __future__ import annotations
 
@@ -11,8 +14,10 @@ import time
 from typing import Callable
 
 from skinmap.daemon.device_setup import ScannerState
-from skinmap.daemon.fanout import Event, Notifier, QueuedListener, Record, ScanReceived
-from skinmap.daemon.output import ResultOutput
+from dataclasses import dataclass
+
+from skinmap.daemon.fanout import Event, Notifier, QueuedListener, Record, ScanReceived, WireRecord
+from skinmap.daemon.output import ResultOutput, encode_result_strains
 from skinmap.daemon.pacing import HostDecimator
 from skinmap.daemon.pipeline import FramePipeline, FrameResult, WorkerBackground
 
@@ -23,6 +28,13 @@ log = logging.getLogger("skinmapd")
 PROCESS_QUEUE_SIZE = 2
 
 
+@dataclass(frozen=True, slots=True)
+class _LeadScan(Record):
+    """A scan just before one due: reconstructed, so the next warm start is one scan old."""
+
+    received: ScanReceived
+
+
 class ProcessingListener(QueuedListener):
     """Reconstructs the scans due and hands the results to the output.
 
@@ -31,12 +43,16 @@ class ProcessingListener(QueuedListener):
 
     def __init__(self, rate_hz: float, scanner: ScannerState, output: ResultOutput, notifier: Notifier, *,
                  on_new_pipeline: Callable[[FramePipeline], None],
-                 on_first_result: Callable[[], None]) -> None:
+                 on_first_result: Callable[[], None], lead_scans: int = 0, scan_rate_hz: float = 0.0) -> None:
         super().__init__("skinmap-process", PROCESS_QUEUE_SIZE, keep="newest", drain=False)
         self.scanner = scanner
         self.output = output
         self.notifier = notifier
         self._decimator = HostDecimator(rate_hz)
+        # how long before a scan due its lead scans arrive (none at every scan, or unknown rate)
+        self._lead_ns = int(round(lead_scans * 1e9 / scan_rate_hz)) if scan_rate_hz > 0 else 0
+        self.leads = 0  # lead scans reconstructed
+        self.leads_skipped = 0  # lead scans skipped because a scan due was already waiting
         self._on_new_pipeline = on_new_pipeline
         self._on_first_result: Callable[[], None] | None = on_first_result
         self.results_count = 0
@@ -50,18 +66,34 @@ class ProcessingListener(QueuedListener):
         # the graph fit's restart chains run here, beside the published frames
         self._background = WorkerBackground()
 
+    def on_record(self, record: Record) -> None:
+        if isinstance(record, ScanReceived) and not self._decimator.due(record.t_mono_ns):
+            if self._decimator.ahead(record.t_mono_ns, self._lead_ns):
+                super().on_record(_LeadScan(record))
+            return
+        super().on_record(record)
+
     def accepts(self, record: Record) -> bool:
-        if not isinstance(record, ScanReceived) or not self._decimator.due(record.t_mono_ns):
+        # (on_record has passed over the scans not due)
+        if isinstance(record, _LeadScan):
+            return True
+        if not isinstance(record, ScanReceived):
             return False
         if self.waiting_since is None:
             self.waiting_since = record.t_mono_ns / 1e9
         return True
 
     def handle(self, record: Record) -> None:
+        lead = isinstance(record, _LeadScan)
+        if isinstance(record, _LeadScan):
+            if self._queue.qsize():  # a scan due waits: the lead would only delay it
+                self.leads_skipped += 1
+                return
+            record = record.received
         assert isinstance(record, ScanReceived)
         try:
             with self._background.busy():  # the restart chain waits while a frame is under way
-                self._process(record)
+                self._process(record, lead)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
             self.errors += 1
             text = f"processing failed: {type(exc).__name__}: {exc}"
@@ -73,7 +105,7 @@ class ProcessingListener(QueuedListener):
     def finish(self) -> None:
         self._background.close()
 
-    def _process(self, record: ScanReceived) -> None:
+    def _process(self, record: ScanReceived, lead: bool = False) -> None:
         pipeline, new = self.scanner.ensure_pipeline()
         if pipeline is None:
             return
@@ -84,6 +116,11 @@ class ProcessingListener(QueuedListener):
         if (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):
             return
         result = pipeline.process(scan.resistances_ohm(), scan.sample_index, scan.timestamp_us, record.t_rx_ns)
+        if lead:
+            # logged so that replay reconstructs it too (the chain's next warm start)
+            self.leads += 1
+            self.notifier.notify(WireRecord("lead", result.host_time_ns, encode_result_strains(result)))
+            return
         self.error = ""
         self.results_count += 1
         self.last_seq = result.seq

@@ -2,9 +2,11 @@
 
 The live daemon logs every received frame (`/raw`, bytes as received, stamped with the host
 receive time), the config and calibration it used (`/config`), and the strains of every scan it
-processed (`/strains`, carrying the scan's sample index). Replay feeds the raw frames through
-the same decoder and `FramePipeline`, processes exactly the scans the live run processed, with
-the calibration in force at the time, and compares the element messages byte for byte.
+processed (`/strains`, carrying the scan's sample index; a lead scan's, reconstructed and not
+published, as `/strains/lead`). Replay feeds the raw frames through the same decoder and
+`FramePipeline`, processes exactly the scans the live run processed (its lead scans too: the
+next scan's warm start), with the calibration in force at the time, and compares the element
+messages byte for byte.
 Cut (`.mcap.active`) files are read in file order up to the cut.  The graph fit is warm-started
 from the scans before (pipeline.graph_restart), so in a file that starts mid-stream the scans
 before the first restart chain begun in it is taken over (at most pipeline.GRAPH_SYNC_SCANS) may
@@ -45,6 +47,7 @@ class ReplayReport:
     raw_frames: int = 0
     scans: int = 0
     processed: int = 0
+    leads: int = 0  # of the processed: lead scans (reconstructed, not published live)
     compared: int = 0
     identical_count: int = 0
     # scans that differ before the file's first restart of the graph fit is taken over (their
@@ -71,7 +74,8 @@ class ReplayReport:
         verdict = "IDENTICAL" if self.identical else ("NOTHING TO COMPARE" if self.compared == 0 else "DIFFERENT")
         lines = [
             f"replay of {self.path}: {verdict}",
-            f"  raw frames {self.raw_frames}, scans {self.scans}, processed {self.processed}, "
+            f"  raw frames {self.raw_frames}, scans {self.scans}, processed {self.processed}"
+            + (f" ({self.leads} lead scans)" if self.leads else "") + ", "
             f"compared {self.compared}, identical {self.identical_count}, mismatched {len(self.mismatched)}"
             + (f", not comparable {self.unsynced} (before the first graph-fit restart taken over; their live "
                f"fit was warm-started from scans before this file)" if self.unsynced else ""),
@@ -152,10 +156,11 @@ def _problem(report: ReplayReport, line: str) -> None:
 
 
 def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
-                ) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]], int]:
-    """Logged elements by seq, the config in force for each processed seq, raw frame count.
-    Unusable records are named in `report.problems`."""
+                ) -> tuple[dict[int, bytes], dict[int, tuple[str, dict]], set[int], int]:
+    """Logged elements by seq, the config in force for each processed seq, the lead scans' seqs,
+    raw frame count.  Unusable records are named in `report.problems`."""
     elements: dict[int, bytes] = {}
+    leads: set[int] = set()
     config_for_seq: dict[int, tuple[str, dict]] = {}
     current: tuple[str, dict] | None = None
     raw = 0
@@ -170,7 +175,7 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
             except ValueError as exc:
                 keep = "; the config before it stays in force" if current is not None else ""
                 _problem(report, f"unusable {where}: {exc}{keep}")
-        elif m.topic == "/strains":
+        elif m.topic in ("/strains", "/strains/lead"):
             try:
                 seq = messages.decode_strains(m.data).seq
             except (ValueError, RecursionError) as exc:
@@ -180,6 +185,10 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
                 report.unconfigured += 1
             else:
                 config_for_seq[seq] = current
+                if m.topic == "/strains/lead":
+                    leads.add(seq)
+                else:
+                    leads.discard(seq)
         elif m.topic == "/elements":
             try:
                 elements[messages.decode_header(m.data).seq] = bytes(m.data)
@@ -188,7 +197,7 @@ def _first_pass(path: str, report: ReplayReport, max_record_bytes: int
     for line in reader.skipped:
         _problem(report, line)
     report.problem_count += reader.skipped_count - len(reader.skipped)
-    return elements, config_for_seq, raw
+    return elements, config_for_seq, leads, raw
 
 
 def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str = "skinmap-replay", speed: float = 0.0,
@@ -205,7 +214,7 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
     limit_blas_threads()  # as the live daemon: the summation order, hence the last bit, depends on it
     path = str(path)
     report = ReplayReport(path)
-    logged, config_for_seq, n_raw = _first_pass(path, report, max_record_bytes)
+    logged, config_for_seq, leads, n_raw = _first_pass(path, report, max_record_bytes)
     decoder = StreamDecoder()
     pipeline: FramePipeline | None = None
     earlier: FramePipeline | None = None
@@ -265,6 +274,9 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
                 result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)
                 synced = synced or pipeline.chain_origin is not None
                 report.processed += 1
+                if seq in leads:  # the next scan's warm start; nothing was published
+                    report.leads += 1
+                    continue
                 if on_result is not None:
                     on_result(result)
                 payload = encode_result_elements(result)

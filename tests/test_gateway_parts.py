@@ -401,3 +401,69 @@ def test_the_gain_sd_reaches_the_reconstructor_from_the_config(tmp_path):
         state.on_hello(hello)
         pipeline, _ = state.ensure_pipeline()
         assert pipeline is not None and pipeline.reconstructor.gain_sd == gain
+
+
+# ---------------------------------------------------------------------------------------------
+# Lead scans: reconstructed just before each scan due, not published
+
+
+def test_the_host_decimator_names_the_scans_just_before_each_due_one_as_leads():
+    from skinmap.daemon.pacing import HostDecimator
+
+    t = np.arange(0, 4_000_000_000, 20_000_000)  # 50 scans/s for 4 s
+    jitter = np.random.default_rng(3).integers(-3_000_000, 3_000_000, t.size)
+    for lead_scans in (1, 2):
+        d = HostDecimator(10.0)
+        kinds = []
+        for x in t + jitter:
+            kinds.append("due" if d.due(int(x)) else "lead" if d.ahead(int(x), lead_scans * 20_000_000) else "")
+        dues = [k for k, kind in enumerate(kinds) if kind == "due"]
+        assert 39 <= len(dues) <= 41
+        # every due scan but the first has its lead_scans scans before it as leads, and no other scan is one
+        assert all(kinds[k - j] == "lead" for k in dues[1:] for j in range(1, lead_scans + 1))
+        assert kinds.count("lead") == lead_scans * (len(dues) - 1)
+    assert not any(HostDecimator(10.0).ahead(int(x), 0) for x in t)  # lead_scans = 0
+    every = HostDecimator(0)
+    assert all(every.due(int(x)) and not every.ahead(int(x), 20_000_000) for x in t)
+
+
+def test_a_lead_scan_is_skipped_where_the_scan_due_already_waits():
+    from types import SimpleNamespace
+
+    from skinmap.daemon.processing import ProcessingListener
+
+    processed: list[tuple[int, bool]] = []
+
+    class Output:
+        def publish(self, result, t_mono, pipeline):
+            processed[-1] = (processed[-1][0], True)
+            return True
+
+    def scan(k: int) -> ScanReceived:
+        s = SimpleNamespace(n=2, m=2, sample_index=k, timestamp_us=0, resistances_ohm=lambda: np.ones((4, 2, 2)))
+        return ScanReceived(s, k, k * 20_000_000)  # type: ignore[arg-type]
+
+    def process(resistance, seq, _device_us, host_ns):
+        processed.append((seq, False))
+        valid = np.ones((2, 2, 2, 2), bool)
+        return SimpleNamespace(seq=seq, solve_time_s=0.0, host_time_ns=host_ns, device_time_us=0, gauge_valid=valid,
+                               eps_upper=np.zeros((2, 2, 2)), eps_lower=np.zeros((2, 2, 2)))
+
+    pipeline = SimpleNamespace(geometry=SimpleNamespace(n=2, m=2), process=process)
+    scanner = SimpleNamespace(ensure_pipeline=lambda: (pipeline, False))
+    notifier = Notifier()
+    logged = []
+    notifier.add_listener(type("Logged", (Listener,), {"on_record": lambda self, r: logged.append(r)})())
+    p = ProcessingListener(10.0, scanner, Output(), notifier, on_new_pipeline=lambda _p: None,  # type: ignore[arg-type]
+                           on_first_result=lambda: None, lead_scans=1, scan_rate_hz=50.0)
+    for k in range(5):  # scan 0 due, 1-2 passed over, 3 a lead, 4 due (80 ms: within a quarter period)
+        p.on_record(scan(k))
+        if k in (0, 3, 4):
+            p.handle(p._queue.get_nowait())  # the thread was free: each taken as it came
+    assert processed == [(0, True), (3, False), (4, True)]
+    assert [r.kind for r in logged if getattr(r, "kind", "") == "lead"] == ["lead"] and p.leads == 1
+    for k in range(5, 10):  # 8 a lead, 9 due: both queued before the thread is free
+        p.on_record(scan(k))
+    while p._queue.qsize():
+        p.handle(p._queue.get_nowait())
+    assert processed[3:] == [(9, True)] and p.leads_skipped == 1 and p.leads == 1
