@@ -78,7 +78,7 @@ def test_pty_to_zenoh_subscriber_matches_ground_truth_and_replays_identically(em
         if m.topic in seqs:
             seqs[m.topic].append(messages.decode_header(m.data).seq)
     leads, published = set(seqs["/strains/lead"]), set(seqs["/elements"])
-    assert len(leads) >= 10 and report.leads == len(seqs["/strains/lead"]), report.format()
+    assert len(leads) >= 5 and report.leads == len(seqs["/strains/lead"]), report.format()
     assert not leads & published and set(seqs["/strains"]) == published
     assert sum(seq + 1 in published for seq in leads) >= 0.8 * len(leads)
 
