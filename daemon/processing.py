@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 from skinmap.daemon.device_setup import ScannerState
-from dataclasses import dataclass
-
 from skinmap.daemon.fanout import Event, Notifier, QueuedListener, Record, ScanReceived, WireRecord
 from skinmap.daemon.output import ResultOutput, encode_result_strains
 from skinmap.daemon.pacing import HostDecimator
@@ -84,12 +83,12 @@ class ProcessingListener(QueuedListener):
         return True
 
     def handle(self, record: Record) -> None:
-        lead = isinstance(record, _LeadScan)
+        lead = False
         if isinstance(record, _LeadScan):
             if self._queue.qsize():  # a scan due waits: the lead would only delay it
                 self.leads_skipped += 1
                 return
-            record = record.received
+            record, lead = record.received, True
         assert isinstance(record, ScanReceived)
         try:
             with self._background.busy():  # the restart chain waits while a frame is under way
