@@ -725,17 +725,6 @@ class GraphFit:
         screened = [f"{how}: {why}" for (how, _), why in zip(starts, reasons) if why]
         return closest._replace(how="; ".join([r.how for r in results] + screened))
 
-    def shape_misfit(self, c: np.ndarray, data: tuple) -> float:
-        """The turning misfit per unit of the graph ``c`` to ``data`` (:meth:`prepare`) in units
-        of its noise variance, beyond a gain the gauges share: the residual's part along the
-        turning data itself (what a gain error, the gauges' hysteresis, leaves) taken out."""
-        turning, stretch, w_t, w_s, _, n_valid, _, _ = data
-        _, rt, _ = self._objective(c, turning, stretch, w_t, w_s)
-        d = w_t * turning
-        dd = float(d @ d)
-        along = float(rt @ d) ** 2 / dd if dd > 0.0 else 0.0
-        return max(float(rt @ rt) - along, 0.0) / n_valid
-
     def _damped_descent(self, data: tuple, c: np.ndarray, twist_sign: float | None) -> GraphResult:
         """The start ``c`` descended :data:`_DAMPED_STEPS` steps with the stretch residuals' own
         curvature in the matrix, then as a cold fit (how: :data:`DAMPED_LINEAR`)."""

@@ -56,8 +56,8 @@ from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, Stretc
 from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _larger, _mean_twist_terms, _memo,
                           _widened, _with_reading_noise, _with_twist, _within_noise)
 from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField,
-                          alignment_floor, fine_sigma, gain_sigma, graph_resolution_share, resolution_sigma, sigma_field,
-                          stretch_noise_sd, with_gain)
+                          alignment_floor, fine_sigma, gain_sigma, resolution_sigma, sigma_field, stretch_noise_sd,
+                          with_gain)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "DEFAULT_GAIN_SD",
@@ -837,10 +837,7 @@ class Reconstructor(StretchPatternTwist):
 
                 def resolution_field() -> np.ndarray:
                     sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
-                    part = share
-                    if fit is None and graph is not None:  # a graph that misreads the turning resolves no more
-                        part = graph_resolution_share(self._graph_fit().shape_misfit(graph.coeffs, data))
-                    return part * resolution_sigma(grid, valid, turning, sig_turn)
+                    return share * resolution_sigma(grid, valid, turning, sig_turn)
 
                 resolution_term = resolution_field
 

@@ -25,7 +25,7 @@ from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
 __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
-           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "GRAPH_MISFIT_REF", "graph_resolution_share", "alignment_floor", "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD",
+           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor", "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD",
            "gain_sigma", "with_gain"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
@@ -50,25 +50,6 @@ RESOLUTION_SHARE = 0.5
 #: the noise's σ alone, 98 and 100 % with 0.1 (worst 1.16 and 0.82 of the bound, median 0.15
 #: and 0.32); 0.05: 97 and 95 %; 0.15: 100 and 100 % with σ half as large again.
 GRAPH_RESOLUTION_SHARE = 0.1
-#: The turning misfit per unit, beyond a gain the gauges share (GraphFit.shape_misfit), up to
-#: which a graph takes GRAPH_RESOLUTION_SHARE; above it the share grows as the square root of
-#: the ratio, up to RESOLUTION_SHARE: a graph that misreads the turning resolves no more than the
-#: general model.  Graphs that fit leave 0.005-0.06 (the bench's kinematic classes, noisy; most
-#: below 0.02 on the emulated device); a fingertip touching down on an 8×8 membrane, whose dimple
-#: the graph's knots do not follow, 0.14-0.41, its graph 0.41-0.54 mm off under it with σ
-#: 0.11-0.13 (up to 1.19 times 3σ + 0.05 mm warm, 1.50 cold).  At 0.06 the cold frames of the
-#: least misfit (0.14) still stood 1.13 times beyond; at 0.03 none does, and the σ calibration of
-#: the bench's classes moves by 0.02 at most (docs/reconstruction.md, *A graph that misreads the
-#: turning*).
-GRAPH_MISFIT_REF = 0.03
-
-
-def graph_resolution_share(turning_misfit: float) -> float:
-    """The share of :func:`resolution_sigma` a graph answer takes into its σ, given its turning
-    misfit per unit beyond a gain the gauges share (see :data:`GRAPH_MISFIT_REF`)."""
-    if not turning_misfit > GRAPH_MISFIT_REF:  # (NaN: as a graph that fits)
-        return GRAPH_RESOLUTION_SHARE
-    return min(RESOLUTION_SHARE, GRAPH_RESOLUTION_SHARE * math.sqrt(turning_misfit / GRAPH_MISFIT_REF))
 
 
 def alignment_floor(node_sigma: np.ndarray) -> float:
