@@ -435,7 +435,7 @@ class StretchPatternTwist:
             # the twists the reading allows: 3 s.d. reach past the farther end; of either sign
             # where the reading allows none too and nothing tells the sign (no mirror is tried
             # below: a stretch is even in the twist).  A 5×5 film pre-stretched 5 % on a dome
-            # turned to 45° (k_uv 0.005 /mm) was moved from the general model's twist, beyond the
+            # turned 27° off the rows (k_uv 0.005 /mm) was moved from the general model's twist, beyond the
             # trace's interval [0, 0.0069], to its middle with the model's sign, the wrong one:
             # 1.5 mm off with σ 0.55, 1.58 times 3σ + 0.05 mm; now σ 1.31, 0.88 times
             ends = [sign * m - m0 for m in (m_lo, m_hi)]

@@ -303,9 +303,9 @@ def test_a_turned_dome_whose_twist_the_stretch_cannot_tell_from_none_is_within_3
 
 
 def test_a_dome_moved_into_the_trace_interval_keeps_either_sign_of_its_twist_within_3_sigma() -> None:
-    """A 5×5 film pre-stretched 5 % on a dome turned to 45° (k_uu = k_vv = 0.0125, k_uv = 0.005
-    /mm): the general model's twist lies beyond the trace's interval (−0.0099 against [0, 0.0069]
-    /mm), and the answer is moved to the interval's middle with the model's sign, the wrong one,
+    """A 5×5 film pre-stretched 5 % on a dome turned off the rows (k_uu = 0.0125, k_vv = k_uv =
+    0.005 /mm; principal axes 27° off the grid): the general model's twist lies beyond the
+    trace's interval (−0.0099 against [0, 0.0069] /mm), and the answer is moved to the interval's middle with the model's sign, the wrong one,
     1.5 mm off.  The interval reaches none, so nothing tells the sign and no mirror is tried:
     the twists of either sign up to its top join node_sigma, and every noisy frame lies within
     3σ + 0.05 mm in the sensor frame (before, σ 0.55 mm: 1.56-1.58 times the bound on 5 of 6)."""
