@@ -28,6 +28,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -42,6 +43,7 @@ from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
 from skinmap.daemon.config import OutputConfig  # noqa: E402
 from skinmap.emulator.electrical import ElectricalConfig  # noqa: E402
+from skinmap.strains import RESPONSE_LAG_S  # noqa: E402
 
 
 def palm_spec(n: int) -> str:
@@ -62,19 +64,23 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
-        ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans) -> dict:
+        ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans,
+        response_tau_s: float = 0.0, response_lag_s: float = RESPONSE_LAG_S) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
     held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration);
-    ``lead_scans``: skinmapd's `[output] lead_scans` (reconstructed, not judged)."""
+    ``lead_scans``: skinmapd's `[output] lead_scans` (reconstructed, not judged);
+    ``response_tau_s``: the emulated gauges' first-order response lag (0: none);
+    ``response_lag_s``: the lag bound the pipeline carries into σ (0: none)."""
     electrical = ElectricalConfig() if hysteresis else ElectricalConfig().without("hysteresis")
+    electrical = replace(electrical, response_tau_s=response_tau_s)
     device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE)
-    pipe = emulated_pipeline(device, spec)
+    pipe = emulated_pipeline(device, spec, response_lag_s=response_lag_s)
     pipe.prepare()
     step = 1 if output_rate == 0 else max(1, round(SCAN_RATE / output_rate))
-    errs, ratios, deferred = [], [], 0
+    errs, ratios, deferred, sigmas = [], [], 0, []
     with threadpool_limits(1):
         for k, t, resistances in emulated_scans(device, spec, seconds, every=step, ramp_s=ramp_s, lead=lead_scans):
-            result = pipe.process(resistances, k, 0, 0)
+            result = pipe.process(resistances, k, round(t * 1e6), 0)
             if k % step:
                 continue  # a lead scan: not published
             if ramp_s > 0 and t < ramp_s + 0.2:
@@ -87,10 +93,12 @@ def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis:
             e = min((node_errors(a, truth) for a in answers), key=lambda x: float(x.mean()))
             errs.append(float(e.mean()))
             ratios.append(float(np.max(e / bound)))
+            sigmas.append(float(np.median(result.node_sigma_mm)))
             deferred += bool(result.diagnostics.get("graph_deferred"))
     r = np.array(ratios)
     return {"frames": len(errs), "mean": float(np.mean(errs)), "largest": float(np.max(errs)),
-            "beyond": int(np.sum(r > 1.0)), "worst": float(r.max()), "deferred": deferred}
+            "beyond": int(np.sum(r > 1.0)), "worst": float(r.max()), "deferred": deferred,
+            "sigma": float(np.mean(sigmas))}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -108,15 +116,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="the emulated device's seed (gauge noise, calibration)")
     ap.add_argument("--lead-scans", type=int, default=OutputConfig().lead_scans,
                     help="skinmapd's [output] lead_scans: scans reconstructed before each one due, not judged")
+    ap.add_argument("--response-tau", type=float, default=0.0,
+                    help="the emulated gauges' first-order response lag τ, s (0: none; the paper's 170 ms "
+                         "response as 95 %% of a step: 0.057)")
+    ap.add_argument("--response-time-ms", type=float, default=RESPONSE_LAG_S * 3e3,
+                    help="[reconstruction] response_time_ms: the lag bound the pipeline carries into σ "
+                         "(a third of it; 0 leaves it out)")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
     modes = [x.strip() == "on" for x in args.hysteresis.split(",")]
     print(f"skinmapd's frame pipeline on the emulated device ({SCAN_RATE:g} scans/s), errors against the truth "
           f"(mean node error after the best rigid alignment; beyond: frames with some node off by more than "
-          f"3 σ + 0.05 mm; device seed {args.seed})")
+          f"3 σ + 0.05 mm; σ: the frames' median node σ, mean over frames; device seed {args.seed}; "
+          f"the gauges' response lag τ {1e3 * args.response_tau:g} ms, σ's lag bound "
+          f"{args.response_time_ms / 3.0:.3g} ms)")
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
-          f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'deferred':>8s} {'s':>5s}")
+          f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'σ mm':>6s} {'deferred':>8s} {'s':>5s}")
     for n in sizes:
         cases = ([(label, scenes.parse_scene_spec(spec, args.mechanics, n, n, 12.0), 3.0, 1.0)
                   for label, spec in held_specs(n)] if args.held
@@ -126,11 +142,12 @@ def main(argv: list[str] | None = None) -> int:
             for output in outputs:
                 for hysteresis in modes:
                     t0 = time.perf_counter()
-                    row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans)
+                    row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans,
+                              args.response_tau, args.response_time_ms * 1e-3 / 3.0)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "
                           f"{row['frames']:6d} {row['mean']:8.4f} {row['largest']:8.3f} "
-                          f"{row['beyond']:>3d}/{row['frames']:<3d} {row['worst']:6.2f} {row['deferred']:8d} "
+                          f"{row['beyond']:>3d}/{row['frames']:<3d} {row['worst']:6.2f} {row['sigma']:6.3f} {row['deferred']:8d} "
                           f"{time.perf_counter() - t0:5.0f}", flush=True)
     return 0
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, get_args
 
-from skinmap.strains import HYSTERESIS_GAIN_SD
+from skinmap.strains import HYSTERESIS_GAIN_SD, RESPONSE_TIME_S
 
 __all__ = [
     "ConfigError",
@@ -95,6 +95,10 @@ class ReconstructionConfig:
     # held up to half of it low); more for gauges whose gauge factors are known less well, 0 to
     # leave it out (docs/reconstruction.md, "A gain the gauges share")
     gain_sd: float = HYSTERESIS_GAIN_SD
+    # the gauges' response time (ms; the paper: below 170 ms): a sheet that moves is read up to a
+    # third of it late (a first-order response at 95 %), so σ takes that lag times each point's
+    # speed, read from the frames before; 0 leaves it out (docs/reconstruction.md, "A sheet that moves")
+    response_time_ms: float = RESPONSE_TIME_S * 1e3
     # the full-position fit with the membrane-equilibrium prior after the default answer (sheets
     # of up to 64 cells, about a second of CPU per cold 5×5 frame: docs/reconstruction.md,
     # "Elastic films"); it needs the film's Poisson ratio
@@ -354,6 +358,7 @@ _SCHEMA: dict[str, dict[str, Callable[[str, Any], Any]]] = {
         "twist_sign": _choice(TwistSign),
         "twist_prior": _choice(TwistPrior),
         "gain_sd": _number(0, 0.3),
+        "response_time_ms": _number(0, 2000),
         "elastic_prior": _boolean,
         "poisson_ratio": _number(0, 0.499),
         "poisson_ratio_sd": _number(0, 0.2),

@@ -124,7 +124,14 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
         poisson_range=poisson_range_for(cfg, cal),
         twist_prior=cfg.reconstruction.twist_prior,
         gain_sd=cfg.reconstruction.gain_sd,
+        response_lag_s=response_lag_for(cfg),
     )
+
+
+def response_lag_for(cfg: DaemonConfig) -> float:
+    """The gauges' response lag bound (s) the pipeline carries into σ: a third of the configured
+    response time, the time constant of a first-order response that reaches 95 % within it."""
+    return cfg.reconstruction.response_time_ms * 1e-3 / 3.0
 
 
 def device_name(hello: Hello, cfg: DaemonConfig) -> str:

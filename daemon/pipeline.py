@@ -24,12 +24,14 @@ import numpy as np
 
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
-from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, Calibration, cell_bending, cell_centres,
-                             reject_implausible_units, resistances_to_strains, to_nominal_offsets, turning_noise_rad)
+from skinmap.reconstruction.uncertainty import alignment_floor, response_lag_sigma
+from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, RESPONSE_LAG_S, Calibration, cell_bending,
+                             cell_centres, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
+                             turning_noise_rad)
 
 __all__ = ["ArrayGeometry", "FrameResult", "FramePipeline", "Background", "InlineBackground", "WorkerBackground",
            "GRAPH_RESTART_SCANS", "GRAPH_ADOPT_SCANS", "GRAPH_SYNC_SCANS", "GRAPH_CATCH_UP_SCANS", "GRAPH_AUDIT_SCANS",
-           "AUDIT_MAX_CELLS", "graph_audit", "graph_restart",
+           "AUDIT_MAX_CELLS", "MOTION_BASELINE_S", "MOTION_HORIZON_S", "graph_audit", "graph_restart",
            "graph_adopt"]
 
 log = logging.getLogger("skinmapd")
@@ -123,6 +125,23 @@ AUDIT_MAX_CELLS = 64
 #: On knots every pitch/3, 16×16 (13 ms a warm frame, 70 ms its node σ) fell to 8-9 Hz with 31
 #: frames dropped in 20 s (docs/reconstruction.md, *Larger sheets*).
 PIPELINE_GRAPH_MAX_CELLS = 256
+#: How a sheet's speed is read for the gauges' response lag in σ (``response_lag_s``): from the
+#: processed frame latest at least MOTION_BASELINE_S (device time) before this one, so that the
+#: move between them stands above their noise (at 10 Hz output, the frame published before; with
+#: every scan published, the third one back), and none older than MOTION_HORIZON_S (after a gap
+#: or a reconnect the speed is not known, and the term is left out until it is).
+MOTION_BASELINE_S = 0.06
+MOTION_HORIZON_S = 0.5
+
+
+@dataclass(frozen=True)
+class _MotionSample:
+    """What the response lag's speed is read from: one processed frame's points and scatter."""
+    time_s: float
+    nodes: np.ndarray  # (N·M, 3)
+    node_scatter: np.ndarray  # (N·M,)
+    elements: np.ndarray  # (K, 3)
+    element_scatter: np.ndarray  # (K,)
 
 
 def graph_restart(previous_seq: int | None, seq: int) -> bool:
@@ -396,6 +415,7 @@ class FramePipeline:
         poisson_range: tuple[float, float] = (0.3, 0.5),
         twist_prior: str = "open",
         gain_sd: float = HYSTERESIS_GAIN_SD,
+        response_lag_s: float = RESPONSE_LAG_S,
     ) -> None:
         self.geometry = geometry
         self.calibration = calibration
@@ -417,6 +437,11 @@ class FramePipeline:
         self.twist_prior = twist_prior
         # the s.d. of a gain error the gauges share (their hysteresis), carried into σ (Reconstructor)
         self.gain_sd = float(gain_sd)
+        # the gauges' response lag bound (s), carried into σ where the sheet moves; 0 leaves it out
+        if not (math.isfinite(response_lag_s) and response_lag_s >= 0.0):
+            raise ValueError(f"response_lag_s must be a finite number >= 0, got {response_lag_s!r}")
+        self.response_lag_s = float(response_lag_s)
+        self._motion: list[_MotionSample] = []  # the frames within MOTION_HORIZON_S, oldest first
         self._previous: Any = None
         self._previous_seq: int | None = None
         self._last_good: FrameResult | None = None
@@ -527,6 +552,9 @@ class FramePipeline:
             self._catch_up = earlier._catch_up
             self._chain_tail = earlier._chain_tail
             self._catch_up_failed = earlier._catch_up_failed
+        if earlier is not None and earlier.geometry == self.geometry:
+            # (the sheet's recent motion; a device whose clock restarted leaves none within reach)
+            self._motion = list(earlier._motion)
 
     def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
         g = self.geometry
@@ -586,6 +614,10 @@ class FramePipeline:
         pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0])
         # (a surface that tells no σ by position, or no elements: the scatter is σ itself, never less)
         scatter = np.fmin(read[1], sig) if read is not None else sig
+        lag_mm = 0.0
+        if self.response_lag_s > 0.0:
+            node_sigma, sig, lag_mm = self._with_response_lag(device_time_us * 1e-6, nodes, node_scatter, node_sigma,
+                                                              pos, scatter, sig)
         t_end = time.perf_counter()
         solve_s = t_end - t0
         stages = {"strains": t0 - t_start, "restart": (t_chain - t0) + (t_caught - t_rec), "reconstruct": t_rec - t_chain,
@@ -593,6 +625,8 @@ class FramePipeline:
 
         diagnostics = _diagnostics_dict(getattr(surf, "diagnostics", None))
         diagnostics["implausible_units"] = implausible
+        if lag_mm > 0.0:
+            diagnostics["response_lag_sigma_mm"] = round(lag_mm, 4)
         if deferred:
             diagnostics["graph_deferred"] = True  # answered by the general model; a catch-up chain fits it
         noise = turning_noise_rad(self.strain_sigma, g.gauge_length_mm, g.h_upper_mm, g.h_lower_mm)
@@ -638,6 +672,34 @@ class FramePipeline:
         )
         self._last_good = result
         return result
+
+    def _with_response_lag(self, time_s: float, nodes: np.ndarray, node_scatter: np.ndarray, node_sigma: np.ndarray,
+                           pos: np.ndarray, scatter: np.ndarray, sig: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """node σ and element σ with the gauges' response lag taken in (in quadrature) where the
+        sheet moves, and the largest lag term (mm; 0 where the speed is not known): each point's
+        speed from the frame MOTION_BASELINE_S or more before (:func:`response_lag_sigma`), no point
+        below the nodes' mean, the alignment floor (a reference placed by its best rigid fit moves
+        every point by the mean of the nodes' errors).  This frame joins the history."""
+        flat_nodes, flat_scatter = nodes.reshape(-1, 3), node_scatter.reshape(-1)
+        history = [h for h in self._motion if 0.0 < time_s - h.time_s <= MOTION_HORIZON_S]
+        before = [h for h in history if time_s - h.time_s >= MOTION_BASELINE_S]
+        largest = 0.0
+        if before and before[-1].nodes.shape == flat_nodes.shape and before[-1].elements.shape == pos.shape:
+            b = before[-1]
+            dt = time_s - b.time_s
+            node_lag = response_lag_sigma(flat_nodes, b.nodes, dt, flat_scatter, b.node_scatter, self.response_lag_s)
+            floor = alignment_floor(node_lag)
+            node_lag = np.maximum(node_lag, floor).reshape(node_sigma.shape)
+            element_lag = np.maximum(response_lag_sigma(pos, b.elements, dt, scatter, b.element_scatter,
+                                                        self.response_lag_s), floor)
+            node_sigma = np.hypot(node_sigma, node_lag)
+            sig = np.hypot(sig, element_lag)
+            largest = float(np.max(node_lag)) if node_lag.size else 0.0
+        if np.isfinite(flat_nodes).all() and np.isfinite(pos).all():  # (a frame held for NaN is not one)
+            history.append(_MotionSample(time_s, flat_nodes.copy(), flat_scatter.copy(), np.array(pos, dtype=float),
+                                         np.array(scatter, dtype=float)))
+        self._motion = history
+        return node_sigma, sig, largest
 
     def _chained(self) -> bool:
         """Whether this pipeline runs the graph fit's chains (warm starts of a graph fit)."""

@@ -26,7 +26,7 @@ from .linalg import FixedSolver
 
 __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
            "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "alignment_floor", "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD",
-           "gain_sigma", "with_gain"]
+           "gain_sigma", "with_gain", "response_lag_sigma"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
@@ -69,6 +69,25 @@ def alignment_floor(node_sigma: np.ndarray) -> float:
     values = np.asarray(node_sigma, dtype=float).reshape(-1)
     values = values[np.isfinite(values)]
     return float(values.mean()) if values.size else 0.0
+
+
+def response_lag_sigma(now: np.ndarray, before: np.ndarray, dt_s: float, scatter_now: np.ndarray,
+                       scatter_before: np.ndarray, lag_s: float) -> np.ndarray:
+    """(K,) σ (mm) of points read by gauges that answer up to ``lag_s`` late, from the same points
+    ``now`` and ``dt_s`` earlier (``before``, both (K, 3) mm in the sensor frame) and each frame's
+    scatter σ there (K,).
+
+    A gauge of first-order response τ follows a strain that changes at a steady rate τ late, so a
+    sheet moving at speed v is reconstructed v·τ behind where it is.  τ is known only as a bound
+    (the gauges settle within 170 ms: τ ≤ ``lag_s``), so the error is taken as bounded, between
+    none and v·``lag_s``: a rectangular distribution's s.d., v·``lag_s``/√3.  v is read from the
+    two frames, their noise taken out: |Δx|² less the two scatter variances (the noise's own
+    expectation of it), none where the frames differ by no more than their noise."""
+    d = np.asarray(now, dtype=float) - np.asarray(before, dtype=float)
+    noise = np.asarray(scatter_now, dtype=float) ** 2 + np.asarray(scatter_before, dtype=float) ** 2
+    excess = np.einsum("kc,kc->k", d, d) - noise
+    speed = np.sqrt(np.maximum(np.nan_to_num(excess, nan=0.0), 0.0)) / float(dt_s)
+    return speed * (float(lag_s) / math.sqrt(3.0))
 
 
 class SigmaField:

@@ -31,7 +31,7 @@ import numpy as np
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
            "GAUGE_LENGTH_MM", "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
            "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "HYSTERESIS_LOOP", "HYSTERESIS_LOOP_SD",
-           "HYSTERESIS_GAIN_SD"]
+           "HYSTERESIS_GAIN_SD", "RESPONSE_TIME_S", "RESPONSE_LAG_S"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
@@ -111,6 +111,13 @@ HYSTERESIS_LOOP_SD = 0.0070
 #: (a sheet pressed onto a shape and held) read off the same way, by up to half a loop one s.d.
 #: high (2.5 %), a bounded error of unknown sign: a rectangular distribution's s.d. (÷ √3).
 HYSTERESIS_GAIN_SD = 0.5 * (HYSTERESIS_LOOP + HYSTERESIS_LOOP_SD) / math.sqrt(3.0)
+
+#: The gauges' response and recovery times: below 170 ms for a 0.5 % strain step (the sensor's
+#: paper).  Read as a first-order response reaching 95 % of a step within it, a gauge follows a
+#: moving strain RESPONSE_LAG_S (τ = 170/3 ≈ 57 ms) late at most, so a sheet that moves is
+#: reconstructed where it was up to that long before (docs/reconstruction.md, "A sheet that moves").
+RESPONSE_TIME_S = 0.170
+RESPONSE_LAG_S = RESPONSE_TIME_S / 3.0
 
 
 def grid_size(n: int, m: int) -> tuple[int, int]:
