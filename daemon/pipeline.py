@@ -116,6 +116,10 @@ GRAPH_CATCH_UP_SCANS = 4
 #: warm chain can settle in a basin of the graph fit a cold fit of the same scan leaves (its
 #: Gauss-Newton step left short, so graphfit.WARM_UNSETTLED does not see it; its objective below
 #: the basin test's yardstick): fingertips releasing a 5×5 membrane through the gauges' hysteresis.
+#: On larger sheets, where the graph is a rescue for what the general model misfits, the same
+#: scans recheck a warm graph (Reconstructor ``graph_recheck``): where the general model no longer
+#: misfits, it answers and the chain of graphs ends (a 12×12 saddle held after a turn read through
+#: lagging gauges stayed a graph 0.47 mm off, 1.2 times 3σ + 0.05 mm, until the next restart).
 GRAPH_AUDIT_SCANS = 8
 AUDIT_MAX_CELLS = 64
 #: The largest sheet (cells) skinmapd fits as a height graph at all: on 12×12 and 16×16 a sharp
@@ -584,6 +588,9 @@ class FramePipeline:
             # recovery from bad data is answered at once)
             call["graph_cold"] = False
         self._catch_up_failed = False
+        if graph_audit(seq) and not self._audited and getattr(self.reconstructor, "graph_rescue", False):
+            # a larger sheet's warm graph (a rescue) kept only while the general model still misfits
+            call["graph_recheck"] = True
         surf = self.reconstructor(eps_u, eps_l, **call)
         t_rec = time.perf_counter()
         deferred = bool(getattr(getattr(surf, "diagnostics", None), "extra", {}).get("graph_deferred", False))

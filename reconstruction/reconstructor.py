@@ -461,6 +461,7 @@ class Reconstructor(StretchPatternTwist):
         twist_sign: float | None = None,
         graph_warm: bool = True,
         graph_cold: bool = True,
+        graph_recheck: bool = False,
     ) -> Surface:
         """Reconstruct one frame.  NaN marks a missing gauge (its unit is dropped and filled by
         the smoothness prior; a mask not seen before leaves its units out of the all-valid fits
@@ -484,6 +485,11 @@ class Reconstructor(StretchPatternTwist):
         by its resolution (uncertainty.resolution_sigma: a sheet that may be a graph may have
         features sharper than the gauges); the caller fits that frame cold elsewhere (skinmapd:
         on its restart worker, then warm-starts from it), so no frame pays for a cold fit.
+        ``graph_recheck=True`` (sheets of 65 to 256 cells, where the graph is a rescue): a warm
+        graph is kept only where the general model's answer still misfits the gauges as a cold
+        frame's must for the graph to be tried (:data:`GRAPH_RESCUE_CHI2`), else the general
+        model answers and the chain of graphs ends (a graph begun on a sharp or inconsistent frame
+        is no longer carried on by its warm start alone; skinmapd asks every GRAPH_AUDIT_SCANS).
 
         BLAS runs on one thread during the call and when the surface's uncertainty is first
         read (this thread's problems are small: on a busy 2-core machine several BLAS threads
@@ -495,7 +501,7 @@ class Reconstructor(StretchPatternTwist):
                 eps_upper, eps_lower = screened[2], screened[3]
             t_screen = time.perf_counter() - t0
             surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
-                                     graph_cold)
+                                     graph_cold, graph_recheck)
         if self.gain_sd > 0.0:
             stretch = unit_data(np.asarray(eps_upper, dtype=float), np.asarray(eps_lower, dtype=float),
                                 self.h_upper, self.h_lower, self.gauge_length)[1]
@@ -587,7 +593,7 @@ class Reconstructor(StretchPatternTwist):
         return run
 
     def _reconstruct(self, eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
-                     graph_cold: bool = True) -> Surface:
+                     graph_cold: bool = True, graph_recheck: bool = False) -> Surface:
         t0 = time.perf_counter()
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
@@ -695,11 +701,24 @@ class Reconstructor(StretchPatternTwist):
             return first
 
         answered = None  # the general model's answer, where a rescue tried the graph after it
+
+        def general_misfits(answer: tuple) -> bool:
+            # the rescue's test: the general model's answer misreads the gauges beyond what its noise leaves
+            chi_read = answer[3].get("forward_chi2")
+            chi2_noise = self._noise_response(strain_sigma)[1]
+            return chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * chi2_noise * max(chi_read[2], 1)
+
+        if (graph_recheck and self.graph_rescue and warm is not None and graph is not None and graph.accepted
+                and not rescue):
+            answered = general_answer(None, bool(n_valid and self.defect_steps))
+            if not general_misfits(answered):
+                graph = graph._replace(accepted=False, how=(
+                    "warm: not needed, the general model reads the gauges within the rescue's bound"))
+            else:
+                answered = None
         if rescue:
             answered = general_answer(None, bool(n_valid and self.defect_steps))
-            chi_read = answered[3].get("forward_chi2")
-            chi2_noise = self._noise_response(strain_sigma)[1]
-            if chi_read is not None and chi_read[1] > GRAPH_RESCUE_CHI2 * chi2_noise * max(chi_read[2], 1):
+            if general_misfits(answered):
                 linear = linear_start()
                 ruled_out = self._graph_fit().ruled_out(linear)
                 if ruled_out is not None:

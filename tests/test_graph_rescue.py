@@ -226,3 +226,27 @@ def test_a_large_graph_answers_node_sigma_from_the_band_factor_equals_the_dense_
     assert np.allclose(band_nodes, dense.node_sigma, rtol=1e-9, atol=1e-12)
     assert np.allclose(band_points, dense.locate_sigma(uv), rtol=1e-9, atol=1e-12)
     assert band_nodes.max() > 0.0
+
+
+def test_a_warm_graph_on_a_large_sheet_ends_where_a_recheck_finds_the_general_model_reads_the_gauges(sheets):
+    """A graph begun on a sharp bump (12×12, 5 mm, FWHM 15 mm) is carried on by its warm start
+    alone while the bump broadens frame by frame: at FWHM 45 mm, which the general model reads
+    within the noise (χ² about 1 a gauge against 3000 at the start), the chain is still a graph.
+    Asked to recheck (skinmapd every GRAPH_AUDIT_SCANS on these sheets), the reconstructor
+    computes the general model's answer and, as it would not have tried the graph cold on that
+    frame, answers with it; near the start, where the general model misfits, the graph stays."""
+    default, _ = sheets[12]
+    rng = np.random.default_rng(5)
+    previous, early = None, None
+    for fwhm in np.arange(15.0, 46.0, 1.5):
+        eu, el = ph.gauge_strains(ph.GaussianBumps(height=5.0, fwhm=fwhm, centre=(21.0, -9.0)), 12, 12, PITCH, H, H, G)
+        eu, el = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+        if previous is not None and early is None:
+            early = default(eu, el, previous=previous, graph_recheck=True)
+        before = previous
+        previous = default(eu, el, previous=previous)
+    assert early is not None and early.diagnostics.extra["model"] == "graph"
+    assert previous.diagnostics.extra["model"] == "graph", previous.diagnostics.extra.get("graph_fit")
+    rechecked = default(eu, el, previous=before, graph_recheck=True)
+    assert rechecked.diagnostics.extra["model"] == "general", rechecked.diagnostics.extra.get("graph_fit")
+    assert "not needed" in rechecked.diagnostics.extra["graph_fit"]
