@@ -65,14 +65,17 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
         ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans,
-        response_tau_s: float = 0.0, response_lag_s: float = RESPONSE_LAG_S) -> dict:
+        response_tau_s: float = 0.0, response_lag_s: float = RESPONSE_LAG_S, relaxation: float = 0.0,
+        relaxation_tau_s: float = 10.0) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
     held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration);
     ``lead_scans``: skinmapd's `[output] lead_scans` (reconstructed, not judged);
     ``response_tau_s``: the emulated gauges' first-order response lag (0: none);
-    ``response_lag_s``: the lag bound the pipeline carries into σ (0: none)."""
+    ``response_lag_s``: the lag bound the pipeline carries into σ (0: none); ``relaxation``,
+    ``relaxation_tau_s``: the emulated gauges' relaxation under a held strain (0: none)."""
     electrical = ElectricalConfig() if hysteresis else ElectricalConfig().without("hysteresis")
-    electrical = replace(electrical, response_tau_s=response_tau_s)
+    electrical = replace(electrical, response_tau_s=response_tau_s, relaxation=relaxation,
+                         relaxation_tau_s=relaxation_tau_s)
     device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE)
     pipe = emulated_pipeline(device, spec, response_lag_s=response_lag_s)
     pipe.prepare()
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--outputs", default="0,10", help="output rates, Hz (0 = every scan)")
     ap.add_argument("--seconds", type=float, default=8.0, help="seconds of the gesture (one cycle: 8)")
     ap.add_argument("--hysteresis", default="on,off", help="the gauges' hysteresis: on, off or both")
-    ap.add_argument("--held", action="store_true", help="shapes pressed from flat over 1 s and held 2 s instead")
+    ap.add_argument("--held", action="store_true", help="shapes pressed from flat over 1 s and held (--hold, 2 s) instead")
     ap.add_argument("--shape", default=None,
                     help="a moving shape spec instead of the palm gesture (skinmap.emulator.physics), "
                          "as given at every size")
@@ -122,6 +125,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--response-time-ms", type=float, default=RESPONSE_LAG_S * 3e3,
                     help="[reconstruction] response_time_ms: the lag bound the pipeline carries into σ "
                          "(a third of it; 0 leaves it out)")
+    ap.add_argument("--relaxation", type=float, default=0.0,
+                    help="the emulated gauges' relaxation: the share of a held strain's reading lost "
+                         "(the paper: 0.035; 0: none)")
+    ap.add_argument("--relaxation-tau", type=float, default=10.0, help="its time constant, s")
+    ap.add_argument("--hold", type=float, default=2.0, help="with --held: seconds each shape is held")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
@@ -130,11 +138,11 @@ def main(argv: list[str] | None = None) -> int:
           f"(mean node error after the best rigid alignment; beyond: frames with some node off by more than "
           f"3 σ + 0.05 mm; σ: the frames' median node σ, mean over frames; device seed {args.seed}; "
           f"the gauges' response lag τ {1e3 * args.response_tau:g} ms, σ's lag bound "
-          f"{args.response_time_ms / 3.0:.3g} ms)")
+          f"{args.response_time_ms / 3.0:.3g} ms; relaxation {args.relaxation:g}, τ {args.relaxation_tau:g} s)")
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
           f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'σ mm':>6s} {'deferred':>8s} {'s':>5s}")
     for n in sizes:
-        cases = ([(label, scenes.parse_scene_spec(spec, args.mechanics, n, n, 12.0), 3.0, 1.0)
+        cases = ([(label, scenes.parse_scene_spec(spec, args.mechanics, n, n, 12.0), 1.0 + args.hold, 1.0)
                   for label, spec in held_specs(n)] if args.held
                  else [(args.shape.split(":")[0], ph.parse_shape_spec(args.shape), args.seconds, 0.0)] if args.shape
                  else [("palm", ph.parse_shape_spec(palm_spec(n)), args.seconds, 0.0)])
@@ -143,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
                 for hysteresis in modes:
                     t0 = time.perf_counter()
                     row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans,
-                              args.response_tau, args.response_time_ms * 1e-3 / 3.0)
+                              args.response_tau, args.response_time_ms * 1e-3 / 3.0, args.relaxation,
+                              args.relaxation_tau)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "
                           f"{row['frames']:6d} {row['mean']:8.4f} {row['largest']:8.3f} "

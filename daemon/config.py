@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, get_args
 
-from skinmap.strains import HYSTERESIS_GAIN_SD, RESPONSE_TIME_S
+from skinmap.strains import RESPONSE_TIME_S, SHARED_GAIN_SD
 
 __all__ = [
     "ConfigError",
@@ -92,9 +92,10 @@ class ReconstructionConfig:
     twist_prior: TwistPrior = "open"
     # the s.d. (relative) of a gain error every gauge shares, carried into σ: by default the
     # gauges' hysteresis (a loop 4.21 ± 0.70 % of the excursion high reads a sheet pressed and
-    # held up to half of it low); more for gauges whose gauge factors are known less well, 0 to
+    # held up to half of it low) and their relaxation (a held strain reads up to 3.5 % low), in
+    # quadrature; more for gauges whose gauge factors are known less well, 0 to
     # leave it out (docs/reconstruction.md, "A gain the gauges share")
-    gain_sd: float = HYSTERESIS_GAIN_SD
+    gain_sd: float = SHARED_GAIN_SD
     # the gauges' response time (ms; the paper: below 170 ms): a sheet that moves is read up to a
     # third of it late (a first-order response at 95 %), so σ takes that lag times each point's
     # speed, read from the frames before; 0 leaves it out (docs/reconstruction.md, "A sheet that moves")

@@ -25,7 +25,7 @@ import numpy as np
 from skinmap.elements import (UNKNOWN_SIGMA_MM, element_flags, element_layout, fit_inconsistent, held_flags,
                               locate_elements, prior_elements)
 from skinmap.reconstruction.uncertainty import alignment_floor, response_lag_sigma
-from skinmap.strains import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, RESPONSE_LAG_S, Calibration, cell_bending,
+from skinmap.strains import (GAUGE_LENGTH_MM, RESPONSE_LAG_S, SHARED_GAIN_SD, Calibration, cell_bending,
                              cell_centres, reject_implausible_units, resistances_to_strains, to_nominal_offsets,
                              turning_noise_rad)
 
@@ -418,7 +418,7 @@ class FramePipeline:
         elastic_prior: Any = None,
         poisson_range: tuple[float, float] = (0.3, 0.5),
         twist_prior: str = "open",
-        gain_sd: float = HYSTERESIS_GAIN_SD,
+        gain_sd: float = SHARED_GAIN_SD,
         response_lag_s: float = RESPONSE_LAG_S,
     ) -> None:
         self.geometry = geometry

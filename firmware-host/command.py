@@ -100,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-drift", action="store_true")
     g.add_argument("--response-tau", type=float, default=0.0, metavar="S",
                    help="first-order gauge response time constant, s (default 0: instantaneous)")
+    g.add_argument("--relaxation", type=float, default=0.0, metavar="F",
+                   help="share of a held strain's reading lost as the gauge relaxes (the paper: 0.035; default 0)")
+    g.add_argument("--relaxation-tau", type=float, default=10.0, metavar="S",
+                   help="the relaxation's time constant, s (default 10)")
 
     g = p.add_argument_group("link")
     x = g.add_mutually_exclusive_group()
@@ -143,7 +147,8 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
     if off:
         elec = elec.without(*off)
     try:
-        elec = replace(elec, response_tau_s=args.response_tau)
+        elec = replace(elec, response_tau_s=args.response_tau, relaxation=args.relaxation,
+                       relaxation_tau_s=args.relaxation_tau)
     except ValueError as exc:
         parser.error(str(exc))
     try:

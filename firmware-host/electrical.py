@@ -12,6 +12,11 @@ itself is the host's (:func:`skinmap.strains.gauge_resistance`; the host inverts
   excursion at its peak and closes at rest; there is no creep;
 - optionally a first-order response lag of the gauge (time constant ``response_tau_s``; the
   gauges respond within 170 ms, i.e. τ ≲ 57 ms for 95 %), off by default;
+- optionally the reading's relaxation under a held strain (``relaxation``: the share of a held
+  strain's reading lost, 3.5 % at 20 % strain in the sensor's paper; ``relaxation_tau_s``: how
+  fast, which the paper does not give), off by default: the reading is ε_h − f·q with q
+  following ε_h at that time constant, so a strain held reads (1 − f)·ε_h in the end and one
+  released reads −f·q, recovering at the same rate (a standard linear solid);
 - drift is an Ornstein–Uhlenbeck process on the relative resistance (tiny, slow);
 - white noise of s.d. 0.007 % of R;
 - the ADC quantises to one LSB (full scale / 2^24; the default full scale 16.777216 Ω makes the
@@ -41,6 +46,7 @@ __all__ = [
     "hysteresis_step",
     "drift_step",
     "lag_step",
+    "relaxation_step",
     "strain_to_resistance",
     "quantise",
 ]
@@ -127,6 +133,8 @@ class ElectricalConfig:
     drift_rel_sd: float = 1e-5  # stationary s.d. of the relative drift
     drift_tau_s: float = 600.0  # drift correlation time
     response_tau_s: float = 0.0  # first-order lag of the gauge response (0: instantaneous)
+    relaxation: float = 0.0  # share of a held strain's reading lost as it relaxes (the paper: 0.035)
+    relaxation_tau_s: float = 10.0  # its time constant (assumed: the paper gives the share only)
     quantise: bool = True  # ADC quantisation (else the value is only rounded to 1 µΩ on the wire)
     adc_bits: int = 24
     adc_full_scale_ohm: float = 16.777216  # 2^24 µΩ: one ADC LSB = 1 µΩ
@@ -140,6 +148,10 @@ class ElectricalConfig:
             raise ValueError(f"ElectricalConfig.hysteresis must be in [0, 1), got {self.hysteresis!r}")
         if not (math.isfinite(self.response_tau_s) and self.response_tau_s >= 0):
             raise ValueError(f"ElectricalConfig.response_tau_s must be >= 0 s, got {self.response_tau_s!r}")
+        if not (math.isfinite(self.relaxation) and 0 <= self.relaxation < 1):
+            raise ValueError(f"ElectricalConfig.relaxation must be in [0, 1), got {self.relaxation!r}")
+        if not (math.isfinite(self.relaxation_tau_s) and self.relaxation_tau_s > 0):
+            raise ValueError(f"ElectricalConfig.relaxation_tau_s must be > 0 s, got {self.relaxation_tau_s!r}")
         if not self.drift_tau_s > 0:
             raise ValueError(f"ElectricalConfig.drift_tau_s must be > 0, got {self.drift_tau_s!r}")
         if not 8 <= int(self.adc_bits) <= 32:
@@ -152,12 +164,13 @@ class ElectricalConfig:
 
     @classmethod
     def ideal(cls) -> "ElectricalConfig":
-        """No lag, hysteresis, drift, noise or quantisation (only the 1 µΩ wire rounding remains)."""
-        return cls(hysteresis=0.0, noise_rel_sd=0.0, drift_rel_sd=0.0, quantise=False, response_tau_s=0.0)
+        """No lag, hysteresis, relaxation, drift, noise or quantisation (only the 1 µΩ wire rounding remains)."""
+        return cls(hysteresis=0.0, noise_rel_sd=0.0, drift_rel_sd=0.0, quantise=False, response_tau_s=0.0,
+                   relaxation=0.0)
 
     def without(self, *effects: str) -> "ElectricalConfig":
-        """A copy with the named effects off: 'hysteresis', 'noise', 'drift', 'quantise', 'lag'."""
-        known = ("hysteresis", "noise", "drift", "quantise", "lag")
+        """A copy with the named effects off: 'hysteresis', 'noise', 'drift', 'quantise', 'lag', 'relaxation'."""
+        known = ("hysteresis", "noise", "drift", "quantise", "lag", "relaxation")
         for e in effects:
             if e not in known:
                 raise ValueError(f"unknown effect {e!r}; known: {', '.join(known)}")
@@ -169,6 +182,7 @@ class ElectricalConfig:
             drift_rel_sd=0.0 if "drift" in off else self.drift_rel_sd,
             quantise=False if "quantise" in off else self.quantise,
             response_tau_s=0.0 if "lag" in off else self.response_tau_s,
+            relaxation=0.0 if "relaxation" in off else self.relaxation,
         )
 
     @property
@@ -192,6 +206,15 @@ def lag_step(state: np.ndarray, strain: np.ndarray, dt_s: float, tau_s: float) -
     """Exact first-order response to a strain held over the last ``dt_s``."""
     if tau_s <= 0 or dt_s <= 0:
         return strain if tau_s <= 0 else state
+    a = math.exp(-dt_s / tau_s)
+    return state * a + strain * (1.0 - a)
+
+
+def relaxation_step(state: np.ndarray, strain: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
+    """The relaxation state q after ``dt_s`` of ``strain`` held (exact for a strain constant
+    between readings): q follows the strain at time constant ``tau_s``; the reading loses f·q."""
+    if dt_s <= 0:
+        return state
     a = math.exp(-dt_s / tau_s)
     return state * a + strain * (1.0 - a)
 
@@ -262,12 +285,14 @@ class GaugeReadout:
     saturated_mask: np.ndarray | None = None
     _memory: np.ndarray | None = field(default=None, repr=False)
     _lagged: np.ndarray | None = field(default=None, repr=False)
+    _relaxed: np.ndarray | None = field(default=None, repr=False)
+    _held: np.ndarray | None = field(default=None, repr=False)
     _drift: np.ndarray | None = field(default=None, repr=False)
     _last_t: float | None = field(default=None, repr=False)
 
     def reset_state(self) -> None:
         """Power cycle: hysteresis memory and drift start afresh (calibration is kept)."""
-        self._memory = self._drift = self._last_t = self._lagged = None
+        self._memory = self._drift = self._last_t = self._lagged = self._relaxed = self._held = None
 
     def read(self, strain: np.ndarray, t_s: float) -> np.ndarray:
         strain = np.asarray(strain, dtype=float)
@@ -283,6 +308,13 @@ class GaugeReadout:
             self._memory = strain.copy() if self._memory is None else self._memory
             self._memory = hysteresis_step(self._memory, strain, cfg.hysteresis)
             strain = self._memory
+        if cfg.relaxation:
+            # the state follows what was held up to now (a sheet already held at power-up has
+            # relaxed); the strain read now has been held no time yet
+            self._relaxed = strain.copy() if self._relaxed is None or self._held is None else relaxation_step(
+                self._relaxed, self._held, dt, cfg.relaxation_tau_s)
+            self._held = strain.copy()
+            strain = strain - cfg.relaxation * self._relaxed
         drift: np.ndarray | float = 0.0
         if cfg.drift_rel_sd:
             if self._drift is None:

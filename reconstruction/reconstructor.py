@@ -301,7 +301,8 @@ class Reconstructor(StretchPatternTwist):
     gain_sd : the s.d. (relative) of a gain error every gauge shares, carried into
         ``node_sigma`` (not into its scatter part: it is the same on every frame of a held
         sheet).  Default :data:`DEFAULT_GAIN_SD`, the gauges' hysteresis (a loop 4.21 ± 0.70 %
-        of the excursion high reads a sheet pressed and held up to half of it low); raise it
+        of the excursion high reads a sheet pressed and held up to half of it low) and their
+        relaxation under a held strain (up to 3.5 % low), in quadrature; raise it
         for gauges whose gauge factors are known less well, 0 leaves it out
         (docs/reconstruction.md, "A gain the gauges share").
     """

@@ -18,7 +18,7 @@ from typing import Callable, cast
 
 import numpy as np
 
-from skinmap.strains import HYSTERESIS_GAIN_SD
+from skinmap.strains import SHARED_GAIN_SD
 
 from .grid import FineGrid
 from .leaveout import IllConditioned
@@ -32,9 +32,10 @@ __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", 
 #: of 1.24 gives 0.0057 % strain.
 DEFAULT_STRAIN_SIGMA = 0.0057e-2
 
-#: Default s.d. (relative) of a gain error the gauges share: their hysteresis
-#: (skinmap.strains.HYSTERESIS_GAIN_SD, 0.0142; docs/reconstruction.md, "A gain the gauges share").
-DEFAULT_GAIN_SD = HYSTERESIS_GAIN_SD
+#: Default s.d. (relative) of a gain error the gauges share: their hysteresis and their
+#: relaxation under a held strain (skinmap.strains.SHARED_GAIN_SD, 0.0247; docs/reconstruction.md,
+#: "A gain the gauges share").
+DEFAULT_GAIN_SD = SHARED_GAIN_SD
 
 #: The share of :func:`resolution_sigma` that joins the general model's node_sigma where it
 #: answers (the whole term stands for a deferred frame).  Measured on kinematic sheets of 1-3

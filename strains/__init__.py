@@ -13,7 +13,8 @@ from skinmap.strains.calfiles import (CALIBRATION_FORMAT, MAX_TARE_BYTES, calibr
                                       load_calibration_file, load_tare, parse_calibration, parse_tare,
                                       save_calibration, save_tare, tare_path)
 from skinmap.strains.gauges import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, HYSTERESIS_LOOP, HYSTERESIS_LOOP_SD,
-                                    MAX_PLAUSIBLE_STRAIN, MAX_UNIT_TURNING_RAD, RESPONSE_LAG_S, RESPONSE_TIME_S,
+                                    MAX_PLAUSIBLE_STRAIN, MAX_UNIT_TURNING_RAD, RELAXATION_SHARE, RESPONSE_LAG_S,
+                                    RESPONSE_TIME_S, SHARED_GAIN_SD,
                                     Calibration,
                                     cell_axes, cell_bending, cell_centres, gauge_resistance, gauge_strain, grid_size,
                                     reject_implausible_units, resistances_to_strains, to_nominal_offsets,
@@ -22,6 +23,7 @@ from skinmap.strains.gauges import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, HYSTERE
 __all__ = ["CALIBRATION_FORMAT", "MAX_TARE_BYTES", "calibration_path", "compute_tare", "load_calibration_file",
            "load_tare", "parse_calibration", "parse_tare", "save_calibration", "save_tare", "tare_path",
            "GAUGE_LENGTH_MM", "HYSTERESIS_GAIN_SD", "HYSTERESIS_LOOP", "HYSTERESIS_LOOP_SD", "MAX_PLAUSIBLE_STRAIN",
-           "MAX_UNIT_TURNING_RAD", "RESPONSE_LAG_S", "RESPONSE_TIME_S", "Calibration", "cell_axes",
+           "MAX_UNIT_TURNING_RAD", "RELAXATION_SHARE", "RESPONSE_LAG_S", "RESPONSE_TIME_S",
+           "SHARED_GAIN_SD", "Calibration", "cell_axes",
            "cell_bending", "cell_centres", "gauge_resistance", "gauge_strain", "grid_size", "reject_implausible_units",
            "resistances_to_strains", "to_nominal_offsets", "turning_noise_rad"]

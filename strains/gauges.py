@@ -31,7 +31,7 @@ import numpy as np
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
            "GAUGE_LENGTH_MM", "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
            "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "HYSTERESIS_LOOP", "HYSTERESIS_LOOP_SD",
-           "HYSTERESIS_GAIN_SD", "RESPONSE_TIME_S", "RESPONSE_LAG_S"]
+           "HYSTERESIS_GAIN_SD", "RELAXATION_SHARE", "SHARED_GAIN_SD", "RESPONSE_TIME_S", "RESPONSE_LAG_S"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
@@ -111,6 +111,15 @@ HYSTERESIS_LOOP_SD = 0.0070
 #: (a sheet pressed onto a shape and held) read off the same way, by up to half a loop one s.d.
 #: high (2.5 %), a bounded error of unknown sign: a rectangular distribution's s.d. (÷ √3).
 HYSTERESIS_GAIN_SD = 0.5 * (HYSTERESIS_LOOP + HYSTERESIS_LOOP_SD) / math.sqrt(3.0)
+#: The gauges' reading relaxes under a held strain: 3.5 % of it at 20 % strain (the sensor's
+#: paper; a linear material loses the same share at any strain).  A sheet held reads up to that
+#: much low, from none as it is formed: a bounded error of one sign, its root mean square about
+#: none that share over √3.
+RELAXATION_SHARE = 0.035
+#: The s.d. of the gain error the gauges share (relative), the hysteresis's and the relaxation's
+#: together (independent, in quadrature: 0.0247; 3 s.d. reach 7.4 %, past a held sheet's 2.5 % +
+#: 3.5 % low): what σ carries by default (docs/reconstruction.md, "A gain the gauges share").
+SHARED_GAIN_SD = math.hypot(HYSTERESIS_GAIN_SD, RELAXATION_SHARE / math.sqrt(3.0))
 
 #: The gauges' response and recovery times: below 170 ms for a 0.5 % strain step (the sensor's
 #: paper).  Read as a first-order response reaching 95 % of a step within it, a gauge follows a

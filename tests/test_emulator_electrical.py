@@ -124,7 +124,35 @@ def test_response_lag_is_first_order_and_off_by_default():
     assert eps[17] > 0.0095  # within 170 ms the response is above 95 %
 
 
+def test_relaxation_loses_its_share_of_a_held_strain_at_its_rate_and_recovers_when_released():
+    """A strain step from rest held 30 s: the reading falls from the strain to (1 − f) of it as
+    1 − f·(1 − e^(−t/τ)) (f 3.5 %, the paper's share; τ 10 s); released, it reads −f·q and
+    recovers at the same rate; off by default."""
+    assert ElectricalConfig().relaxation == 0.0
+    cal = draw_calibration(np.random.default_rng(0), 2, 2)
+    cfg = ElectricalConfig(**{**ElectricalConfig.ideal().__dict__, "relaxation": 0.035, "relaxation_tau_s": 10.0})
+    ro = GaugeReadout(cal, cfg, np.random.default_rng(0))
+    zero, step = np.zeros((2, 2, 2, 2)), np.full((2, 2, 2, 2), 0.01)
+
+    def read(strain, t):
+        return gauge_strain(ro.read(strain, t) * 1e-6, cal.gauge_factor, cal.base_resistance_ohm)[0, 0, 0, 0]
+
+    read(zero, 0.0)
+    times = np.arange(1, 31) * 1.0
+    held = np.array([read(step, t) for t in times])
+    # the step is applied at t = 1 s (the first reading of it has been held no time)
+    np.testing.assert_allclose(held, 0.01 * (1 - 0.035 * (1 - np.exp(-(times - 1.0) / 10.0))), atol=2e-7)
+    q_end = 0.01 * (1 - np.exp(-30.0 / 10.0))  # held from 1 s to the first reading after release, 31 s
+    released = np.array([read(zero, 30.0 + k) for k in range(1, 11)])
+    np.testing.assert_allclose(released, -0.035 * q_end * np.exp(-np.arange(0, 10) / 10.0), atol=2e-7)
+    assert ElectricalConfig(relaxation=0.035).without("relaxation").relaxation == 0.0
+
+
 def test_bad_inputs_are_named():
+    with pytest.raises(ValueError, match="relaxation"):
+        ElectricalConfig(relaxation=1.0)
+    with pytest.raises(ValueError, match="relaxation_tau_s"):
+        ElectricalConfig(relaxation_tau_s=0.0)
     with pytest.raises(ValueError, match="hysteresis"):
         ElectricalConfig(hysteresis=-0.1)
     with pytest.raises(ValueError, match="response_tau_s"):

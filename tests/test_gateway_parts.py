@@ -390,10 +390,10 @@ def test_the_gain_sd_reaches_the_reconstructor_from_the_config(tmp_path):
     from skinmap.daemon.device_setup import ScannerState
     from skinmap.emulator import physics as ph
     from skinmap.emulator.device import Device, ScannerSpec
-    from skinmap.strains import HYSTERESIS_GAIN_SD
+    from skinmap.strains import SHARED_GAIN_SD
 
     cfg = gateway_config(tmp_path, free_port(), "/dev/null", "elastic", 20.0)
-    assert cfg.reconstruction.gain_sd == HYSTERESIS_GAIN_SD
+    assert cfg.reconstruction.gain_sd == SHARED_GAIN_SD
     hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
     for gain in (0.0, 0.05):
         given = dataclasses.replace(cfg, reconstruction=dataclasses.replace(cfg.reconstruction, gain_sd=gain))

@@ -286,7 +286,8 @@ def test_uncertainty_grows_with_the_misfit_the_noise_cannot_explain():
     from skinmap.reconstruction.engine import unit_data
     from skinmap.reconstruction.uncertainty import RESOLUTION_SHARE, resolution_sigma
 
-    rec = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0)
+    # (the gain the gauges share left out: its term is tested in test_reconstruction_gain.py)
+    rec = Reconstructor(N, M, PITCH, graph_fit=False, defect_steps=0, gain_sd=0.0)
     eu, el = strains(ph.GaussianBumps(height=2.0, fwhm=24.0, centre=(0.0, 0.0)))
     fits = rec(eu, el)
     chi2 = fits.diagnostics.extra["chi2_per_gauge"]

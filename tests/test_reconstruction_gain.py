@@ -9,14 +9,18 @@ from conftest import aligned_node_errors, frame_errors
 
 from skinmap.emulator import physics as ph
 from skinmap.reconstruction import DEFAULT_GAIN_SD, Reconstructor, reconstruct
-from skinmap.strains import HYSTERESIS_GAIN_SD, HYSTERESIS_LOOP
+from skinmap.strains import HYSTERESIS_GAIN_SD, HYSTERESIS_LOOP, RELAXATION_SHARE, SHARED_GAIN_SD
 
 PITCH = 12.0
 NOISE = 5.7e-5
 
 
-def test_the_default_is_half_the_hysteresis_loop_one_sd_high_as_a_rectangular_sd():
-    assert DEFAULT_GAIN_SD == HYSTERESIS_GAIN_SD == pytest.approx(0.5 * (0.0421 + 0.0070) / np.sqrt(3.0))
+def test_the_default_is_the_hysteresis_and_the_relaxation_each_a_bounded_error_in_quadrature():
+    """Half the hysteresis loop one s.d. high (2.5 %, either sign) and the relaxation's 3.5 %
+    (one sign), each a rectangular distribution's s.d. about none."""
+    assert HYSTERESIS_GAIN_SD == pytest.approx(0.5 * (0.0421 + 0.0070) / np.sqrt(3.0))
+    assert RELAXATION_SHARE == 0.035
+    assert DEFAULT_GAIN_SD == SHARED_GAIN_SD == pytest.approx(np.hypot(HYSTERESIS_GAIN_SD, 0.035 / np.sqrt(3.0)))
     for bad in (-0.01, 0.5, float("nan"), True, "0.01"):
         with pytest.raises(ValueError, match="gain_sd"):
             Reconstructor(5, 5, gain_sd=bad)
