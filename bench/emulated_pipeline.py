@@ -25,10 +25,12 @@ SCAN_RATE = 50.0
 
 
 def emulated_device(n: int, shape: ph.Shape | str, electrical: ElectricalConfig | None = None, seed: int = 0,
-                    m: int | None = None, scan_rate: float = SCAN_RATE) -> tuple[Device, ScannerSpec]:
-    """The emulated scanner over ``shape`` (a Shape or a shape spec): n × m (m = n by default)."""
+                    m: int | None = None, scan_rate: float = SCAN_RATE, gf_spread: float = 0.0) -> tuple[Device, ScannerSpec]:
+    """The emulated scanner over ``shape`` (a Shape or a shape spec): n × m (m = n by default);
+    ``gf_spread``: the relative s.d. of its true gauge factors about HELLO's (0: HELLO's are true)."""
     spec = ScannerSpec(n=n, m=n if m is None else m, scan_rate_hz=scan_rate,
-                       electrical=ElectricalConfig() if electrical is None else electrical, seed=seed)
+                       electrical=ElectricalConfig() if electrical is None else electrical, seed=seed,
+                       gf_spread=gf_spread)
     return Device(spec, ph.parse_shape_spec(shape) if isinstance(shape, str) else shape), spec
 
 

@@ -66,17 +66,18 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
         ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans,
         response_tau_s: float = 0.0, response_lag_s: float = RESPONSE_LAG_S, relaxation: float = 0.0,
-        relaxation_tau_s: float = 10.0) -> dict:
+        relaxation_tau_s: float = 10.0, gf_spread: float = 0.0) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
     held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration);
     ``lead_scans``: skinmapd's `[output] lead_scans` (reconstructed, not judged);
     ``response_tau_s``: the emulated gauges' first-order response lag (0: none);
     ``response_lag_s``: the lag bound the pipeline carries into σ (0: none); ``relaxation``,
-    ``relaxation_tau_s``: the emulated gauges' relaxation under a held strain (0: none)."""
+    ``relaxation_tau_s``: the emulated gauges' relaxation under a held strain (0: none);
+    ``gf_spread``: the relative s.d. of the device's true gauge factors about those it reports."""
     electrical = ElectricalConfig() if hysteresis else ElectricalConfig().without("hysteresis")
     electrical = replace(electrical, response_tau_s=response_tau_s, relaxation=relaxation,
                          relaxation_tau_s=relaxation_tau_s)
-    device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE)
+    device, spec = emulated_device(n, shape, electrical, seed, scan_rate=SCAN_RATE, gf_spread=gf_spread)
     pipe = emulated_pipeline(device, spec, response_lag_s=response_lag_s)
     pipe.prepare()
     step = 1 if output_rate == 0 else max(1, round(SCAN_RATE / output_rate))
@@ -130,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(the paper: 0.035; 0: none)")
     ap.add_argument("--relaxation-tau", type=float, default=10.0, help="its time constant, s")
     ap.add_argument("--hold", type=float, default=2.0, help="with --held: seconds each shape is held")
+    ap.add_argument("--gf-spread", type=float, default=0.0,
+                    help="the relative s.d. of the device's true gauge factors about those it reports (an "
+                         "uncalibrated or aged device; 0: they are true)")
     args = ap.parse_args(argv)
     sizes = [int(x) for x in args.sizes.split(",")]
     outputs = [float(x) for x in args.outputs.split(",")]
@@ -138,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
           f"(mean node error after the best rigid alignment; beyond: frames with some node off by more than "
           f"3 σ + 0.05 mm; σ: the frames' median node σ, mean over frames; device seed {args.seed}; "
           f"the gauges' response lag τ {1e3 * args.response_tau:g} ms, σ's lag bound "
-          f"{args.response_time_ms / 3.0:.3g} ms; relaxation {args.relaxation:g}, τ {args.relaxation_tau:g} s)")
+          f"{args.response_time_ms / 3.0:.3g} ms; relaxation {args.relaxation:g}, τ {args.relaxation_tau:g} s; "
+          f"gauge factors off by {100 * args.gf_spread:g} % s.d.)")
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
           f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'σ mm':>6s} {'deferred':>8s} {'s':>5s}")
     for n in sizes:
@@ -152,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                     t0 = time.perf_counter()
                     row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans,
                               args.response_tau, args.response_time_ms * 1e-3 / 3.0, args.relaxation,
-                              args.relaxation_tau)
+                              args.relaxation_tau, args.gf_spread)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "
                           f"{row['frames']:6d} {row['mean']:8.4f} {row['largest']:8.3f} "
