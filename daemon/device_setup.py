@@ -20,7 +20,7 @@ from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
 from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Hello
 
 __all__ = ["geometry_for_hello", "load_calibration", "calibration_for_hello", "pipeline_for_hello",
-           "device_name", "device_info", "calibration_doc", "ScannerState"]
+           "response_lag_for", "device_name", "device_info", "calibration_doc", "ScannerState"]
 
 log = logging.getLogger("skinmapd")
 

@@ -439,7 +439,7 @@ class FramePipeline:
         self.poisson_range = poisson_range
         # what node_sigma takes of a twist the stretch cannot tell from none (Reconstructor)
         self.twist_prior = twist_prior
-        # the s.d. of a gain error the gauges share (their hysteresis), carried into σ (Reconstructor)
+        # the s.d. of a gain error the gauges share (their hysteresis and relaxation), carried into σ (Reconstructor)
         self.gain_sd = float(gain_sd)
         # the gauges' response lag bound (s), carried into σ where the sheet moves; 0 leaves it out
         if not (math.isfinite(response_lag_s) and response_lag_s >= 0.0):

@@ -46,7 +46,6 @@ __all__ = [
     "hysteresis_step",
     "drift_step",
     "lag_step",
-    "relaxation_step",
     "strain_to_resistance",
     "quantise",
 ]
@@ -210,15 +209,6 @@ def lag_step(state: np.ndarray, strain: np.ndarray, dt_s: float, tau_s: float) -
     return state * a + strain * (1.0 - a)
 
 
-def relaxation_step(state: np.ndarray, strain: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
-    """The relaxation state q after ``dt_s`` of ``strain`` held (exact for a strain constant
-    between readings): q follows the strain at time constant ``tau_s``; the reading loses f·q."""
-    if dt_s <= 0:
-        return state
-    a = math.exp(-dt_s / tau_s)
-    return state * a + strain * (1.0 - a)
-
-
 def drift_step(
     drift: np.ndarray, dt_s: float, rel_sd: float, tau_s: float, rng: np.random.Generator
 ) -> np.ndarray:
@@ -309,9 +299,9 @@ class GaugeReadout:
             self._memory = hysteresis_step(self._memory, strain, cfg.hysteresis)
             strain = self._memory
         if cfg.relaxation:
-            # the state follows what was held up to now (a sheet already held at power-up has
-            # relaxed); the strain read now has been held no time yet
-            self._relaxed = strain.copy() if self._relaxed is None or self._held is None else relaxation_step(
+            # the state q follows what was held up to now as a first-order response does (a sheet
+            # already held at power-up has relaxed); the strain read now has been held no time yet
+            self._relaxed = strain.copy() if self._relaxed is None or self._held is None else lag_step(
                 self._relaxed, self._held, dt, cfg.relaxation_tau_s)
             self._held = strain.copy()
             strain = strain - cfg.relaxation * self._relaxed
