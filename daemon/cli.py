@@ -111,8 +111,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     port = int(cfg.device.port.rsplit(":", 1)[1]) if cfg.device.port.startswith("socket://") else 7600
     print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}', {args.mechanics} mechanics) "
           f"on socket://127.0.0.1:{port}", flush=True)
+    gauges = [*(["--response-tau", repr(args.response_tau)] if args.response_tau else []),
+              *(["--relaxation", repr(args.relaxation)] if args.relaxation else [])]
     emulator = start_emulator(port, size=args.size, shape=args.shape, rate=cfg.device.scan_rate_hz,
-                              mechanics=args.mechanics, label_output=True)
+                              mechanics=args.mechanics, extra=gauges, label_output=True)
     try:
         print(f"skinmap demo: skinmapd publishing on {', '.join(cfg.zenoh.listen)} under '{cfg.zenoh.prefix}/{cfg.device.name or '<serial>'}', "
               f"logging to {cfg.resolve(cfg.log.directory)}; Ctrl-C stops", flush=True)
@@ -596,6 +598,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mechanics", choices=("kinematic", "elastic"), default="kinematic",
                    help="the emulated film's physics (see skinmap-emulator --help)")
     d.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = until Ctrl-C)")
+    d.add_argument("--response-tau", type=float, default=0.0, metavar="S",
+                   help="the emulated gauges' first-order response time constant, s (the paper's 170 ms "
+                        "response at 95 %%: 0.057; default 0, instantaneous)")
+    d.add_argument("--relaxation", type=float, default=0.0, metavar="F",
+                   help="the share of a held strain's reading the emulated gauges lose (the paper: 0.035; default 0)")
     d.add_argument("--verbose", "-v", action="store_true")
     d.set_defaults(func=cmd_demo)
 

@@ -104,3 +104,20 @@ def test_the_response_time_is_a_config_key_and_a_third_of_it_the_lag():
         parse_config({"reconstruction": {"response_time_ms": -5}})
     with pytest.raises(ValueError, match="response_lag_s"):
         pipeline(response_lag_s=float("nan"))
+
+
+def test_the_demo_hands_the_gauges_response_and_relaxation_to_the_emulator(monkeypatch):
+    """`skinmap demo --response-tau S --relaxation F` runs the emulator with those gauges (off by
+    default: no such options are passed)."""
+    from skinmap.daemon import cli, service
+
+    seen: list[dict] = []
+    monkeypatch.setattr(cli, "start_emulator", lambda port, **kw: seen.append(kw) or object())
+    monkeypatch.setattr(cli, "stop_process", lambda proc: None)
+    monkeypatch.setattr(service, "run_gateway", lambda cfg, **kw: 0)
+    args = cli.build_parser().parse_args(["demo", "--response-tau", "0.057", "--relaxation", "0.035"])
+    assert args.func(args) == 0
+    assert seen[-1]["extra"] == ["--response-tau", "0.057", "--relaxation", "0.035"]
+    args = cli.build_parser().parse_args(["demo"])
+    assert args.func(args) == 0
+    assert seen[-1]["extra"] == []
