@@ -250,3 +250,37 @@ def test_a_warm_graph_on_a_large_sheet_ends_where_a_recheck_finds_the_general_mo
     rechecked = default(eu, el, previous=before, graph_recheck=True)
     assert rechecked.diagnostics.extra["model"] == "general", rechecked.diagnostics.extra.get("graph_fit")
     assert "not needed" in rechecked.diagnostics.extra["graph_fit"]
+
+
+def test_skinmapd_asks_a_larger_sheet_for_the_recheck_on_its_audit_scans_only():
+    """FramePipeline passes ``graph_recheck`` on scans whose sample index is a multiple of
+    GRAPH_AUDIT_SCANS, on sheets above AUDIT_MAX_CELLS (where the graph is a rescue), and never on
+    smaller ones (audited by a catch-up chain instead)."""
+    from conftest import pipeline_sheet
+
+    from skinmap.daemon.pipeline import AUDIT_MAX_CELLS, GRAPH_AUDIT_SCANS, FramePipeline
+    from skinmap.strains import Calibration
+
+    for n in (12, 5):
+        geometry, element_uv, gf, r0 = pipeline_sheet(n, n, PITCH)
+        pipe = FramePipeline(geometry, Calibration(gf, r0), element_uv, np.zeros(len(element_uv)))
+        real = pipe.reconstructor
+        asked: dict[int, bool] = {}
+
+        class Recording:
+            graph_rescue = real.graph_rescue
+
+            def __call__(self, eu, el, **kw):
+                asked[seq] = bool(kw.get("graph_recheck", False))
+                return real(eu, el, **kw)
+
+            def __getattr__(self, name):
+                return getattr(real, name)
+
+        pipe.reconstructor = Recording()
+        eu, el = ph.gauge_strains(ph.GaussianBumps(height=2.0, fwhm=40.0), n, n, PITCH, H, H, G)
+        for seq in range(3 * GRAPH_AUDIT_SCANS - 2, 3 * GRAPH_AUDIT_SCANS + 2):
+            pipe.process(r0 * (1.0 + gf * np.stack([eu, el])), seq, 20_000 * seq, 0)
+        larger = n * n > AUDIT_MAX_CELLS
+        assert asked == {seq: larger and seq % GRAPH_AUDIT_SCANS == 0 for seq in asked}, (n, asked)
+        assert larger == any(asked.values())
