@@ -202,6 +202,12 @@ def cmd_info(args: argparse.Namespace) -> int:
             print(f"           {fit.get('method', '?')}; residual {res if res is None else f'{res:.1e}'} strain rms, "
                   f"gauge-factor s.d. {sd if sd is None else f'{100 * sd:.2f} %'} (medians); "
                   f"layer offsets {'fitted' if fit.get('offsets_determined') else 'nominal'}")
+        unc = info.get("uncertainty")
+        if isinstance(unc, dict):
+            lag = unc.get("response_lag_s")
+            print(f"σ carries  strain noise {unc.get('strain_sigma')}, a shared gain of s.d. {unc.get('gain_sd', 0.0):.4g}, "
+                  f"the gauges' lag {'(left out)' if not lag else f'up to {1e3 * lag:.0f} ms'} while the sheet "
+                  f"moves, twist prior {unc.get('twist_prior')}")
         print(f"versions   {info.get('versions')}")
     return 0
 

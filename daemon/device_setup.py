@@ -183,6 +183,13 @@ def device_info(device: str, hello: Hello, pipeline: FramePipeline, cfg: DaemonC
             "offset_m": (pipeline.element_offset / 1000.0).tolist(),
         },
         "calibration": calibration_doc(pipeline.calibration),
+        # what the published σ carries besides the strain noise (docs/reconstruction.md)
+        "uncertainty": {
+            "strain_sigma": pipeline.strain_sigma,
+            "gain_sd": pipeline.gain_sd,
+            "response_lag_s": pipeline.response_lag_s,
+            "twist_prior": pipeline.twist_prior,
+        },
         "versions": {
             "skinmap": skinmap.__version__,
             "protocol": f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}",

@@ -121,3 +121,19 @@ def test_the_demo_hands_the_gauges_response_and_relaxation_to_the_emulator(monke
     args = cli.build_parser().parse_args(["demo"])
     assert args.func(args) == 0
     assert seen[-1]["extra"] == []
+
+
+def test_the_device_info_tells_what_the_published_sigma_carries():
+    """`info` (docs/zenoh.md) names the σ terms a remote user cannot see in the numbers: the
+    strain noise, the shared gain, the response lag bound and the twist prior, as configured."""
+    from skinmap.daemon.device_setup import device_info, pipeline_for_hello
+    from skinmap.emulator.device import Device, ScannerSpec
+
+    hello = Device(ScannerSpec(n=5, m=5), ph.make_shape("flat")).hello()
+    for doc, lag in (({}, RESPONSE_LAG_S), ({"reconstruction": {"response_time_ms": 60, "gain_sd": 0.01}}, 0.02)):
+        cfg = parse_config(doc)
+        info = device_info("demo", hello, pipeline_for_hello(hello, cfg), cfg, source="live")
+        assert info["uncertainty"]["response_lag_s"] == pytest.approx(lag)
+        assert info["uncertainty"]["gain_sd"] == cfg.reconstruction.gain_sd
+        assert info["uncertainty"]["strain_sigma"] == cfg.reconstruction.strain_sigma
+        assert info["uncertainty"]["twist_prior"] == "open"
