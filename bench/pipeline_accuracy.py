@@ -43,7 +43,7 @@ from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator import scenes  # noqa: E402
 from skinmap.daemon.config import OutputConfig  # noqa: E402
 from skinmap.emulator.electrical import ElectricalConfig  # noqa: E402
-from skinmap.strains import RESPONSE_LAG_S  # noqa: E402
+from skinmap import strains  # noqa: E402
 
 
 def palm_spec(n: int) -> str:
@@ -65,7 +65,7 @@ def held_specs(n: int) -> list[tuple[str, str]]:
 
 def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis: bool,
         ramp_s: float = 0.0, seed: int = 0, lead_scans: int = OutputConfig().lead_scans,
-        response_tau_s: float = 0.0, response_lag_s: float = RESPONSE_LAG_S, relaxation: float = 0.0,
+        response_tau_s: float = 0.0, response_lag_s: float = strains.RESPONSE_LAG_S, relaxation: float = 0.0,
         relaxation_tau_s: float = 10.0, gf_spread: float = 0.0) -> dict:
     """One run of the pipeline over ``shape`` (scaled from flat over ``ramp_s`` seconds, then
     held, where ``ramp_s`` > 0); ``seed``: the emulated device's (noise, calibration);
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--response-tau", type=float, default=0.0,
                     help="the emulated gauges' first-order response lag τ, s (0: none; the paper's 170 ms "
                          "response as 95 %% of a step: 0.057)")
-    ap.add_argument("--response-time-ms", type=float, default=RESPONSE_LAG_S * 3e3,
+    ap.add_argument("--response-time-ms", type=float, default=strains.RESPONSE_TIME_S * 1e3,
                     help="[reconstruction] response_time_ms: the lag bound the pipeline carries into σ "
                          "(a third of it; 0 leaves it out)")
     ap.add_argument("--relaxation", type=float, default=0.0,
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
           f"(mean node error after the best rigid alignment; beyond: frames with some node off by more than "
           f"3 σ + 0.05 mm; σ: the frames' median node σ, mean over frames; device seed {args.seed}; "
           f"the gauges' response lag τ {1e3 * args.response_tau:g} ms, σ's lag bound "
-          f"{args.response_time_ms / 3.0:.3g} ms; relaxation {args.relaxation:g}, τ {args.relaxation_tau:g} s; "
+          f"{1e3 * strains.response_lag_s(args.response_time_ms * 1e-3):.3g} ms; relaxation {args.relaxation:g}, τ {args.relaxation_tau:g} s; "
           f"gauge factors off by {100 * args.gf_spread:g} % s.d.)")
     print(f"{'sheet':>7s} {'shape':10s} {'output':>10s} {'hysteresis':>10s} {'frames':>6s} {'mean mm':>8s} "
           f"{'largest':>8s} {'beyond':>7s} {'worst':>6s} {'σ mm':>6s} {'deferred':>8s} {'s':>5s}")
@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                 for hysteresis in modes:
                     t0 = time.perf_counter()
                     row = run(n, shape, seconds, output, hysteresis, ramp, args.seed, args.lead_scans,
-                              args.response_tau, args.response_time_ms * 1e-3 / 3.0, args.relaxation,
+                              args.response_tau, strains.response_lag_s(args.response_time_ms * 1e-3), args.relaxation,
                               args.relaxation_tau, args.gf_spread)
                     mode = "every scan" if output == 0 else f"{output:g} Hz"
                     print(f"{n:>3d}x{n:<3d} {label:10s} {mode:>10s} {'on' if hysteresis else 'off':>10s} "

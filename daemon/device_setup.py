@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 import skinmap
-from skinmap.strains import Calibration, calibration_path, load_calibration_file, load_tare, tare_path
+from skinmap.strains import (Calibration, calibration_path, load_calibration_file, load_tare, response_lag_s,
+                             tare_path)
 from skinmap.daemon.config import DaemonConfig
 from skinmap.daemon.pipeline import ArrayGeometry, FramePipeline
 from skinmap.protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR, Hello
@@ -131,7 +132,7 @@ def pipeline_for_hello(hello: Hello, cfg: DaemonConfig, calibration: Calibration
 def response_lag_for(cfg: DaemonConfig) -> float:
     """The gauges' response lag bound (s) the pipeline carries into σ: a third of the configured
     response time, the time constant of a first-order response that reaches 95 % within it."""
-    return cfg.reconstruction.response_time_ms * 1e-3 / 3.0
+    return response_lag_s(cfg.reconstruction.response_time_ms * 1e-3)
 
 
 def device_name(hello: Hello, cfg: DaemonConfig) -> str:

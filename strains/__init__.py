@@ -17,7 +17,8 @@ from skinmap.strains.gauges import (GAUGE_LENGTH_MM, HYSTERESIS_GAIN_SD, HYSTERE
                                     RESPONSE_TIME_S, SHARED_GAIN_SD,
                                     Calibration,
                                     cell_axes, cell_bending, cell_centres, gauge_resistance, gauge_strain, grid_size,
-                                    reject_implausible_units, resistances_to_strains, to_nominal_offsets,
+                                    reject_implausible_units, resistances_to_strains, response_lag_s,
+                                    to_nominal_offsets,
                                     turning_noise_rad)
 
 __all__ = ["CALIBRATION_FORMAT", "MAX_TARE_BYTES", "calibration_path", "compute_tare", "load_calibration_file",
@@ -26,4 +27,4 @@ __all__ = ["CALIBRATION_FORMAT", "MAX_TARE_BYTES", "calibration_path", "compute_
            "MAX_UNIT_TURNING_RAD", "RELAXATION_SHARE", "RESPONSE_LAG_S", "RESPONSE_TIME_S",
            "SHARED_GAIN_SD", "Calibration", "cell_axes",
            "cell_bending", "cell_centres", "gauge_resistance", "gauge_strain", "grid_size", "reject_implausible_units",
-           "resistances_to_strains", "to_nominal_offsets", "turning_noise_rad"]
+           "resistances_to_strains", "response_lag_s", "to_nominal_offsets", "turning_noise_rad"]

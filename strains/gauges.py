@@ -31,7 +31,7 @@ import numpy as np
 __all__ = ["Calibration", "gauge_resistance", "gauge_strain", "resistances_to_strains", "to_nominal_offsets",
            "GAUGE_LENGTH_MM", "cell_axes", "cell_centres", "cell_bending", "reject_implausible_units", "turning_noise_rad",
            "MAX_PLAUSIBLE_STRAIN", "MAX_UNIT_TURNING_RAD", "HYSTERESIS_LOOP", "HYSTERESIS_LOOP_SD",
-           "HYSTERESIS_GAIN_SD", "RELAXATION_SHARE", "SHARED_GAIN_SD", "RESPONSE_TIME_S", "RESPONSE_LAG_S"]
+           "HYSTERESIS_GAIN_SD", "RELAXATION_SHARE", "SHARED_GAIN_SD", "RESPONSE_TIME_S", "RESPONSE_LAG_S", "response_lag_s"]
 
 
 def gauge_resistance(strain: np.ndarray, gauge_factor: np.ndarray, base_resistance_ohm: np.ndarray,
@@ -126,7 +126,15 @@ SHARED_GAIN_SD = math.hypot(HYSTERESIS_GAIN_SD, RELAXATION_SHARE / math.sqrt(3.0
 #: moving strain RESPONSE_LAG_S (τ = 170/3 ≈ 57 ms) late at most, so a sheet that moves is
 #: reconstructed where it was up to that long before (docs/reconstruction.md, "A sheet that moves").
 RESPONSE_TIME_S = 0.170
-RESPONSE_LAG_S = RESPONSE_TIME_S / 3.0
+
+
+def response_lag_s(response_time_s: float) -> float:
+    """The time constant (s) of a first-order response that reaches 95 % of a step within
+    ``response_time_s``: a third of it (e⁻³ ≈ 5 %)."""
+    return float(response_time_s) / 3.0
+
+
+RESPONSE_LAG_S = response_lag_s(RESPONSE_TIME_S)
 
 
 def grid_size(n: int, m: int) -> tuple[int, int]:
