@@ -51,7 +51,7 @@ from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from skinmap.strains import cell_axes
 
-from .linalg import aligned_distances
+from .linalg import BandCholeskyBlocks, aligned_distances
 from .uncertainty import plane_slopes
 
 __all__ = ["GraphFit", "GraphResult", "ACCEPT_CHI2", "AGREE_SIGMAS", "MAX_CELLS", "TWIST_SIGN_FLOOR", "WARM_LINEAR",
@@ -872,7 +872,8 @@ class GraphFit:
             if self._compiled is not None and self.size > _BAND_SIGMA_SIZE:
                 # a large fit (above 8×8): the band factor and a sparse Jacobian, σ = |J H⁻¹ s|
                 # (the dense Jacobian and the dense triangle cost a 16×16 frame's node σ
-                # 125-280 ms, this about 70; 12×12 about 20)
+                # 125-280 ms, this about 70; 12×12 about 20), the nodes' columns solved together
+                # in blocks of the band (?pbtrs takes them one at a time, 2.5-3x slower)
                 band = self.prior_band.copy()
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
@@ -880,10 +881,7 @@ class GraphFit:
                                                       self._no_jacobian)
                 f, info = _pbtrf(band, lower=1)
                 if info == 0:
-                    def band_solve(rhs: np.ndarray) -> np.ndarray:
-                        return _pbtrs(f, rhs, lower=1)[0]
-
-                    system.append((self._sparse_jacobian(c, w_t, w_s), band_solve))
+                    system.append((self._sparse_jacobian(c, w_t, w_s), BandCholeskyBlocks(f).solve))
                     return system[0]
             if self._compiled is not None:
                 band = self.prior_band.copy()

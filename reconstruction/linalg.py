@@ -1,15 +1,17 @@
-"""Small numerical helpers: grid differences, vectors, rotations, and cached solvers for fixed
-sparse symmetric systems."""
+"""Small numerical helpers: grid differences, vectors, rotations, cached solvers for fixed
+sparse symmetric systems, and a banded Cholesky solve for many right-hand sides."""
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 import scipy.sparse as sp
+from scipy.linalg.blas import dgemm as _gemm
+from scipy.linalg.blas import dtrsm as _trsm
 
 __all__ = [
     "diff_u_t", "diff_v_t", "edge_mean", "exp_so3", "exp_so3_t", "cayley_t", "matmul_t", "cross_t",
-    "FixedSolver", "cholesky_band",
+    "FixedSolver", "cholesky_band", "BandCholeskyBlocks",
 ]
 
 # Below this size a dense pseudo-inverse is faster to apply than banded triangular solves
@@ -171,3 +173,71 @@ class FixedSolver:
         if info != 0:
             raise ValueError(f"banded solve failed: illegal argument {-info} (right-hand side shape {b.shape})")
         return x
+
+
+class BandCholeskyBlocks:
+    """Solves A X = B for many right-hand sides at once from A's lower band Cholesky factor
+    (LAPACK ?pbtrf, lower band storage ``factor_band[d, j] = L[j + d, j]``, bandwidth kd).
+
+    LAPACK's ?pbtrs takes the right-hand sides one at a time (level-2 ?tbsv, the whole factor
+    read once per column).  Cut into blocks of kd rows, L is block lower bidiagonal: lower
+    triangular diagonal blocks L_ii, and L_{i+1,i} upper triangular.  Each block is then one ?trsm
+    and one ?gemm over all the columns at once, level-3 BLAS: the same arithmetic up to rounding,
+    2.5-3x faster than ?pbtrs on one BLAS thread for n ≈ 1200-1500, kd ≈ 140-200 and 150-250
+    columns (blocks of 2 or 3 kd rows measured slower).  Meant for wide bands: with a few
+    sub-diagonals the blocks are tiny and ?pbtrs is the better choice.  A Fortran-ordered factor
+    is referenced, not copied: keep it unchanged while solving.
+    """
+
+    def __init__(self, factor_band: np.ndarray) -> None:
+        band = np.asfortranarray(factor_band, dtype=float)
+        if band.ndim != 2 or band.shape[0] < 1:
+            raise ValueError(f"lower band storage must be 2-D with a diagonal row, got shape {band.shape}")
+        if band.shape[0] == 1:  # a diagonal factor: one zero sub-diagonal, blocks of one row
+            band = np.asfortranarray(np.vstack([band, np.zeros_like(band)]))
+        kd, n = band.shape[0] - 1, band.shape[1]
+        self.size, self.bandwidth = n, kd
+        # L[s + r, s + c] = band[r − c, s + c] sits at s(kd + 1) + r + c·kd of the Fortran-ordered
+        # band: read from s(kd + 1) with leading dimension kd, the band is L's diagonal block in
+        # place (above its diagonal other columns' entries, which ?trsm does not read); the
+        # coupling L[s + kd + r, s + c] from s(kd + 1) + kd likewise, copied with its part below
+        # the diagonal zeroed
+        flat = band.reshape(-1, order="F")
+        self._diagonal: list[np.ndarray] = []
+        self._coupling: list[np.ndarray] = []
+        below = np.tri(kd, k=-1, dtype=bool)
+        for s in range(0, n, kd):
+            m = min(kd, n - s)
+            start = s * (kd + 1)
+            self._diagonal.append(flat[start:start + kd * m].reshape(kd, m, order="F")[:m])
+            if s + kd < n:
+                start += kd
+                corner = flat[start:start + kd * kd].reshape(kd, kd, order="F")[:min(kd, n - s - kd)].copy(order="F")
+                corner[below[:len(corner)]] = 0.0
+                self._coupling.append(corner)
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """X with A X = ``rhs`` ((n,) or (n, columns)), in the shape of ``rhs``."""
+        rhs = np.asarray(rhs, dtype=float)
+        n, kd = self.size, self.bandwidth
+        if rhs.ndim not in (1, 2) or rhs.shape[0] != n:
+            raise ValueError(f"right-hand side of shape {rhs.shape} for a system of size {n}")
+        # Xᵀ, Fortran-ordered: a block of rows of X is a contiguous block of its columns, which
+        # BLAS overwrites in place (right-sided: Yᵀ Lᵀ = Bᵀ, then Xᵀ L = Yᵀ)
+        y = np.array(rhs.reshape(n, -1).T, order="F")
+        if y.shape[0] == 0:
+            return y.T.reshape(rhs.shape)
+        for i, diag in enumerate(self._diagonal):
+            s, e = i * kd, i * kd + len(diag)
+            _trsm(1.0, diag, y[:, s:e], side=1, lower=1, trans_a=1, overwrite_b=1)
+            if i < len(self._coupling):
+                corner = self._coupling[i]
+                _gemm(-1.0, y[:, s:e], corner, beta=1.0, c=y[:, e:e + len(corner)], trans_b=1, overwrite_c=1)
+        for i in reversed(range(len(self._diagonal))):
+            diag = self._diagonal[i]
+            s, e = i * kd, i * kd + len(diag)
+            if i < len(self._coupling):
+                corner = self._coupling[i]
+                _gemm(-1.0, y[:, e:e + len(corner)], corner, beta=1.0, c=y[:, s:e], overwrite_c=1)
+            _trsm(1.0, diag, y[:, s:e], side=1, lower=1, overwrite_b=1)
+        return y.T.reshape(rhs.shape)
