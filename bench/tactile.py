@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
-     [--weights none|sigma] [--reference bending|floor|rim] [--fit-probe-length | --probe-length MM]
+     [--weights none|sigma] [--reference bending|floor|rim] [--fit-probe-length [--plate-depths 1,2,3] | --probe-length MM]
      [--cell-quantile Q] [--rim-mm MM] [--hysteresis H]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
@@ -108,8 +108,9 @@ def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Shape) -> float:
-    """The probe's stiffness length fitted on reconstructed presses of a flat plate (1, 2, 3 mm
-    deep, four presses each, turned at random), printed with its residual and time."""
+    """The probe's stiffness length fitted on reconstructed presses of a flat plate (``--plate-depths``,
+    twelve presses in all, turned at random), printed with its residual, the presses' indentation
+    range and the time."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(args.seed + 1)
     n, pitch, uv = args.size, args.pitch, grid.uv
@@ -121,8 +122,9 @@ def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Sha
 
     rest = [rec(free) for _ in range(5)]
     base = capture_baseline([(r[0], free.normal(uv)) for r in rest], bending=[r[1] for r in rest])
+    depths = [float(x) for x in args.plate_depths.split(",")]
     poses = [ProbePose(float(rng.uniform(-20, 20)), float(rng.uniform(-20, 20)), float(rng.uniform(-30, 30)), d)
-             for d in (1.0, 2.0, 3.0) for _ in range(4)]
+             for d in depths for _ in range(max(1, 12 // len(depths)))]
     contacts, kept = [], []
     for p in poses:
         shape = _scene_shape("membrane", plate, p, 0.5 * n * pitch * 2 ** 0.5)
@@ -132,8 +134,9 @@ def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Sha
             contacts.append(c)
             kept.append(p)
     fit = fit_probe_length(contacts, kept, base, grid, pitch)
-    print(f"(probe stiffness length fitted on {fit.contacts} reconstructed presses of a flat plate at 1, 2, 3 mm: "
-          f"{fit.length_mm:.2f} mm, residual {fit.residual_mm:.3f} mm rms; {time.perf_counter() - t0:.1f} s)")
+    print(f"(probe stiffness length fitted on {fit.contacts} reconstructed presses of a flat plate at {args.plate_depths} mm "
+          f"(indenting {fit.indentation_mm[0]:.1f}-{fit.indentation_mm[1]:.1f} mm): {fit.length_mm:.2f} mm, residual "
+          f"{fit.residual_mm:.3f} mm rms; {time.perf_counter() - t0:.1f} s)")
     return fit.length_mm
 
 
@@ -160,6 +163,10 @@ def main() -> None:
     ap.add_argument("--fit-probe-length", action="store_true",
                     help="fit the probe's stiffness length first on reconstructed presses of a flat plate at 1, 2 "
                          "and 3 mm (as skinmap map --fit-probe-length does) and use it")
+    ap.add_argument("--plate-depths", default="1,2,3",
+                    help="with --fit-probe-length: the plate's press depths, mm, comma-separated, twelve presses "
+                         "shared among them (default %(default)s; 1,2,3,4,5,6 reaches as deep as the letters' "
+                         "presses indent, docs/tactile.md)")
     ap.add_argument("--hysteresis", type=float, default=0.0,
                     help="the gauges' hysteresis, loop height as a share of the strain excursion (the sensor's: "
                          "about 0.04; default %(default)g, none)")

@@ -549,6 +549,11 @@ class ProbeLengthFit:
     residual_mm: float  # rms, over the contacts' samples, of their height off the plate after levelling
     contacts: int  # the presses used
     skipped: list[str]  # the presses left out, each with why
+    # (shallowest, deepest) peak indentation of the presses used, mm: the range ℓ was fitted over.
+    # On reconstructed presses ℓ also takes in the reconstruction's error between a contact and
+    # its free ring and the gauges' dead band, both of which change with the indentation (the
+    # emulator's balloon: 11.5–17.7 mm fitted at one plate depth each, docs/tactile.md)
+    indentation_mm: tuple[float, float] = (math.nan, math.nan)
 
 
 def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: Baseline, grid: SampleGrid,
@@ -560,7 +565,7 @@ def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: 
     each pose's.  ValueError when the counts differ or no press has cells out of contact."""
     if len(contacts) != len(poses):
         raise ValueError(f"{len(contacts)} contacts but {len(poses)} poses (one pose a press)")
-    g_all, r_all, skipped, used = [], [], [], 0
+    g_all, r_all, skipped, used, peaks = [], [], [], 0, []
     for i, (c, pose) in enumerate(zip(contacts, poses)):
         system = _bending_system(c, baseline, grid, pitch_mm, margin_mm, gauge_length_mm)
         if isinstance(system, str):
@@ -576,6 +581,7 @@ def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: 
         h = _moved(c.positions[mask], -m_d)[:, 2] - z
         g_all.append(g)
         r_all.append(-pose.depth_mm - z - h)
+        peaks.append(c.peak_depth_mm)
         used += 1
     if not used:
         raise ValueError("no press had cells out of contact to read: " + "; ".join(skipped[:3]))
@@ -584,7 +590,8 @@ def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: 
     if not l2 > 0:
         raise ValueError(f"the presses fit a stiffness length squared of {l2:.3g} mm², not > 0: the plate's presses "
                          "do not read as a balloon pushed in (was the plate flat, and were the depths right?)")
-    return ProbeLengthFit(math.sqrt(l2), float(np.sqrt(np.mean((r - l2 * g) ** 2))), used, skipped)
+    return ProbeLengthFit(math.sqrt(l2), float(np.sqrt(np.mean((r - l2 * g) ** 2))), used, skipped,
+                          (float(min(peaks)), float(max(peaks))))
 
 
 #: Readings (one a contact) a relief-map cell keeps for its height: beyond this many the

@@ -68,8 +68,11 @@ class MapReport:
                  + (f", poses {self.pose_source}" if self.pose_source else "")]
         if self.length_fit is not None:
             f = self.length_fit
-            lines.append(f"probe stiffness length fitted on {f.contacts} plate presses: {f.length_mm:.2f} mm "
-                         f"(residual {f.residual_mm:.3f} mm rms; set [tactile] probe_length_mm = {f.length_mm:.2f})"
+            lo, hi = f.indentation_mm
+            lines.append(f"probe stiffness length fitted on {f.contacts} plate presses indenting {lo:.1f}-{hi:.1f} mm: "
+                         f"{f.length_mm:.2f} mm (residual {f.residual_mm:.3f} mm rms; set [tactile] probe_length_mm = "
+                         f"{f.length_mm:.2f}; a map whose presses indent much deeper than {hi:.1f} mm extrapolates it, "
+                         "docs/tactile.md)"
                          + "".join(f"\n  left out: {s}" for s in f.skipped))
         elif self.probe_length_mm is not None:
             lines.append("contacts placed by their bending with the probe stiffness length "

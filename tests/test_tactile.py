@@ -616,6 +616,9 @@ def test_the_stiffness_length_fitted_on_plate_presses_is_within_3pct_of_the_true
     fit = fit_probe_length(contacts, poses, base, grid, 12.0, gauge_length_mm=0.0)
     assert fit.contacts == 3 and not fit.skipped
     assert abs(fit.length_mm - 12.0) < 0.36
+    # the range of indentation the length was fitted over (skinmap map prints it)
+    peaks = [c.peak_depth_mm for c in contacts]
+    assert fit.indentation_mm == (min(peaks), max(peaks)) and fit.indentation_mm[0] < fit.indentation_mm[1]
     with pytest.raises(ValueError, match="poses"):
         fit_probe_length(contacts, poses[:2], base, grid, 12.0)
 

@@ -71,16 +71,18 @@ def test_probe_length_fitted_from_a_logged_plate_run_within_10_percent_of_the_fi
     log, poses, true_length, gauges = plate_log
     assert skinmap_main(["map", str(log), "--poses", str(poses), "--fit-probe-length"]) == 0
     out = capsys.readouterr().out
-    fitted = re.search(r"probe stiffness length fitted on (\d+) plate presses: ([0-9.]+) mm "
-                       r"\(residual ([0-9.]+) mm rms", out)
+    fitted = re.search(r"probe stiffness length fitted on (\d+) plate presses indenting ([0-9.]+)-([0-9.]+) mm: "
+                       r"([0-9.]+) mm \(residual ([0-9.]+) mm rms", out)
     assert fitted is not None, out
-    contacts, length, residual = int(fitted.group(1)), float(fitted.group(2)), float(fitted.group(3))
+    contacts, length, residual = int(fitted.group(1)), float(fitted.group(4)), float(fitted.group(5))
+    # the indentation range it holds for: the plate's presses (1-3 mm deep) indent less than the plate's depth
+    assert 0.0 < float(fitted.group(2)) < float(fitted.group(3)) <= max(d for *_, d in PRESSES), out
     print(f"{gauges}: fitted {length:.2f} mm on {contacts} presses (the film's {true_length:.2f} mm), "
           f"residual {residual:.3f} mm")
     assert contacts >= len(PRESSES) - 1
     assert abs(length - true_length) <= (0.25 if gauges == "sensor" else 0.10) * true_length, out
     assert residual < 0.3, out
-    assert f"set [tactile] probe_length_mm = {length:.2f}" in out
+    assert f"set [tactile] probe_length_mm = {length:.2f}; a map whose presses indent much deeper than" in out
 
 
 def test_a_wrong_stiffness_length_places_the_plate_presses_off_the_plate(plate_log):
