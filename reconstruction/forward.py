@@ -154,10 +154,16 @@ def misfit_and_strains(surface, layout: GaugeLayout, eps_upper: np.ndarray, eps_
 
 
 def _chi2(fu, fl, eps_upper, eps_lower, strain_sigma: float) -> tuple[float, int, np.ndarray]:
-    r = np.stack([fu - eps_upper, fl - eps_lower]) / strain_sigma
+    # (written in place, and every gauge's term summed in the same order as the mask would
+    # take them where none is missing: a frame reads three or four answers)
+    r = np.empty((2,) + np.shape(fu))
+    np.subtract(fu, eps_upper, out=r[0])
+    np.subtract(fl, eps_lower, out=r[1])
+    r /= strain_sigma
     counted = np.isfinite(r)
-    chi2 = float(np.square(r[counted]).sum())
-    return chi2, int(counted.sum()), r
+    if counted.all():
+        return float(np.square(r.reshape(-1)).sum()), r.size, r
+    return float(np.square(r[counted]).sum()), int(counted.sum()), r
 
 
 def unit_box_mean(values: np.ndarray, width: int) -> np.ndarray:

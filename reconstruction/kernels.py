@@ -34,8 +34,8 @@ except ImportError:  # the numpy reference still works without it
 
 __all__ = [
     "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
-    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "gauge_strains", "basis_curvature",
-    "stretch_residual",
+    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "node_frames", "gauge_strains",
+    "basis_curvature", "stretch_residual", "quartic_grid",
 ]
 
 AVAILABLE = numba is not None
@@ -656,6 +656,26 @@ def hermite_coefficients(pos, h, coeffs, d_u, d_v):
                 coeffs[a, b, 3, c] = duv[a] * hh
 
 
+@_compiled
+def node_frames(pos, d_u, d_v, rows, cols, nodes, normals):
+    """A :class:`~.surface.Surface`'s nodes and unit normals, each (N, M, 3), at the fine nodes
+    ``rows`` × ``cols`` of its positions ``pos`` and slopes ``d_u``, ``d_v`` (3, nf, mf, as
+    :func:`hermite_coefficients` gives them): the cross product d_u × d_v over its norm, in
+    linalg.cross_t's and the Surface's own order of operations."""
+    for i in range(rows.size):
+        a = rows[i]
+        for j in range(cols.size):
+            b = cols[j]
+            u0, u1, u2 = d_u[0, a, b], d_u[1, a, b], d_u[2, a, b]
+            v0, v1, v2 = d_v[0, a, b], d_v[1, a, b], d_v[2, a, b]
+            n0 = u1 * v2 - u2 * v1
+            n1 = u2 * v0 - u0 * v2
+            n2 = u0 * v1 - u1 * v0
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            normals[i, j, 0], normals[i, j, 1], normals[i, j, 2] = n0 / norm, n1 / norm, n2 / norm
+            nodes[i, j, 0], nodes[i, j, 1], nodes[i, j, 2] = pos[0, a, b], pos[1, a, b], pos[2, a, b]
+
+
 @_helper
 def _sum_like_numpy(a):
     """Sum of a short contiguous row in numpy's order (its pairwise summation: eight partial
@@ -835,6 +855,18 @@ def stretch_residual(ab, k_basis, stretch, ok, nu_low, nu_high, out):
     for k in range(out.size):
         out[k] -= nu * along[k]
     return nu
+
+
+@_compiled
+def quartic_grid(c4, c3, c2, c1, c0, ms, out):
+    """membrane.read_twist's misfit over its grid: ``out[i, j]`` = the quartic of coefficients
+    ``c4[i]`` … ``c0[i]`` (one per ν tried) at ``ms[j]``, by Horner's rule in numpy's order of
+    operations (the grid is thousands of values: numpy's passes over it cost most of a reading)."""
+    for i in range(out.shape[0]):
+        a4, a3, a2, a1, a0 = c4[i], c3[i], c2[i], c1[i], c0[i]
+        for j in range(out.shape[1]):
+            m = ms[j]
+            out[i, j] = (((a4 * m + a3) * m + a2) * m + a1) * m + a0
 
 
 # ------------------------------------------------------------------------ geometry, warm-up
@@ -1018,6 +1050,9 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     frozen = np.array(pos)
     frozen.flags.writeable = False
     hermite_coefficients(frozen, float(h), coeffs, slopes[0], slopes[1])
+    at = np.zeros(1, dtype=np.intp)
+    node_frames(np.ascontiguousarray(pos), slopes[0], slopes[1], at, at, np.empty((1, 1, 3)), np.empty((1, 1, 3)))
+    node_frames(frozen, slopes[0], slopes[1], at, at, np.empty((1, 1, 3)), np.empty((1, 1, 3)))
     strain = np.empty(1)
     gauge_strains(coeffs.reshape(nf * mf, 4, 3), np.zeros(3, dtype=np.intp), mf, np.zeros((3, 3, 16)), 3, 0.2, 0.2,
                   1.0, strain, strain)
@@ -1037,6 +1072,8 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     stretch_residual(ab, k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
     ab.flags.writeable = False  # the membrane maps' are shared read-only
     stretch_residual(ab, k_flat, np.ones(2), np.ones(2, dtype=np.bool_), 0.3, 0.5, np.empty(2))
+    # the membrane's reading of the twist, on a grid of one
+    quartic_grid(k_flat, k_flat, k_flat, k_flat, k_flat, k_flat, np.empty((1, 1)))
 
 
 if __name__ == "__main__":  # python -m skinmap.reconstruction.kernels: fill the cache ahead of use

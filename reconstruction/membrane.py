@@ -35,7 +35,7 @@ what the model can resolve: the reading gives the twist's magnitude.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -224,13 +224,14 @@ def membrane_maps(grid: FineGrid, margin: float | None = None) -> MembraneMaps:
 
 def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: np.ndarray, k_v: np.ndarray,
                tau: np.ndarray, inner: tuple[slice, slice], poisson_range: tuple[float, float],
-               noise_sd: float) -> TwistReading | None:
+               noise_sd: float, compiled: Any = None) -> TwistReading | None:
     """The mean twist's magnitude and the Poisson ratio in ``poisson_range`` that best explain
     the units' stretch ratios (2, N, M) (``valid``: measured) with the curvature fields k_u, k_v
     and the twist field τ (nf, mf; its mean over ``inner``, the cells' region, is replaced by the
     fitted constant).  ``noise_sd``: one stretch reading's noise s.d.  None where the pattern
     says nothing: fewer than 12 readings, a spread within 3 noise s.d., or a fit that leaves more
-    than ``MAX_RESIDUAL`` of the pattern unexplained."""
+    than ``MAX_RESIDUAL`` of the pattern unexplained.  ``compiled``: the compiled kernels
+    (:mod:`.kernels`), which evaluate the misfit's grid (the same numbers), or None."""
     ok = np.asarray(valid, dtype=bool).reshape(-1)
     if int(ok.sum()) < 12:
         return None
@@ -255,7 +256,10 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     t = np.asarray(tau, dtype=float)
     tv = np.take(t, maps.flat) - float(t[inner].mean())
     k0 = np.take(np.asarray(k_u, dtype=float), maps.flat) * np.take(np.asarray(k_v, dtype=float), maps.flat) - tv * tv
-    fields = np.stack([k0, -2.0 * tv, -np.ones(k0.size)], axis=1)
+    fields = np.empty((k0.size, 3))  # (the columns K₀, −2τ₀, −1, as np.stack would lay them out)
+    fields[:, 0] = k0
+    fields[:, 1] = -2.0 * tv
+    fields[:, 2] = -1.0
     # the stretch is y ≈ q(ν) + m p1(ν) + m² p2(ν), every vector linear in ν: the quartic's
     # coefficients come from the Gram matrix of [y, A·fields, B·fields]
     units = maps.a.shape[0]
@@ -263,7 +267,7 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     v = centred(np.concatenate([y[:, None], predicted[:units], predicted[units:]], axis=1))
     forms = _FORMS @ (v.T @ v) @ _FORMS.T  # the six vectors' inner products
     lo, hi = poisson_range
-    nus = np.linspace(lo, hi, _NU_STEPS) if hi > lo else np.array([lo])
+    nus = _linspace(lo, hi, _NU_STEPS) if hi > lo else np.array([lo])
 
     def dot(i: int, j: int) -> np.ndarray:  # (u0 + ν u1)·(w0 + ν w1) over the ν tried
         return forms[2 * i, 2 * j] + nus * (forms[2 * i, 2 * j + 1] + forms[2 * i + 1, 2 * j]) \
@@ -279,13 +283,24 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
     # the whole stretch pattern (a saddle near 45° turns the gauges hardly at all, k_u k_v ≈ 0:
     # its twist is seen only in the stretch; R 272 mm at 48.6° on 12×12 and 16×16, searched
     # within the first bound only, left 74 % of the pattern unexplained and was declined)
-    scale = math.sqrt(float(np.abs(k0).mean()) + 1e-30)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        pattern = np.where(c4 > 0.0, np.maximum(c0, 0.0) / c4, 0.0) ** 0.25
+    scale = math.sqrt(float(np.abs(k0).sum()) / k0.size + 1e-30)  # (the mean, as np.mean takes it)
+    pattern = np.zeros(c4.shape)
+    np.divide(np.maximum(c0, 0.0), c4, out=pattern, where=c4 > 0.0)
+    pattern **= 0.25
     scale = max(scale, float(np.max(pattern)) if pattern.size else 0.0)
-    ms = np.linspace(-4.0 * scale, 4.0 * scale, 2 * _M_STEPS + 1)
-    rss = (((c4[:, None] * ms + c3[:, None]) * ms + c2[:, None]) * ms + c1[:, None]) * ms + c0[:, None]
-    best_nu, best_m = np.unravel_index(int(np.argmin(rss)), rss.shape)
+    ms = _linspace(-4.0 * scale, 4.0 * scale, 2 * _M_STEPS + 1)
+    # RSS over the (ν, m) grid by Horner's rule (compiled, else written in place: the grid's
+    # temporaries cost more than its arithmetic)
+    if compiled is not None:
+        rss = np.empty((nus.size, ms.size))
+        compiled.quartic_grid(c4, c3, c2, c1, c0, ms, rss)
+    else:
+        rss = np.multiply(c4[:, None], ms)
+        for coeff in (c3, c2, c1):
+            rss += coeff[:, None]
+            rss *= ms
+        rss += c0[:, None]
+    best_nu, best_m = divmod(int(np.argmin(rss)), rss.shape[1])
     m, k = _polish(float(ms[best_m]), (c4[best_nu], c3[best_nu], c2[best_nu], c1[best_nu], c0[best_nu]))
     rss_min = max(min(k, float(rss.min())), 0.0)
     dof = max(yc.size - 4, 1)
@@ -335,6 +350,19 @@ def read_twist(maps: MembraneMaps, stretch: np.ndarray, valid: np.ndarray, k_u: 
 _FORMS = np.array([[1, -1, 0, 0, 0, 0, 0], [0, 0, 0, 0, -1, 0, 0],
                    [0, 0, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 0],
                    [0, 0, 0, 1, 0, 0, 0], [0, 0, 0, 0, 0, 0, 1]], dtype=float)
+
+
+def _linspace(start: float, stop: float, num: int) -> np.ndarray:
+    """np.linspace(start, stop, num) (num >= 2), the same numbers by its own steps without its
+    generality (a reading takes two)."""
+    step = (stop - start) / (num - 1)
+    if step == 0.0:  # (a step below the smallest double: np.linspace's own path)
+        return np.linspace(start, stop, num)
+    y = np.arange(num, dtype=float)
+    y *= step
+    y += start
+    y[-1] = stop
+    return y
 
 
 def _polish(m: float, c: tuple) -> tuple[float, float]:

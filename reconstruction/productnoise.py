@@ -64,11 +64,19 @@ class ProductNoise:
         ``tau0`` zero-mean): the noise-only part plus the cross term 2·mean(signal · noise)."""
         if not sigma_t > 0.0:
             return 0.0, 0.0
+        return self.stats_at(self.cross_sd(k_u, k_v, tau0, inner), sigma_t)
+
+    def cross_sd(self, k_u: np.ndarray, k_v: np.ndarray, tau0: np.ndarray, inner) -> float:
+        """The s.d. of the cross term 2·mean(signal · noise) of K̄ per unit turning noise for the
+        measured fields (``tau0`` zero-mean): the part of :meth:`stats` the fields set."""
         ku, kv, tt = (np.ascontiguousarray(f[inner]).ravel() for f in (k_u, k_v, tau0))
         count = ku.size
         # cross term of draw d: mean(ku·kv_d + kv·ku_d − 2 τ·τ_d) (zero-mean, linear in the noise)
         cross = self.fields @ np.concatenate([kv, ku, -2.0 * tt]) / count
-        cross_sd = math.sqrt(float(cross @ cross) / cross.size)
+        return math.sqrt(float(cross @ cross) / cross.size)
+
+    def stats_at(self, cross_sd: float, sigma_t: float) -> tuple[float, float]:
+        """:meth:`stats` from the fields' :meth:`cross_sd`, at turning noise ``sigma_t`` > 0."""
         s2 = sigma_t * sigma_t
         return self.bias * s2, math.hypot(self.spread * s2, cross_sd * sigma_t)
 
@@ -146,15 +154,20 @@ def turning_noise_estimate(turning: np.ndarray, valid: np.ndarray) -> float:
     the columns (6 σ² for independent noise; a smooth sheet's own second differences are small,
     and a sharp feature touches a minority of units).  NaN when too few units are valid."""
     t = np.where(valid, turning, np.nan)
-    diffs = []
-    for axis in (1, 2):
-        lo, mid, hi = (np.take(t, range(k, t.shape[axis] - 2 + k), axis=axis) for k in range(3))
-        diffs.append((lo - 2.0 * mid + hi).ravel())
-    d = np.concatenate(diffs)
-    d = d[np.isfinite(d)]
+    # (slices and a partition: the same numbers as np.take and np.median, at a fraction of their
+    # cost; a frame asks twice)
+    d = np.concatenate([((t[:, :-2] - 2.0 * t[:, 1:-1]) + t[:, 2:]).ravel(),
+                        ((t[:, :, :-2] - 2.0 * t[:, :, 1:-1]) + t[:, :, 2:]).ravel()])
+    d = np.abs(d[np.isfinite(d)])
     if d.size < 8:
         return float("nan")
-    return float(np.median(np.abs(d))) / (0.6745 * math.sqrt(6.0))
+    half = d.size // 2
+    if d.size % 2:
+        median = float(np.partition(d, half)[half])
+    else:  # the mean of the two middle values, as np.median takes it
+        part = np.partition(d, (half - 1, half))
+        median = float((part[half - 1] + part[half]) / 2.0)
+    return median / (0.6745 * math.sqrt(6.0))
 
 
 def pair_product(turning: np.ndarray, valid: np.ndarray, sigma_t: float) -> tuple[float, float, int]:

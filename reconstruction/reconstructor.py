@@ -53,8 +53,8 @@ from .membrane import MembraneMaps, TwistReading, membrane_maps
 from .positionfit import ElasticFit, PositionFitSettings, start_from_surface
 from .surface import Diagnostics, FrameState, Surface
 from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, StretchPatternTwist
-from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _differs, _half_reach, _larger, _mean_twist_terms, _memo,
-                          _widened, _with_reading_noise, _with_twist, _within_noise)
+from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _given, _half_reach, _larger, _mean_twist_terms, _memo,
+                          _mirror_if_distinct, _widened, _with_reading_noise, _with_twist, _within_noise)
 from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField,
                           alignment_floor, fine_sigma, gain_sigma, resolution_sigma, sigma_field, stretch_noise_sd,
                           with_gain)
@@ -430,6 +430,8 @@ class Reconstructor(StretchPatternTwist):
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
+        # this frame's fields (k_u, k_v, τ₀) and their ProductNoise.cross_sd (_product_stats)
+        self._product_cross: list[tuple[tuple, float]] = []
         self._least_shear_sd: float | None = None  # engine.least_shear_noise, on first use
         # the last measured data's fields, with their input (_measured_fields)
         self._measured_memo: tuple | None = None
@@ -503,13 +505,6 @@ class Reconstructor(StretchPatternTwist):
             t_screen = time.perf_counter() - t0
             surf = self._reconstruct(eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
                                      graph_cold, graph_recheck)
-        if self.gain_sd > 0.0:
-            stretch = unit_data(np.asarray(eps_upper, dtype=float), np.asarray(eps_lower, dtype=float),
-                                self.h_upper, self.h_lower, self.gauge_length)[1]
-            for answer in (surf, surf.mirror):
-                if answer is not None and answer._fine_sigma_fn is not None:
-                    answer._fine_sigma_fn = with_gain(answer._fine_sigma_fn,
-                                                      partial(self._gain_map, answer._coeffs[..., 0, :], stretch))
         for answer in (surf, surf.mirror):
             if answer is not None and answer._fine_sigma_fn is not None:
                 answer._fine_sigma_fn = sigma_field(answer._fine_sigma_fn).wrapped(self._one_blas_thread)
@@ -596,6 +591,7 @@ class Reconstructor(StretchPatternTwist):
     def _reconstruct(self, eps_upper, eps_lower, strain_sigma, previous, twist_sign, graph_warm,
                      graph_cold: bool = True, graph_recheck: bool = False) -> Surface:
         t0 = time.perf_counter()
+        self._product_cross.clear()  # (kept within a frame only)
         eu = self._check_strains("eps_upper", eps_upper)
         el = self._check_strains("eps_lower", eps_lower)
         strain_sigma = float(strain_sigma)
@@ -604,7 +600,8 @@ class Reconstructor(StretchPatternTwist):
         if previous is not None and not isinstance(previous, Surface):
             raise ValueError(f"previous must be a Surface from an earlier call, got {type(previous).__name__}")
         grid = self.grid
-        turning, stretch, valid = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)
+        units = unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)  # (the steps below read them again)
+        turning, stretch, valid = units
         n_valid = int(valid.sum())
         status = "solved" if n_valid == valid.size else f"solved with {valid.size - n_valid} missing unit(s)"
         if n_valid == 0:
@@ -675,7 +672,7 @@ class Reconstructor(StretchPatternTwist):
                 # cold: the general model first (a start for the fit, the surface an accepted
                 # graph must agree with, and the answer if no graph fits or agrees)
                 general = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
-                                        carried)
+                                        carried, units)
                 starts = self._graph.cold_starts(data, general[0], linear)
                 if not graph_cold and not all(starts[1]):
                     # a cold fit to do, left to the caller: this frame is the general model's
@@ -689,16 +686,16 @@ class Reconstructor(StretchPatternTwist):
             else from ``first`` (or a fresh pass) through the defect correction."""
             warm_general = None
             if first is None and correct and graph_warm:
-                warm_general = self._warm_general(previous, eu, el, data_fields, valid, n_valid, strain_sigma,
+                warm_general = self._warm_general(previous, eu, el, data_fields, units, n_valid, strain_sigma,
                                                   twist_sign, carried)
             if warm_general is not None:
                 return warm_general
             if first is None:
                 first = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
-                                      carried)
+                                      carried, units)
             if correct:
                 first = self._defect_correction(first, eu, el, valid, n_valid, strain_sigma, previous, twist_sign,
-                                                carried)
+                                                carried, units)
             return first
 
         answered = None  # the general model's answer, where a rescue tried the graph after it
@@ -836,7 +833,8 @@ class Reconstructor(StretchPatternTwist):
                 whether it is a graph (else the general model's answer with that sign), and the
                 graph's own derivatives (read as the answer's are: both signs of a saddle at 45°
                 read the same strains, and only the same reading shows it)."""
-                general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el))
+                general_m = self._general(turning, stretch, valid, n_valid, strain_sigma, None, sign, (eu, el),
+                                          units=units)
                 fit_m = self._graph_fit().fit_cold(data, general_m[0], sign)
                 if fit_m.accepted:
                     pos_g, derivatives_g = self._graph_surface(fit_m.coeffs)
@@ -883,6 +881,11 @@ class Reconstructor(StretchPatternTwist):
         if self._position is not None and n_valid:
             surf = self._elastic_prior(surf, turning, stretch, valid, strain_sigma, previous, (eu, el), twist_sign)
         diag.solve_time = time.perf_counter() - t0
+        if self.gain_sd > 0.0:  # a gain the gauges share, from this frame's stretch (σ's term, read on demand)
+            for answer in (surf, surf.mirror):
+                if answer is not None and answer._fine_sigma_fn is not None:
+                    answer._fine_sigma_fn = with_gain(answer._fine_sigma_fn,
+                                                      partial(self._gain_map, answer._coeffs[..., 0, :], stretch))
         return surf
 
 
@@ -979,9 +982,18 @@ class Reconstructor(StretchPatternTwist):
         if self._product_noise is None:
             valid = np.ones((2, self.n, self.m), dtype=bool)
             self._product_noise = measure_product_noise(grid.field_maps(valid), valid, grid.inner)
-        tau0 = np.asarray(tau0, dtype=float)
-        return self._product_noise.stats(np.asarray(k_u), np.asarray(k_v), tau0 - tau0.sum() / tau0.size, grid.inner,
-                                         turning_sigma)
+        # (a frame asks for the same fields' statistics several times, at one or two noise
+        # levels: the fields' part is kept, by the arrays' identity, until the next frame)
+        for fields, cross in self._product_cross:
+            if fields[0] is k_u and fields[1] is k_v and fields[2] is tau0:
+                return self._product_noise.stats_at(cross, turning_sigma)
+        tau0_c = np.asarray(tau0, dtype=float)
+        cross = self._product_noise.cross_sd(np.asarray(k_u), np.asarray(k_v), tau0_c - tau0_c.sum() / tau0_c.size,
+                                             grid.inner)
+        if len(self._product_cross) >= 8:
+            del self._product_cross[0]
+        self._product_cross.append(((k_u, k_v, tau0), cross))
+        return self._product_noise.stats_at(cross, turning_sigma)
 
     def _twist_noise(self, positions_at, base_shift: float, c0: float, product_sd, strain_sigma: float,
                      left: TwistLeftOpen = TwistLeftOpen(), twist_sd: float | None = None):
@@ -1065,7 +1077,7 @@ class Reconstructor(StretchPatternTwist):
         return out
 
     def _defect_correction(self, general, eu, el, valid, n_valid: int, strain_sigma: float, previous, twist_sign,
-                           twist_mean: float | None = None):
+                           twist_mean: float | None = None, units: tuple | None = None):
         """Carry the model through the gauges' exact forward model (:mod:`.forward`): the
         strains the answer would read are compared with those measured, the difference is added
         to the model's input and the model runs again (defect correction; its fixed point is an
@@ -1080,7 +1092,8 @@ class Reconstructor(StretchPatternTwist):
         twist (``defect_smoothed``: how many such passes; ``defect_unsmoothed_chi2``: the χ² per
         gauge the raw pass leaves, which σ widens by).
         The answer's info carries the correction its input had (2, 2, N, M) and its χ²
-        (``defect``: where the next frame's starts, :meth:`_warm_general`)."""
+        (``defect``: where the next frame's starts, :meth:`_warm_general`).  ``units``: the unit
+        data of (``eu``, ``el``) (:func:`.engine.unit_data`), where the caller has them."""
         sigma_f = max(strain_sigma, DEFAULT_STRAIN_SIGMA)
         layout = self._layout
         chi, dof, fu, fl = misfit_and_strains(self._candidate(general[0]), layout, eu, el, sigma_f)
@@ -1099,7 +1112,8 @@ class Reconstructor(StretchPatternTwist):
             # (np.maximum keeps a missing gauge's NaN)
             turning, stretch, _ = unit_data(np.maximum(cu, -0.99), np.maximum(cl, -0.99), self.h_upper, self.h_lower,
                                             self.gauge_length)
-            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean)
+            trial = self._general(turning, stretch, valid, n_valid, strain_sigma, previous, sign, (eu, el), twist_mean,
+                                  units)
             return (trial, *misfit_and_strains(self._candidate(trial[0]), layout, eu, el, sigma_f))
 
         # where the noise alone leaves the model above one χ² per gauge (large sheets) the raw
@@ -1113,7 +1127,7 @@ class Reconstructor(StretchPatternTwist):
             sigma_t = self._turning_sd(strain_sigma)
             # the measured data's own turning noise, as the passes' field fit of them keeps it
             # (_measured: the passes read the same data again)
-            shown = self._measured(*unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length))[1]
+            shown = self._measured(*(units or unit_data(eu, el, self.h_upper, self.h_lower, self.gauge_length)))[1]
             noisy = sigma_t > 0.0 and _noise_present(shown, sigma_t) >= QUIET_SHARE * sigma_t
         for _ in range(self.defect_steps):
             if chi <= dof:
@@ -1176,7 +1190,7 @@ class Reconstructor(StretchPatternTwist):
         general[3]["defect"] = (np.stack([kept[0] - eu, kept[1] - el]), chi)
         return general
 
-    def _warm_general(self, previous: Surface | None, eu, el, measured_fields: Callable[[], tuple], valid,
+    def _warm_general(self, previous: Surface | None, eu, el, measured_fields: Callable[[], tuple], units: tuple,
                       n_valid: int, strain_sigma: float, twist_sign, twist_mean: float | None):
         """The general model through its defect correction from the previous frame's correction
         (``FrameState.defect``) instead of from none: a sheet that holds still needs nearly the
@@ -1184,7 +1198,9 @@ class Reconstructor(StretchPatternTwist):
         one pass of the model instead of two or three).  None where the previous frame left
         none, where the strains changed by more than the noise (:data:`HELD_SIGMAS`), where the
         previous answer misfit the gauges beyond the noise, or where this answer does (χ² above
-        one per gauge: it would need passes): then the frame starts from none, as a cold one."""
+        one per gauge: it would need passes): then the frame starts from none, as a cold one.
+        ``units``: the unit data (turning, stretch, valid) of the measured (``eu``, ``el``)."""
+        valid = units[2]
         state = previous.state if previous is not None else None
         if (self.n * self.m > WARM_DEFECT_MAX_CELLS or state is None or state.defect is None or state.strains is None
                 or state.defect.shape != (2,) + eu.shape or state.strains.shape != (2,) + eu.shape):
@@ -1208,7 +1224,7 @@ class Reconstructor(StretchPatternTwist):
         corrected_t, corrected_s, _ = unit_data(np.maximum(du, -0.99), np.maximum(dl, -0.99), self.h_upper,
                                                 self.h_lower, self.gauge_length)
         trial = self._general(corrected_t, corrected_s, valid, n_valid, strain_sigma, previous, twist_sign, (eu, el),
-                              twist_mean)
+                              twist_mean, units)
         if not np.isfinite(trial[0]).all():
             return None
         # the fields of the measured data, which the stretch pattern is read with (as the cold
@@ -1435,7 +1451,9 @@ class Reconstructor(StretchPatternTwist):
         c0 = diag.twist_constant
         base_shift = 0.0  # where the answer sits on positions_at's family
         info = {"chi2_per_gauge": round(chi0 / max(dof, 1), 3)}
-        mirror = None
+        # the mirror image beside the answer, decided when first asked (:meth:`_stretch_twist`
+        # mostly puts its own in its place: the two-answer test of this one is then not paid for)
+        mirror_of: Callable[[], Surface | None] = _given(None)
         noise_sigma = sigma_field(surf._fine_sigma_fn)
         surf._fine_sigma_fn = noise_sigma
         # the part of it that repeated frames scatter by (a deferred frame's σ holds the
@@ -1460,8 +1478,11 @@ class Reconstructor(StretchPatternTwist):
                 # off with σ 0.016, where the graph of the other sign had 12 times its objective)
                 pos_m, mirror_comparable, derivatives_m = graph_mirror(-math.copysign(1.0, c0))
             diag_m = _with_twist(diag, -c0)
-            cand = self._surface(pos_m, surf._fine_sigma_fn, diag_m, derivatives_m)
-            chi_m, _, _ = misfit(cand, layout, eu, el, sigma_f)
+            # (weighed against the gauges by its patch data alone, a graph's by its own
+            # derivatives: it becomes a Surface only where it is kept, as the answer or the mirror)
+            cand = _memo(partial(self._surface, pos_m, surf._fine_sigma_fn, diag_m, derivatives_m))
+            chi_m, _, _ = misfit(cand() if derivatives_m is not None else self._candidate(pos_m), layout, eu, el,
+                                 sigma_f)
             fresh_m = None
             if positions_at is not None and product_fields_general and chi_m - chi0 >= tell:
                 # The family's reflection keeps the fields fitted to this twist's sign; on a large
@@ -1480,7 +1501,7 @@ class Reconstructor(StretchPatternTwist):
                 chi_f, _, _ = misfit(cand_f, layout, eu, el, sigma_f)
                 info["mirror_afresh_chi2_per_gauge"] = round(chi_f / max(dof, 1), 3)
                 if chi_f < chi_m:
-                    cand, chi_m = cand_f, chi_f
+                    cand, chi_m = _given(cand_f), chi_f
                 else:
                     fresh_m = None
             info["mirror_chi2_per_gauge"] = round(chi_m / max(dof, 1), 3)
@@ -1510,22 +1531,24 @@ class Reconstructor(StretchPatternTwist):
             if (chi_m < chi0 - tell and not within_noise and fresh_m is None and chi2_noise <= 1.0
                     and mirror_comparable):
                 # the data prefer the mirror: it is the answer
-                surf, cand, chi0, chi_m = cand, surf, chi_m, chi0
+                surf, cand, chi0, chi_m = cand(), _given(surf), chi_m, chi0
                 diag = surf.diagnostics
                 base_shift = -2.0 * c0
                 info["mirror_swapped"] = True
                 swapped = True
-            if (chi_m - chi0 < flag_tell or within_noise or (swapped and fit_in_doubt)) and _differs(surf, cand):
-                mirror = cand
+            if chi_m - chi0 < flag_tell or within_noise or (swapped and fit_in_doubt):
+                mirror_of = _memo(partial(_mirror_if_distinct, surf, cand))
         pattern = None
         if stretch is not None and positions_at is not None and product_fields_general and self.poisson_range is not None:
-            pattern = self._stretch_twist(surf, mirror, turning, stretch, valid, product_fields, positions_at, base_shift,
-                                          twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean, measured_fields,
-                                          reading, chi2_noise, carried)
+            pattern = self._stretch_twist(surf, mirror_of, turning, stretch, valid, product_fields, positions_at,
+                                          base_shift, twist_sign, eu, el, sigma_f, chi0, tell, info, twist_mean,
+                                          measured_fields, reading, chi2_noise, carried)
         if pattern is not None:
             surf, mirror, base_shift, chi0, positions_at = (pattern.answer, pattern.mirror, pattern.shift, pattern.chi2,
                                                             pattern.family)
             diag = surf.diagnostics
+        else:
+            mirror = mirror_of()
         diag.extra.update(info)
         diag.extra["ambiguous"] = mirror is not None
         surf.mirror = mirror
@@ -1776,15 +1799,17 @@ class Reconstructor(StretchPatternTwist):
         fields = self._measured(*measured)[0]
         return stretch_variance(self.grid, fields[3], fields[4])
 
-    def _measured_input(self, turning, stretch, valid, strains) -> tuple | None:
+    def _measured_input(self, turning, stretch, valid, strains, units: tuple | None = None) -> tuple | None:
         """The unit data (turning, stretch, valid) of the measured ``strains`` where the pass's
         input differs from them (a defect pass's corrected input), else None (no strains given,
-        or the pass reads the gauges themselves)."""
+        or the pass reads the gauges themselves).  ``units``: those unit data, where known."""
         if strains is None:
             return None
-        m_turning, m_stretch, m_valid = unit_data(strains[0], strains[1], self.h_upper, self.h_lower,
-                                                  self.gauge_length)
-        if (np.array_equal(m_turning, turning) and np.array_equal(m_stretch, stretch)
+        if units is None:
+            units = unit_data(strains[0], strains[1], self.h_upper, self.h_lower, self.gauge_length)
+        m_turning, m_stretch, m_valid = units
+        if (m_turning is turning and m_stretch is stretch and m_valid is valid) or (
+                np.array_equal(m_turning, turning) and np.array_equal(m_stretch, stretch)
                 and np.array_equal(m_valid, valid)):
             return None
         return m_turning, m_stretch, m_valid
@@ -1834,10 +1859,11 @@ class Reconstructor(StretchPatternTwist):
         return agree, graph_sigma
 
     def _general(self, turning, stretch, valid, n_valid, strain_sigma, previous, twist_sign, strains=None,
-                 twist_mean: float | None = None):
+                 twist_mean: float | None = None, units: tuple | None = None):
         """Steps 1-5 of the model (any sheet): fields, twist, shear, frames, positions.
         ``twist_mean``: the mean twist over the cells (1/mm) given, not chosen (the stretch
-        pattern's reading, :meth:`_stretch_twist`)."""
+        pattern's reading, :meth:`_stretch_twist`).  ``units``: the unit data of ``strains``
+        (:func:`.engine.unit_data`), where the caller has them."""
         grid = self.grid
         left_out = True
         if n_valid:
@@ -1895,7 +1921,7 @@ class Reconstructor(StretchPatternTwist):
         # (the twist left open, and the least-shear prior below, keep the fields' noise: a
         # sharper reading takes more twists, it rules out none that noise leaves open)
         reading = product_noise
-        measured = self._measured_input(turning, stretch, valid, strains)  # None unless a defect pass
+        measured = self._measured_input(turning, stretch, valid, strains, units)  # None unless a defect pass
         if product_noise[0] != 0.0:
             reading = self._pair_reading(k_u, k_v, tau0, turning, valid, measured, turning_sigma, present,
                                          product_noise, convex_info)

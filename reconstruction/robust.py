@@ -347,13 +347,16 @@ class GaugeScreen:
         if not a.max() > SCREEN_TRIGGER:  # the scatter is at least the noise: nothing stands out
             return -1
         scale = _median_scale(a if valid is None else a[valid])
+        big = a > SCREEN_TRIGGER * scale
+        if not big.any():  # (none above the trigger: no gauge to weigh further)
+            return -1
         cells = self.n * self.m
         partner = np.concatenate([a[cells:], a[:cells]])
         expected = data - resid
         with np.errstate(divide="ignore", invalid="ignore"):
             gain = np.where(expected != 0.0, data / expected, np.inf)
         lo, hi = SCREEN_TRIGGER_GAIN
-        marked = np.where((a > SCREEN_TRIGGER * scale) & (partner < SCREEN_PARTNER_TRIGGER * a) & (gain >= lo)
+        marked = np.where(big & (partner < SCREEN_PARTNER_TRIGGER * a) & (gain >= lo)
                           & (gain <= hi), a, -1.0)
         best = int(np.argmax(marked))
         return best if marked[best] >= 0.0 else -1

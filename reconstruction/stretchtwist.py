@@ -83,6 +83,25 @@ PRODUCT_OPEN_SIGMAS = 3.0
 NOISE_REACH_LEVEL = 0.5
 
 
+#: The twist's squares (times the reading's) that :meth:`StretchPatternTwist._refine_twist` weighs.
+_REFINE_SQUARES = np.array([0.0, 0.5, 1.0, 1.5])
+_REFINE_SQUARES.flags.writeable = False
+# np.polyfit(_REFINE_SQUARES, ·, 2)'s scaled Vandermonde matrix, its column scales and rcond
+# (fixed: built once, the same least-squares solve per frame)
+_REFINE_LHS = np.vander(_REFINE_SQUARES, 3)
+_REFINE_SCALE = np.sqrt((_REFINE_LHS * _REFINE_LHS).sum(axis=0))
+_REFINE_LHS /= _REFINE_SCALE
+_REFINE_RCOND = len(_REFINE_SQUARES) * np.finfo(float).eps
+_REFINE_SCALE.flags.writeable = False
+_REFINE_LHS.flags.writeable = False
+
+
+def _quadratic_fit(values: np.ndarray) -> np.ndarray:
+    """np.polyfit(_REFINE_SQUARES, values, 2) (highest power first), the same numbers by its own
+    steps with the fixed matrix built once."""
+    return np.linalg.lstsq(_REFINE_LHS, values, _REFINE_RCOND)[0] / _REFINE_SCALE
+
+
 def _sign_beyond_noise(own: np.ndarray, other: np.ndarray, noise_sd: float) -> bool:
     """Whether the other twist sign explains the stretch pattern (residuals ``other``) better than
     the answer's own (``own``) by more than noise of ``noise_sd`` per reading could: with
@@ -184,7 +203,7 @@ class StretchPatternTwist:
         strain = stretch[valid]
         level = float(np.mean(np.abs(strain - 1.0))) if strain.size else 0.0
         reading = read_twist(self._membrane, stretch, valid, k_u, k_v, tau0, self.grid.inner, self.poisson_range,
-                             stretch_sd)
+                             stretch_sd, self._compiled)
         if reading is not None:
             shrink = max(1.0 - level, 0.0)
             return reading._replace(low=reading.low * shrink, high=reading.high * (1.0 + level),
@@ -255,19 +274,20 @@ class StretchPatternTwist:
         square, a quadratic in the square through their misfits (K is linear in it), its minimum
         held within [0, 2] times the reading's square."""
         t_read = reading.twist ** 2
-        squares = np.array([0.0, 0.5, 1.0, 1.5])
+        squares = _REFINE_SQUARES
         rss = [self._stretch_rss(at_magnitude(math.sqrt(t * t_read)), stretch, valid) for t in squares]
-        a2, a1, _ = np.polyfit(squares, np.array(rss), 2)
+        a2, a1, _ = _quadratic_fit(np.array(rss))
         if a2 > 0.0 and math.isfinite(a2):
             best = min(max(-a1 / (2.0 * a2), 0.0), 2.0)
         else:
             best = float(squares[int(np.argmin(rss))])
         return math.sqrt(best * t_read)
 
-    def _stretch_twist(self, surf: Surface, mirror: Surface | None, turning, stretch, valid, product_fields,
-                       positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float, tell: float, info: dict,
-                       twist_mean: float | None = None, measured_fields=None, reading: TwistReading | None = None,
-                       chi2_noise: float = 1.0, carried: bool = False) -> StretchTwist | None:
+    def _stretch_twist(self, surf: Surface, mirror: Callable[[], Surface | None], turning, stretch, valid,
+                       product_fields, positions_at, base_shift: float, twist_sign, eu, el, sigma_f: float, chi0: float,
+                       tell: float, info: dict, twist_mean: float | None = None, measured_fields=None,
+                       reading: TwistReading | None = None, chi2_noise: float = 1.0,
+                       carried: bool = False) -> StretchTwist | None:
         """The stretch pattern's twist (docs/reconstruction.md): a film loaded along its normal
         has the Gaussian curvature its stretch pattern says, and with the measured curvatures
         k_u, k_v that fixes the square of the mean twist: mean(k_u k_v − τ²) = K
@@ -286,7 +306,9 @@ class StretchPatternTwist:
         of ``positions_at``); ``measured_fields``: the fields of the measured data (the reading's
         input); ``reading``: the reading, where it was taken already; ``chi2_noise``: the χ² per
         gauge the noise alone leaves in the general model's answers (the posterior check's):
-        where both signs read the gauges within it, their χ² difference rejects neither.  Returns
+        where both signs read the gauges within it, their χ² difference rejects neither.
+        ``mirror``: the mirror image the posterior check found beside the answer, as a function
+        (decided when called; not called where this step puts its own in its place).  Returns
         None where the pattern says nothing, else a :class:`StretchTwist`."""
         fields_read = product_fields if measured_fields is None else measured_fields  # the reading's input
         if reading is None:
@@ -296,7 +318,7 @@ class StretchPatternTwist:
             twist_mean = float(np.asarray(product_fields[2])[self.grid.inner].mean()) + c0 - base_shift
         m0 = twist_mean + base_shift  # the answer's (a swapped mirror sits at base_shift on the family)
         if reading is None:
-            return self._unread_twist(surf, mirror, m0, base_shift, positions_at, twist_sign, stretch, valid,
+            return self._unread_twist(surf, mirror(), m0, base_shift, positions_at, twist_sign, stretch, valid,
                                       fields_read, sigma_f, chi0, info)
         m_lo, m_hi, magnitude = reading.low, reading.high, reading.twist
         # a twist below the mirror floor bends nothing the elements would see
@@ -335,9 +357,9 @@ class StretchPatternTwist:
                 refined = float(info["stretch_twist_refined"][0]) if flips else 0.0
                 if flips:
                     info["stretch_twist_contested"] = True
-                return StretchTwist(surf, mirror, base_shift, _memo(lambda: _half_reach(positions_at, base_shift, ends)),
-                                    chi0, positions_at, 0.0, (sign * refined - m0,) if flips else (),
-                                    left.to_top)
+                return StretchTwist(surf, mirror(), base_shift,
+                                    _memo(lambda: _half_reach(positions_at, base_shift, ends)), chi0, positions_at, 0.0,
+                                    (sign * refined - m0,) if flips else (), left.to_top)
             magnitude, decided = left, True
             m_lo, m_hi = about(magnitude)
         elif membrane:
@@ -415,7 +437,7 @@ class StretchPatternTwist:
                 # stretch assumes): the answer stays, its σ reaching to the pattern's reading
                 info["stretch_twist_rejected"] = round(chi_t / max(dof, 1), 3)
                 gap = np.linalg.norm(cand._coeffs[..., 0, :] - surf._coeffs[..., 0, :], axis=-1)
-                return StretchTwist(surf, mirror, base_shift, _memo(lambda: 0.5 * gap), chi0, positions_at, 0.0)
+                return StretchTwist(surf, mirror(), base_shift, _memo(lambda: 0.5 * gap), chi0, positions_at, 0.0)
             info["stretch_twist_moved"] = round(sg * magnitude - m0, 7)
             if len(cands) > 1:
                 other = (cands[1].surface, cands[1].chi2, dof)
@@ -447,10 +469,12 @@ class StretchPatternTwist:
             # The pattern needs a twist whose sign nothing tells (the stretch of a saddle is even
             # in its turn; which sign's surface fits it better was wrong once in 11): the other
             # sign is the mirror unless the gauges reject it.
-            mirror = self._pattern_mirror(surf, other, positions_at, shift, sign, m0, eu, el, sigma_f, chi, tell,
-                                          chi2_noise, info)
+            kept = self._pattern_mirror(surf, other, positions_at, shift, sign, m0, eu, el, sigma_f, chi, tell,
+                                        chi2_noise, info)
+        else:
+            kept = mirror()
         noise_sd = reading.noise_sd if membrane and math.isfinite(reading.noise_sd) else 0.0
-        return StretchTwist(surf, mirror, shift, _memo(spread), chi, positions_at, noise_sd, contested)
+        return StretchTwist(surf, kept, shift, _memo(spread), chi, positions_at, noise_sd, contested)
 
     def _move_threshold(self, magnitude: float, reading: TwistReading, product_fields, sigma_f: float,
                         carried: bool) -> float:

@@ -242,10 +242,15 @@ class Surface:
         pos_t = np.ascontiguousarray(np.asarray(fine_positions, dtype=float).transpose(2, 0, 1))
         nf, mf = pos_t.shape[1:]
         self._coeffs = np.empty((nf, mf, 4, 3))
+        rows, cols = node_index
+        self.shape = (rows.size, cols.size)
         if fine_derivatives is None and compiled is not None:
-            # reconstruction.kernels: the same numbers as the differences below in one compiled call
+            # reconstruction.kernels: the same numbers as the differences below in one compiled
+            # call, and the nodes and normals as the steps after the branch take them
             d_u, d_v = np.empty((3, nf, mf)), np.empty((3, nf, mf))
             compiled.hermite_coefficients(pos_t, h, self._coeffs, d_u, d_v)
+            self.nodes, self.normals = np.empty(self.shape + (3,)), np.empty(self.shape + (3,))
+            compiled.node_frames(pos_t, d_u, d_v, rows, cols, self.nodes, self.normals)
         else:
             if fine_derivatives is not None:
                 # the model's own ∂u, ∂v, ∂u∂v at the nodes (a graph's: what it holds between them)
@@ -259,13 +264,11 @@ class Surface:
             np.multiply(d_u, h, out=coeffs[1])
             np.multiply(d_v, h, out=coeffs[2])
             np.multiply(d_uv, h * h, out=coeffs[3])
-        rows, cols = node_index
-        self.shape = (rows.size, cols.size)
-        at_nodes = (slice(None), rows[:, None], cols[None, :])
-        self.nodes = pos_t[at_nodes].transpose(1, 2, 0).copy()
-        normal_t = cross_t(d_u[at_nodes], d_v[at_nodes])
-        normal_t /= np.sqrt((normal_t * normal_t).sum(axis=0))
-        self.normals = normal_t.transpose(1, 2, 0).copy()
+            at_nodes = (slice(None), rows[:, None], cols[None, :])
+            self.nodes = pos_t[at_nodes].transpose(1, 2, 0).copy()
+            normal_t = cross_t(d_u[at_nodes], d_v[at_nodes])
+            normal_t /= np.sqrt((normal_t * normal_t).sum(axis=0))
+            self.normals = normal_t.transpose(1, 2, 0).copy()
         self._node_index = node_index
         self._fine_sigma_fn = fine_sigma
         self._fine_sigma: np.ndarray | None = None

@@ -8,7 +8,7 @@ noise, and whether two answers differ at all (mirror images).  Package-internal:
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 
@@ -18,6 +18,8 @@ from .surface import Diagnostics, Surface
 # Two mirror images are reported only where they differ by more than this many combined noise
 # s.d. plus a floor (mm) somewhere; closer than that they are the same answer for any user.
 MIRROR_SIGMAS, MIRROR_FLOOR_MM = 3.0, 0.02
+
+_T = TypeVar("_T")
 
 
 def _mean_twist_terms(product_fields, inner) -> tuple[float, float]:
@@ -94,6 +96,18 @@ def _half_reach(positions_at, base_shift: float, shifts) -> np.ndarray:
     node_sigma so, and 3 s.d. then reach past it."""
     here = positions_at(base_shift)
     return 0.5 * np.max([np.linalg.norm(positions_at(base_shift + d) - here, axis=-1) for d in shifts], axis=0)
+
+
+def _given(value: _T) -> Callable[[], _T]:
+    """A function that returns ``value``."""
+    return lambda: value
+
+
+def _mirror_if_distinct(answer: Surface, candidate: Callable[[], Surface]) -> Surface | None:
+    """``candidate()`` as the mirror image beside ``answer`` where the two differ
+    (:func:`_differs`), else None (the posterior check decides it only when it is asked for)."""
+    other = candidate()
+    return other if _differs(answer, other) else None
 
 
 def _differs(a: Surface, b: Surface) -> bool:

@@ -19,6 +19,7 @@ from skinmap.reconstruction.grid import FineGrid
 from skinmap.reconstruction.linalg import aligned_distances
 from skinmap.reconstruction.membrane import (
     _clamped_biharmonic,
+    _linspace,
     basis_curvature,
     membrane_maps,
     read_twist,
@@ -27,6 +28,19 @@ from skinmap.reconstruction.membrane import (
 
 PITCH, H, G = 12.0, 0.2, 10.0
 NOISE = 5.7e-5
+
+
+def test_the_reading_s_grids_are_numpy_s_linspace_to_the_bit():
+    """read_twist's ν and twist grids (its own steps, without np.linspace's generality)."""
+    rng = np.random.default_rng(12)
+    for num in (2, 21, 401):
+        for _ in range(300):
+            start = float(rng.normal() * 10.0 ** rng.uniform(-16, 1))
+            stop = start + float(abs(rng.normal()) * 10.0 ** rng.uniform(-16, 1))
+            assert np.array_equal(_linspace(start, stop, num), np.linspace(start, stop, num))
+            assert np.array_equal(_linspace(-stop, stop, num), np.linspace(-stop, stop, num))
+    assert np.array_equal(_linspace(0.3, 0.5, 21), np.linspace(0.3, 0.5, 21))
+    assert np.array_equal(_linspace(1.0, 1.0, 5), np.linspace(1.0, 1.0, 5))
 
 
 def test_the_biharmonic_solve_gives_the_clamped_square_plates_deflection_within_1_percent():

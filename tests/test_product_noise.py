@@ -96,6 +96,23 @@ def test_turning_noise_is_estimated_from_the_data_and_is_nil_on_a_smooth_clean_s
     assert np.isnan(turning_noise_estimate(turning[:, :2, :2], valid[:, :2, :2]))  # too few units to tell
 
 
+def test_turning_noise_estimate_is_the_median_of_the_second_differences_to_the_bit():
+    """Its slices and partition give np.median's number (an odd and an even count of
+    differences, units missing): every frame reads it twice, and the bias it scales is no
+    place for a last-digit change."""
+    rng = np.random.default_rng(6)
+    for n, m in ((5, 5), (4, 7), (3, 3), (12, 12)):
+        for dead in (0.0, 0.1, 0.4):
+            turning = rng.normal(0.0, TURNING_SIGMA, (2, n, m))
+            valid = rng.random((2, n, m)) >= dead
+            t = np.where(valid, turning, np.nan)
+            diffs = [[np.take(t, range(k, t.shape[axis] - 2 + k), axis=axis) for k in range(3)] for axis in (1, 2)]
+            d = np.concatenate([(lo - 2.0 * mid + hi).ravel() for lo, mid, hi in diffs])
+            d = d[np.isfinite(d)]
+            expected = float(np.median(np.abs(d))) / (0.6745 * np.sqrt(6.0)) if d.size >= 8 else np.nan
+            assert np.array_equal(turning_noise_estimate(turning, valid), expected, equal_nan=True)
+
+
 @pytest.mark.parametrize("n, bound", [(16, 0.1), pytest.param(32, 0.2, marks=pytest.mark.slow)])
 def test_a_noisy_flat_sheet_stays_flat_within_the_bound_and_its_sigma_covers_the_error(n, bound):
     rng = np.random.default_rng(n)

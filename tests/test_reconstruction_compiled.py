@@ -14,10 +14,12 @@ import pytest
 from conftest import python_for_other_users
 
 from skinmap.emulator import physics as ph
+from skinmap.emulator.scenes import parse_scene_spec
 from skinmap.reconstruction import Reconstructor, kernels
 from skinmap.reconstruction.engine import metric_terms, unit_data
 from skinmap.reconstruction.forward import GaugeLayout, Patches, surface_strains
 from skinmap.reconstruction.grid import FineGrid
+from skinmap.reconstruction.membrane import read_twist
 from skinmap.reconstruction.surface import Surface
 
 PITCH, H, G = 12.0, 0.2, 10.0
@@ -124,9 +126,42 @@ def test_compiled_forward_model_equals_the_numpy_one_bit_for_bit(n, m):
                             diagnostics=None)  # type: ignore[arg-type]
         patches = Patches(pos, rec.grid.u, rec.grid.v, kernels)
         assert np.array_equal(patches._coeffs, reference._coeffs)
-        assert np.array_equal(rec._surface(pos, None, None)._coeffs, reference._coeffs)
+        compiled = rec._surface(pos, None, None)
+        assert np.array_equal(compiled._coeffs, reference._coeffs)
+        # (the nodes and normals of kernels.node_frames: the numpy steps' bytes)
+        assert np.array_equal(compiled.nodes, reference.nodes)
+        assert np.array_equal(compiled.normals, reference.normals)
         for mine, theirs in zip(surface_strains(patches, rec._layout), surface_strains(reference, plain)):
             assert np.array_equal(mine, theirs)
+
+
+def test_compiled_twist_reading_equals_the_numpy_one_bit_for_bit():
+    """membrane.read_twist's misfit grid by kernels.quartic_grid: the same reading, to the bit,
+    on noisy saddles, spheres and bumps (its grid's minimum decides the twist and ν)."""
+    rec = Reconstructor(5, 5, PITCH, H, H, G)
+    rec.prepare()
+    assert rec._membrane is not None
+    rng = np.random.default_rng(21)
+    read = 0
+    for spec in ("saddle:radius=90,axis_angle=75", "sphere:radius=70", "gaussian:height=3,fwhm=18,u0=4,v0=-3"):
+        eu, el = ph.gauge_strains(parse_scene_spec(spec, "elastic", 5, 5, PITCH), 5, 5, PITCH, H, H, G)
+        for _ in range(3):
+            noisy_u, noisy_l = eu + rng.normal(0, NOISE, eu.shape), el + rng.normal(0, NOISE, el.shape)
+            turning, stretch, valid = unit_data(noisy_u, noisy_l, H, H, G)
+            k_u, k_v, tau0 = rec._measured_fields(turning, stretch, valid)
+            args = (rec._membrane, stretch, valid, k_u, k_v, tau0, rec.grid.inner, (0.3, 0.5), rec._stretch_sd(NOISE))
+            plain, compiled = read_twist(*args), read_twist(*args, compiled=kernels)
+            assert (plain is None) == (compiled is None)
+            if plain is not None:
+                read += 1
+                assert tuple(compiled) == tuple(plain)
+    assert read >= 6
+    c = [rng.normal(size=21) * 10.0 ** rng.uniform(-12, 0) for _ in range(5)]
+    ms = np.linspace(-3e-3, 3e-3, 401)
+    grid = np.empty((21, 401))
+    kernels.quartic_grid(*c, ms, grid)
+    assert np.array_equal(grid, (((c[0][:, None] * ms + c[1][:, None]) * ms + c[2][:, None]) * ms + c[3][:, None]) * ms
+                          + c[4][:, None])
 
 
 def test_banded_field_maps_equal_the_dense_ones_to_rounding():
