@@ -597,13 +597,16 @@ def fit_probe_length(contacts: list[Contact], poses: list[ProbePose], baseline: 
 #: Readings (one a contact) a relief-map cell keeps for its height: beyond this many the
 #: oldest give way, so that a long log's map stays bounded (5 MB at the default 140² cells).
 CELL_READINGS = 32
-#: The quantile of a cell's readings that is its height: the median.  The upper third (2/3)
-#: took back the low reading of contacts levelled on the floor or registered by their rim
-#: (levelled: E 0.351 → 0.311 mm, D 0.324 → 0.287 before the emulator's gauges read the
-#: creases); contacts placed by their bending (level_by_bending) read the touched cells without
-#: that bias, and the upper third then costs (the bench's reconstructed letters, ℓ fitted on a
-#: plate, before cells far off the rest were left out: E 0.302 mm with the median against 0.385,
-#: D 0.290 against 0.361; docs/tactile.md).
+#: The quantile of a cell's readings that is its height: the median, of an even count the lower
+#: middle reading (:meth:`ReliefMap.height`).  The wall is rigid, so a press reads a cell at the
+#: wall's height where its film touched it and above it where the film spanned (held off by the
+#: relief round it); of the two middle readings the lower is the nearer (the bench's
+#: reconstructed letters, ℓ fitted on a plate: U 0.320 → 0.254 mm, E 0.292 → 0.262, D 0.224 →
+#: 0.208, K 0.281 → 0.265 against the two middle readings' mean; docs/tactile.md).  The upper
+#: third (2/3) took back the low reading of contacts levelled on the floor or registered by their
+#: rim; contacts placed by their bending (level_by_bending) read the touched cells without that
+#: bias, and the upper third then costs (E 0.302 mm with the median against 0.385, D 0.290
+#: against 0.361, before cells far off the rest were left out).
 #: One reading of four off either way moves nothing (the middle two agree).
 CELL_QUANTILE = 0.5
 #: A contact's outer ring of this width (mm) is left out of the map (0: none).  2 mm helped while
@@ -698,17 +701,15 @@ class ReliefMap:
         return self._n.copy()
 
     def height(self) -> np.ndarray:
-        """(rows, cols) wall height: the map's ``quantile`` of the contacts' readings of a cell
-        (linear between the two readings about it), NaN where never touched."""
+        """(rows, cols) wall height: the map's ``quantile`` of the contacts' readings of a cell,
+        the lower of the two readings about it (the median of an even count is the lower middle
+        one: every reading is the wall's height or above it, where the film spanned), NaN where
+        never touched."""
         if self._height is None:
             ordered = np.sort(self._readings, axis=-1)  # the NaN of unused slots sort last
             count = np.minimum(self._k, CELL_READINGS)[..., None]
-            at = self.quantile * np.maximum(count - 1, 0)
-            low = np.floor(at).astype(np.int64)
-            frac = at - low
-            lo = np.take_along_axis(ordered, low, axis=-1)
-            hi = np.take_along_axis(ordered, np.minimum(low + 1, np.maximum(count - 1, 0)), axis=-1)
-            value = (lo + frac * (hi - lo))[..., 0]
+            at = np.floor(self.quantile * np.maximum(count - 1, 0)).astype(np.int64)
+            value = np.take_along_axis(ordered, at, axis=-1)[..., 0]
             self._height = np.where(count[..., 0] > 0, value, np.nan)
         return self._height.copy()
 

@@ -452,28 +452,34 @@ def test_a_cell_keeps_its_latest_readings_only():
     assert relief._readings.nbytes == size and relief.contacts == CELL_READINGS + CELL_READINGS // 2 + 1
 
 
-def test_a_cell_read_by_its_upper_third_is_the_touching_presses_height_and_by_the_median_between():
-    """The wall is rigid: a press reads a cell at the wall's height where its sheet touched it,
-    lower where the sheet spanned over it.  Two presses touch, two span 1 mm below: the upper
-    third is the touching presses' height, the median splits the difference.  The default is
-    the median (CELL_QUANTILE): contacts placed by their bending read the touched cells without
-    the low bias the upper third took back (docs/tactile.md)."""
+def test_a_cell_half_touched_half_spanned_reads_the_touching_presses_height_by_its_median():
+    """The wall is rigid: a press reads a cell at the wall's height where its film touched it and
+    above it (towards the probe) where the film spanned over it.  Two presses touch, two span
+    1 mm above: the median, of an even count the lower middle reading (CELL_QUANTILE), is the
+    touching presses' height, where the mean of the two middle readings would split the
+    difference and the upper third would take the spanning presses' (docs/tactile.md).  With
+    three spanning and one touching, the median is a spanning press's: the map says what most
+    presses read, and the low reading alone does not decide."""
     from dataclasses import replace
 
     from skinmap.daemon.tactile import CELL_QUANTILE
 
     pose = ProbePose(0.0, 0.0, 0.0, 3.0)
     touch = _press(pose.x_mm, pose.y_mm, pose.angle_deg)
-    span = replace(touch, positions=touch.positions + np.array([0.0, 0.0, 1.0]))  # 1 mm off the wall
-    relief, median, alone = ReliefMap(rim_mm=0.0, quantile=2 / 3), ReliefMap(rim_mm=0.0), ReliefMap(rim_mm=0.0)
+    span = replace(touch, positions=touch.positions - np.array([0.0, 0.0, 1.0]))  # 1 mm off the wall
+    median, upper, alone, mostly_span = (ReliefMap(rim_mm=0.0), ReliefMap(rim_mm=0.0, quantile=2 / 3),
+                                         ReliefMap(rim_mm=0.0), ReliefMap(rim_mm=0.0))
     for c in (span, touch, span, touch):
-        relief.add(c, pose, GRID)
         median.add(c, pose, GRID)
+        upper.add(c, pose, GRID)
+    for c in (span, touch, span, span):
+        mostly_span.add(c, pose, GRID)
     alone.add(touch, pose, GRID)
     reached = np.isfinite(alone.height())
-    assert CELL_QUANTILE == 0.5
-    assert np.max(np.abs(relief.height() - alone.height())[reached]) < 1e-9
-    assert np.allclose((alone.height() - median.height())[reached], 0.5)
+    assert CELL_QUANTILE == 0.5 and reached.sum() > 100
+    assert np.max(np.abs(median.height() - alone.height())[reached]) < 1e-9
+    assert np.allclose((upper.height() - alone.height())[reached], 1.0)
+    assert np.allclose((mostly_span.height() - alone.height())[reached], 1.0)
 
 
 def test_a_contacts_rim_is_left_out_of_the_map():
