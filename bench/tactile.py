@@ -109,8 +109,8 @@ def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Shape) -> float:
     """The probe's stiffness length fitted on reconstructed presses of a flat plate (``--plate-depths``,
-    twelve presses in all, turned at random), printed with its residual, the presses' indentation
-    range and the time."""
+    12 // (their count) presses at each, turned at random), printed with its residual, the presses'
+    indentation range and the time."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(args.seed + 1)
     n, pitch, uv = args.size, args.pitch, grid.uv
@@ -164,8 +164,8 @@ def main() -> None:
                     help="fit the probe's stiffness length first on reconstructed presses of a flat plate at 1, 2 "
                          "and 3 mm (as skinmap map --fit-probe-length does) and use it")
     ap.add_argument("--plate-depths", default="1,2,3",
-                    help="with --fit-probe-length: the plate's press depths, mm, comma-separated, twelve presses "
-                         "shared among them (default %(default)s; 1,2,3,4,5,6 reaches as deep as the letters' "
+                    help="with --fit-probe-length: the plate's press depths, mm, comma-separated, 12 // (their "
+                         "count) presses at each (default %(default)s; 1,2,3,4,5,6 reaches as deep as the letters' "
                          "presses indent, docs/tactile.md)")
     ap.add_argument("--hysteresis", type=float, default=0.0,
                     help="the gauges' hysteresis, loop height as a share of the strain excursion (the sensor's: "
