@@ -3,7 +3,7 @@
 Run: .venv/bin/python bench/tactile.py [--letters DUKE] [--wall letter|quad] [--size 5]
      [--scenes membrane,follows,bridges40] [--depth 2] [--spacing 15] [--quick] [--png FILE]
      [--weights none|sigma] [--reference bending|floor|rim] [--fit-probe-length [--plate-depths 1,2,3] | --probe-length MM]
-     [--cell-quantile Q] [--rim-mm MM] [--hysteresis H]
+     [--cell-quantile Q] [--rim-mm MM] [--hysteresis H] [--pairwise]
 
 Scene (skinmap.emulator.walls), as in the paper's cavity: the sheet (N×N cells, --pitch mm,
 10 mm gauges, h 0.2 mm; 5 × 5 at 12 mm as in the paper) on a balloon of radius 80 mm, pressed
@@ -34,6 +34,15 @@ rigid fit to the sheet's true surface instead of by its rim (a perfect reference
 probe's frame: what the reconstruction's own shape allows at best, given poses only).
 Poses given or estimated (then how far the placed contacts lie from their true places).
 
+``--pairwise``: each surface's consecutive presses registered one onto the other alone, as
+``tactile.estimate_pose`` registers a contact onto the map (the earlier press the map, the
+later one placed), twice: searched within the registration's window about the earlier press,
+and searched only within 5 mm and 6° of the true relative pose; printed per search, how many
+of the pairs were placed within 1 mm and 1° of their true relative pose ("right"), placed
+farther ("wrong", with their median distance), or refused.  What the overlap of two presses
+says of their relative place, before any chain or map: where even the exact surfaces starting
+from the truth are placed wrong, the heights in the overlap do not fix the pose.
+
 Per row: "vs relief": mean and 90th percentile |stitched − relief| over the map cells where the
 sheet touched the wall in some press (clearance < 0.05 mm; the relief is only felt there);
 "vs membrane": mean and p90 |stitched − the "true frame" map| over every mapped cell (the
@@ -58,7 +67,8 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 
 from skinmap.daemon.tactile import (CELL_QUANTILE, CONTACT_RIM_MM, PROBE_LENGTH_MM, Contact, ProbePose,  # noqa: E402
                                     ReliefMap, SampleGrid, capture_baseline, detect_contact,
-                                    fit_probe_length, level_by_bending, level_on_floor, stitch_estimated)
+                                    _registration_map, estimate_pose, fit_probe_length, level_by_bending,
+                                    level_on_floor, stitch_estimated)
 from skinmap.daemon.tactilemap import write_png  # noqa: E402
 from skinmap.emulator import physics as ph  # noqa: E402
 from skinmap.emulator.electrical import hysteresis_step  # noqa: E402
@@ -107,6 +117,46 @@ def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (p - pc) @ rot + qc
 
 
+def _relative(a: ProbePose, b: ProbePose) -> np.ndarray:
+    """Pose b in the frame of pose a: (x, y) mm and the angle, degrees."""
+    th = np.radians(a.angle_deg)
+    c, s = np.cos(th), np.sin(th)
+    dx, dy = b.x_mm - a.x_mm, b.y_mm - a.y_mm
+    return np.array([c * dx + s * dy, -s * dx + c * dy, (b.angle_deg - a.angle_deg + 180.0) % 360.0 - 180.0])
+
+
+def _pairwise(contacts: list[Contact | None], poses: list[ProbePose], grid: SampleGrid, near_truth: bool) -> str:
+    """Each press registered onto the one before it alone (``estimate_pose`` against a map of
+    that contact in its own frame): searched within the registration's window about it, or
+    (``near_truth``) within 5 mm and 6° of the true relative pose; how many land within 1 mm and
+    1° of it, how many farther, how many are refused."""
+    right, wrong, refused, off = 0, 0, 0, []
+    for i in range(len(contacts) - 1):
+        a, b = contacts[i], contacts[i + 1]
+        if a is None or b is None:
+            continue
+        one = _registration_map(ReliefMap(120.0, 1.0))
+        one.add(a, ProbePose(0.0, 0.0, 0.0, 0.0), grid)
+        truth = _relative(poses[i], poses[i + 1])
+        if near_truth:
+            est = estimate_pose(one, b, grid, prior=ProbePose(*truth, 0.0), max_move_mm=5.0, angle_range_deg=6.0)
+        else:
+            est = estimate_pose(one, b, grid, prior=ProbePose(0.0, 0.0, 0.0, 0.0))
+        if est.pose is None:
+            refused += 1
+            continue
+        d_xy = float(np.hypot(est.pose.x_mm - truth[0], est.pose.y_mm - truth[1]))
+        d_ang = abs((est.pose.angle_deg - truth[2] + 180.0) % 360.0 - 180.0)
+        if d_xy <= 1.0 and d_ang <= 1.0:
+            right += 1
+        else:
+            wrong += 1
+            off.append(d_xy)
+    where = "from the truth ±5 mm, ±6°" if near_truth else "in the window"
+    median = f" ({np.median(off):.1f} mm median off)" if off else ""
+    return f"{where}: {right} right, {wrong} wrong{median}, {refused} refused"
+
+
 def _fit_length(args: argparse.Namespace, grid: SampleGrid, gauges, free: ph.Shape) -> float:
     """The probe's stiffness length fitted on reconstructed presses of a flat plate (``--plate-depths``,
     12 // (their count) presses at each, turned at random), printed with its residual, the presses'
@@ -153,6 +203,9 @@ def main() -> None:
     ap.add_argument("--min-depth", type=float, default=0.5, help="contact: pressed in by more than this, mm")
     ap.add_argument("--scenes", default="membrane", help="comma-separated: membrane, follows, bridges40")
     ap.add_argument("--quick", action="store_true", help="given poses only (no registration)")
+    ap.add_argument("--pairwise", action="store_true",
+                    help="also register each surface's consecutive presses one onto the other and print how many "
+                         "land on their true relative pose (module docstring)")
     ap.add_argument("--png", help="write the maps (with the truth) to PNG files named after this one")
     ap.add_argument("--reference", choices=("bending", "floor", "rim"), default="bending",
                     help="given poses: each contact placed by its free cells' bending, as skinmap map does (bending), "
@@ -267,6 +320,10 @@ def main() -> None:
                             rec_contacts = contacts
                     t_detect = (time.perf_counter() - t0) / len(poses)
                     kept = [(c, p) for c, p in zip(contacts, poses) if c is not None]
+                    if args.pairwise and name != "rec true fit":
+                        print(f"{wall_name:5s} {scene_name:9s} {name:13s} consecutive presses registered pairwise: "
+                              + "; ".join(_pairwise(contacts, poses, grid, near_truth)
+                                          for near_truth in (False, True)), flush=True)
                     for mode in ("given",) if args.quick or name in ("true frame", "rec true fit") else ("given", "estimated"):
                         relief = ReliefMap(120.0, 1.0, rim_mm=args.rim_mm, quantile=args.cell_quantile)
                         t0 = time.perf_counter()
