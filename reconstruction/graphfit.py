@@ -45,6 +45,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 from scipy.interpolate import BSpline
+from scipy.linalg.blas import dgemm as _gemm
 from scipy.linalg.lapack import dpbtrf as _pbtrf
 from scipy.linalg.lapack import dpbtrs as _pbtrs
 from scipy.linalg.lapack import dtrtrs as _trtrs
@@ -132,7 +133,8 @@ _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 8.0)
 _MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
-_BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ from the band factor, J sparse
+_BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ from the band factor, J by gauge
+_SIGMA_ROWS_KEPT = 8  # node sets whose σ right-hand sides a large fit keeps (GraphFit._sigma_rows_of)
 #: A warm fit whose Gauss-Newton step still to take is longer than this, squared, in its own
 #: posterior s.d. (the Newton decrement on the last matrix factorised, :meth:`GraphFit._descend`;
 #: 3: the 3σ of the error bound) has not followed the shape, and the basin its chain holds may not
@@ -175,6 +177,19 @@ DAMPED_OBJECTIVE = 2.4
 DAMPED_RATIO = 0.9
 DAMPED_LINEAR = "damped linear"
 _DAMPED_STEPS = 10
+
+
+class _SigmaRows(NamedTuple):
+    """The right-hand sides of a large fit's node σ for one set of nodes and centre node
+    (:meth:`GraphFit._band_sigma_squares`): the frame's three forms (the centre node's height
+    and the best-fit plane's two slopes), then the nodes' heights in the order of their first
+    coefficient, as the non-zero entries of the band solver's blocked layout."""
+
+    order: np.ndarray  # (P,) the nodes (positions in the set asked for) in that order
+    starts: np.ndarray  # (3 + P,) each right-hand side's first non-zero coefficient (the forms': 0)
+    at: np.ndarray  # flat positions of their non-zero entries in the blocked layout
+    values: np.ndarray  # their values
+    weights: np.ndarray  # (P, 3) Fortran: s_p = e_p − weights[p] · forms, weights[p] = (1, u_p, v_p)
 
 
 class GraphResult(NamedTuple):
@@ -349,6 +364,9 @@ class GraphFit:
         self._lower_buffer: np.ndarray | None = None
         # the sensor frame's linear forms by centre node (_frame_height_rows)
         self._frame_forms: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # the large fits' node σ right-hand sides by (nodes, centre node, band) (_sigma_rows_of): they
+        # depend on the geometry and the nodes alone, and skinmapd asks for the same nodes every frame
+        self._sigma_rows: OrderedDict[tuple[bytes, tuple[int, int], int], _SigmaRows] = OrderedDict()
         # Linear start: the turning data alone in the small-slope model, Θ/g ≈ −mean(w_aa).
         self._j0 = -np.einsum("q,gql->gl", self.wq, self.daa)
         self._no_band = np.zeros((1, 1))
@@ -436,7 +454,8 @@ class GraphFit:
             res = np.empty(2 * g)
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                   stretch, w_t, w_s, band, rhs, with_matrix,
-                                                  np.asarray(curvature, dtype=float), res, self._no_jacobian)
+                                                  np.asarray(curvature, dtype=float), res, self._no_jacobian,
+                                                  self._no_jacobian)
             if with_matrix:
                 f, info = _pbtrf(band, lower=1)
                 factor = ("band", f) if info == 0 else None
@@ -817,7 +836,8 @@ class GraphFit:
             j = np.zeros((2 * g, self.size))
             self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning, stretch,
                                                   w_t, w_s, band, np.zeros(self.size), True,
-                                                  np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j)
+                                                  np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j,
+                                                  self._no_jacobian)
             # H = L·Lᵀ factorised in band form (cheap), then the many right-hand sides through
             # the dense triangle as level-3 BLAS (a band solve runs them one at a time, 2x slower)
             f, info = _pbtrf(band, lower=1)
@@ -861,34 +881,42 @@ class GraphFit:
         row over the coefficients, so each node costs one band solve instead of every datum's
         response over the whole grid (5×5: the 25 cell centres and an element row's patches are
         about 50 of 441 nodes).  The matrix is factorised on the first call and kept."""
-        system: list = []
+        system: list[Callable[[np.ndarray], np.ndarray]] = []
 
-        def solver() -> tuple[np.ndarray | scipy.sparse.csr_matrix, Callable[[np.ndarray], np.ndarray]]:
+        def squares() -> Callable[[np.ndarray], np.ndarray]:
+            """flat nodes → |J H⁻¹ s_p|² (the matrix factorised on the first call)."""
             if system:
                 return system[0]
             turning, stretch, w_t, w_s = data[:4]
             g = len(turning)
             h = None
             if self._compiled is not None and self.size > _BAND_SIGMA_SIZE:
-                # a large fit (above 8×8): the band factor and a sparse Jacobian, σ = |J H⁻¹ s|
-                # (the dense Jacobian and the dense triangle cost a 16×16 frame's node σ
-                # 125-280 ms, this about 70; 12×12 about 20), the nodes' columns solved together
-                # in blocks of the band (?pbtrs takes them one at a time, 2.5-3x slower)
+                # a large fit (above 8×8): the band factor, the nodes' columns solved together in
+                # blocks of the band (?pbtrs takes them one at a time, 2.5-3x slower), and J by
+                # each gauge's own coefficients (the dense Jacobian and the dense triangle cost a
+                # 16×16 frame's node σ 125-280 ms; :meth:`_band_sigma_squares`)
                 band = self.prior_band.copy()
+                jac_local = np.zeros((2 * g, self.idx.shape[1]))
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
                                                       np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g),
-                                                      self._no_jacobian)
+                                                      self._no_jacobian, jac_local)
                 f, info = _pbtrf(band, lower=1)
                 if info == 0:
-                    system.append((self._sparse_jacobian(c, w_t, w_s), BandCholeskyBlocks(f).solve))
-                    return system[0]
+                    blocks = BandCholeskyBlocks(f)
+
+                    def band_squares(flat: np.ndarray) -> np.ndarray:
+                        return self._band_sigma_squares(blocks, jac_local, flat, centre)
+
+                    system.append(band_squares)
+                    return band_squares
             if self._compiled is not None:
                 band = self.prior_band.copy()
                 j = np.zeros((2 * g, self.size))
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,
                                                       stretch, w_t, w_s, band, np.zeros(self.size), True,
-                                                      np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j)
+                                                      np.asarray(self.sigma_curvature, dtype=float), np.empty(2 * g), j,
+                                                      self._no_jacobian)
                 f, info = _pbtrf(band, lower=1)
                 if info != 0:
                     h = self._dense(band)
@@ -916,26 +944,68 @@ class GraphFit:
                 except np.linalg.LinAlgError:
                     def solve(rhs: np.ndarray) -> np.ndarray:
                         return np.linalg.lstsq(h, rhs, rcond=None)[0]
-            system.append((j, solve))
-            return system[0]
+
+            def dense_squares(flat: np.ndarray) -> np.ndarray:
+                r = j @ solve(np.asfortranarray(self._frame_height_rows(flat, centre).T))
+                return np.einsum("kp,kp->p", r, r)
+
+            system.append(dense_squares)
+            return dense_squares
 
         def at(flat: np.ndarray) -> np.ndarray:
-            j, solve = solver()
-            rows = self._frame_height_rows(np.asarray(flat, dtype=np.intp).reshape(-1), centre)
-            r = j @ solve(np.asfortranarray(rows.T))
-            return noise_ratio * np.sqrt(np.einsum("kp,kp->p", r, r))
+            return noise_ratio * np.sqrt(squares()(np.asarray(flat, dtype=np.intp).reshape(-1)))
 
         return at
 
-    def _sparse_jacobian(self, c: np.ndarray, w_t: np.ndarray, w_s: np.ndarray) -> scipy.sparse.csr_matrix:
-        """The normalised Jacobian (turning rows, then stretch rows) at c, sparse: each gauge
-        touches only its own B-splines (``idx``)."""
-        _, _, jt, js = self._model(c, True)
-        g, k = self.idx.shape
-        rows = np.repeat(np.arange(2 * g), k)
-        cols = np.concatenate([self.idx.ravel(), self.idx.ravel()])
-        vals = np.concatenate([(jt * w_t[:, None]).ravel(), (js * w_s[:, None]).ravel()])
-        return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(2 * g, self.size))
+    def _band_sigma_squares(self, blocks: BandCholeskyBlocks, jac_local: np.ndarray, flat: np.ndarray,
+                            centre: tuple[int, int]) -> np.ndarray:
+        """|J H⁻¹ s_p|² of fine nodes ``flat`` from H's band factor ``blocks`` and J by each
+        gauge's own coefficients (``jac_local``, kernels.graph_normal_equations).  s_p = e_p −
+        (ref + u_p·slope_u + v_p·slope_v): a node's height e_p touches 16 coefficients, the frame's
+        three forms (:meth:`_frame_forms_at`) all of them.  So L⁻¹ (the forward sweep) is taken of
+        the three forms and of the nodes' heights, each from its first coefficient on (a node's
+        height far down the system costs little: about half the sweep's work), and combined:
+        L⁻¹s_p, then L⁻ᵀ of it is H⁻¹s_p, the same as solving for s_p up to rounding."""
+        rows = self._sigma_rows_of(flat, centre, blocks)
+        nodes = len(rows.order)
+        y = blocks.columns(3 + nodes)  # the three forms, then the nodes' heights
+        y.reshape(-1)[rows.at] = rows.values
+        blocks.forward(y, rows.starts)
+        for block in y:  # L⁻¹s_p = L⁻¹e_p − w_p·(L⁻¹ forms), block by block (Fortran (kd, columns) each)
+            _gemm(-1.0, block[:3].T, rows.weights, beta=1.0, c=block[3:].T, trans_b=1, overwrite_c=1)
+        x = blocks.backward(y[:, 3:])
+        out = np.zeros(nodes)
+        self._compiled.graph_sigma_squares(self.idx, jac_local, np.ascontiguousarray(blocks.unblocked(x)), out)
+        squares = np.empty(nodes)
+        squares[rows.order] = out
+        return squares
+
+    def _sigma_rows_of(self, flat: np.ndarray, centre: tuple[int, int], blocks: BandCholeskyBlocks) -> _SigmaRows:
+        """The right-hand sides of :meth:`_band_sigma_squares` for nodes ``flat`` in the blocked
+        layout of ``blocks``, kept for the last :data:`_SIGMA_ROWS_KEPT` node sets made (skinmapd
+        reads the same nodes every frame)."""
+        key = (flat.tobytes(), centre, blocks.bandwidth)
+        rows = self._sigma_rows.get(key)
+        if rows is not None:
+            return rows
+        fv, fu = self._fv[0], self._fu[0]
+        a, b = np.divmod(flat, len(self._fine_u))
+        nodes = len(flat)
+        height = (fv[a][:, :, None] * fu[b][:, None, :]).reshape(nodes, self.size)
+        nonzero = height != 0.0
+        first = np.where(nonzero.any(axis=1), nonzero.argmax(axis=1), self.size)
+        order = np.argsort(first, kind="stable")
+        rhs = np.concatenate([np.array(self._frame_forms_at(centre)), height[order]])
+        col, coef = np.nonzero(rhs)
+        kd, columns = blocks.bandwidth, 3 + nodes
+        rows = _SigmaRows(order=order, starts=np.concatenate([np.zeros(3, dtype=np.intp), first[order]]),
+                          at=(coef // kd) * (columns * kd) + col * kd + coef % kd, values=rhs[col, coef],
+                          weights=np.asfortranarray(np.stack([np.ones(nodes), self._fine_u[b[order]],
+                                                              self._fine_v[a[order]]], axis=1)))
+        self._sigma_rows[key] = rows
+        if len(self._sigma_rows) > _SIGMA_ROWS_KEPT:
+            self._sigma_rows.popitem(last=False)
+        return rows
 
     def _frame_height_rows(self, flat: np.ndarray, centre: tuple[int, int]) -> np.ndarray:
         """(P, coefficients): the height of fine nodes ``flat`` in the sensor frame (over the
@@ -944,8 +1014,18 @@ class GraphFit:
         fv, fu = self._fv[0], self._fu[0]
         a, b = np.divmod(flat, len(self._fine_u))
         u, v = self._fine_u, self._fine_v
+        ref, slope_u, slope_v = self._frame_forms_at(centre)
+        height = (fv[a][:, :, None] * fu[b][:, None, :]).reshape(len(a), self.size)
+        return height - ref - u[b][:, None] * slope_u[None, :] - v[a][:, None] * slope_v[None, :]
+
+    def _frame_forms_at(self, centre: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sensor frame's own linear forms in the coefficients: the height of the centre node
+        ``centre`` and the best-fit plane's two slopes (they depend on the geometry and the
+        centre alone, kept)."""
         frame = self._frame_forms.get(centre)
-        if frame is None:  # the frame's own forms depend on the geometry and the centre alone
+        if frame is None:
+            fv, fu = self._fv[0], self._fu[0]
+            u, v = self._fine_u, self._fine_v
             a0, b0 = centre
             ref = (fv[a0][:, None] * fu[b0][None, :]).reshape(-1)
             # uncertainty.plane_slopes as linear forms: over a separable grid each slope's sum is
@@ -953,9 +1033,7 @@ class GraphFit:
             slope_u = np.outer(fv.sum(axis=0), u @ fu).reshape(-1) / (len(v) * float(u @ u))
             slope_v = np.outer(v @ fv, fu.sum(axis=0)).reshape(-1) / (len(u) * float(v @ v))
             frame = self._frame_forms[centre] = (ref, slope_u, slope_v)
-        ref, slope_u, slope_v = frame
-        height = (fv[a][:, :, None] * fu[b][:, None, :]).reshape(len(a), self.size)
-        return height - ref - u[b][:, None] * slope_u[None, :] - v[a][:, None] * slope_v[None, :]
+        return frame
 
     def fine_positions(self, c: np.ndarray) -> np.ndarray:
         """x = (u, v, w) at every fine-grid node, (nf, mf, 3), base frame."""

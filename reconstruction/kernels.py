@@ -34,8 +34,8 @@ except ImportError:  # the numpy reference still works without it
 
 __all__ = [
     "AVAILABLE", "metric_terms", "surface_positions", "as_field", "laplacian_band", "warm_up",
-    "graph_residuals", "graph_normal_equations", "hermite_coefficients", "node_frames", "gauge_strains",
-    "basis_curvature", "stretch_residual", "quartic_grid",
+    "graph_residuals", "graph_normal_equations", "graph_sigma_squares", "hermite_coefficients", "node_frames",
+    "gauge_strains", "basis_curvature", "stretch_residual", "quartic_grid",
 ]
 
 AVAILABLE = numba is not None
@@ -934,11 +934,13 @@ def graph_residuals(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, res):
 
 @_compiled
 def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, band, rhs, with_matrix, curvature, res,
-                           jac):
+                           jac, jac_local):
     """Adds JᵀJ (lower band storage, band[d, j] = A[j + d, j]) and Jᵀr of the graph model's
     normalised residuals to ``band`` and ``rhs`` (which hold the prior's part); only Jᵀr when
     not ``with_matrix``; the normalised residuals to ``res`` (turning, then stretch) and, when
-    ``jac`` has rows, the normalised Jacobian to ``jac`` (2G, coefficients).
+    ``jac`` has rows, the normalised Jacobian to ``jac`` (2G, coefficients); when ``jac_local``
+    has rows, its rows over each gauge's own coefficients ``idx`` to ``jac_local`` (2G, idx
+    columns: turning rows, then stretch rows; 0 at the padding).
     ``curvature`` = (p, n): the matrix also takes p·r ∂²r of every stretch residual r > 0 and
     n·|r| ∂²r of every r < 0 (∂²r ≥ 0): plain Gauss-Newton sees no stretch where a slope is
     small, and overshoots there (see :mod:`.graphfit`)."""
@@ -983,6 +985,10 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
             for k in range(nl):
                 jac[g, idx[g, k]] += jt[k]
                 jac[ng + g, idx[g, k]] += js[k]
+        if jac_local.shape[0] == 2 * ng:  # ... or over the gauge's own coefficients (large sheets)
+            for k in range(nl):
+                jac_local[g, k] = jt[k]
+                jac_local[ng + g, k] = js[k]
         if not with_matrix:
             continue
         # this gauge's block (lower triangle), then added to the band at its indices
@@ -1010,6 +1016,33 @@ def graph_normal_equations(c, idx, da, db, daa, wq, turning, stretch, w_t, w_s, 
                     band[0, i] += block[k, l]
                 else:  # padding repeats a real index: the pair counts on both sides
                     band[0, i] += 2.0 * block[k, l]
+
+
+@_compiled
+def graph_sigma_squares(idx, jac_local, x, out):
+    """Adds |J x_p|² of every column p of ``x`` (coefficients, P), C-ordered, to ``out`` (P,):
+    J the normalised Jacobian as ``jac_local`` (2G, idx columns, turning rows then stretch; see
+    :func:`graph_normal_equations`), each gauge's rows over its own coefficients ``idx``
+    (G, idx columns).  The node σ of a large graph fit without a sparse matrix: the rows of x
+    a gauge touches are contiguous over the columns, so each datum is a few dozen
+    vectorised multiply-adds over all of them at once."""
+    ng = idx.shape[0]
+    nl = idx.shape[1]
+    acc_t = np.empty(x.shape[1])
+    acc_s = np.empty(x.shape[1])
+    for g in range(ng):  # a gauge's turning and stretch rows together: its rows of x read once
+        acc_t[:] = 0.0
+        acc_s[:] = 0.0
+        for k in range(nl):
+            a_t = jac_local[g, k]
+            a_s = jac_local[ng + g, k]
+            if a_t != 0.0 or a_s != 0.0:  # (the padding)
+                row = x[idx[g, k]]
+                for p in range(acc_t.shape[0]):
+                    acc_t[p] += a_t * row[p]
+                    acc_s[p] += a_s * row[p]
+        for p in range(acc_t.shape[0]):
+            out[p] += acc_t[p] * acc_t[p] + acc_s[p] * acc_s[p]
 
 
 def warm_up(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corrections: int) -> bool:
@@ -1061,8 +1094,10 @@ def _warm(h: float, a0: int, b0: int, band: np.ndarray, shear_passes: int, corre
     pts = np.zeros((1, 2, 4))
     one_g, res = np.ones(1), np.empty(2)
     graph_residuals(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g, res)
+    jac_local = np.zeros((2, 4))
     graph_normal_equations(np.zeros(4), idx, pts, pts, pts, np.full(2, 0.5), one_g, one_g, one_g, one_g,
-                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res, np.zeros((2, 4)))
+                           np.zeros((4, 4)), np.zeros(4), True, np.ones(2), res, np.zeros((2, 4)), jac_local)
+    graph_sigma_squares(idx, jac_local, np.zeros((4, 3)), np.zeros(3))
     # the membrane's curvature on that sheet, at one node (a flat sheet's is 0)
     corner = np.zeros(1, dtype=np.intp)
     k_flat = np.empty(1)

@@ -58,9 +58,35 @@ def test_band_solve_takes_any_memory_order_of_the_factor_and_checks_shapes():
     assert BandCholeskyBlocks(f).solve(np.zeros((50, 0))).shape == (50, 0)
 
 
-def test_large_graph_node_sigma_equals_the_lapack_band_solve(monkeypatch):
+def test_band_solve_sweeps_take_the_columns_begun_and_the_blocked_layout():
+    """forward with ``starts`` (each column zero above its start, the sweep taking the columns
+    begun) equals forward without; the blocked layout round-trips; bad arguments are refused."""
+    n, kd = 301, 64
+    h, band = spd_band(n, kd, seed=7)
+    solver = BandCholeskyBlocks(factor(band))
+    rng = np.random.default_rng(8)
+    starts = np.sort(rng.integers(0, n, size=40))
+    starts[:3] = 0
+    rhs = rng.normal(size=(n, 40))
+    rhs[np.arange(n)[:, None] < starts[None, :]] = 0.0
+    y = solver.blocked(rhs)
+    np.testing.assert_array_equal(solver.unblocked(y), rhs)
+    assert y.shape == (solver.blocks, 40, kd)
+    begun = solver.forward(solver.blocked(rhs), starts)
+    every = solver.forward(solver.blocked(rhs))
+    np.testing.assert_allclose(solver.unblocked(begun), solver.unblocked(every), rtol=1e-13, atol=1e-14)
+    x = solver.unblocked(solver.backward(begun))
+    np.testing.assert_allclose(h @ x, rhs, rtol=1e-8, atol=1e-10 * np.abs(rhs).max())
+    with pytest.raises(ValueError):
+        solver.forward(solver.blocked(rhs), starts[::-1])
+    with pytest.raises(ValueError):
+        solver.forward(np.zeros((solver.blocks, 3, kd + 1)))
+
+
+def test_large_graph_node_sigma_equals_the_lapack_band_solve():
     """12×12 (a band of about 200 sub-diagonals over 1521 unknowns): the node σ of a graph
-    answer, the nodes' columns solved in blocks, equals the same σ solved column by column."""
+    answer, the nodes' columns solved in blocks, equals the same σ solved column by column
+    with LAPACK's ?pbtrs on the same factor."""
     from skinmap.emulator.physics import GaussianBumps, gauge_strains
     from skinmap.reconstruction import Reconstructor
     from skinmap.reconstruction import graphfit
@@ -83,16 +109,18 @@ def test_large_graph_node_sigma_equals_the_lapack_band_solve(monkeypatch):
     grid = rec.grid
     cells = (grid.node_rows[:, None] * grid.mf + grid.node_cols[None, :]).ravel()
     nodes = np.concatenate([cells, np.random.default_rng(5).choice(grid.nf * grid.mf, 30, replace=False)])
-    blocked = graph.height_sigma_at(surf.state.graph, data, 0.7, rec.grid.centre)(nodes)
+    c = surf.state.graph
+    blocked = graph.height_sigma_at(c, data, 0.7, rec.grid.centre)(nodes)
 
-    class ColumnByColumn:
-        def __init__(self, f: np.ndarray) -> None:
-            self.f = f
-
-        def solve(self, rhs: np.ndarray) -> np.ndarray:
-            return dpbtrs(self.f, rhs, lower=1)[0]
-
-    monkeypatch.setattr(graphfit, "BandCholeskyBlocks", ColumnByColumn)
-    reference = graph.height_sigma_at(surf.state.graph, data, 0.7, rec.grid.centre)(nodes)
+    # the same matrix and the dense Jacobian from the kernel, ?pbtrs column by column
+    g = len(data[0])
+    band = graph.prior_band.copy()
+    j = np.zeros((2 * g, graph.size))
+    graph._compiled.graph_normal_equations(c, graph.idx, graph.da, graph.db, graph.daa, graph.wq, *data[:4], band,
+                                           np.zeros(graph.size), True, np.asarray(graph.sigma_curvature, dtype=float),
+                                           np.empty(2 * g), j, np.zeros((0, 0)))
+    f = factor(band)
+    r = j @ dpbtrs(f, graph._frame_height_rows(nodes, rec.grid.centre).T, lower=1)[0]
+    reference = 0.7 * np.sqrt(np.einsum("kp,kp->p", r, r))
     assert np.all(np.isfinite(reference)) and (reference > 0).sum() >= reference.size - 1
     np.testing.assert_allclose(blocked, reference, rtol=1e-10, atol=1e-15)
