@@ -43,7 +43,9 @@ __all__ = ["MapReport", "contact_events", "map_log", "write_ply", "write_png"]
 #: position; the rest of a contact is the film on the balloon, alike from press to press.  On the
 #: emulator's balloon bench (docs/tactile.md) the placements that passed every check of
 #: estimate_pose lay 7-110 mm (66 median) from their true places, and with the sheet's exact surfaces and
-#: only its truly touching samples nothing could be placed at all.
+#: only its truly touching samples nothing could be placed at all; two presses' exact surfaces,
+#: registered one onto the other from their true relative pose, move off it (none of 63 pairs
+#: within 1 mm and 1°: ``bench/tactile.py --pairwise``).
 UNVERIFIED_ESTIMATE = ("caution: poses estimated from the contacts' overlap are not verified. A pressurised probe "
                        "touches a relief's flat parts and spans its edges, so a contact's shape is mostly the probe's "
                        "own and can fit far from where it was pressed; give the poses (--poses, the /pose topic or "
