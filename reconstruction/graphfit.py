@@ -133,7 +133,10 @@ _SCREEN_SHORT = 6.0  # a gauge shorter by this many noise s.d.: not a graph
 _SCREEN_RATIO = (0.5, 8.0)
 _MORE_STRETCH = "stretch above:"  # screen reasons that another start (with twist) may answer
 _TOLERANCE = 1e-3  # stop when a step lowers the objective by less than this per gauge pair
-_BAND_SIGMA_SIZE = 1000  # above this many coefficients (10×10 and up) node σ from the band factor, J by gauge
+# above this many coefficients node σ from the band factor, J by gauge (every size: on 5×5 and 8×8
+# too it is 1.9x and 2.3x faster than the dense triangle's ?trtrs, the same σ to 1e-14; tests set it
+# high to reach the dense path as a reference)
+_BAND_SIGMA_SIZE = 0
 _SIGMA_ROWS_KEPT = 8  # node sets whose σ right-hand sides a large fit keeps (GraphFit._sigma_rows_of)
 #: A warm fit whose Gauss-Newton step still to take is longer than this, squared, in its own
 #: posterior s.d. (the Newton decrement on the last matrix factorised, :meth:`GraphFit._descend`;
@@ -891,10 +894,10 @@ class GraphFit:
             g = len(turning)
             h = None
             if self._compiled is not None and self.size > _BAND_SIGMA_SIZE:
-                # a large fit (above 8×8): the band factor, the nodes' columns solved together in
-                # blocks of the band (?pbtrs takes them one at a time, 2.5-3x slower), and J by
-                # each gauge's own coefficients (the dense Jacobian and the dense triangle cost a
-                # 16×16 frame's node σ 125-280 ms; :meth:`_band_sigma_squares`)
+                # the band factor, the nodes' columns solved together in blocks of the band (?pbtrs
+                # takes them one at a time, 2.5-3x slower), and J by each gauge's own coefficients
+                # (the dense Jacobian and the dense triangle cost a 16×16 frame's node σ 125-280 ms;
+                # :meth:`_band_sigma_squares`)
                 band = self.prior_band.copy()
                 jac_local = np.zeros((2 * g, self.idx.shape[1]))
                 self._compiled.graph_normal_equations(c, self.idx, self.da, self.db, self.daa, self.wq, turning,

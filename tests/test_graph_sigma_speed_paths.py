@@ -96,3 +96,29 @@ def test_local_jacobian_and_sigma_squares_kernels(answer):
     out = np.zeros(17)
     graph._compiled.graph_sigma_squares(graph.idx, local, x, out)
     np.testing.assert_allclose(out, ((dense @ x) ** 2).sum(axis=0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("n, m", [(3, 3), (5, 5), (6, 4), (8, 8)])
+def test_small_sheets_node_sigma_through_the_band_equals_the_dense_triangle(monkeypatch, n, m):
+    """Sheets of up to 64 cells take the band path too (their H carries a share of the stretch
+    residuals' curvature): node_sigma and locate_sigma as through the dense triangle."""
+    def answer() -> tuple[np.ndarray, np.ndarray, str, int]:
+        rec = Reconstructor(n, m)
+        eu, el = gauge_strains(GaussianBumps(height=2.0, fwhm=18.0, centre=(2.0, -3.0)), n, m, 12.0,
+                               rec.h_upper, rec.h_lower, rec.gauge_length)
+        rng = np.random.default_rng(3)
+        surf = rec(eu + rng.normal(0.0, NOISE, eu.shape), el + rng.normal(0.0, NOISE, el.shape))
+        pick = np.random.default_rng(1)
+        uv = np.column_stack([pick.uniform(-5.0 * m, 5.0 * m, 20), pick.uniform(-5.0 * n, 5.0 * n, 20)])
+        sigma = surf.node_sigma.copy(), surf.locate_sigma(uv)
+        assert rec._graph is not None
+        return *sigma, surf.diagnostics.extra["model"], len(rec._graph._sigma_rows)
+
+    band_nodes, band_points, model, band_sets = answer()
+    assert model == "graph" and band_sets > 0  # (the band path keeps its node sets' right-hand sides)
+    monkeypatch.setattr(graphfit, "_BAND_SIGMA_SIZE", 10 ** 9)
+    dense_nodes, dense_points, _, dense_sets = answer()
+    assert dense_sets == 0
+    assert band_nodes.max() > 0.0
+    np.testing.assert_allclose(band_nodes, dense_nodes, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(band_points, dense_points, rtol=1e-12, atol=1e-15)
