@@ -207,7 +207,8 @@ def test_both_signs_of_a_saddle_at_45_degrees_on_8x8_are_read_alike_and_flagged(
 
 
 def test_a_large_graph_answers_node_sigma_from_the_band_factor_equals_the_dense_route(monkeypatch, sheets):
-    """On 12×12 a graph answer's node σ comes from the band factor and a sparse Jacobian (|J y|, y = H⁻¹s):
+    """On 12×12 a graph answer's node σ comes from the band factor and the Jacobian by each gauge's own
+    coefficients (|J y|, y = H⁻¹s):
     the same values as through the Jacobian and the dense triangle."""
     import skinmap.reconstruction.graphfit as graphfit
 
