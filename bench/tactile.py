@@ -117,12 +117,17 @@ def _fitted(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (p - pc) @ rot + qc
 
 
+def _turn(to_deg: float, from_deg: float) -> float:
+    """The angle from ``from_deg`` to ``to_deg``, in (−180°, 180°]."""
+    return (to_deg - from_deg + 180.0) % 360.0 - 180.0
+
+
 def _relative(a: ProbePose, b: ProbePose) -> np.ndarray:
     """Pose b in the frame of pose a: (x, y) mm and the angle, degrees."""
     th = np.radians(a.angle_deg)
     c, s = np.cos(th), np.sin(th)
     dx, dy = b.x_mm - a.x_mm, b.y_mm - a.y_mm
-    return np.array([c * dx + s * dy, -s * dx + c * dy, (b.angle_deg - a.angle_deg + 180.0) % 360.0 - 180.0])
+    return np.array([c * dx + s * dy, -s * dx + c * dy, _turn(b.angle_deg, a.angle_deg)])
 
 
 def _pairwise(contacts: list[Contact | None], poses: list[ProbePose], grid: SampleGrid, near_truth: bool) -> str:
@@ -146,7 +151,7 @@ def _pairwise(contacts: list[Contact | None], poses: list[ProbePose], grid: Samp
             refused += 1
             continue
         d_xy = float(np.hypot(est.pose.x_mm - truth[0], est.pose.y_mm - truth[1]))
-        d_ang = abs((est.pose.angle_deg - truth[2] + 180.0) % 360.0 - 180.0)
+        d_ang = abs(_turn(est.pose.angle_deg, truth[2]))
         if d_xy <= 1.0 and d_ang <= 1.0:
             right += 1
         else:
@@ -347,7 +352,7 @@ def main() -> None:
                             refused = "; ".join(f"{k} x{v}" for k, v in refusals.most_common()) or "none"
                             # how far each placed contact lies from its true place (the anchor left out)
                             off = [(float(np.hypot(e.pose.x_mm - p.x_mm, e.pose.y_mm - p.y_mm)),
-                                    abs((e.pose.angle_deg - p.angle_deg + 180.0) % 360.0 - 180.0))
+                                    abs(_turn(e.pose.angle_deg, p.angle_deg)))
                                    for e, (_, p) in list(zip(est, kept))[1:] if e.pose is not None]
                             if off:
                                 xy_off, ang_off = np.array(off).T
