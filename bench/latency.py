@@ -259,7 +259,8 @@ def accuracy_lines(size: str, scan_rate: float, output_rate: float, seconds: flo
     runs = []
     for defer in (True, False):
         pipe = emulated_pipeline(device, spec, uv, defer_cold_fits=defer)
-        runs.append([r for r in (pipe.process(raw, seq, 0, 0) for seq, raw in scans) if r.seq % step == 0])
+        runs.append([r for r in (pipe.process(raw, seq, 0, 0, lead=bool(seq % step)) for seq, raw in scans)
+                     if r.seq % step == 0])
     ratios, sig_d, sig_u, gaps = [], [], [], []
     for a, b in zip(*runs):
         if a.diagnostics.get("graph_deferred"):

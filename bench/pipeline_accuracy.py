@@ -84,7 +84,7 @@ def run(n: int, shape: ph.Shape, seconds: float, output_rate: float, hysteresis:
     errs, ratios, deferred, sigmas = [], [], 0, []
     with threadpool_limits(1):
         for k, t, resistances in emulated_scans(device, spec, seconds, every=step, ramp_s=ramp_s, lead=lead_scans):
-            result = pipe.process(resistances, k, round(t * 1e6), 0)
+            result = pipe.process(resistances, k, round(t * 1e6), 0, lead=bool(k % step))
             if k % step:
                 continue  # a lead scan: not published
             if ramp_s > 0 and t < ramp_s + 0.2:

@@ -143,9 +143,9 @@ class _MotionSample:
     """What the response lag's speed is read from: one processed frame's points and scatter."""
     time_s: float
     nodes: np.ndarray  # (N·M, 3)
-    node_scatter: np.ndarray  # (N·M,)
+    node_scatter: np.ndarray | None  # (N·M,); None: not read (a lead scan)
     elements: np.ndarray  # (K, 3)
-    element_scatter: np.ndarray  # (K,)
+    element_scatter: np.ndarray | None  # (K,); None: not read
 
 
 def graph_restart(previous_seq: int | None, seq: int) -> bool:
@@ -560,7 +560,13 @@ class FramePipeline:
             # (the sheet's recent motion; a device whose clock restarted leaves none within reach)
             self._motion = list(earlier._motion)
 
-    def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int) -> FrameResult:
+    def process(self, resistance_ohm: np.ndarray, seq: int, device_time_us: int, host_time_ns: int,
+                lead: bool = False) -> FrameResult:
+        """One scan's resistances (4, N, M) Ω → its frame.  ``lead``: a lead scan (`[output]
+        lead_scans`), reconstructed only so that the scan due after it starts warm one scan back,
+        and never published: its chains are fed as any frame's and it becomes the next warm start,
+        but its σ is not read (every σ UNKNOWN_SIGMA_MM, its elements flagged DEGRADED), and it
+        is not held as the last good frame."""
         g = self.geometry
         t_start = time.perf_counter()
         eps_u, eps_l, valid = resistances_to_strains(resistance_ohm, self.calibration)
@@ -603,7 +609,13 @@ class FramePipeline:
         normals = np.asarray(surf.normals, dtype=np.float64)
         locate_sigma = getattr(surf, "locate_sigma", None)
         read: tuple[np.ndarray, np.ndarray] | None = None
-        if locate_sigma is not None and self.elements.count:
+        if lead:
+            # (the σ stage costs as much as the reconstruction itself; a lead's is never read)
+            node_sigma = np.full(nodes.shape[:2], UNKNOWN_SIGMA_MM)
+            node_scatter = node_sigma
+            unknown = np.full(self.elements.count, UNKNOWN_SIGMA_MM)
+            read = unknown, unknown
+        elif locate_sigma is not None and self.elements.count:
             # the cell centres' and the elements' σ in one reading each (the cell centres are
             # fine-grid nodes, read there exactly), and the scatter's part the same way
             cells = nodes.shape[0] * nodes.shape[1]
@@ -622,7 +634,9 @@ class FramePipeline:
         # (a surface that tells no σ by position, or no elements: the scatter is σ itself, never less)
         scatter = np.fmin(read[1], sig) if read is not None else sig
         lag_mm = 0.0
-        if self.response_lag_s > 0.0:
+        if self.response_lag_s > 0.0 and lead:
+            self._remember_motion(device_time_us * 1e-6, nodes, None, pos, None)
+        elif self.response_lag_s > 0.0:
             node_sigma, sig, lag_mm = self._with_response_lag(device_time_us * 1e-6, nodes, node_scatter, node_sigma,
                                                               pos, scatter, sig)
         t_end = time.perf_counter()
@@ -677,7 +691,8 @@ class FramePipeline:
             element_scatter_mm=np.where(np.isfinite(scatter), scatter, UNKNOWN_SIGMA_MM),
             geometry=g,
         )
-        self._last_good = result
+        if not lead:
+            self._last_good = result
         return result
 
     def _with_response_lag(self, time_s: float, nodes: np.ndarray, node_scatter: np.ndarray, node_sigma: np.ndarray,
@@ -694,19 +709,32 @@ class FramePipeline:
         if before and before[-1].nodes.shape == flat_nodes.shape and before[-1].elements.shape == pos.shape:
             b = before[-1]
             dt = time_s - b.time_s
-            node_lag = response_lag_sigma(flat_nodes, b.nodes, dt, flat_scatter, b.node_scatter, self.response_lag_s)
+            # a lead scan's scatter was not read: the same sheet's a few scans later stands for it
+            b_nodes = flat_scatter if b.node_scatter is None else b.node_scatter
+            b_elements = scatter if b.element_scatter is None else b.element_scatter
+            node_lag = response_lag_sigma(flat_nodes, b.nodes, dt, flat_scatter, b_nodes, self.response_lag_s)
             floor = alignment_floor(node_lag)
             node_lag = np.maximum(node_lag, floor).reshape(node_sigma.shape)
-            element_lag = np.maximum(response_lag_sigma(pos, b.elements, dt, scatter, b.element_scatter,
+            element_lag = np.maximum(response_lag_sigma(pos, b.elements, dt, scatter, b_elements,
                                                         self.response_lag_s), floor)
             node_sigma = np.hypot(node_sigma, node_lag)
             sig = np.hypot(sig, element_lag)
             largest = float(np.max(node_lag)) if node_lag.size else 0.0
-        if np.isfinite(flat_nodes).all() and np.isfinite(pos).all():  # (a frame held for NaN is not one)
-            history.append(_MotionSample(time_s, flat_nodes.copy(), flat_scatter.copy(), np.array(pos, dtype=float),
-                                         np.array(scatter, dtype=float)))
-        self._motion = history
+        self._remember_motion(time_s, nodes, node_scatter, pos, scatter)
         return node_sigma, sig, largest
+
+    def _remember_motion(self, time_s: float, nodes: np.ndarray, node_scatter: np.ndarray | None, pos: np.ndarray,
+                         scatter: np.ndarray | None) -> None:
+        """This frame joins the motion history (its scatter None where it was not read: a lead
+        scan), and frames beyond MOTION_HORIZON_S leave it."""
+        history = [h for h in self._motion if 0.0 < time_s - h.time_s <= MOTION_HORIZON_S]
+        flat_nodes = nodes.reshape(-1, 3)
+        if np.isfinite(flat_nodes).all() and np.isfinite(pos).all():  # (a frame held for NaN is not one)
+            history.append(_MotionSample(time_s, flat_nodes.copy(),
+                                         None if node_scatter is None else np.array(node_scatter, dtype=float).reshape(-1),
+                                         np.array(pos, dtype=float),
+                                         None if scatter is None else np.array(scatter, dtype=float)))
+        self._motion = history
 
     def _chained(self) -> bool:
         """Whether this pipeline runs the graph fit's chains (warm starts of a graph fit)."""

@@ -114,7 +114,8 @@ class ProcessingListener(QueuedListener):
         scan = record.scan
         if (scan.n, scan.m) != (pipeline.geometry.n, pipeline.geometry.m):
             return
-        result = pipeline.process(scan.resistances_ohm(), scan.sample_index, scan.timestamp_us, record.t_rx_ns)
+        result = pipeline.process(scan.resistances_ohm(), scan.sample_index, scan.timestamp_us, record.t_rx_ns,
+                                  lead=lead)
         if lead:
             # logged so that replay reconstructs it too (the chain's next warm start)
             self.leads += 1

@@ -271,7 +271,8 @@ def replay_log(path: str | os.PathLike[str], *, session: Any = None, prefix: str
                         pipeline.continue_from(earlier)  # as the live daemon does after a new HELLO
                     pipeline.set_calibration(_calibration_from_doc(cfg_entry[1]))
                     active_config = cfg_entry
-                result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns)
+                result = pipeline.process(scan.resistances_ohm(), seq, scan.timestamp_us, m.log_time_ns,
+                                          lead=seq in leads)
                 synced = synced or pipeline.chain_origin is not None
                 report.processed += 1
                 if seq in leads:  # the next scan's warm start; nothing was published

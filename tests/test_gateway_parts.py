@@ -443,8 +443,12 @@ def test_a_lead_scan_is_skipped_where_the_scan_due_already_waits():
         s = SimpleNamespace(n=2, m=2, sample_index=k, timestamp_us=0, resistances_ohm=lambda: np.ones((4, 2, 2)))
         return ScanReceived(s, k, k * 20_000_000)  # type: ignore[arg-type]
 
-    def process(resistance, seq, _device_us, host_ns):
+    told_lead: list[int] = []
+
+    def process(resistance, seq, _device_us, host_ns, lead=False):
         processed.append((seq, False))
+        if lead:  # (its σ is not read)
+            told_lead.append(seq)
         valid = np.ones((2, 2, 2, 2), bool)
         return SimpleNamespace(seq=seq, solve_time_s=0.0, host_time_ns=host_ns, device_time_us=0, gauge_valid=valid,
                                eps_upper=np.zeros((2, 2, 2)), eps_lower=np.zeros((2, 2, 2)))
@@ -460,7 +464,7 @@ def test_a_lead_scan_is_skipped_where_the_scan_due_already_waits():
         p.on_record(scan(k))
         if k in (0, 3, 4):
             p.handle(p._queue.get_nowait())  # the thread was free: each taken as it came
-    assert processed == [(0, True), (3, False), (4, True)]
+    assert processed == [(0, True), (3, False), (4, True)] and told_lead == [3]
     assert [r.kind for r in logged if getattr(r, "kind", "") == "lead"] == ["lead"] and p.leads == 1
     for k in range(5, 10):  # 8 a lead, 9 due: both queued before the thread is free
         p.on_record(scan(k))

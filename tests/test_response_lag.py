@@ -137,3 +137,31 @@ def test_the_device_info_tells_what_the_published_sigma_carries():
         assert info["uncertainty"]["gain_sd"] == cfg.reconstruction.gain_sd
         assert info["uncertainty"]["strain_sigma"] == cfg.reconstruction.strain_sigma
         assert info["uncertainty"]["twist_prior"] == "open"
+
+
+def test_a_lead_scan_read_without_sigma_is_still_the_baseline_of_the_lag_term():
+    """A lead scan's σ is not read (FramePipeline.process(lead=True)), but it joins the motion
+    history: at 10 scans/s the scan before each due one is 100 ms back, the baseline the lag term
+    reads the speed from (the scan published before it, 500 ms back, is beyond the horizon's
+    reach once the lead is newer).  The due frame's σ is then that of a pipeline that read the
+    lead's σ, to within the lead's scatter taken as the due frame's, and the lead itself reports
+    every σ unknown, its elements DEGRADED."""
+    from skinmap.elements.locate import UNKNOWN_SIGMA_MM
+    from skinmap.wire.messages import ElementFlag
+
+    heights = [3.0, 3.0, 3.3, 3.6]  # 3 mm/s at the top from the third scan on
+    times = [0, 400_000, 900_000, 1_000_000]  # due, due, lead, due (µs)
+    leads = [False, False, True, False]
+    skipping, reading = pipeline(response_lag_s=RESPONSE_LAG_S), pipeline(response_lag_s=RESPONSE_LAG_S)
+    for k, (h, t, lead) in enumerate(zip(heights, times, leads)):
+        scan = resistances(ph.GaussianBumps(height=h, fwhm=20.0))
+        a = skipping.process(scan, k, t, 0, lead=lead)
+        b = reading.process(scan, k, t, 0)
+        if lead:
+            assert np.all(a.node_sigma_mm == UNKNOWN_SIGMA_MM) and np.all(a.element_sigma_mm == UNKNOWN_SIGMA_MM)
+            assert np.all(a.element_flags & int(ElementFlag.DEGRADED))
+            np.testing.assert_array_equal(a.nodes_mm, b.nodes_mm)
+    np.testing.assert_array_equal(a.element_positions_mm, b.element_positions_mm)
+    assert "response_lag_sigma_mm" in a.diagnostics, "the lead 100 ms back is the baseline"
+    np.testing.assert_allclose(a.node_sigma_mm, b.node_sigma_mm, rtol=0.05)
+    np.testing.assert_allclose(a.element_sigma_mm, b.element_sigma_mm, rtol=0.05)
