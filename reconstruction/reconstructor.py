@@ -514,12 +514,12 @@ class Reconstructor(StretchPatternTwist):
                 _report_screen(answer.diagnostics, screened[0], screened[1], t_screen)
         return surf
 
-    def _gain_map(self, positions: np.ndarray, stretch: np.ndarray) -> np.ndarray:
-        """The fine-node σ of a gain error the gauges share (:func:`.uncertainty.gain_sigma`),
-        no less anywhere than its mean over the nodes: after a reference's best rigid fit the
-        sheet's centre moves by the mean of the nodes' errors too (the alignment floor, as the
-        noise's σ has it)."""
-        sigma = gain_sigma(positions, self.grid.u, self.grid.v, stretch, self.pitch, self.gain_sd)
+    def _gain_map(self, positions: np.ndarray, stretch: np.ndarray, twist: float = 0.0) -> np.ndarray:
+        """The fine-node σ of a gain error the gauges share (:func:`.uncertainty.gain_sigma`, the
+        answer's constant ``twist`` taken apart), no less anywhere than its mean over the nodes:
+        after a reference's best rigid fit the sheet's centre moves by the mean of the nodes'
+        errors too (the alignment floor, as the noise's σ has it)."""
+        sigma = gain_sigma(positions, self.grid.u, self.grid.v, stretch, self.pitch, self.gain_sd, twist)
         return np.maximum(sigma, alignment_floor(sigma[np.ix_(self.grid.node_rows, self.grid.node_cols)]))
 
     def _screen_gauges(self, eps_upper, eps_lower, strain_sigma):
@@ -885,7 +885,8 @@ class Reconstructor(StretchPatternTwist):
             for answer in (surf, surf.mirror):
                 if answer is not None and answer._fine_sigma_fn is not None:
                     answer._fine_sigma_fn = with_gain(answer._fine_sigma_fn,
-                                                      partial(self._gain_map, answer._coeffs[..., 0, :], stretch))
+                                                      partial(self._gain_map, answer._coeffs[..., 0, :], stretch,
+                                                              answer.diagnostics.twist_constant))
         return surf
 
 

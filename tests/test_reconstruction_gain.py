@@ -29,7 +29,8 @@ def test_the_default_is_the_hysteresis_and_the_relaxation_each_a_bounded_error_i
 @pytest.mark.parametrize("n, spec, mechanics", [
     (5, "sphere:radius=60", "kinematic"), (5, "cylinder:radius=40,axis_angle=30", "kinematic"),
     (5, "saddle:radius=80,axis_angle=20", "kinematic"), (5, "gaussian:height=4,fwhm=20,u0=6,v0=-4", "kinematic"),
-    (12, "cylinder:radius=96", "kinematic"), (5, "sphere:radius=70,prestretch=0.05", "elastic"),
+    (12, "cylinder:radius=96", "kinematic"), (12, "saddle:radius=170,axis_angle=15", "kinematic"),
+    (5, "sphere:radius=70,prestretch=0.05", "elastic"),
     (5, "saddle:radius=80,axis_angle=20", "elastic"), (5, "gaussian:height=4,fwhm=20,u0=6,v0=-4", "elastic")])
 def test_the_gain_term_follows_the_reconstruction_of_strains_scaled_by_a_common_gain(n: int, spec: str,
                                                                                     mechanics: str) -> None:
@@ -37,9 +38,11 @@ def test_the_gain_term_follows_the_reconstruction_of_strains_scaled_by_a_common_
     what a gain of 1 % does to the answer in the sensor frame, raised to its mean over the nodes
     as σ's part is (the alignment floor): within 0.8-3.5 times it where that is at least a fifth
     of its largest (the first-order model: heights linear in the curvature, the in-plane pull of
-    bending quadratic, the stretch's own shift linear; measured 0.90-2.14 on the kinematic
-    sheets, 0.92-3.36 on the elastic films, the most on the saddle, least tight where the
-    in-plane pull and the stretch's shift partly cancel)."""
+    bending quadratic, the stretch's own shift linear, the twist's part of the height scaled by
+    a share between none and all; measured 0.90-2.14 on the kinematic sheets, 0.92-3.36 on the
+    elastic films, the most on the saddle, least tight where the in-plane pull and the stretch's
+    shift partly cancel; the 12×12 saddle, whose twist hardly scales, read 0.60 before the
+    twist's part was taken apart)."""
     from skinmap.emulator import scenes
 
     eu, el = ph.gauge_strains(scenes.parse_scene_spec(spec, mechanics, n, n, PITCH), n, n, PITCH)
@@ -88,3 +91,22 @@ def test_gain_sd_leaves_the_answer_and_the_scatter_part_and_only_widens_sigma() 
     uv = np.array([[0.0, 0.0], [20.0, -15.0], [-29.0, 29.0]])
     assert np.all(default.locate_sigma(uv) >= none.locate_sigma(uv))
     assert np.array_equal(default.locate_sigma(uv, scatter=True), none.locate_sigma(uv, scatter=True))
+
+
+def test_a_saddle_held_long_read_half_a_loop_and_its_whole_relaxation_low_is_within_3_sigma() -> None:
+    """Every gauge of a 12×12 saddle turned 15° read 5.6 % low (half the hysteresis loop and the
+    paper's 3.5 % relaxation: a sheet pressed and held long), three noise draws: within 3σ +
+    0.05 mm after the best rigid alignment.  Its twist, read from the Gauss equation, hardly
+    moves with a common gain while its curvatures scale; before the twist's part of the height
+    was taken apart in σ's gain term (its nodal lines read no change) these were 1.07-1.25 times
+    the bound."""
+    shape = ph.parse_shape_spec("saddle:radius=170,axis_angle=15")
+    eu, el = ph.gauge_strains(shape, 12, 12, PITCH)
+    truth = ph.ground_truth(shape, 12, 12, PITCH).nodes
+    rec = Reconstructor(12, 12)
+    gain = 1.0 - 0.5 * HYSTERESIS_LOOP - RELAXATION_SHARE
+    for seed in (4, 5, 6):
+        rng = np.random.default_rng(seed)
+        surf = rec(gain * eu + rng.normal(0.0, NOISE, eu.shape), gain * el + rng.normal(0.0, NOISE, el.shape))
+        worst = float(np.max(aligned_node_errors(surf.nodes, truth) / (3.0 * surf.node_sigma.reshape(-1) + 0.05)))
+        assert worst <= 1.0, (seed, worst)
