@@ -2,6 +2,7 @@
 how often the screen names a good gauge.
 
 Run: .venv/bin/python bench/biased_gauge.py [--sizes 5,8] [--draws 40] [--gauges all|K] [--seed S] [--no-elastic]
+     [--only accuracy|alarms|timing|random [--random K]]
 
 For each shape (kinematic closed-form maps, and elastic scenes of bench/elastic_dataset.py on
 5×5 unless --no-elastic), every gauge in turn (or K of them, drawn, with --gauges K) reads 1.3×
@@ -22,7 +23,11 @@ s.d. 0.0057 % on every gauge), the share in which the screen names any gauge.  T
 and 90th percentile of the whole frame (reconstruct with previous, nodes, normals), screen on
 and off, warm, one core: noisy frames of a bump circling the centre (as bench/reconstruction.py
 times them), and noisy frames of a breathing sphere cap with one gauge biased (named in every
-frame, so Clarabel runs in every frame); then the screen alone.
+frame, so Clarabel runs in every frame); then the screen alone.  ``--only random``: K random
+kinematic shapes of each of five classes (quadrics, saddles, cylinders, spheres, bumps; none
+looked at while the constants were set), every gauge biased in turn through the default path:
+named right / wrong / none per class, and frames costing more than 0.05 mm against the
+unbiased frame; a good gauge named is printed.
 """
 from __future__ import annotations
 
@@ -157,6 +162,56 @@ def accuracy(n: int, sets: dict[str, list], how: str, rng: np.random.Generator) 
                   f"{over}/{vb.size} biased frames over {LIMIT_MM:g} mm")
 
 
+def random_shapes(n: int, per_class: int, rng: np.random.Generator) -> list[tuple[str, ph.Shape]]:
+    """``per_class`` kinematic shapes of each of five classes with random parameters (radii and
+    bump positions scaled to the sheet as kinematic_shapes scales them): none of them looked at
+    while the screen's constants were set."""
+    s = (n - 1) / 4.0
+    out: list[tuple[str, ph.Shape]] = []
+    for _ in range(per_class):
+        sign = lambda: float(rng.choice([-1.0, 1.0]))  # noqa: E731
+        out.append(("quadric", ph.Quadric(*(np.array([sign(), sign(), sign()]) / rng.uniform(45, 120, 3) / s))))
+        out.append(("saddle", ph.Saddle(rng.uniform(50, 120) * s * sign(), rng.uniform(-90, 90))))
+        out.append(("cylinder", ph.Cylinder(rng.uniform(35, 100) * s * sign(), rng.uniform(-90, 90))))
+        out.append(("sphere", ph.SphereCap(rng.uniform(45, 120) * s * sign())))
+        out.append(("bump", ph.GaussianBumps(height=rng.uniform(2, 5) * sign(), fwhm=rng.uniform(18, 30),
+                                             centre=(rng.uniform(-18, 18) * s, rng.uniform(-18, 18) * s))))
+    return out
+
+
+def random_sweep(n: int, per_class: int, how: str, rng: np.random.Generator) -> None:
+    """The default path on random shapes (:func:`random_shapes`), every gauge (or --gauges K of
+    them) biased in turn: named right / wrong / none, and frames costing more than LIMIT_MM."""
+    rec = Reconstructor(n, n)
+    shapes = random_shapes(n, per_class, rng)
+    which = gauges(n, how, rng)
+    counts: dict[str, list[int]] = {}
+    for name, shape in shapes:
+        eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
+        base = rec(eu, el, strain_sigma=NOISE).nodes
+        row = counts.setdefault(name, [0, 0, 0, 0, 0])
+        for g in which:
+            surf = rec(*biased(eu, el, g), strain_sigma=NOISE)
+            named = surf.diagnostics.extra.get("suspect_gauges", [])
+            if named:
+                s = named[0]
+                hit = (("upper", "lower").index(s["layer"]), ("row", "column").index(s["direction"]), s["row"],
+                       s["col"]) == g
+                row[0 if hit else 1] += 1
+                if not hit:
+                    print(f"  a good gauge named: {shape!r}, biased {g}, named {s['name']}")
+            else:
+                row[2] += 1
+            row[3] += int(node_errors(surf.nodes, base).mean() > LIMIT_MM)
+            row[4] += 1
+    print(f"\nRandom shapes, {n}x{n}: {per_class} per class, {len(which)} biased gauges each (one at a time, "
+          f"{GAIN:g}x; the default path)")
+    for name, (right, wrong, none, over, total) in counts.items():
+        print(f"  {name:9s} named right/wrong/none {right}/{wrong}/{none}; over {LIMIT_MM:g} mm {over}/{total}")
+    tot = np.sum(list(counts.values()), axis=0)
+    print(f"  all       named right/wrong/none {tot[0]}/{tot[1]}/{tot[2]}; over {LIMIT_MM:g} mm {tot[3]}/{tot[4]}")
+
+
 def false_alarms(n: int, sets: dict[str, list], draws: int, rng: np.random.Generator) -> None:
     rec = Reconstructor(n, n)
     print(f"\nFalse alarms, {n}x{n}: {draws} noisy unbiased frames per shape (s.d. {NOISE:g} on every gauge, told so)")
@@ -263,7 +318,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200, help="frames per timing row")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--no-elastic", action="store_true", help="kinematic shapes only")
-    ap.add_argument("--only", choices=("accuracy", "alarms", "timing"))
+    ap.add_argument("--only", choices=("accuracy", "alarms", "timing", "random"))
+    ap.add_argument("--random", type=int, default=6,
+                    help="with --only random: random shapes per class (quadric, saddle, cylinder, sphere, bump)")
     args = ap.parse_args()
     for n in (int(x) for x in args.sizes.split(",")):
         rng = np.random.default_rng(args.seed)
@@ -276,6 +333,8 @@ def main() -> None:
             accuracy(n, sets, args.gauges, rng)
         if args.only in (None, "alarms"):
             false_alarms(n, sets, args.draws, rng)
+        if args.only == "random":
+            random_sweep(n, args.random, args.gauges, rng)
         if args.only in (None, "timing"):
             timing(n, args.frames if n <= 8 else max(20, args.frames // 5), rng)
 
