@@ -168,8 +168,11 @@ def random_shapes(n: int, per_class: int, rng: np.random.Generator) -> list[tupl
     while the screen's constants were set."""
     s = (n - 1) / 4.0
     out: list[tuple[str, ph.Shape]] = []
+
+    def sign() -> float:
+        return float(rng.choice([-1.0, 1.0]))
+
     for _ in range(per_class):
-        sign = lambda: float(rng.choice([-1.0, 1.0]))  # noqa: E731
         out.append(("quadric", ph.Quadric(*(np.array([sign(), sign(), sign()]) / rng.uniform(45, 120, 3) / s))))
         out.append(("saddle", ph.Saddle(rng.uniform(50, 120) * s * sign(), rng.uniform(-90, 90))))
         out.append(("cylinder", ph.Cylinder(rng.uniform(35, 100) * s * sign(), rng.uniform(-90, 90))))

@@ -393,7 +393,8 @@ class GaugeScreen:
         least (a corner's, an edge's) hands most of its error to a neighbour, whose Huber
         residual can then stand highest: measured on a twisted quadric, a corner's column gauge
         1.3× high named its row neighbour, the frame 2.3-3.9 mm off.  The gauge so chosen is named
-        as :meth:`_suspect` names (its residual now that of the fit without it), or none."""
+        by :meth:`_suspect`'s three tests, its residual and gain now against the fit without it
+        (its partner's still the Huber fit's), or none is."""
         cells = self.n * self.m
         own = found.layer * cells + found.row * self.m + found.col
         order = [int(k) for k in np.argsort(-np.abs(huber)) if valid[k]][:SCREEN_LEAVE_OUT]

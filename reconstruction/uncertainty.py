@@ -141,7 +141,8 @@ def gain_sigma(positions: np.ndarray, u: np.ndarray, v: np.ndarray, stretch: np.
     """(nf, mf) σ (mm) of the fine nodes from a gain error of s.d. ``gain_sd`` (relative) common
     to every gauge: it scales each unit's turning and stretch alike.  ``positions`` (nf, mf, 3)
     in the sensor frame over material coordinates ``u`` (mf,), ``v`` (nf,); ``stretch`` (2, N,
-    M) the units' stretch ratios L/g (row gauges, column gauges; 1 where missing).
+    M) the units' stretch ratios L/g (row gauges, column gauges; 1 where missing); ``twist`` the
+    answer's constant twist (1/mm), whose part of the height is taken apart (below).
 
     To first order in the gain g a node moves by g·((2 d_x − s_u, 2 d_y − s_v), d_z), with d the
     node's deflection from its flat place (u, v, 0): the height is linear in the curvature, the

@@ -141,9 +141,9 @@ def test_the_device_info_tells_what_the_published_sigma_carries():
 
 def test_a_lead_scan_read_without_sigma_is_still_the_baseline_of_the_lag_term():
     """A lead scan's σ is not read (FramePipeline.process(lead=True)), but it joins the motion
-    history: at 10 scans/s the scan before each due one is 100 ms back, the baseline the lag term
-    reads the speed from (the scan published before it, 500 ms back, is beyond the horizon's
-    reach once the lead is newer).  The due frame's σ is then that of a pipeline that read the
+    history: here the lead is 100 ms before the scan due, the baseline the lag term reads the
+    speed from, and the scan published before it is 600 ms back, beyond the 500 ms horizon
+    (without the lead no speed could be read).  The due frame's σ is then that of a pipeline that read the
     lead's σ, to within the lead's scatter taken as the due frame's, and the lead itself reports
     every σ unknown, its elements DEGRADED."""
     from skinmap.elements.locate import UNKNOWN_SIGMA_MM
