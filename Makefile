@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(VENV)/bin/skinmap demo
 
-# The default suite (about 2 minutes on a 2-core machine); the longer tests are marked slow.
+# The default suite (3-4 minutes on a 2-core machine); the longer tests are marked slow.
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not slow"
 
