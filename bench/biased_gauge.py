@@ -106,6 +106,15 @@ def biased(eu: np.ndarray, el: np.ndarray, g: tuple[int, int, int, int]) -> tupl
     return bu, bl
 
 
+def named_gauge(surf) -> tuple[int, int, int, int] | None:
+    """(layer, direction, row, col) of the first gauge the screen named in a frame, or None."""
+    named = surf.diagnostics.extra.get("suspect_gauges", [])
+    if not named:
+        return None
+    s = named[0]
+    return ("upper", "lower").index(s["layer"]), ("row", "column").index(s["direction"]), s["row"], s["col"]
+
+
 def shape_rows(n: int, name: str, shape: ph.Shape, recs: dict[str, Reconstructor], which: list) -> dict:
     centres = ph.cell_centres(n, n, PITCH)
     eu, el = ph.gauge_strains(shape, n, n, PITCH, H, H, GAUGE)
@@ -119,11 +128,9 @@ def shape_rows(n: int, name: str, shape: ph.Shape, recs: dict[str, Reconstructor
             surf = rec(bu, bl, strain_sigma=NOISE)
             vs_truth.append(node_errors(surf.nodes, truth).mean())
             vs_base.append(node_errors(surf.nodes, base).mean())
-            named = surf.diagnostics.extra.get("suspect_gauges", [])
-            if named:
-                s = named[0]
-                hit = (("upper", "lower").index(s["layer"]), ("row", "column").index(s["direction"]), s["row"], s["col"]) == g
-                right, wrong = right + hit, wrong + (not hit)
+            named = named_gauge(surf)
+            if named is not None:
+                right, wrong = right + (named == g), wrong + (named != g)
             else:
                 none += 1
         out[key] = (np.array(vs_truth), np.array(vs_base), right, wrong, none,
@@ -195,14 +202,11 @@ def random_sweep(n: int, per_class: int, how: str, rng: np.random.Generator) -> 
         row = counts.setdefault(name, [0, 0, 0, 0, 0])
         for g in which:
             surf = rec(*biased(eu, el, g), strain_sigma=NOISE)
-            named = surf.diagnostics.extra.get("suspect_gauges", [])
-            if named:
-                s = named[0]
-                hit = (("upper", "lower").index(s["layer"]), ("row", "column").index(s["direction"]), s["row"],
-                       s["col"]) == g
-                row[0 if hit else 1] += 1
-                if not hit:
-                    print(f"  a good gauge named: {shape!r}, biased {g}, named {s['name']}")
+            named = named_gauge(surf)
+            if named is not None:
+                row[0 if named == g else 1] += 1
+                if named != g:
+                    print(f"  a good gauge named: {shape!r}, biased {g}, named {surf.diagnostics.suspect_gauges}")
             else:
                 row[2] += 1
             row[3] += int(node_errors(surf.nodes, base).mean() > LIMIT_MM)

@@ -703,8 +703,7 @@ class FramePipeline:
         below the nodes' mean, the alignment floor (a reference placed by its best rigid fit moves
         every point by the mean of the nodes' errors).  This frame joins the history."""
         flat_nodes, flat_scatter = nodes.reshape(-1, 3), node_scatter.reshape(-1)
-        history = [h for h in self._motion if 0.0 < time_s - h.time_s <= MOTION_HORIZON_S]
-        before = [h for h in history if time_s - h.time_s >= MOTION_BASELINE_S]
+        before = [h for h in self._motion if MOTION_BASELINE_S <= time_s - h.time_s <= MOTION_HORIZON_S]
         largest = 0.0
         if before and before[-1].nodes.shape == flat_nodes.shape and before[-1].elements.shape == pos.shape:
             b = before[-1]
