@@ -218,7 +218,7 @@ class ScannerState:
         self.tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self.elastic_problem = ""  # why a configured elastic prior is off ("" if nothing)
         self._file_times: FileTimes | None = None
-        self._prepared: tuple[int, Any] | None = None  # (HELLO generation, its prepared reconstructor)
+        self._prepared: tuple[int, FramePipeline] | None = None  # (HELLO generation, the pipeline it prepared)
 
     @property
     def hello(self) -> Hello | None:
@@ -237,7 +237,7 @@ class ScannerState:
                                                                     "factory"))
             probe.continue_from(self.pipeline)
             if probe.prepare():  # False: the running pipeline's reconstructor carries over
-                self._prepared = (gen, probe.reconstructor)
+                self._prepared = (gen, probe)
         except Exception as exc:  # the first frame does the work instead
             log.warning("preparing the reconstruction failed (%s: %s); the first frames will be slower",
                         type(exc).__name__, exc)
@@ -258,7 +258,7 @@ class ScannerState:
         pipeline.continue_from(self.pipeline)  # keep the warm start across a reconnect
         prepared, self._prepared = self._prepared, None
         if prepared is not None and prepared[0] == gen:
-            pipeline.adopt_reconstructor(prepared[1])
+            pipeline.adopt_prepared(prepared[1])
         self.pipeline, self._pipeline_gen = pipeline, gen
         self._file_times = self._calibration_file_times(hello)
         return pipeline, True

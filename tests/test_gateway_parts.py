@@ -289,8 +289,9 @@ def test_the_default_log_sink_follows_the_log_table(tmp_path):
 
 
 def test_the_reconstruction_is_prepared_at_hello_and_the_first_pipeline_adopts_it(tmp_path):
-    """The HELLO (link thread, before START) prepares a reconstructor for the new geometry, so the
-    first scans are not the slow ones; a second HELLO of the same geometry reuses the running one."""
+    """The HELLO (link thread, before START) prepares a reconstructor for the new geometry, and
+    the restart chains' own, so the first scans, and the first frame that takes a chain over, are
+    not the slow ones; a second HELLO of the same geometry reuses the running ones."""
     from skinmap.daemon.device_setup import ScannerState
     from skinmap.emulator import physics as ph
     from skinmap.emulator.device import Device, ScannerSpec
@@ -303,9 +304,11 @@ def test_the_reconstruction_is_prepared_at_hello_and_the_first_pipeline_adopts_i
     assert new and pipeline is not None
     rec = pipeline.reconstructor
     assert rec._noise_responses and rec._product_noise is not None  # done before any scan
-    state.on_hello(hello)  # a reconnect: same geometry, the running reconstructor carries over
+    chains = pipeline._chain_reconstructor
+    assert chains is not None and chains is not rec and chains._noise_responses  # not built by a chain's first step
+    state.on_hello(hello)  # a reconnect: same geometry, the running reconstructors carry over
     again, new = state.ensure_pipeline()
-    assert new and again is not None and again.reconstructor is rec
+    assert new and again is not None and again.reconstructor is rec and again._chain_reconstructor is chains
 
 
 def test_the_elastic_prior_takes_poissons_ratio_from_the_config_else_the_calibration_else_says_why_it_is_off(tmp_path):
