@@ -144,6 +144,19 @@ WARM_BASIN_YARDSTICKS = ("lowest", "cold")
 # Gaussian curvature (films with friction on 12 12×12 saddle molds: off by up to 0.42 of it;
 # the prior was as far off in the square on large and small twists alike).
 SHEAR_PRIOR_SHARE = 0.5
+#: A sheet two cells across (N or M = 2) cannot read its constant twist at all: the gauges lie
+#: along the rows and columns, which a twist leaves straight, and it reaches the data only
+#: through the Gaussian curvature, which the stretch gives through its second differences
+#: along both directions (Brioschi), and two cells have none across.  A 2×2 sheet on a saddle
+#: turned 45° reads as flat, on a sphere as the cylinder at 45° (its stretch, alike at four
+#: cells that lie alike about the centre, varies with neither).  With ``twist_prior`` "open"
+#: (the default) every twist whose normal turns by up to this many radians along the sheet's
+#: longer side, of either sign unless told, joins ``node_sigma`` (2 rad over a 2×2 sheet of
+#: 12 mm pitch: 0.083 /mm, a saddle of R 12 mm at 45°).  Measured on the bench's kinematic
+#: classes on 2×2, 3 noisy frames each, every frame within 3σ + 0.05 mm where 36 of 129 were
+#: beyond (a 45° saddle 1.45 mm off with σ 0.008): docs/reconstruction.md, *A sheet two cells
+#: across*.
+UNREAD_TWIST_TURN = 2.0
 # A χ² per gauge above this for both the model's own twist and the least-shear prior's: the data
 # explain neither, so the prior has no answers it could choose among and the model's own stands
 # (a sharp 5 mm bump on a noisy 16×16 sheet: 2400 and 4800 per gauge, the prior's twist 7.9 mm off).
@@ -296,8 +309,10 @@ class Reconstructor(StretchPatternTwist):
         through its Gaussian curvature, so a sphere and a dome turned off the grid read
         alike) or "none" (the sheet is known to carry no twist there: a balloon, a sphere,
         molds whose principal axes lie along the rows and columns; its σ then does not
-        reach it).  Answers are the same either way (docs/reconstruction.md, "A twist the
-        stretch cannot tell from none").
+        reach it).  On a sheet two cells across, which cannot read its twist at all, "open"
+        also has σ reach every twist up to :data:`UNREAD_TWIST_TURN`.  Answers are the same
+        either way (docs/reconstruction.md, "A twist the stretch cannot tell from none", "A
+        sheet two cells across").
     gain_sd : the s.d. (relative) of a gain error every gauge shares, carried into
         ``node_sigma`` (not into its scatter part: it is the same on every frame of a held
         sheet).  Default :data:`DEFAULT_GAIN_SD`, the gauges' hysteresis (a loop 4.21 ± 0.70 %
@@ -427,6 +442,9 @@ class Reconstructor(StretchPatternTwist):
         self._layout = GaugeLayout.build(self.n, self.m, self.pitch, self.gauge_length, self.h_upper, self.h_lower,
                                          compiled=self._compiled)
         self._half_diagonal2 = 0.25 * ((self.n * self.pitch) ** 2 + (self.m * self.pitch) ** 2)
+        # the largest twist σ reaches on a sheet whose stretch cannot read it (UNREAD_TWIST_TURN)
+        self._unread_twist_limit = (UNREAD_TWIST_TURN / (max(self.n, self.m) * self.pitch)
+                                    if min(self.n, self.m) < 3 and twist_prior == "open" else 0.0)
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
@@ -1641,6 +1659,11 @@ class Reconstructor(StretchPatternTwist):
                 twist = pattern.spread
             twist_scatter = _memo(partial(_with_reading_noise, twist_scatter, positions_at, base_shift, pattern.noise_sd))
 
+        if self._unread_twist_limit > 0.0:
+            # a sheet two cells across: no datum reads its twist (UNREAD_TWIST_TURN)
+            twist = _larger(_memo(partial(self._unread_twist_spread, diag.twist_constant, twist_sign)), twist)
+            diag.extra["twist_unread_limit"] = round(self._unread_twist_limit, 6)
+
         resolution_known: list[np.ndarray | None] = []
 
         def resolution() -> np.ndarray | None:
@@ -1706,6 +1729,20 @@ class Reconstructor(StretchPatternTwist):
             mirror.diagnostics.extra.update(diag.extra)
             mirror.mirror = None
         return surf
+
+    def _unread_twist_spread(self, c0: float, twist_sign) -> np.ndarray:
+        """The fine-grid spread (mm) of the twists a sheet two cells across cannot read, from
+        the answer's ``c0``: half the farthest reach to a twist within ±the limit
+        (UNREAD_TWIST_TURN; of the sign told, from none), the sheet's response to a twist shift
+        d being d·u·v in the sensor frame (zero mean and no slope over the cells: the frame's
+        plane does not move)."""
+        limit = self._unread_twist_limit
+        ends = (0.0, float(twist_sign) * limit) if twist_sign is not None else (-limit, limit)
+        reach = max(abs(e - c0) for e in ends)
+        grid = self.grid
+        out = 0.5 * reach * np.abs(grid.v[:, None] * grid.u[None, :])
+        out.flags.writeable = False
+        return out
 
     def _stretch_sd(self, sigma_f: float) -> float:
         """The noise s.d. of one unit's stretch reading for strain noise ``sigma_f`` on each layer."""
