@@ -217,6 +217,7 @@ class ScannerState:
         self.pipeline: FramePipeline | None = None
         self.tare_problem = ""  # what is wrong with the tare file in use ("" if nothing)
         self.elastic_problem = ""  # why a configured elastic prior is off ("" if nothing)
+        self.elements_problem = ""  # which configured elements lie off the scanner's sheet ("" if none)
         self._file_times: FileTimes | None = None
         self._prepared: tuple[int, FramePipeline] | None = None  # (HELLO generation, the pipeline it prepared)
 
@@ -255,6 +256,9 @@ class ScannerState:
         self.elastic_problem = elastic_prior_for(self.cfg, cal, hello.n * hello.m)[1]
         if self.elastic_problem:
             log.warning("%s", self.elastic_problem)
+        self.elements_problem = pipeline.elements_problem
+        if self.elements_problem:
+            log.warning("%s", self.elements_problem)
         pipeline.continue_from(self.pipeline)  # keep the warm start across a reconnect
         prepared, self._prepared = self._prepared, None
         if prepared is not None and prepared[0] == gen:

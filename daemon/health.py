@@ -209,6 +209,8 @@ class Health:
             warnings.append(f"{self.scanner.tare_problem} (factory calibration in use)")
         if self.scanner.elastic_problem:
             warnings.append(self.scanner.elastic_problem)
+        if self.scanner.elements_problem:
+            warnings.append(self.scanner.elements_problem)
         clock = self.monitor.clock
         if clock.problem and time.monotonic() - clock.problem_mono <= RECENT_WINDOW_S:
             warnings.append(f"{clock.problem} ({clock.faults} clock fault(s) since start; "

@@ -424,7 +424,9 @@ class FramePipeline:
         self.geometry = geometry
         self.calibration = calibration
         self.elements = element_layout(element_uv_mm, element_offset_mm, geometry.cell_uv(), geometry.pitch_mm)
-        self._sigma_uv = np.concatenate([geometry.cell_uv().reshape(-1, 2), self.elements.uv_mm])
+        # (an element off the sheet, a layout for a larger one, is not located: status says so)
+        self.elements_problem = self.elements.off_sheet_problem(geometry.n, geometry.m)
+        self._sigma_uv = np.concatenate([geometry.cell_uv().reshape(-1, 2), self.elements.located_uv])
         self.strain_sigma = float(strain_sigma)
         self.warm_start = warm_start
         self.convex_solver = convex_solver
@@ -473,6 +475,11 @@ class FramePipeline:
     def element_uv(self) -> np.ndarray:
         """(K, 2) material coordinates of the elements, mm."""
         return self.elements.uv_mm
+
+    @property
+    def located_uv(self) -> np.ndarray:
+        """(L, 2) material coordinates of the elements on the sheet (the ones located), mm."""
+        return self.elements.located_uv
 
     @property
     def element_offset(self) -> np.ndarray:
@@ -622,7 +629,7 @@ class FramePipeline:
             node_scatter = node_sigma
             unknown = np.full(self.elements.count, UNKNOWN_SIGMA_MM)
             read = unknown, unknown
-        elif locate_sigma is not None and self.elements.count:
+        elif locate_sigma is not None and self.elements.count and self.elements.on_sheet.any():
             # the cell centres' and the elements' σ in one reading each (the cell centres are
             # fine-grid nodes, read there exactly), and the scatter's part the same way
             cells = nodes.shape[0] * nodes.shape[1]
@@ -631,13 +638,15 @@ class FramePipeline:
                            if hasattr(surf, "node_scatter_sigma") else sigma_all)
             node_sigma = sigma_all[:cells].reshape(nodes.shape[:2])
             node_scatter = scatter_all[:cells].reshape(nodes.shape[:2])
-            read = sigma_all[cells:], scatter_all[cells:]
+            on = self.elements.on_sheet
+            read = np.full(on.shape, UNKNOWN_SIGMA_MM), np.full(on.shape, UNKNOWN_SIGMA_MM)
+            read[0][on], read[1][on] = sigma_all[cells:], scatter_all[cells:]
         else:
             node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
             node_scatter = np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64)
         node_scatter = np.fmin(node_scatter, node_sigma)  # (a part of σ: never above it)
         t_sigma = time.perf_counter()
-        pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0])
+        pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0][self.elements.on_sheet])
         # (a surface that tells no σ by position, or no elements: the scatter is σ itself, never less)
         scatter = np.fmin(read[1], sig) if read is not None else sig
         lag_mm = 0.0
@@ -802,7 +811,7 @@ class FramePipeline:
                 # general model's defect correction start from the frame before's)
                 self.chain_origin = seq
                 return True
-            self._chain = _Chain(seq, None, self.element_uv)
+            self._chain = _Chain(seq, None, self.located_uv)
             self._begin(self._chain, eps_u, eps_l, seq, {**kwargs, "previous": previous, "graph_warm": False})
             return False
         for chain in (self._chain, self._catch_up):
@@ -855,7 +864,7 @@ class FramePipeline:
     def _begin_catch_up(self, eps_u: np.ndarray, eps_l: np.ndarray, seq: int, kwargs: dict[str, Any],
                         previous: Any, audit: bool) -> None:
         """Begin the catch-up chain (an audit, or a deferred frame's) from this scan's cold fit."""
-        self._catch_up = _Chain(seq, None, self.element_uv, GRAPH_CATCH_UP_SCANS, audit=audit)
+        self._catch_up = _Chain(seq, None, self.located_uv, GRAPH_CATCH_UP_SCANS, audit=audit)
         cold = {**kwargs, "graph_warm": False}
         if previous is not None:
             cold["previous"] = previous

@@ -44,10 +44,27 @@ class ElementLayout:
     offset_mm: np.ndarray  # (K,) along the upper normal
     neighbour_cells: np.ndarray  # (K, N·M) bool: cells within 1.5 pitches (Chebyshev)
     extrapolated: np.ndarray  # (K,) bool: outside the cells' span
+    # (K,) bool: on the sheet (within half a pitch beyond its outer cells, where a surface is
+    # located); an element beyond is not located (a layout for a larger sheet)
+    on_sheet: np.ndarray
 
     @property
     def count(self) -> int:
         return int(self.uv_mm.shape[0])
+
+    @property
+    def located_uv(self) -> np.ndarray:
+        """(L, 2) the material coordinates of the elements on the sheet."""
+        return self.uv_mm[self.on_sheet]
+
+    def off_sheet_problem(self, n: int, m: int) -> str:
+        """What is wrong with the layout on an N×M sheet ("" if every element is on it)."""
+        off = int(np.count_nonzero(~self.on_sheet))
+        if not off:
+            return ""
+        first = self.uv_mm[~self.on_sheet][0]
+        return (f"{off} of {self.count} elements lie off the {n}x{m} sheet (the first at u = {first[0]:g}, "
+                f"v = {first[1]:g} mm): not located, published on the flat sheet without VALID; check [elements]")
 
 
 def element_layout(uv_mm: np.ndarray, offset_mm: np.ndarray, cell_uv_mm: np.ndarray, pitch_mm: float) -> ElementLayout:
@@ -61,29 +78,39 @@ def element_layout(uv_mm: np.ndarray, offset_mm: np.ndarray, cell_uv_mm: np.ndar
     dist = np.abs(uv[:, None, :] - cells[None, :, :]).max(axis=2)
     half = np.abs(cells).max(axis=0) if cells.size else np.zeros(2)
     extrapolated = (np.abs(uv[:, 0]) > half[0] + 1e-9) | (np.abs(uv[:, 1]) > half[1] + 1e-9)
-    return ElementLayout(uv, offset, dist <= 1.5 * pitch_mm, extrapolated)
+    edge = half + 0.5 * pitch_mm + 1e-9
+    on_sheet = (np.abs(uv[:, 0]) <= edge[0]) & (np.abs(uv[:, 1]) <= edge[1])
+    return ElementLayout(uv, offset, dist <= 1.5 * pitch_mm, extrapolated, on_sheet)
 
 
 def locate_elements(surface: LocatableSurface, layout: ElementLayout,
                     sigma_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(positions (K, 3) mm, unit normals (K, 3), σ (K,) mm, NaN where the surface gives none).
-    ``sigma_mm``: the elements' σ where the caller read it already (skinmapd reads it with the
-    cell centres')."""
-    uv = layout.uv_mm
-    if uv.shape[0] == 0:
+    ``sigma_mm``: the σ of the elements on the sheet (``layout.located_uv``) where the caller
+    read it already (skinmapd reads it with the cell centres').  An element off the sheet is not
+    located: it stays where :func:`prior_elements` puts it, σ unknown."""
+    k = layout.count
+    if k == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    pos, nrm, sig, _ = prior_elements(layout)
+    on = layout.on_sheet
+    uv = layout.uv_mm[on]
+    if uv.shape[0] == 0:
+        return pos, nrm, sig
     out = surface.locate(uv)
-    pos, nrm = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.float64)
+    p_on, n_on = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.float64)
     locate_sigma: Any = getattr(surface, "locate_sigma", None)
     if sigma_mm is not None:
-        sig = np.asarray(sigma_mm, dtype=np.float64)
+        s_on = np.asarray(sigma_mm, dtype=np.float64)
     elif len(out) > 2:
-        sig = np.asarray(out[2], dtype=np.float64)
+        s_on = np.asarray(out[2], dtype=np.float64)
     elif locate_sigma is not None:
-        sig = np.asarray(locate_sigma(uv), dtype=np.float64)
+        s_on = np.asarray(locate_sigma(uv), dtype=np.float64)
     else:
-        sig = np.full(uv.shape[0], np.nan)
-    return pos + layout.offset_mm[:, None] * nrm, nrm, sig
+        s_on = np.full(uv.shape[0], np.nan)
+    pos[on] = p_on + layout.offset_mm[on][:, None] * n_on
+    nrm[on], sig[on] = n_on, s_on
+    return pos, nrm, sig
 
 
 def fit_inconsistent(residual_rad: float, turning_noise_rad: float) -> bool:
@@ -97,6 +124,8 @@ def element_flags(layout: ElementLayout, sigma_mm: np.ndarray, gauge_valid: np.n
     whose usable gauges are ``gauge_valid`` (2, 2, N, M)."""
     flags = np.full(layout.count, int(ElementFlag.VALID), dtype=np.uint8)
     flags[layout.extrapolated] |= int(ElementFlag.EXTRAPOLATED)
+    # (an element off the sheet is not located: no current estimate)
+    flags[~layout.on_sheet] = int(ElementFlag.EXTRAPOLATED) | int(ElementFlag.DEGRADED)
     with np.errstate(invalid="ignore"):
         flags[np.asarray(sigma_mm) > DEGRADED_SIGMA_MM] |= int(ElementFlag.DEGRADED)
     valid = np.asarray(gauge_valid, dtype=bool)

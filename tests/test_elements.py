@@ -53,7 +53,7 @@ def test_elements_are_located_and_moved_along_the_normal_by_their_offset():
 
 
 def test_flags_from_uncertainty_gauges_ambiguity_and_misfit():
-    layout = element_layout([[-10.0, -10.0], [10.0, 10.0], [30.0, 0.0]], np.zeros(3), cells(), 10.0)
+    layout = element_layout([[-10.0, -10.0], [10.0, 10.0], [14.0, 0.0]], np.zeros(3), cells(), 10.0)
     valid = np.ones((2, 2, 3, 3), bool)
     sigma = np.array([0.1, DEGRADED_SIGMA_MM * 2, 0.1])
     flags = element_flags(layout, sigma, valid, ambiguous=False, inconsistent=False)
@@ -141,3 +141,63 @@ def test_published_scatter_is_the_surfaces_frame_to_frame_part_of_sigma_and_neve
     msg = decode_elements(encode_result_elements(r))
     assert msg.scatter is not None
     np.testing.assert_array_equal(msg.scatter, r.element_scatter_mm / 1000.0)
+
+
+class SheetOf3x3(TiltedPlane):
+    """The tilted plane, refusing (as a Surface does) any point beyond half a pitch outside the
+    outer cells of a 3×3 sheet of 10 mm pitch."""
+
+    def locate(self, uv):
+        if (np.abs(np.asarray(uv, float)) > 15.0).any():
+            raise ValueError("off the sheet")
+        return super().locate(uv)
+
+
+def test_an_element_off_the_sheet_is_not_located_and_says_so():
+    """A layout made for a larger sheet: the elements on this one are located as before; one
+    beyond its edge stays on the flat sheet, σ unknown, without VALID, and the layout names it."""
+    uv = np.array([[-12.0, 3.0], [14.9, -15.0], [15.2, 0.0], [0.0, -40.0]])
+    layout = element_layout(uv, np.zeros(4), cells(), 10.0)
+    assert layout.on_sheet.tolist() == [True, True, False, False]
+    np.testing.assert_array_equal(layout.located_uv, uv[:2])
+    problem = layout.off_sheet_problem(3, 3)
+    assert "2 of 4 elements lie off the 3x3 sheet" in problem and "u = 15.2" in problem
+    assert element_layout(uv[:2], np.zeros(2), cells(), 10.0).off_sheet_problem(3, 3) == ""
+    pos, nrm, sig = locate_elements(SheetOf3x3(), layout)
+    np.testing.assert_allclose(pos[:2], SheetOf3x3().locate(uv[:2])[0])
+    np.testing.assert_allclose(sig[:2], [0.12, 0.149])
+    prior_pos, prior_nrm, prior_sig, _ = prior_elements(layout)
+    np.testing.assert_array_equal(pos[2:], prior_pos[2:])
+    np.testing.assert_array_equal(nrm[2:], prior_nrm[2:])
+    assert (sig[2:] == prior_sig[2:]).all() and np.isfinite(pos).all()
+    flags = element_flags(layout, sig, np.ones((2, 2, 3, 3), bool), ambiguous=False, inconsistent=False)
+    assert [bool(f & VALID) for f in flags] == [True, True, False, False]
+    assert (flags[2:] & DEGRADED).all() and (flags[2:] & EXTRAPOLATED).all()
+
+
+def test_skinmapd_publishes_a_sheet_whose_layout_reaches_beyond_it_and_warns_once(tmp_path, caplog):
+    """The demo's 32-element row (46.5 mm) on a 2×2 scanner (24 mm): every scan is processed
+    (it failed on every one), the elements on the sheet located, the others flagged, and the
+    status names the layout's problem."""
+    from conftest import free_port, gateway_config
+
+    from skinmap.daemon.device_setup import ScannerState
+    from skinmap.emulator import physics as ph
+    from skinmap.emulator.device import Device, ScannerSpec
+
+    cfg = gateway_config(tmp_path, free_port(), "/dev/null", "offsheet", 20.0,
+                         elements={"layout": "grid", "rows": 1, "cols": 32, "pitch_u_mm": 1.5})
+    device = Device(ScannerSpec(n=2, m=2), ph.make_shape("cylinder", radius=40.0))
+    state = ScannerState(cfg)
+    state.on_hello(device.hello())
+    with caplog.at_level("WARNING", logger="skinmapd"):
+        pipeline, _ = state.ensure_pipeline()
+    assert pipeline is not None and pipeline.elements.count == 32
+    assert "16 of 32 elements lie off the 2x2 sheet" in state.elements_problem
+    assert caplog.text.count("lie off the 2x2 sheet") == 1
+    eu, el = ph.gauge_strains(ph.make_shape("cylinder", radius=40.0), 2, 2, pitch=12.0)
+    gf, r0 = pipeline.calibration.gauge_factor, pipeline.calibration.base_resistance
+    result = pipeline.process(r0 * (1.0 + gf * np.stack([eu, el])), 0, 0, 0)
+    on = pipeline.elements.on_sheet
+    assert (result.element_flags[on] & VALID).all() and not (result.element_flags[~on] & VALID).any()
+    assert np.isfinite(result.element_positions_mm).all() and "non-finite" not in result.diagnostics.get("status", "")

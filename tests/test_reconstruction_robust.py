@@ -182,7 +182,7 @@ def test_skinmapd_status_names_a_gauge_whose_calibrated_gain_is_off():
     health = types.SimpleNamespace(
         link=types.SimpleNamespace(streaming=types.SimpleNamespace(is_set=lambda: True), stats=stats, device_status=None),
         log_state="off", log_listener=None, processing=types.SimpleNamespace(error="", dropped=0, results=[result]),
-        scanner=types.SimpleNamespace(tare_problem="", elastic_problem=""), monitor=types.SimpleNamespace(clock=types.SimpleNamespace(problem="")),
+        scanner=types.SimpleNamespace(tare_problem="", elastic_problem="", elements_problem=""), monitor=types.SimpleNamespace(clock=types.SimpleNamespace(problem="")),
         data_path_problem_text="", _recent_marks=collections.deque())
     health._recent_trouble = lambda: Health._recent_trouble(health)
     conditions = Health.conditions(health)
