@@ -94,6 +94,26 @@ def stop_process(proc: subprocess.Popen, timeout: float = 5.0) -> None:
             proc.wait()
 
 
+def _demo_elements_on_sheet(cfg: Any, size: str) -> Any:
+    """The demo config with its element row narrowed to the cells' span where the array asked
+    for is too small for it (the row's 46.5 mm fits 5×5 and larger at 12 mm pitch); a malformed
+    size is left for the emulator to refuse."""
+    import dataclasses
+
+    try:
+        _, m = (int(x) for x in size.lower().split("x"))
+    except ValueError:
+        return cfg
+    el = cfg.elements
+    span = (m - 1) * (cfg.reconstruction.pitch_mm or 12.0)
+    if el.layout != "grid" or el.cols < 2 or (el.cols - 1) * el.pitch_u_mm <= span:
+        return cfg
+    pitch = span / (el.cols - 1)
+    print(f"skinmap demo: the element row narrowed to the {size} array's cells: {el.cols} elements at {pitch:.3g} mm",
+          flush=True)
+    return dataclasses.replace(cfg, elements=dataclasses.replace(el, pitch_u_mm=pitch, centre_u_mm=0.0))
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from skinmap.daemon.config import DEMO_CONFIG, ConfigError, load_config, parse_config
     from skinmap.daemon.service import run_gateway, setup_logging
@@ -108,6 +128,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"skinmap demo: {exc}", file=sys.stderr)
         return 2
+    if not args.config:
+        cfg = _demo_elements_on_sheet(cfg, args.size)
     port = int(cfg.device.port.rsplit(":", 1)[1]) if cfg.device.port.startswith("socket://") else 7600
     print(f"skinmap demo: starting the emulator ({args.size}, shape '{args.shape}', {args.mechanics} mechanics) "
           f"on socket://127.0.0.1:{port}", flush=True)

@@ -217,3 +217,21 @@ def test_replay_publish_announces_where_answers_info_and_echo_shows_no_false_lat
     lines = [line for line in captured.out.splitlines() if line.startswith("seq")]
     assert lines and all("device t" in line and "latency" not in line for line in lines)
     assert rc == [0]
+
+
+def test_the_demo_narrows_its_element_row_to_an_array_too_small_for_it():
+    """The demo's 32-element row spans 46.5 mm: on 2×2 (cells 12 mm apart) it is narrowed to
+    their span, on 5×5 and larger it stays (cmd_demo narrows its own config only, never one given
+    with --config)."""
+    import tomllib
+
+    from skinmap.daemon.cli import _demo_elements_on_sheet
+    from skinmap.daemon.config import DEMO_CONFIG, parse_config
+
+    cfg = parse_config(tomllib.loads(DEMO_CONFIG), source="demo.toml", text=DEMO_CONFIG)
+    assert (cfg.elements.cols - 1) * cfg.elements.pitch_u_mm > 12.0
+    small = _demo_elements_on_sheet(cfg, "2x2")
+    assert (small.elements.cols - 1) * small.elements.pitch_u_mm == pytest.approx(12.0)
+    assert small.elements.cols == cfg.elements.cols and small.zenoh == cfg.zenoh
+    for size in ("5x5", "16x16", "nonsense"):
+        assert _demo_elements_on_sheet(cfg, size) is cfg
