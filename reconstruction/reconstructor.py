@@ -1737,7 +1737,7 @@ class Reconstructor(StretchPatternTwist):
             mirror.mirror = None
         return surf
 
-    def _unread_twist_spread(self, c0: float, twist_sign) -> np.ndarray:
+    def _unread_twist_spread(self, c0: float, twist_sign: float | None) -> np.ndarray:
         """The fine-grid spread (mm) of the twists a sheet two cells across cannot read, from
         the answer's ``c0``: half the farthest reach to a twist within ±the limit
         (UNREAD_TWIST_TURN; of the sign told, from none), the sheet's response to a twist shift
