@@ -639,8 +639,11 @@ class FramePipeline:
             node_sigma = sigma_all[:cells].reshape(nodes.shape[:2])
             node_scatter = scatter_all[:cells].reshape(nodes.shape[:2])
             on = self.elements.on_sheet
-            read = np.full(on.shape, UNKNOWN_SIGMA_MM), np.full(on.shape, UNKNOWN_SIGMA_MM)
-            read[0][on], read[1][on] = sigma_all[cells:], scatter_all[cells:]
+            if on.all():
+                read = sigma_all[cells:], scatter_all[cells:]
+            else:  # (the elements off the sheet: σ unknown)
+                read = np.full(on.shape, UNKNOWN_SIGMA_MM), np.full(on.shape, UNKNOWN_SIGMA_MM)
+                read[0][on], read[1][on] = sigma_all[cells:], scatter_all[cells:]
         else:
             node_sigma = np.asarray(surf.node_sigma, dtype=np.float64)
             node_scatter = np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64)

@@ -92,11 +92,11 @@ def locate_elements(surface: LocatableSurface, layout: ElementLayout,
     k = layout.count
     if k == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    pos, nrm, sig, _ = prior_elements(layout)
     on = layout.on_sheet
-    uv = layout.uv_mm[on]
+    every = bool(on.all())  # (the usual layout: nothing to fill in)
+    uv = layout.uv_mm if every else layout.uv_mm[on]
     if uv.shape[0] == 0:
-        return pos, nrm, sig
+        return prior_elements(layout)[:3]
     out = surface.locate(uv)
     p_on, n_on = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.float64)
     locate_sigma: Any = getattr(surface, "locate_sigma", None)
@@ -108,6 +108,9 @@ def locate_elements(surface: LocatableSurface, layout: ElementLayout,
         s_on = np.asarray(locate_sigma(uv), dtype=np.float64)
     else:
         s_on = np.full(uv.shape[0], np.nan)
+    if every:
+        return p_on + layout.offset_mm[:, None] * n_on, n_on, s_on
+    pos, nrm, sig, _ = prior_elements(layout)
     pos[on] = p_on + layout.offset_mm[on][:, None] * n_on
     nrm[on], sig[on] = n_on, s_on
     return pos, nrm, sig

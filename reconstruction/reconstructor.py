@@ -445,6 +445,9 @@ class Reconstructor(StretchPatternTwist):
         # the largest twist σ reaches on a sheet whose stretch cannot read it (UNREAD_TWIST_TURN)
         self._unread_twist_limit = (UNREAD_TWIST_TURN / (max(self.n, self.m) * self.pitch)
                                     if min(self.n, self.m) < 3 and twist_prior == "open" else 0.0)
+        # the sheet's response |u·v| to a twist shift of one (/mm), where that limit is used
+        self._twist_response = (np.abs(self.grid.v[:, None] * self.grid.u[None, :])
+                                if self._unread_twist_limit > 0.0 else None)
         # what the turning noise makes of the mean curvature product, measured on first use
         # (all-valid field maps; a few dead units change it little)
         self._product_noise: ProductNoise | None = None
@@ -1746,8 +1749,8 @@ class Reconstructor(StretchPatternTwist):
         limit = self._unread_twist_limit
         ends = (0.0, float(twist_sign) * limit) if twist_sign is not None else (-limit, limit)
         reach = max(abs(e - c0) for e in ends)
-        grid = self.grid
-        out = 0.5 * reach * np.abs(grid.v[:, None] * grid.u[None, :])
+        assert self._twist_response is not None
+        out = 0.5 * reach * self._twist_response
         out.flags.writeable = False
         return out
 
