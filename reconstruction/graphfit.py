@@ -586,7 +586,8 @@ class GraphFit:
                 valid, max(int(valid.sum()), 1), float(sigma_t), float(sigma_s))
 
     def fit_warm(self, data: tuple, start: tuple, twist_sign: float | None = None,
-                 linear: Callable[[], tuple[list, list[str]]] | None = None) -> GraphResult:
+                 linear: Callable[[], tuple[list, list[str]]] | None = None,
+                 climbed_over: float = math.inf, refused_over: float = math.inf) -> GraphResult:
         """A few Gauss-Newton steps from the previous frame's accepted graph: ``start`` =
         (its coefficients, those of the graph before it or None).  For a shape in motion the
         linear prediction from the two is tried first.  Where the steps stop with more than
@@ -611,7 +612,8 @@ class GraphFit:
         if not warm.accepted and cells_ok and math.isfinite(out[4]):
             refit = self._misread_refit(data, out, twist_sign, linear)
             return warm if refit is None else refit
-        if not warm.accepted or out[5] <= WARM_UNSETTLED or not cells_ok:
+        climbed = climbed_over < warm.objective <= refused_over
+        if not warm.accepted or not cells_ok or (out[5] <= WARM_UNSETTLED and not climbed):
             return warm
         # the warm steps stopped far from their optimum: the shape has moved faster than they
         # follow, and the chain may hold a basin a fresh start would leave (the linear start,

@@ -55,8 +55,8 @@ from .surface import Diagnostics, FrameState, Surface
 from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, StretchPatternTwist
 from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _given, _half_reach, _larger, _mean_twist_terms, _memo,
                           _mirror_if_distinct, _widened, _with_reading_noise, _with_twist, _within_noise)
-from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, GRAPH_RESOLUTION_SHARE, RESOLUTION_SHARE, SigmaField,
-                          alignment_floor, fine_sigma, gain_sigma, resolution_sigma, sigma_field, stretch_noise_sd,
+from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, RESOLUTION_SHARE, SigmaField,
+                          alignment_floor, fine_sigma, gain_sigma, graph_resolution_share, resolution_sigma, sigma_field, stretch_noise_sd,
                           with_gain)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
@@ -130,6 +130,21 @@ GRAPH_RESCUE_CHI2 = 8.0
 #: objective at the optimum scatters with the noise (a 7×7 chain's cold fits 8.6–18.7), so a
 #: ratio much below 2 refits on noise alone.
 WARM_BASIN_RATIO = 2.0
+#: A warm graph fit whose objective has climbed above this many times the lowest its chain
+#: reached since its last cold fit or linear start (FrameState.graph_lowest), and by more than
+#: WARM_CLIMB_SDS, while the basin test still passes it (skinmapd's yardstick, the chain's last
+#: cold fit, lets a chain climb from far below it), descends the frame's linear start too, and
+#: the lower objective answers (GraphFit.fit_warm).  Both are graphs: no frame is refused for
+#: it.  Two fingertips on a 4×4 membrane every scan: a chain climbed from 21 to 362 while the
+#: cold fits of the same scans stayed at 15-29 and its yardstick, a cold fit at the deepest
+#: press, stood at 483; one node went 0.56 mm off with σ 0.08 (docs/reconstruction.md, *A warm
+#: chain that climbs*).
+WARM_CLIMB_RATIO = 2.0
+#: ... the s.d. of the noise's own part of the objective (half a χ² of 2 per unit, s.d.
+#: √n_valid) it must also have climbed by: where the prior holds the objective low (the 5×5 palm
+#: gesture's warm fits at 2-9), twice the lowest is within the noise, and descending the linear
+#: start there changed which frames were deferred (3-6 more of 400 every scan, 3 seeds).
+WARM_CLIMB_SDS = 1.0
 #: What a warm graph fit's objective is held against (``Reconstructor(warm_basin_yardstick=...)``):
 #: "lowest", the lowest objective its chain has reached since its last cold fit (a chain that
 #: leaves its basin climbs from there, while a cold fit that itself landed high lets it climb
@@ -642,6 +657,7 @@ class Reconstructor(StretchPatternTwist):
         deferred = False
         rescue = False  # a cold graph fit only if the general model's answer misfits (larger sheets)
         measured: list = []
+        fresh_lowest = False  # (a warm chain's yardstick of its climb, WARM_CLIMB_RATIO)
 
         def data_fields() -> tuple:
             # the fields of the measured data, once a frame (the twist carried over and a warm
@@ -675,8 +691,15 @@ class Reconstructor(StretchPatternTwist):
 
             warm = (state.graph, state.graph_before) if state is not None and state.graph is not None else None
             if warm is not None:
-                graph = self._graph.fit_warm(data, warm, twist_sign, linear_start)
                 assert state is not None
+                climbed_over = max(WARM_CLIMB_RATIO * state.graph_lowest,
+                                   state.graph_lowest + WARM_CLIMB_SDS * math.sqrt(n_valid))
+                refused_over = self.warm_basin_ratio * state.graph_reference
+                graph = self._graph.fit_warm(data, warm, twist_sign, linear_start, climbed_over, refused_over)
+                # the frame's linear start descended beside the warm steps (unsettled, or climbed):
+                # its best objective is the chain's lowest from here
+                fresh_lowest = graph.accepted and (graph.how == WARM_LINEAR
+                                                   or climbed_over < graph.objective <= refused_over)
                 reference = state.graph_reference
                 if graph.accepted and graph.objective > self.warm_basin_ratio * reference:
                     graph = graph._replace(accepted=False, how=(
@@ -879,7 +902,7 @@ class Reconstructor(StretchPatternTwist):
                 # the general model's fields misplace curvature that changes at the gauge scale,
                 # and a graph fills it in between the gauges by its prior, less wrongly (a
                 # deferred frame carries the whole term already)
-                share = RESOLUTION_SHARE if fit is not None else GRAPH_RESOLUTION_SHARE
+                share = RESOLUTION_SHARE if fit is not None else graph_resolution_share(grid.n * grid.m)
 
                 def resolution_field() -> np.ndarray:
                     sig_turn = math.sqrt(2.0) * max(strain_sigma, DEFAULT_STRAIN_SIGMA) / (h_u + h_l)
@@ -902,7 +925,11 @@ class Reconstructor(StretchPatternTwist):
                      else graph.objective if graph is not None else math.inf)
         if chained and graph is not None and self.warm_basin_yardstick == "lowest":
             reference = min(reference, graph.objective)
-        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference, graph_objective=graph.objective)
+        lowest = graph.objective if graph is not None else math.inf
+        if chained and previous is not None and not fresh_lowest:
+            lowest = min(previous.state.graph_lowest, lowest)
+        surf.state = (FrameState(graph.coeffs, earlier, graph_reference=reference, graph_objective=graph.objective,
+                                 graph_lowest=lowest)
                       if fit is None and graph is not None
                       else FrameState() if defect is None
                       else FrameState(defect=defect[0], defect_chi2=defect[1], strains=np.stack([eu, el])))
