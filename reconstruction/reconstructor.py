@@ -132,14 +132,17 @@ GRAPH_RESCUE_CHI2 = 8.0
 WARM_BASIN_RATIO = 2.0
 #: A warm graph fit whose objective has climbed above this many times the lowest its chain
 #: reached since its last cold fit or linear start (FrameState.graph_lowest), and by more than
-#: WARM_CLIMB_SDS, while the basin test still passes it (skinmapd's yardstick, the chain's last
-#: cold fit, lets a chain climb from far below it), descends the frame's linear start too, and
-#: the lower objective answers (GraphFit.fit_warm).  Both are graphs: no frame is refused for
-#: it.  Two fingertips on a 4×4 membrane every scan: a chain climbed from 21 to 362 while the
-#: cold fits of the same scans stayed at 15-29 and its yardstick, a cold fit at the deepest
-#: press, stood at 483; one node went 0.56 mm off with σ 0.08 (docs/reconstruction.md, *A warm
-#: chain that climbs*).
-WARM_CLIMB_RATIO = 2.0
+#: WARM_CLIMB_SDS, while the basin test still passes it, descends the frame's linear start too,
+#: and the lower objective answers (GraphFit.fit_warm).  Both are graphs: no frame is refused
+#: for it, so a ratio below the basin test's costs a descent where the noise alone climbed, not
+#: an answer.  Two fingertips on a 4×4 membrane every scan in skinmapd (whose yardstick is the
+#: chain's last cold fit): a chain climbed from 21 to 362 while the cold fits of the same scans
+#: stayed at 15-29 and its yardstick, a cold fit at the deepest press, stood at 483; one node
+#: went 0.56 mm off with σ 0.08.  A bump circling over 8×8, 40 frames a turn, each warm from the
+#: one before (the library's yardstick): corner nodes 0.34-0.48 mm off with σ 0.09-0.1 at 1.4-1.9
+#: times the lowest, 5 frames beyond 3σ + 0.05 mm; with 1.5, none (docs/reconstruction.md, *A
+#: warm chain that climbs*).
+WARM_CLIMB_RATIO = 1.5
 #: ... the s.d. of the noise's own part of the objective (half a χ² of 2 per unit, s.d.
 #: √n_valid) it must also have climbed by: where the prior holds the objective low (the 5×5 palm
 #: gesture's warm fits at 2-9), twice the lowest is within the noise, and descending the linear

@@ -116,7 +116,7 @@ def test_a_warm_chain_that_follows_another_basin_is_caught_and_a_moving_dent_sta
     reached (WARM_CLIMB_RATIO) descend the frame's linear start too.  With none the chain
     wandered to 0.186 mm mean, 0.35 max (each frame cold: 0.019, 0.053); with the basin test
     alone 0.019, 0.060 (5 cold refits); with the linear start beside an unsettled fit alone 0.037
-    mean, but one frame 0.21 off; with the climb alone 0.021, 0.058; with all three 0.019, 0.060."""
+    mean, but one frame 0.21 off; with the climb alone 0.021, 0.053; with all three 0.017, 0.053."""
     if guard in ("basin test alone", "climb alone", "none"):
         monkeypatch.setattr(graphfit, "WARM_UNSETTLED", math.inf)
     if guard in ("basin test alone", "linear start alone", "none"):
