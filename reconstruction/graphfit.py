@@ -594,8 +594,11 @@ class GraphFit:
         :data:`WARM_UNSETTLED` still to take, the linear start is descended too (sheets of up to
         :data:`MAX_CELLS` cells) and the lower objective answers; where they stop with the gauges
         misread (not accepted), the linear start descended so answers if it is accepted, else
-        :data:`WARM_MORE_STEPS` steps more from where the warm steps stopped.  ``linear``: gives
-        :meth:`cold_starts` of ``data`` (a caller that needs it too computes it once)."""
+        :data:`WARM_MORE_STEPS` steps more from where the warm steps stopped.  The linear start is
+        also descended where the warm objective lies in (``climbed_over``, ``refused_over``]: it
+        has climbed far above its chain's lowest while its basin test would still pass it
+        (reconstructor.WARM_CLIMB_RATIO).  ``linear``: gives :meth:`cold_starts` of ``data`` (a
+        caller that needs it too computes it once)."""
         turning, stretch, w_t, w_s, _, n_valid, sigma_t, _ = data
         if np.shape(start[0]) != (self.size,):
             raise ValueError(f"a warm start needs {self.size} coefficients, got shape {np.shape(start[0])}")

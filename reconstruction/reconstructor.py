@@ -56,8 +56,8 @@ from .stretchtwist import MEMBRANE_SIGN_RATIO, OPEN_SIGMAS, TWIST_PRIORS, Stretc
 from .twistfamily import (MIRROR_FLOOR_MM, MIRROR_SIGMAS, _given, _half_reach, _larger, _mean_twist_terms, _memo,
                           _mirror_if_distinct, _widened, _with_reading_noise, _with_twist, _within_noise)
 from .uncertainty import (DEFAULT_GAIN_SD, DEFAULT_STRAIN_SIGMA, RESOLUTION_SHARE, SigmaField,
-                          alignment_floor, fine_sigma, gain_sigma, graph_resolution_share, resolution_sigma, sigma_field, stretch_noise_sd,
-                          with_gain)
+                          alignment_floor, fine_sigma, gain_sigma, graph_resolution_share, resolution_sigma, sigma_field,
+                          stretch_noise_sd, with_gain)
 
 __all__ = ["reconstruct", "decouple", "Reconstructor", "Surface", "FrameState", "Diagnostics", "DEFAULT_STRAIN_SIGMA",
            "DEFAULT_GAIN_SD",
@@ -145,8 +145,8 @@ WARM_BASIN_RATIO = 2.0
 WARM_CLIMB_RATIO = 1.5
 #: ... the s.d. of the noise's own part of the objective (half a χ² of 2 per unit, s.d.
 #: √n_valid) it must also have climbed by: where the prior holds the objective low (the 5×5 palm
-#: gesture's warm fits at 2-9), twice the lowest is within the noise, and descending the linear
-#: start there changed which frames were deferred (3-6 more of 400 every scan, 3 seeds).
+#: gesture's warm fits at 2-9), a few times the lowest is within the noise, and descending the
+#: linear start there changed which frames were deferred (3-6 more of 400 every scan, 3 seeds).
 WARM_CLIMB_SDS = 1.0
 #: What a warm graph fit's objective is held against (``Reconstructor(warm_basin_yardstick=...)``):
 #: "lowest", the lowest objective its chain has reached since its last cold fit (a chain that

@@ -180,9 +180,9 @@ class FrameState:
     # (reconstructor.WARM_BASIN_RATIO)
     graph_reference: float = math.inf
     graph_objective: float = math.inf  # this frame's graph fit's objective (data misfit and prior)
-    # the lowest objective the graph chain has reached since its last cold fit (whatever its
-    # yardstick): a warm fit that has climbed far above it descends the frame's linear start too
-    # (reconstructor.WARM_CLIMB_RATIO)
+    # the lowest objective the graph chain has reached since its last cold fit or linear start
+    # (whatever its yardstick): a warm fit that has climbed far above it descends the frame's
+    # linear start too (reconstructor.WARM_CLIMB_RATIO)
     graph_lowest: float = math.inf
     position: np.ndarray | None = None  # the position fit's coefficients (elastic prior on)
     # the general model's defect correction, (2, 2, N, M): what its answer's input added to the

@@ -25,8 +25,8 @@ from .leaveout import IllConditioned
 from .linalg import FixedSolver
 
 __all__ = ["stretch_noise_sd", "plane_slopes", "height_response", "fine_sigma", "resolution_sigma", "SigmaField", "sigma_field",
-           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "graph_resolution_share", "alignment_floor", "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD",
-           "gain_sigma", "with_gain", "response_lag_sigma"]
+           "RESOLUTION_SHARE", "GRAPH_RESOLUTION_SHARE", "graph_resolution_share", "alignment_floor",
+           "DEFAULT_STRAIN_SIGMA", "DEFAULT_GAIN_SD", "gain_sigma", "with_gain", "response_lag_sigma"]
 
 #: Default strain-noise s.d. of one gauge: resistance noise 0.007 % of R over a gauge factor
 #: of 1.24 gives 0.0057 % strain.
@@ -58,10 +58,10 @@ GRAPH_RESOLUTION_SHARE = 0.1
 #: 3 (4×4), 2 (4×5), 2 (4×6, worst 1.01), none at 3×8, 4×8, 5×5 and 6×6 (worst 0.57-0.86); with
 #: a fifth, one (3×3, 1.34).  The share 0.1·(25/cells)^1.5, at most 0.3, brings each within.
 GRAPH_SHARE_CELLS = 25
+GRAPH_SHARE_MAX = 0.3
 #: The bend radius (mm) whose turning a frame with no unit read at all is uncertain by: the
 #: tightest sphere the reconstruction is specified for (R 50 mm), not a flat sheet's.
 NO_READING_BEND_RADIUS_MM = 50.0
-GRAPH_SHARE_MAX = 0.3
 
 
 def graph_resolution_share(cells: int) -> float:
