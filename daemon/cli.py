@@ -100,12 +100,14 @@ def _demo_elements_on_sheet(cfg: Any, size: str) -> Any:
     size is left for the emulator to refuse."""
     import dataclasses
 
+    from skinmap.emulator.device import ScannerSpec
+
     try:
         _, m = (int(x) for x in size.lower().split("x"))
     except ValueError:
         return cfg
     el = cfg.elements
-    span = (m - 1) * (cfg.reconstruction.pitch_mm or 12.0)
+    span = (m - 1) * (cfg.reconstruction.pitch_mm or ScannerSpec().pitch_mm)  # (0: the emulated scanner's)
     if el.layout != "grid" or el.cols < 2 or (el.cols - 1) * el.pitch_u_mm <= span:
         return cfg
     pitch = span / (el.cols - 1)

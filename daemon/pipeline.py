@@ -639,7 +639,7 @@ class FramePipeline:
             node_sigma = sigma_all[:cells].reshape(nodes.shape[:2])
             node_scatter = scatter_all[:cells].reshape(nodes.shape[:2])
             on = self.elements.on_sheet
-            if on.all():
+            if self.elements.all_on_sheet:
                 read = sigma_all[cells:], scatter_all[cells:]
             else:  # (the elements off the sheet: σ unknown)
                 read = np.full(on.shape, UNKNOWN_SIGMA_MM), np.full(on.shape, UNKNOWN_SIGMA_MM)
@@ -649,7 +649,9 @@ class FramePipeline:
             node_scatter = np.asarray(getattr(surf, "node_scatter_sigma", node_sigma), dtype=np.float64)
         node_scatter = np.fmin(node_scatter, node_sigma)  # (a part of σ: never above it)
         t_sigma = time.perf_counter()
-        pos, nrm, sig = locate_elements(surf, self.elements, None if read is None else read[0][self.elements.on_sheet])
+        located_sigma = (None if read is None else read[0] if self.elements.all_on_sheet
+                         else read[0][self.elements.on_sheet])
+        pos, nrm, sig = locate_elements(surf, self.elements, located_sigma)
         # (a surface that tells no σ by position, or no elements: the scatter is σ itself, never less)
         scatter = np.fmin(read[1], sig) if read is not None else sig
         lag_mm = 0.0

@@ -7,6 +7,7 @@ frame (docs/architecture.md); ``offset_mm`` moves an element along the upper nor
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Protocol
 
 import numpy as np
@@ -52,6 +53,11 @@ class ElementLayout:
     def count(self) -> int:
         return int(self.uv_mm.shape[0])
 
+    @cached_property
+    def all_on_sheet(self) -> bool:
+        """Whether every element is on the sheet (the usual layout: nothing to fill in)."""
+        return bool(self.on_sheet.all())
+
     @property
     def located_uv(self) -> np.ndarray:
         """(L, 2) the material coordinates of the elements on the sheet."""
@@ -93,7 +99,7 @@ def locate_elements(surface: LocatableSurface, layout: ElementLayout,
     if k == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
     on = layout.on_sheet
-    every = bool(on.all())  # (the usual layout: nothing to fill in)
+    every = layout.all_on_sheet
     uv = layout.uv_mm if every else layout.uv_mm[on]
     if uv.shape[0] == 0:
         return prior_elements(layout)[:3]
